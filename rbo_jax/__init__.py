@@ -1,0 +1,24 @@
+"""rbo_jax: differentiable JAX physics of the rigid body oscillator (turn-vector formulation).
+
+Importing the package enables float64 in JAX (see :mod:`rbo_jax._precision` and the README).
+"""
+
+import importlib.metadata
+
+from ._precision import enable_float64_by_default as _enable_float64_by_default
+
+_enable_float64_by_default()
+
+from ._precision import float64_enabled as float64_enabled  # noqa: E402
+from .kinematics import compose as compose  # noqa: E402
+from .kinematics import composition_invariants as composition_invariants  # noqa: E402
+from .kinematics import distance_to_singularity as distance_to_singularity  # noqa: E402
+from .kinematics import integrating_tensor as integrating_tensor  # noqa: E402
+from .kinematics import integrating_tensor_det as integrating_tensor_det  # noqa: E402
+from .kinematics import integrating_tensor_inv as integrating_tensor_inv  # noqa: E402
+from .kinematics import skew as skew  # noqa: E402
+from .kinematics import turn_tensor as turn_tensor  # noqa: E402
+from .kinematics import turn_vector as turn_vector  # noqa: E402
+from .kinematics import vector_invariant as vector_invariant  # noqa: E402
+
+__version__ = importlib.metadata.version("rbo_jax")

@@ -1,0 +1,407 @@
+r"""Kinematics of the turn-vector: section 4.2 of the paper.
+
+A turn of the body is described by the turn-vector $\theta = \theta n$ ($|n| = 1$) and by the
+turn-tensor $Q(\theta) = \exp(\theta\times E)$, eq. (4.3). The integrating tensor $Z(\theta)$,
+eq. (4.11), maps the left angular velocity to the rate of the turn-vector, $\dot\theta = Z\cdot\omega$
+(4.10); its transpose maps the right angular velocity, $\dot\theta = Z^T\cdot\Omega$ (4.14).
+
+Conventions: every function takes a single, unbatched input (a ``(3,)`` vector or a ``(3, 3)``
+tensor) and is jit-, vmap- and grad-compatible; batch with ``jax.vmap``. Tensors are stored as
+matrices in an orthonormal basis, with ``(a \times E)`` the skew matrix of ``a`` (Appendix A).
+
+Numerical care (cf. jaxlie ``_so3.py``): every coefficient that is singular-looking at $\theta = 0$
+(``sin θ/θ``, ``(1 − cos θ)/θ²``, ...) is an analytic function of $t = \theta\cdot\theta$. It is
+evaluated by its Taylor polynomial in ``t`` for ``t < 1`` and by the closed form otherwise, with
+the *double-where* trick so that neither branch produces a NaN in the forward or the reverse pass.
+The Taylor polynomials are carried to machine precision at the hand-over point, so values and
+derivatives of all orders are exact at $\theta = 0$ and show no accuracy dip anywhere.
+"""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import jax.numpy as jnp
+
+from ._custom_types import Matrix, MatrixLike, Scalar, Vector, VectorLike
+
+__all__ = [
+    "skew",
+    "vector_invariant",
+    "turn_tensor",
+    "turn_vector",
+    "compose",
+    "composition_invariants",
+    "integrating_tensor",
+    "integrating_tensor_inv",
+    "integrating_tensor_det",
+    "distance_to_singularity",
+]
+
+# --------------------------------------------------------------------------------------------
+# Input checking (trace-time, on shapes).
+# --------------------------------------------------------------------------------------------
+
+
+def _as_float_array(x, shape: tuple[int, ...], name: str):
+    x = jnp.asarray(x)
+    if x.shape != shape:
+        raise ValueError(
+            f"{name} must have shape {shape}, got {x.shape}. rbo_jax functions take a single "
+            "(unbatched) input: use jax.vmap for batches."
+        )
+    if not jnp.issubdtype(x.dtype, jnp.inexact):
+        x = x.astype(jnp.result_type(float))
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise TypeError(f"{name} must be real, got dtype {x.dtype}.")
+    return x
+
+
+def _as_vector(x, name: str = "theta") -> Vector:
+    return _as_float_array(x, (3,), name)
+
+
+def _as_matrix(x, name: str = "Q") -> Matrix:
+    return _as_float_array(x, (3, 3), name)
+
+
+# --------------------------------------------------------------------------------------------
+# Safe coefficient functions of t = θ·θ.
+# --------------------------------------------------------------------------------------------
+
+# Hand-over point of the Taylor branches, in t = θ². Each series below is carried until its
+# remainder at t = _T_SWITCH is below 1e-17 (relative), so both branches agree to rounding there.
+_T_SWITCH = 1.0
+
+
+def _bernoulli(n_max: int) -> list[Fraction]:
+    """Bernoulli numbers B_0..B_{n_max} (B_1 = -1/2), exact."""
+    b = [Fraction(1)]
+    for m in range(1, n_max + 1):
+        b.append(-sum(math.comb(m + 1, k) * b[k] for k in range(m)) / (m + 1))
+    return b
+
+
+def _coeffs(f, n: int) -> tuple[float, ...]:
+    return tuple(float(f(i)) for i in range(n))
+
+
+_B = _bernoulli(40)
+# sin θ/θ = Σ (−t)^n/(2n+1)!
+_SINC = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n + 1)), 11)
+# (1 − cos θ)/θ² = Σ (−t)^n/(2n+2)!
+_COSC = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n + 2)), 11)
+# (θ − sin θ)/θ³ = Σ (−t)^n/(2n+3)!
+_SINC3 = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n + 3)), 11)
+# cos θ = Σ (−t)^n/(2n)!
+_COS = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n)), 12)
+# (1 − g)/θ², g = (θ/2)cot(θ/2) = Σ (−1)^n B_2n θ^2n/(2n)!  (ERRATA 3: → 1/12 at θ = 0)
+_GCOEF = _coeffs(lambda n: (-1) ** n * _B[2 * n + 2] / math.factorial(2 * n + 2), 16)
+# atan(x)/x = Σ (−x²)^n/(2n+1), used by the logarithm with x² < _X2_SWITCH
+_ATANC = _coeffs(lambda n: Fraction((-1) ** n, 2 * n + 1), 11)
+_X2_SWITCH = 1e-2
+
+
+def _horner(coeffs: tuple[float, ...], t):
+    out = jnp.full_like(t, coeffs[-1])
+    for c in reversed(coeffs[:-1]):
+        out = out * t + c
+    return out
+
+
+def _series_or_closed_form(t, coeffs, closed_form, switch=_T_SWITCH):
+    """Taylor polynomial for ``t < switch``, ``closed_form(t)`` otherwise (double where).
+
+    Both branches are fed inputs on which they are finite, so that the branch not taken
+    cannot inject NaN into the gradient.
+    """
+    small = t < switch
+    t_series = jnp.where(small, t, jnp.zeros_like(t))
+    t_closed = jnp.where(small, jnp.full_like(t, switch), t)
+    return jnp.where(small, _horner(coeffs, t_series), closed_form(t_closed))
+
+
+def _sinc(t):
+    """sin θ/θ as a function of t = θ²."""
+
+    def closed(t):
+        th = jnp.sqrt(t)
+        return jnp.sin(th) / th
+
+    return _series_or_closed_form(t, _SINC, closed)
+
+
+def _cosc(t):
+    """(1 − cos θ)/θ² as a function of t = θ² (closed form 2 sin²(θ/2)/θ², no cancellation)."""
+
+    def closed(t):
+        h = 0.5 * jnp.sqrt(t)
+        return 0.5 * (jnp.sin(h) / h) ** 2
+
+    return _series_or_closed_form(t, _COSC, closed)
+
+
+def _sinc3(t):
+    """(θ − sin θ)/θ³ as a function of t = θ²."""
+
+    def closed(t):
+        th = jnp.sqrt(t)
+        return (th - jnp.sin(th)) / (th * t)
+
+    return _series_or_closed_form(t, _SINC3, closed)
+
+
+def _cos(t):
+    """cos θ as a function of t = θ² (smooth at θ = 0, unlike cos(sqrt(t)))."""
+    return _series_or_closed_form(t, _COS, lambda t: jnp.cos(jnp.sqrt(t)))
+
+
+def _gcoef(t):
+    """(1 − g)/θ² with g = θ sin θ / (2(1 − cos θ)) = (θ/2)cot(θ/2), eq. (4.11).
+
+    Singular at θ = 2πk, k ≥ 1, where 1 − cos θ = 0: Z itself is singular there.
+    """
+
+    def closed(t):
+        h = 0.5 * jnp.sqrt(t)
+        g = h * jnp.cos(h) / jnp.sin(h)
+        return (1.0 - g) / t
+
+    return _series_or_closed_form(t, _GCOEF, closed)
+
+
+def _safe_norm(v):
+    """|v| with a zero (not NaN) gradient at v = 0."""
+    t = jnp.dot(v, v)
+    pos = t > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, t, jnp.ones_like(t))), jnp.zeros_like(t))
+
+
+# --------------------------------------------------------------------------------------------
+# Tensor helpers.
+# --------------------------------------------------------------------------------------------
+
+
+def skew(a: VectorLike) -> Matrix:
+    r"""The skew tensor $a\times E$: $(a\times E)\cdot b = a\times b$ (Appendix A, eq. (4.4))."""
+    a = _as_vector(a, "a")
+    z = jnp.zeros_like(a[0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -a[2], a[1]]),
+            jnp.stack([a[2], z, -a[0]]),
+            jnp.stack([-a[1], a[0], z]),
+        ]
+    )
+
+
+def vector_invariant(T: MatrixLike) -> Vector:
+    r"""The vector invariant $T_\times$ of a second-rank tensor, $(a\otimes b)_\times = a\times b$.
+
+    With this convention $(a\times E)_\times = -2a$ and, for a turn-tensor,
+    $-Q(\theta)_\times = 2\,\frac{\sin\theta}{\theta}\,\theta$ (left-hand side of (4.7)).
+    """
+    T = _as_matrix(T, "T")
+    return jnp.stack([T[1, 2] - T[2, 1], T[2, 0] - T[0, 2], T[0, 1] - T[1, 0]])
+
+
+def _r_squared(theta, t):
+    """R² = θ⊗θ − θ² E, eq. (4.4)."""
+    return jnp.outer(theta, theta) - t * jnp.eye(3, dtype=theta.dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# Turn-tensor and turn-vector.
+# --------------------------------------------------------------------------------------------
+
+
+def turn_tensor(theta: VectorLike) -> Matrix:
+    r"""Turn-tensor $Q(\theta) = E + \frac{\sin\theta}{\theta}R + \frac{1-\cos\theta}{\theta^2}R^2
+    = \exp R$, $R = \theta\times E$, eqs. (4.1), (4.3), (4.4).
+
+    Exact (values and all derivatives) at $\theta = 0$; valid for every $\theta$, the angle is
+    not reduced.
+    """
+    theta = _as_vector(theta)
+    t = jnp.dot(theta, theta)
+    eye = jnp.eye(3, dtype=theta.dtype)
+    return eye + _sinc(t) * skew(theta) + _cosc(t) * _r_squared(theta, t)
+
+
+def _quaternion(theta):
+    """Unit quaternion (w, v) = (cos(θ/2), sin(θ/2)/θ · θ) of the turn-vector θ (half-angle form
+    of (4.3))."""
+    t = jnp.dot(theta, theta)
+    return _cos(0.25 * t), 0.5 * _sinc(0.25 * t) * theta
+
+
+def _log_quaternion(w, v):
+    r"""Principal turn-vector ($|\theta| \le \pi$) of the unit quaternion $(w, v)$.
+
+    $\theta = 2\,\mathrm{atan2}(|v|, w)/|v| \cdot v$ after choosing the sign with $w \ge 0$. The
+    factor $\mathrm{atan2}(s, w)/s$ is evaluated by the series of $\arctan(x)/x$, $x = s/w$, near
+    the identity and by its closed form elsewhere (double where); it stays well conditioned at
+    $\theta = \pi$ ($w = 0$).
+    """
+    sign = jnp.where(w < 0, -jnp.ones_like(w), jnp.ones_like(w))
+    w = sign * w
+    v = sign * v
+    s2 = jnp.dot(v, v)
+    small = s2 < _X2_SWITCH * w * w
+    w_safe = jnp.where(small, w, jnp.ones_like(w))
+    x2 = jnp.where(small, s2, jnp.zeros_like(s2)) / (w_safe * w_safe)
+    series = _horner(_ATANC, x2) / w_safe
+    s_safe = jnp.sqrt(jnp.where(small, jnp.ones_like(s2), s2))
+    closed = jnp.arctan2(s_safe, w) / s_safe
+    return 2.0 * jnp.where(small, series, closed) * v
+
+
+def turn_vector(Q: MatrixLike) -> Vector:
+    r"""The principal turn-vector $\theta$, $|\theta| \le \pi$, with $Q(\theta) = Q$: the inverse
+    of :func:`turn_tensor` (4.3) on rotations.
+
+    Goes through the unit quaternion, extracted with Shepperd's branch choice (the largest of
+    $1 + \mathrm{tr}\,Q$ and $1 + 2Q_{ii} - \mathrm{tr}\,Q$ is the pivot), so it is accurate for every
+    rotation, including angles at and near $\pi$, where the vector invariant $Q_\times$ of (4.7)
+    loses the axis. At exactly $|\theta| = \pi$ either of $\pm\theta$ may be returned.
+    ``Q`` is assumed orthogonal with determinant +1; small deviations are projected away by
+    normalising the quaternion. Non-finite input gives non-finite output.
+    """
+    m = _as_matrix(Q, "Q")
+    d0, d1, d2 = m[0, 0], m[1, 1], m[2, 2]
+    a, b, c = m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]  # 4w(x, y, z)
+    xy, xz, yz = m[1, 0] + m[0, 1], m[0, 2] + m[2, 0], m[2, 1] + m[1, 2]  # 4(xy, xz, yz)
+    ts = jnp.stack([1 + d0 + d1 + d2, 1 + d0 - d1 - d2, 1 - d0 + d1 - d2, 1 - d0 - d1 + d2])
+    qs = jnp.stack(
+        [
+            jnp.stack([ts[0], a, b, c]),
+            jnp.stack([a, ts[1], xy, xz]),
+            jnp.stack([b, xy, ts[2], yz]),
+            jnp.stack([c, xz, yz, ts[3]]),
+        ]
+    )
+    i = jnp.argmax(ts)
+    q = qs[i]
+    # Pivot ≥ 1 for a rotation (the four t's sum to 4), so this normalisation is safe.
+    q = q / jnp.sqrt(jnp.dot(q, q))
+    return _log_quaternion(q[0], q[1:])
+
+
+def composition_invariants(phi: VectorLike, psi: VectorLike) -> tuple[Scalar, Vector]:
+    r"""The invariants of the composed turn $Q(\theta) = Q(\varphi)\cdot Q(\psi)$, eqs. (4.6)–(4.7).
+
+    Returns $(\cos\theta,\ \frac{\sin\theta}{\theta}\theta)$ with, as corrected in ERRATA 1–2,
+
+    $1 + 2\cos\theta = \cos\varphi + \cos\psi + \cos\varphi\cos\psi
+      - 2\frac{\sin\varphi\sin\psi}{\varphi\psi}\,\varphi\cdot\psi
+      + \frac{1-\cos\varphi}{\varphi^2}\frac{1-\cos\psi}{\psi^2}(\varphi\cdot\psi)^2$  (4.6)
+
+    $2\frac{\sin\theta}{\theta}\theta
+      = \big[\tfrac{\sin\varphi}{\varphi}(1+\cos\psi)
+             - \tfrac{1-\cos\varphi}{\varphi^2}\tfrac{\sin\psi}{\psi}\varphi\cdot\psi\big]\varphi
+      + \big[\tfrac{\sin\psi}{\psi}(1+\cos\varphi)
+             - \tfrac{1-\cos\psi}{\psi^2}\tfrac{\sin\varphi}{\varphi}\varphi\cdot\psi\big]\psi
+      + \big[\tfrac{\sin\varphi\sin\psi}{\varphi\psi}
+             - \tfrac{1-\cos\varphi}{\varphi^2}\tfrac{1-\cos\psi}{\psi^2}\varphi\cdot\psi\big]
+        \varphi\times\psi$  (4.7)
+
+    These determine $\theta$ up to the branch, but lose the axis near $\theta = \pi$ (where
+    $\sin\theta \to 0$); :func:`compose` therefore uses their half-angle form.
+    """
+    phi = _as_vector(phi, "phi")
+    psi = _as_vector(psi, "psi")
+    tp, tq = jnp.dot(phi, phi), jnp.dot(psi, psi)
+    sp, sq = _sinc(tp), _sinc(tq)
+    cp, cq = _cosc(tp), _cosc(tq)
+    cos_p, cos_q = _cos(tp), _cos(tq)
+    pq = jnp.dot(phi, psi)
+    cos_theta = 0.5 * (cos_p + cos_q + cos_p * cos_q - 2.0 * sp * sq * pq + cp * cq * pq**2 - 1.0)
+    vec = (
+        (sp * (1.0 + cos_q) - cp * sq * pq) * phi
+        + (sq * (1.0 + cos_p) - cq * sp * pq) * psi
+        + (sp * sq - cp * cq * pq) * jnp.cross(phi, psi)
+    )
+    return cos_theta, 0.5 * vec
+
+
+def compose(phi: VectorLike, psi: VectorLike) -> Vector:
+    r"""The principal turn-vector $\theta$ ($|\theta| \le \pi$) with
+    $Q(\theta) = Q(\varphi)\cdot Q(\psi)$, eq. (4.5).
+
+    Computed from (4.6)–(4.7) in their half-angle form: dividing (4.7) by $4\cos(\theta/2)$ and
+    writing (4.6) for $\cos(\theta/2)$ gives the Euler–Rodrigues (quaternion) product
+
+    $\cos\frac\theta2 = \cos\frac\varphi2\cos\frac\psi2 - \sin\frac\varphi2\sin\frac\psi2\,
+      n_\varphi\cdot n_\psi$,
+    $\sin\frac\theta2\,n_\theta = \cos\frac\psi2\sin\frac\varphi2\,n_\varphi
+      + \cos\frac\varphi2\sin\frac\psi2\,n_\psi + \sin\frac\varphi2\sin\frac\psi2\,
+      n_\varphi\times n_\psi$,
+
+    which, unlike (4.6)–(4.7) themselves (:func:`composition_invariants`), stays well
+    conditioned when the composed angle is near $\pi$. Agrees with
+    ``turn_vector(turn_tensor(phi) @ turn_tensor(psi))``.
+    """
+    phi = _as_vector(phi, "phi")
+    psi = _as_vector(psi, "psi")
+    w1, v1 = _quaternion(phi)
+    w2, v2 = _quaternion(psi)
+    w = w1 * w2 - jnp.dot(v1, v2)
+    v = w1 * v2 + w2 * v1 + jnp.cross(v1, v2)
+    return _log_quaternion(w, v)
+
+
+# --------------------------------------------------------------------------------------------
+# Integrating tensor.
+# --------------------------------------------------------------------------------------------
+
+
+def integrating_tensor(theta: VectorLike) -> Matrix:
+    r"""Integrating tensor $Z(\theta) = E - \frac12 R + \frac{1-g}{\theta^2}R^2$,
+    $g = \frac{\theta\sin\theta}{2(1-\cos\theta)}$, eq. (4.11).
+
+    $\dot\theta = Z\cdot\omega$ (4.10), $\dot\theta = Z^T\cdot\Omega$ (4.14). Near $\theta = 0$,
+    $(1-g)/\theta^2 = 1/12 + \theta^2/720 + \dots$ (ERRATA 3). Singular at $|\theta| = 2\pi k$,
+    $k \ge 1$ (see :func:`distance_to_singularity`), where the result is non-finite.
+    """
+    theta = _as_vector(theta)
+    t = jnp.dot(theta, theta)
+    eye = jnp.eye(3, dtype=theta.dtype)
+    return eye - 0.5 * skew(theta) + _gcoef(t) * _r_squared(theta, t)
+
+
+def integrating_tensor_inv(theta: VectorLike) -> Matrix:
+    r"""Inverse integrating tensor
+    $Z^{-1}(\theta) = E + \frac{1-\cos\theta}{\theta^2}R + \frac{\theta-\sin\theta}{\theta^3}R^2$,
+    eq. (4.20) (Appendix B, (4.123)).
+
+    $\omega = Z^{-1}\cdot\dot\theta$, $\Omega = Z^{-T}\cdot\dot\theta$ (4.19). Finite everywhere;
+    singular (not invertible) at $|\theta| = 2\pi k$, $k \ge 1$.
+    """
+    theta = _as_vector(theta)
+    t = jnp.dot(theta, theta)
+    eye = jnp.eye(3, dtype=theta.dtype)
+    return eye + _cosc(t) * skew(theta) + _sinc3(t) * _r_squared(theta, t)
+
+
+def integrating_tensor_det(theta: VectorLike) -> Scalar:
+    r"""$\det Z(\theta) = \frac{\theta^2}{2(1-\cos\theta)}$ (after (4.11); ERRATA 3).
+
+    Equal to 1 at $\theta = 0$ and infinite at $|\theta| = 2\pi k$, $k \ge 1$.
+    """
+    theta = _as_vector(theta)
+    return 0.5 / _cosc(jnp.dot(theta, theta))
+
+
+def distance_to_singularity(theta: VectorLike) -> Scalar:
+    r"""Distance $\min_{k\ge1} \big|\,|\theta| - 2\pi k\,\big|$ from $\theta$ to the nearest
+    singular sphere of $Z(\theta)$ (4.11).
+
+    The equations of motion (4.54)/(4.56) break down there unless $\theta\times\omega = 0$; the
+    simulator uses this to stop cleanly.
+    """
+    theta = _as_vector(theta)
+    n = _safe_norm(theta)
+    two_pi = 2.0 * jnp.pi
+    k = jnp.maximum(jnp.round(n / two_pi), 1.0)
+    return jnp.abs(n - two_pi * k)

@@ -1,0 +1,17 @@
+"""Strict test configuration (cf. diffrax ``test/conftest.py``): float64 and no rank promotion."""
+
+import os
+
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
+import hypothesis  # noqa: E402
+
+hypothesis.settings.register_profile(
+    "rbo", max_examples=60, deadline=None, derandomize=True, print_blob=True
+)
+hypothesis.settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "rbo"))

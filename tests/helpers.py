@@ -1,0 +1,42 @@
+"""Shared test helpers (cf. diffrax ``test/helpers.py`` and optimistix ``tests/helpers.py``)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def tree_allclose(x, y, *, rtol=1e-12, atol=1e-12) -> bool:
+    """Whether two pytrees have the same structure and all leaves are close."""
+    xs, xd = jax.tree_util.tree_flatten(x)
+    ys, yd = jax.tree_util.tree_flatten(y)
+    if xd != yd:
+        return False
+    return all(np.allclose(np.asarray(a), np.asarray(b), rtol=rtol, atol=atol) for a, b in zip(xs, ys))
+
+
+def finite_difference_jacobian(f, x, *, scale=1.0, order=4):
+    """Central finite-difference Jacobian of ``f`` at ``x`` (a 1-D array), ε = eps^(1/3)·scale for
+    order 2 or eps^(1/5)·scale for order 4 (the optimal step of each stencil)."""
+    x = jnp.asarray(x, dtype=jnp.float64)
+    eps = np.finfo(np.float64).eps
+    h = (eps ** (1 / 5) if order == 4 else eps ** (1 / 3)) * scale
+    cols = []
+    for i in range(x.size):
+        e = jnp.zeros_like(x).at[i].set(h)
+        if order == 4:
+            d = (-f(x + 2 * e) + 8 * f(x + e) - 8 * f(x - e) + f(x - 2 * e)) / (12 * h)
+        else:
+            d = (f(x + e) - f(x - e)) / (2 * h)
+        cols.append(jnp.asarray(d))
+    return jnp.stack(cols, axis=-1)
+
+
+def random_rotation_vectors(key, n, max_angle=jnp.pi):
+    """n turn-vectors with uniformly random axes and angles in [0, max_angle)."""
+    k1, k2 = jax.random.split(key)
+    axes = jax.random.normal(k1, (n, 3))
+    axes = axes / jnp.linalg.norm(axes, axis=1, keepdims=True)
+    angles = jax.random.uniform(k2, (n, 1), maxval=max_angle)
+    return axes * angles
