@@ -10,6 +10,17 @@ from ._precision import enable_float64_by_default as _enable_float64_by_default
 _enable_float64_by_default()
 
 from ._precision import float64_enabled as float64_enabled  # noqa: E402
+from .foundations import AbstractFoundation as AbstractFoundation  # noqa: E402
+from .foundations import BarrierFoundation as BarrierFoundation  # noqa: E402
+from .foundations import IsotropicFoundation as IsotropicFoundation  # noqa: E402
+from .foundations import QuadraticFoundation as QuadraticFoundation  # noqa: E402
+from .foundations import SumFoundation as SumFoundation  # noqa: E402
+from .foundations import TransverselyIsotropicFoundation as TransverselyIsotropicFoundation  # noqa: E402
+from .foundations import potential_moment as potential_moment  # noqa: E402
+from .foundations import transverse_coefficients as transverse_coefficients  # noqa: E402
+from .inertia import check_inertia as check_inertia  # noqa: E402
+from .inertia import principal_inertia as principal_inertia  # noqa: E402
+from .inertia import transversely_isotropic_inertia as transversely_isotropic_inertia  # noqa: E402
 from .kinematics import compose as compose  # noqa: E402
 from .kinematics import composition_invariants as composition_invariants  # noqa: E402
 from .kinematics import distance_to_singularity as distance_to_singularity  # noqa: E402
@@ -20,5 +31,13 @@ from .kinematics import skew as skew  # noqa: E402
 from .kinematics import turn_tensor as turn_tensor  # noqa: E402
 from .kinematics import turn_vector as turn_vector  # noqa: E402
 from .kinematics import vector_invariant as vector_invariant  # noqa: E402
+from .loads import AbstractLoad as AbstractLoad  # noqa: E402
+from .loads import CallableLoad as CallableLoad  # noqa: E402
+from .loads import DeadMoment as DeadMoment  # noqa: E402
+from .loads import FollowerMoment as FollowerMoment  # noqa: E402
+from .loads import Friction as Friction  # noqa: E402
+from .loads import PotentialLoad as PotentialLoad  # noqa: E402
+from .loads import SemiTangentialMoment as SemiTangentialMoment  # noqa: E402
+from .loads import as_load as as_load  # noqa: E402
 
 __version__ = importlib.metadata.version("rbo_jax")

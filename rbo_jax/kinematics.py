@@ -172,10 +172,11 @@ def _gcoef(t):
 
 
 def _safe_norm(v):
-    """|v| with a zero (not NaN) gradient at v = 0."""
+    """|v| with a zero (not NaN) gradient at v = 0; NaN/inf in ``v`` give NaN/inf (the test is
+    ``t == 0``, not ``t > 0``, which would map a NaN ``v`` to 0)."""
     t = jnp.dot(v, v)
-    pos = t > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, t, jnp.ones_like(t))), jnp.zeros_like(t))
+    zero = t == 0
+    return jnp.where(zero, jnp.zeros_like(t), jnp.sqrt(jnp.where(zero, jnp.ones_like(t), t)))
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,501 @@
+r"""Elastic foundations: the energy $U(\theta)$ and its potential moment, sections 4.2.3 and 4.3.
+
+A foundation is an :class:`equinox.Module` holding its stiffness parameters as differentiable
+float array leaves. Every foundation provides
+
+- ``energy(theta)``: the formula $U(\theta)$ itself, with no domain check. It is traceable,
+  differentiable and cheap: use it inside ODE vector fields and loss functions;
+- ``domain_margin(theta)``: a dimensionless scalar, $> 0$ strictly inside the domain of
+  definition of the formula and $\le 0$ outside ($+\infty$ where the formula holds everywhere);
+- ``foundation(theta)``: the energy with a domain check (:func:`equinox.error_if`), for users.
+
+The moment exerted on the body is $M_e = -Z^T(\theta)\cdot dU/d\theta$, eqs. (4.23)/(4.46); it is
+computed by automatic differentiation for any energy with :func:`potential_moment`. For the
+transversely isotropic energies (4.24) it has the form (4.47),
+$M_e = -C\theta - D\,Z^T\cdot k$, with the coefficients $C$, $D$ of (4.48) returned by
+:func:`transverse_coefficients`.
+
+Parameters may be given as Python/NumPy numbers (validated eagerly: bad values raise
+``ValueError`` naming the parameter) or as traced JAX values (foundations may be built inside
+``jax.vmap``/``jax.jit``/``jax.grad``; bad values then raise at run time via
+:func:`equinox.error_if`). Unit axes ``k`` are normalised on construction. All parameters are
+stored as float arrays, so changing their values never triggers a recompilation.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
+from .kinematics import _as_vector, integrating_tensor
+
+__all__ = [
+    "AbstractFoundation",
+    "QuadraticFoundation",
+    "BarrierFoundation",
+    "IsotropicFoundation",
+    "TransverselyIsotropicFoundation",
+    "SumFoundation",
+    "potential_moment",
+    "transverse_coefficients",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Parameter validation, shared with loads.py and inertia.py.
+# --------------------------------------------------------------------------------------------
+
+
+def _float_dtype():
+    """float64 when x64 is enabled (the rbo_jax default), float32 otherwise (no warning)."""
+    return jnp.result_type(float)
+
+
+def _is_traced(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _check(x, valid, message: str):
+    """Validate ``x`` (an array) given ``valid`` (a boolean array computed from it).
+
+    Concrete values raise ``ValueError(message)`` now; traced values are wrapped in
+    :func:`equinox.error_if`, which raises when the computation runs.
+    """
+    if _is_traced(valid):
+        return eqx.error_if(x, jnp.logical_not(jnp.all(valid)), message)
+    if not bool(np.all(np.asarray(valid))):
+        raise ValueError(f"{message}, got {np.asarray(x).tolist()!r}")
+    return x
+
+
+def _scalar_parameter(
+    x: ScalarLike,
+    name: str,
+    owner: str,
+    requirement: str = "",
+    valid: Callable | None = None,
+) -> Scalar:
+    """``x`` as a float scalar array, checked with ``valid`` (described by ``requirement``).
+
+    Non-finite values are always refused unless ``valid`` says otherwise.
+    """
+    x = jnp.asarray(x)
+    if x.shape != ():
+        raise ValueError(
+            f"{owner}: the parameter {name} must be a scalar, got shape {x.shape}. rbo_jax "
+            "objects hold a single parameter set: use jax.vmap to build batches."
+        )
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise TypeError(f"{owner}: the parameter {name} must be real, got dtype {x.dtype}.")
+    x = x.astype(_float_dtype())
+    if valid is None:
+        return _check(x, jnp.isfinite(x), f"{owner}: the parameter {name} must be finite")
+    return _check(x, valid(x), f"{owner}: the parameter {name} must be {requirement}")
+
+
+def _positive(x):
+    return (x > 0) & jnp.isfinite(x)
+
+
+def _positive_or_inf(x):
+    return x > 0
+
+
+def _nonnegative(x):
+    return (x >= 0) & jnp.isfinite(x)
+
+
+def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
+    """A user callable stored as a module field.
+
+    Equinox Modules (and other pytrees such as ``jax.tree_util.Partial``) are kept as they are,
+    so their float leaves stay differentiable parameters. A plain function is wrapped in
+    ``jax.tree_util.Partial``, which makes it part of the tree *structure* rather than a leaf:
+    the object then passes through plain ``jax.jit``/``jax.vmap`` as well as the ``eqx.filter_*``
+    transformations (calling it is unchanged).
+    """
+    if not callable(fn):
+        raise TypeError(f"{owner}: {name} must be callable, got {type(fn).__name__}.")
+    if isinstance(fn, (eqx.Module, jax.tree_util.Partial)):
+        return fn
+    return jax.tree_util.Partial(fn)
+
+
+def _unit_axis(k: VectorLike, owner: str, name: str = "k") -> Vector:
+    """The axis ``k`` normalised to unit length; a zero or non-finite axis is refused."""
+    k = jnp.asarray(k)
+    if k.shape != (3,):
+        raise ValueError(
+            f"{owner}: the axis {name} must have shape (3,), got {k.shape}. rbo_jax objects "
+            "hold a single parameter set: use jax.vmap to build batches."
+        )
+    if jnp.issubdtype(k.dtype, jnp.complexfloating):
+        raise TypeError(f"{owner}: the axis {name} must be real, got dtype {k.dtype}.")
+    k = k.astype(_float_dtype())
+    k2 = jnp.dot(k, k)
+    k = _check(
+        k, (k2 > 0) & jnp.isfinite(k2), f"{owner}: the axis {name} must be a nonzero finite vector"
+    )
+    return k / jnp.sqrt(k2)
+
+
+# --------------------------------------------------------------------------------------------
+# Foundations.
+# --------------------------------------------------------------------------------------------
+
+
+def _axial_split(theta, k):
+    r"""$x = k\cdot\theta$ and $\theta_\perp^2 = |\theta - x k|^2 = \theta^2 - (k\cdot\theta)^2$.
+
+    The perpendicular part is formed before squaring, which avoids the cancellation of
+    $\theta^2 - (k\cdot\theta)^2$ when $\theta$ is nearly parallel to $k$.
+    """
+    x = jnp.dot(k, theta)
+    perp = theta - x * k
+    return x, jnp.dot(perp, perp)
+
+
+class AbstractFoundation(eqx.Module):
+    r"""An elastic foundation: an energy $U(\theta)$ of the turn-vector (section 4.3).
+
+    Subclasses implement :meth:`energy` and :meth:`domain_margin` and may set the class
+    attribute ``domain_description`` (used in error messages). Calling the foundation,
+    ``foundation(theta)``, returns the energy and raises (:func:`equinox.error_if`) when
+    ``theta`` lies outside the domain of definition. Foundations add up: ``f + g`` is a
+    :class:`SumFoundation`.
+    """
+
+    domain_description: ClassVar[str] = "domain_margin(theta) > 0"
+
+    @abc.abstractmethod
+    def energy(self, theta: VectorLike) -> Scalar:
+        r"""The energy $U(\theta)$: the raw formula, no domain check (traceable)."""
+
+    @abc.abstractmethod
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        r"""$> 0$ strictly inside the domain of definition of :meth:`energy`, $\le 0$
+        outside; ``inf`` for energies defined everywhere."""
+
+    def __call__(self, theta: VectorLike) -> Scalar:
+        """The energy U(θ), raising an error when θ is outside the domain of definition.
+
+        Inside ``jax.jit`` the error is raised when the computation runs (``equinox.error_if``).
+        """
+        theta = _as_vector(theta)
+        energy = self.energy(theta)
+        return eqx.error_if(
+            energy,
+            self.domain_margin(theta) <= 0,
+            f"theta is outside the domain of definition of the energy of {_describe(self)}.",
+        )
+
+    def __add__(self, other):
+        if not isinstance(other, AbstractFoundation):
+            return NotImplemented
+        return SumFoundation((self, other))
+
+
+def _describe(foundation: AbstractFoundation) -> str:
+    if isinstance(foundation, SumFoundation):
+        return "SumFoundation (" + "; ".join(_describe(f) for f in foundation.terms) + ")"
+    return f"{type(foundation).__name__}, which requires {foundation.domain_description}"
+
+
+class QuadraticFoundation(AbstractFoundation):
+    r"""The quadratic transversely isotropic foundation, eq. (4.50):
+
+    $U = \tfrac12 c\,(\theta^2 - (k\cdot\theta)^2) + \tfrac12 d\,(k\cdot\theta)^2$,
+
+    with bending stiffness $c > 0$, torsional stiffness $d > 0$ and unit axis $k$. Its moment
+    is (4.51), $M_e = -c\theta - (d - c)(k\cdot\theta)\,Z^T(\theta)\cdot k$. Defined everywhere.
+    """
+
+    c: Scalar
+    d: Scalar
+    k: Vector
+
+    domain_description: ClassVar[str] = "nothing (it is defined everywhere)"
+
+    def __init__(self, c: ScalarLike, d: ScalarLike, k: VectorLike):
+        name = type(self).__name__
+        self.c = _scalar_parameter(c, "c", name, "> 0 (bending stiffness)", _positive)
+        self.d = _scalar_parameter(d, "d", name, "> 0 (torsional stiffness)", _positive)
+        self.k = _unit_axis(k, name)
+
+    def energy(self, theta: VectorLike) -> Scalar:
+        """U of eq. (4.50)."""
+        theta = _as_vector(theta)
+        x, perp2 = _axial_split(theta, self.k)
+        return 0.5 * self.c * perp2 + 0.5 * self.d * x**2
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return jnp.full((), jnp.inf, dtype=theta.dtype)
+
+
+class BarrierFoundation(AbstractFoundation):
+    r"""The transversely isotropic foundation with barriers, eq. (4.49):
+
+    $U = \frac12\frac{\alpha^2 c\,\theta^2}{\alpha^2 - \theta^2 + (k\cdot\theta)^2}
+       + \frac12\frac{\beta^2 (d - c)(k\cdot\theta)^2}{\beta^2 - (k\cdot\theta)^2}$,
+
+    with $\alpha^2$ = ``alpha**2``, $\beta^2$ = ``beta**2``, $c, d > 0$ and unit axis $k$.
+
+    Reading of (4.49): implemented exactly as printed — the first numerator carries the full
+    $\theta^2$ (not $\theta_\perp^2 = \theta^2 - (k\cdot\theta)^2$) and the second carries
+    $(d - c)$. As $\alpha, \beta \to \infty$ this gives $\frac12 c\theta^2 +
+    \frac12(d - c)(k\cdot\theta)^2$, which is (4.50), as the text states; replacing $\theta^2$
+    by $\theta_\perp^2$ in the first numerator would *not* reduce to (4.50) with this second
+    term. ``alpha = inf`` / ``beta = inf`` switch the corresponding barrier off (the formula is
+    coded as $\frac12 c\theta^2/(1 - \theta_\perp^2/\alpha^2) + \dots$, exactly (4.50) then).
+
+    Note that the torsional term has the sign of $d - c$: for $d < c$ it tends to $-\infty$ at
+    the torsion barrier. The domain of definition is $\theta_\perp^2 < \alpha^2$ and
+    $(k\cdot\theta)^2 < \beta^2$; :meth:`domain_margin` is
+    $\min\big((\alpha^2 - \theta_\perp^2)/\alpha^2,\ (\beta^2 - (k\cdot\theta)^2)/\beta^2\big)$.
+    """
+
+    c: Scalar
+    d: Scalar
+    alpha: Scalar
+    beta: Scalar
+    k: Vector
+
+    domain_description: ClassVar[str] = (
+        "theta^2 - (k.theta)^2 < alpha^2 (bending barrier) and (k.theta)^2 < beta^2 "
+        "(torsion barrier), eq. (4.49)"
+    )
+
+    def __init__(
+        self,
+        c: ScalarLike,
+        d: ScalarLike,
+        alpha: ScalarLike,
+        beta: ScalarLike,
+        k: VectorLike,
+    ):
+        name = type(self).__name__
+        self.c = _scalar_parameter(c, "c", name, "> 0 (bending stiffness)", _positive)
+        self.d = _scalar_parameter(d, "d", name, "> 0 (torsional stiffness)", _positive)
+        self.alpha = _scalar_parameter(
+            alpha, "alpha", name, "> 0 (bending barrier; inf switches it off)", _positive_or_inf
+        )
+        self.beta = _scalar_parameter(
+            beta, "beta", name, "> 0 (torsion barrier; inf switches it off)", _positive_or_inf
+        )
+        self.k = _unit_axis(k, name)
+
+    def _reduced(self, theta):
+        """x = k·θ, θ² and the barrier factors 1 − θ_⊥²/α², 1 − x²/β²."""
+        # alpha**-2 rather than 1/alpha**2: finite derivatives at alpha = inf too.
+        x, perp2 = _axial_split(theta, self.k)
+        t = perp2 + x**2
+        a = 1.0 - perp2 * self.alpha**-2
+        b = 1.0 - x**2 * self.beta**-2
+        return x, t, a, b
+
+    def energy(self, theta: VectorLike) -> Scalar:
+        """U of eq. (4.49) (no domain check)."""
+        theta = _as_vector(theta)
+        x, t, a, b = self._reduced(theta)
+        return 0.5 * self.c * t / a + 0.5 * (self.d - self.c) * x**2 / b
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        _, _, a, b = self._reduced(theta)
+        return jnp.minimum(a, b)
+
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        r"""$C$ and $D$ of (4.48) for (4.49), in closed form:
+
+        $C = c\,(1 + x^2/\alpha^2)/(1 - \theta_\perp^2/\alpha^2)^2$,
+        $D = -c\,\theta^2 x/\big(\alpha^2(1 - \theta_\perp^2/\alpha^2)^2\big)
+             + (d - c)\,x/(1 - x^2/\beta^2)^2$, $x = k\cdot\theta$.
+        """
+        theta = _as_vector(theta)
+        x, t, a, b = self._reduced(theta)
+        C = self.c * (1.0 + x**2 * self.alpha**-2) / a**2
+        D = -self.c * t * x * self.alpha**-2 / a**2 + (self.d - self.c) * x / b**2
+        return C, D
+
+
+class IsotropicFoundation(AbstractFoundation):
+    r"""An isotropic foundation $U = F(\theta^2)$, $\theta^2 = \theta\cdot\theta$ (section 4.2.3).
+
+    ``F`` maps a scalar to a scalar. Its moment is $M_e = -2F'(\theta^2)\,\theta$; it satisfies
+    $(a - Q(\theta)\cdot a)\cdot M_e = 0$ for every $a$ (after (4.26)). If ``F`` is an
+    :class:`equinox.Module`, its float leaves are differentiable parameters. Defined
+    everywhere (as far as this class knows).
+    """
+
+    F: Callable[[Scalar], Scalar]
+
+    domain_description: ClassVar[str] = "nothing (it is treated as defined everywhere)"
+
+    def __init__(self, F: Callable[[Scalar], Scalar]):
+        self.F = _callable_leaf(F, "IsotropicFoundation", "F")
+
+    def energy(self, theta: VectorLike) -> Scalar:
+        r"""$U = F(\theta\cdot\theta)$."""
+        theta = _as_vector(theta)
+        return _as_scalar_output(self.F(jnp.dot(theta, theta)), "IsotropicFoundation: F")
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return jnp.full((), jnp.inf, dtype=theta.dtype)
+
+
+class TransverselyIsotropicFoundation(AbstractFoundation):
+    r"""A transversely isotropic foundation $U = F(k\cdot\theta, \theta^2)$, eq. (4.24).
+
+    ``F(x, t)`` takes $x = k\cdot\theta$ and $t = \theta^2$ in this order, as in (4.24). The
+    moment is (4.25), $M_e = -2\,\partial F/\partial(\theta^2)\,\theta
+    - \partial F/\partial(k\cdot\theta)\,Z^T\cdot k$, and satisfies $(k - Q(\theta)\cdot k)\cdot
+    M_e = 0$ (4.26). If ``F`` is an :class:`equinox.Module`, its float leaves are differentiable
+    parameters. Treated as defined everywhere.
+    """
+
+    F: Callable[[Scalar, Scalar], Scalar]
+    k: Vector
+
+    domain_description: ClassVar[str] = "nothing (it is treated as defined everywhere)"
+
+    def __init__(self, F: Callable[[Scalar, Scalar], Scalar], k: VectorLike):
+        name = type(self).__name__
+        self.F = _callable_leaf(F, name, "F")
+        self.k = _unit_axis(k, name)
+
+    def energy(self, theta: VectorLike) -> Scalar:
+        r"""$U = F(k\cdot\theta, \theta\cdot\theta)$, eq. (4.24)."""
+        theta = _as_vector(theta)
+        return _as_scalar_output(
+            self.F(jnp.dot(self.k, theta), jnp.dot(theta, theta)),
+            "TransverselyIsotropicFoundation: F",
+        )
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return jnp.full((), jnp.inf, dtype=theta.dtype)
+
+
+class SumFoundation(AbstractFoundation):
+    """The sum of several foundations: energies add, the domain margin is the smallest margin.
+
+    Built by ``f + g``; nested sums are flattened.
+    """
+
+    terms: tuple[AbstractFoundation, ...]
+
+    def __init__(self, terms):
+        terms = tuple(terms)
+        if len(terms) == 0:
+            raise ValueError("SumFoundation: terms must contain at least one foundation.")
+        flat = []
+        for term in terms:
+            if isinstance(term, SumFoundation):
+                flat.extend(term.terms)
+            elif isinstance(term, AbstractFoundation):
+                flat.append(term)
+            else:
+                raise TypeError(
+                    "SumFoundation: every term must be an AbstractFoundation, got "
+                    f"{type(term).__name__}."
+                )
+        self.terms = tuple(flat)
+
+    def energy(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return sum((f.energy(theta) for f in self.terms[1:]), self.terms[0].energy(theta))
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return jnp.min(jnp.stack([f.domain_margin(theta) for f in self.terms]))
+
+
+def _as_scalar_output(u, what: str) -> Scalar:
+    u = jnp.asarray(u)
+    if u.shape != ():
+        raise ValueError(f"{what} must return a scalar, got shape {u.shape}.")
+    return u
+
+
+# --------------------------------------------------------------------------------------------
+# Potential moment.
+# --------------------------------------------------------------------------------------------
+
+
+def potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> Vector:
+    r"""The potential moment $M = -Z^T(\theta)\cdot\frac{dU}{d\theta}$, eqs. (4.23), (4.46).
+
+    ``U`` is any scalar function of the turn-vector; $dU/d\theta$ is obtained by automatic
+    differentiation. The result is the world-frame moment whose power is $M\cdot\omega =
+    -\dot U$ (4.21). ``U`` is called as given: for a foundation, ``potential_moment(f, theta)``
+    includes the domain check of ``f(theta)``, while ``potential_moment(f.energy, theta)``
+    differentiates the raw formula (what ODE vector fields should use).
+    """
+    theta = _as_vector(theta)
+    grad = jax.grad(lambda th: _as_scalar_output(U(th), "potential_moment: U"))(theta)
+    return -(grad @ integrating_tensor(theta))
+
+
+def transverse_coefficients(foundation: AbstractFoundation, theta: VectorLike):
+    r"""The functions $C$ and $D$ of eq. (4.48) for a transversely isotropic foundation:
+
+    $C = 2\,\partial U/\partial(\theta^2)$, $D = \partial U/\partial(k\cdot\theta)$,
+
+    so that the elastic moment is (4.47), $M_e = -C\theta - D\,Z^T(\theta)\cdot k$. Returns the
+    pair ``(C, D)``.
+
+    - :class:`QuadraticFoundation` (4.50): $C = c$, $D = (d - c)\,k\cdot\theta$ (4.51);
+    - :class:`BarrierFoundation` (4.49): closed forms, see
+      :meth:`BarrierFoundation.coefficients`;
+    - :class:`TransverselyIsotropicFoundation` (4.24): from ``F`` by automatic differentiation;
+    - :class:`IsotropicFoundation`: $C = 2F'(\theta^2)$, $D = 0$;
+    - :class:`SumFoundation`: the sums, provided all transversely isotropic terms share the
+      same axis $k$ (checked with :func:`equinox.error_if`).
+
+    A user-defined :class:`AbstractFoundation` raises ``TypeError``: wrap the energy as a
+    :class:`TransverselyIsotropicFoundation` instead.
+    """
+    theta = _as_vector(theta)
+    if isinstance(foundation, QuadraticFoundation):
+        x = jnp.dot(foundation.k, theta)
+        return foundation.c, (foundation.d - foundation.c) * x
+    if isinstance(foundation, BarrierFoundation):
+        return foundation.coefficients(theta)
+    if isinstance(foundation, TransverselyIsotropicFoundation):
+        x, t = jnp.dot(foundation.k, theta), jnp.dot(theta, theta)
+        D, dF_dt = jax.grad(
+            lambda x_, t_: _as_scalar_output(foundation.F(x_, t_), "F"), argnums=(0, 1)
+        )(x, t)
+        return 2.0 * dF_dt, D
+    if isinstance(foundation, IsotropicFoundation):
+        t = jnp.dot(theta, theta)
+        dF_dt = jax.grad(lambda t_: _as_scalar_output(foundation.F(t_), "F"))(t)
+        return 2.0 * dF_dt, jnp.zeros_like(dF_dt)
+    if isinstance(foundation, SumFoundation):
+        coefficients = [transverse_coefficients(f, theta) for f in foundation.terms]
+        C = sum(c for c, _ in coefficients[1:]) + coefficients[0][0]
+        D = sum(d for _, d in coefficients[1:]) + coefficients[0][1]
+        axes = [f.k for f in foundation.terms if not isinstance(f, IsotropicFoundation)]
+        if len(axes) > 1:
+            mismatch = jnp.max(jnp.stack([jnp.max(jnp.abs(a - axes[0])) for a in axes[1:]]))
+            D = eqx.error_if(
+                D,
+                mismatch > 1e-12,
+                "transverse_coefficients: the transversely isotropic terms of the SumFoundation "
+                "have different axes k, so its moment is not of the form (4.47).",
+            )
+        return C, D
+    raise TypeError(
+        "transverse_coefficients: expected a QuadraticFoundation, BarrierFoundation, "
+        "TransverselyIsotropicFoundation, IsotropicFoundation or a SumFoundation of them, got "
+        f"{type(foundation).__name__}."
+    )

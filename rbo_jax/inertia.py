@@ -1,0 +1,115 @@
+r"""The inertia tensor $A$ of the body about its fixed point, eqs. (4.39)–(4.40).
+
+$A$ is stored as a ``(3, 3)`` matrix in the reference (body) basis. The model accepts any
+symmetric positive definite $A$; these helpers build one from principal moments and axes and
+validate a given one. All are differentiable in their float inputs and accept traced values
+(validation then goes through :func:`equinox.error_if`); concrete bad input raises
+``ValueError`` at once.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._custom_types import Matrix, MatrixLike, ScalarLike, VectorLike
+from .foundations import _check, _float_dtype, _is_traced, _positive, _scalar_parameter, _unit_axis
+
+__all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia"]
+
+# Relative tolerances of the checks (rounding of matrices built from rotated axes is ~1e-16).
+_SYMMETRY_RTOL = 1e-10
+_ORTHONORMAL_ATOL = 1e-10
+
+
+def _float_matrix(x, name: str, owner: str) -> Matrix:
+    x = jnp.asarray(x)
+    if x.shape != (3, 3):
+        raise ValueError(f"{owner}: {name} must have shape (3, 3), got {x.shape}.")
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise TypeError(f"{owner}: {name} must be real, got dtype {x.dtype}.")
+    return x.astype(_float_dtype())
+
+
+def transversely_isotropic_inertia(A1: ScalarLike, A3: ScalarLike, k: VectorLike) -> Matrix:
+    r"""The transversely isotropic inertia tensor $A = A_1(E - k\otimes k) + A_3\,k\otimes k$,
+    eq. (4.40): symmetry axis $d_3 = k$ (normalised here), $A_1 = A_2 > 0$, $A_3 > 0$."""
+    owner = "transversely_isotropic_inertia"
+    A1 = _scalar_parameter(A1, "A1", owner, "> 0 (principal moment of inertia)", _positive)
+    A3 = _scalar_parameter(A3, "A3", owner, "> 0 (principal moment of inertia)", _positive)
+    k = _unit_axis(k, owner)
+    kk = jnp.outer(k, k)
+    return A1 * (jnp.eye(3, dtype=kk.dtype) - kk) + A3 * kk
+
+
+def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
+    r"""$A = \sum_i A_i\,d_i\otimes d_i$, eq. (4.39), from the principal moments
+    ``moments`` $= (A_1, A_2, A_3)$, all $> 0$, and the principal axes, the **rows** of
+    ``axes`` ($d_i$ = ``axes[i]``), which must be orthonormal (to 1e-10)."""
+    owner = "principal_inertia"
+    moments = jnp.asarray(moments)
+    if moments.shape != (3,):
+        raise ValueError(f"{owner}: moments must have shape (3,), got {moments.shape}.")
+    moments = moments.astype(_float_dtype())
+    moments = _check(
+        moments,
+        _positive(moments),
+        f"{owner}: the principal moments of inertia (moments) must all be > 0 and finite",
+    )
+    axes = _float_matrix(axes, "axes", owner)
+    error = jnp.max(jnp.abs(axes @ axes.T - jnp.eye(3, dtype=axes.dtype)))
+    axes = _check(
+        axes,
+        error <= _ORTHONORMAL_ATOL,
+        f"{owner}: the principal axes (rows of axes) must be orthonormal (|D D^T - E| <= "
+        f"{_ORTHONORMAL_ATOL})",
+    )
+    return axes.T @ (moments[:, None] * axes)
+
+
+def check_inertia(A: MatrixLike) -> Matrix:
+    r"""``A`` as a float ``(3, 3)`` array, after checking that it is an inertia tensor: finite,
+    symmetric (to a relative 1e-10) and positive definite (eq. (4.39): $A_i > 0$).
+
+    Concrete input raises ``ValueError`` saying which property fails (for positive
+    definiteness, with the smallest eigenvalue); traced input is checked with
+    :func:`equinox.branched_error_if`. Physical realisability (the triangle inequalities
+    $A_i \le A_j + A_k$) is not required.
+    """
+    owner = "check_inertia"
+    A = _float_matrix(A, "the inertia tensor A", owner)
+    finite = jnp.all(jnp.isfinite(A))
+    scale = jnp.max(jnp.abs(A))
+    asymmetry = jnp.max(jnp.abs(A - A.T))
+    symmetric = asymmetry <= _SYMMETRY_RTOL * scale
+    # NaN-safe eigenvalues: only evaluated on a finite matrix.
+    A_safe = jnp.where(finite, A, jnp.eye(3, dtype=A.dtype))
+    smallest = jnp.linalg.eigvalsh(0.5 * (A_safe + A_safe.T))[0]
+    positive = smallest > 0
+    if any(_is_traced(v) for v in (finite, symmetric, positive)):
+        index = jnp.where(~finite, 0, jnp.where(~symmetric, 1, 2))
+        return eqx.branched_error_if(
+            A,
+            ~(finite & symmetric & positive),
+            index,
+            [
+                f"{owner}: the inertia tensor A must be finite.",
+                f"{owner}: the inertia tensor A must be symmetric (|A - A^T| <= "
+                f"{_SYMMETRY_RTOL} max|A|).",
+                f"{owner}: the inertia tensor A must be positive definite.",
+            ],
+        )
+    if not bool(finite):
+        raise ValueError(f"{owner}: the inertia tensor A must be finite, got {np.asarray(A)!r}.")
+    if not bool(symmetric):
+        raise ValueError(
+            f"{owner}: the inertia tensor A must be symmetric, but max|A - A^T| = "
+            f"{float(asymmetry):.3g} (relative tolerance {_SYMMETRY_RTOL}); got {np.asarray(A)!r}."
+        )
+    if not bool(positive):
+        raise ValueError(
+            f"{owner}: the inertia tensor A must be positive definite, but its smallest "
+            f"eigenvalue is {float(smallest):.6g}; got {np.asarray(A)!r}."
+        )
+    return A

@@ -1,0 +1,252 @@
+r"""External moments $M_{ex}$ acting on the body: sections 4.3–4.6.
+
+Every load is an :class:`equinox.Module` with
+
+- ``moment(t, theta, omega)``: the moment as a **world-frame** (spatial) vector, as a function
+  of the time ``t``, the turn-vector ``theta`` and the **left** (world-frame) angular velocity
+  ``omega`` $= \omega = P\cdot\Omega$, $P = Q(\theta)$;
+- ``potential_energy(theta)``: the potential $V(\theta)$ of the load if it has one (4.52), else
+  0. A load with a potential is $M = -Z^T\cdot dV/d\theta$, eq. (4.23).
+
+Parameters are float array leaves (differentiable, sweepable); unit axes ``k`` are normalised
+on construction. Concrete parameters are validated eagerly (``ValueError`` naming the parameter),
+traced ones with :func:`equinox.error_if`, exactly as the foundations
+(:mod:`rbo_jax.foundations`).
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
+from .foundations import (
+    AbstractFoundation,
+    _callable_leaf,
+    _check,
+    _float_dtype,
+    _nonnegative,
+    _scalar_parameter,
+    _unit_axis,
+    potential_moment,
+)
+from .kinematics import _as_vector, turn_tensor
+
+__all__ = [
+    "AbstractLoad",
+    "DeadMoment",
+    "FollowerMoment",
+    "SemiTangentialMoment",
+    "Friction",
+    "PotentialLoad",
+    "CallableLoad",
+    "as_load",
+]
+
+
+def _zero():
+    return jnp.zeros((), dtype=_float_dtype())
+
+
+class AbstractLoad(eqx.Module):
+    """An external moment acting on the body (world frame)."""
+
+    @abc.abstractmethod
+    def moment(self, t: ScalarLike, theta: VectorLike, omega: VectorLike) -> Vector:
+        r"""The world-frame moment at time ``t``, turn-vector ``theta`` and left angular
+        velocity ``omega``."""
+
+    @abc.abstractmethod
+    def potential_energy(self, theta: VectorLike) -> Scalar:
+        r"""The potential $V(\theta)$ of the load, eq. (4.52); 0 for non-potential loads."""
+
+
+class DeadMoment(AbstractLoad):
+    r"""A dead moment of fixed world direction, $M_{ex} = M k$: (4.75) with $l_1 = 1$, $l_2 = 0$.
+
+    Not potential (its work depends on the path), so ``potential_energy`` is 0.
+    """
+
+    M: Scalar
+    k: Vector
+
+    def __init__(self, M: ScalarLike, k: VectorLike):
+        self.M = _scalar_parameter(M, "M", type(self).__name__)
+        self.k = _unit_axis(k, type(self).__name__)
+
+    def moment(self, t, theta, omega) -> Vector:
+        """M k, eq. (4.75) with l1 = 1, l2 = 0."""
+        return self.M * self.k
+
+    def potential_energy(self, theta) -> Scalar:
+        return _zero()
+
+
+class FollowerMoment(AbstractLoad):
+    r"""A follower (tangential) moment turning with the body, $M_{ex} = M\,P\cdot k$,
+    $P = Q(\theta)$, eq. (4.57); (4.75) with $l_1 = 0$, $l_2 = 1$.
+
+    Non-conservative (the source of the Nikolai paradox, section 4.4); ``potential_energy`` is 0.
+    """
+
+    M: Scalar
+    k: Vector
+
+    def __init__(self, M: ScalarLike, k: VectorLike):
+        self.M = _scalar_parameter(M, "M", type(self).__name__)
+        self.k = _unit_axis(k, type(self).__name__)
+
+    def moment(self, t, theta, omega) -> Vector:
+        """M P(θ)·k, eq. (4.57)."""
+        theta = _as_vector(theta)
+        return self.M * (turn_tensor(theta) @ self.k)
+
+    def potential_energy(self, theta) -> Scalar:
+        return _zero()
+
+
+class SemiTangentialMoment(AbstractLoad):
+    r"""The moment of eq. (4.75): $M_{ex} = \gamma M\,(l_1 k + l_2 P\cdot k)$,
+    $\gamma = (l_1^2 + l_2^2 + 2 l_1 l_2\,k\cdot P\cdot k)^{-1/2}$ (ERRATA 9), so that
+    $|M_{ex}| = |M|$.
+
+    $l_1 = l_2 = 1$ (the default) is the semi-tangential moment; $(1, 0)$ is dead and $(0, 1)$
+    follower. Since $|P\cdot k| = 1$, $\gamma^{-2} = |l_1 k + l_2 P\cdot k|^2$, which is how it is
+    evaluated (no cancellation in the direction near the degenerate point).
+
+    The direction is undefined where $l_1 k + l_2 P\cdot k = 0$, i.e. $|l_1| = |l_2|$ and
+    $P\cdot k = -\mathrm{sign}(l_1 l_2)\,k$ (for the semi-tangential moment: the axis turned
+    upside down). There :meth:`moment` raises via :func:`equinox.error_if` instead of returning
+    NaN or a meaningless direction.
+    """
+
+    M: Scalar
+    k: Vector
+    l1: Scalar
+    l2: Scalar
+
+    def __init__(self, M: ScalarLike, k: VectorLike, l1: ScalarLike = 1.0, l2: ScalarLike = 1.0):
+        name = type(self).__name__
+        self.M = _scalar_parameter(M, "M", name)
+        self.k = _unit_axis(k, name)
+        l1 = _scalar_parameter(l1, "l1", name)
+        l2 = _scalar_parameter(l2, "l2", name)
+        self.l1 = _check(
+            l1, (l1 != 0) | (l2 != 0), f"{name}: the parameters l1 and l2 must not both be zero"
+        )
+        self.l2 = l2
+
+    def gamma(self, theta: VectorLike) -> Scalar:
+        r"""$\gamma = (l_1^2 + l_2^2 + 2l_1l_2\,k\cdot P\cdot k)^{-1/2}$ of eq. (4.75)."""
+        _, norm = self._direction(_as_vector(theta))
+        return 1.0 / norm
+
+    def _direction(self, theta):
+        v = self.l1 * self.k + self.l2 * (turn_tensor(theta) @ self.k)
+        n2 = jnp.dot(v, v)
+        # |v| is zero only at the degenerate configuration; the rounding floor of v is
+        # ~eps(|l1| + |l2|). Double where: no NaN in the reverse pass at v = 0.
+        tol = 64 * jnp.finfo(n2.dtype).eps * (jnp.abs(self.l1) + jnp.abs(self.l2))
+        degenerate = n2 <= tol**2
+        norm = jnp.sqrt(jnp.where(degenerate, jnp.ones_like(n2), n2))
+        norm = eqx.error_if(
+            norm,
+            degenerate,
+            "SemiTangentialMoment: l1 k + l2 P.k = 0 (|l1| = |l2| and the turned axis P.k is "
+            "-sign(l1 l2) k), so the direction of the moment (4.75) is undefined.",
+        )
+        return v, norm
+
+    def moment(self, t, theta, omega) -> Vector:
+        """γM(l1 k + l2 P·k), eq. (4.75)."""
+        v, norm = self._direction(_as_vector(theta))
+        return (self.M / norm) * v
+
+    def potential_energy(self, theta) -> Scalar:
+        return _zero()
+
+
+class Friction(AbstractLoad):
+    r"""Viscous friction $M_{ex} = -b\,\omega$, $b \ge 0$, eq. (4.84) (left angular velocity)."""
+
+    b: Scalar
+
+    def __init__(self, b: ScalarLike):
+        self.b = _scalar_parameter(b, "b", type(self).__name__, ">= 0 (friction)", _nonnegative)
+
+    def moment(self, t, theta, omega) -> Vector:
+        """−b ω, eq. (4.84)."""
+        return -self.b * _as_vector(omega, "omega")
+
+    def potential_energy(self, theta) -> Scalar:
+        return _zero()
+
+
+class PotentialLoad(AbstractLoad):
+    r"""The potential part of the external moment, $-Z^T(\theta)\cdot dV/d\theta$, eq. (4.52).
+
+    ``V`` is any scalar function of the turn-vector (a foundation included); the moment is
+    :func:`rbo_jax.potential_moment` of ``V`` and ``potential_energy`` is $V(\theta)$.
+    """
+
+    V: Callable[[Vector], Scalar]
+
+    def __init__(self, V: Callable[[Vector], Scalar]):
+        self.V = _callable_leaf(V, "PotentialLoad", "V")
+
+    def moment(self, t, theta, omega) -> Vector:
+        """−Zᵀ·dV/dθ, eqs. (4.52), (4.23)."""
+        return potential_moment(self.V, theta)
+
+    def potential_energy(self, theta) -> Scalar:
+        out = jnp.asarray(self.V(_as_vector(theta)))
+        if out.shape != ():
+            raise ValueError(f"PotentialLoad: V must return a scalar, got shape {out.shape}.")
+        return out
+
+
+class CallableLoad(AbstractLoad):
+    r"""A user moment ``fn(t, theta, omega)`` → world-frame (3,) vector, e.g. time-dependent
+    forcing. ``omega`` is the left angular velocity. ``potential_energy`` is 0.
+
+    If ``fn`` is an :class:`equinox.Module`, its float leaves are differentiable parameters.
+    """
+
+    fn: Callable
+
+    def __init__(self, fn: Callable):
+        self.fn = _callable_leaf(fn, "CallableLoad", "fn")
+
+    def moment(self, t, theta, omega) -> Vector:
+        out = jnp.asarray(self.fn(t, theta, omega))
+        if out.shape != (3,):
+            raise ValueError(
+                "CallableLoad: fn(t, theta, omega) must return a world-frame moment of shape "
+                f"(3,), got shape {out.shape}."
+            )
+        return out
+
+    def potential_energy(self, theta) -> Scalar:
+        return _zero()
+
+
+def as_load(x) -> AbstractLoad:
+    """``x`` if it is an :class:`AbstractLoad`; a callable ``fn(t, theta, omega)`` wrapped in
+    :class:`CallableLoad`; anything else raises ``TypeError``."""
+    if isinstance(x, AbstractLoad):
+        return x
+    if isinstance(x, AbstractFoundation):
+        raise TypeError(
+            f"as_load: got a foundation ({type(x).__name__}), which is an energy U(theta), not a "
+            "load fn(t, theta, omega). Pass it as the model's foundation, or as "
+            "PotentialLoad(foundation) for a potential external moment (4.52)."
+        )
+    if callable(x):
+        return CallableLoad(x)
+    raise TypeError(
+        "as_load: expected an AbstractLoad or a callable fn(t, theta, omega) -> (3,) world-frame "
+        f"moment, got {type(x).__name__}: {x!r}."
+    )
