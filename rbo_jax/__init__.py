@@ -39,5 +39,11 @@ from .loads import Friction as Friction  # noqa: E402
 from .loads import PotentialLoad as PotentialLoad  # noqa: E402
 from .loads import SemiTangentialMoment as SemiTangentialMoment  # noqa: E402
 from .loads import as_load as as_load  # noqa: E402
+from .model import RigidBodyOscillator as RigidBodyOscillator  # noqa: E402
+from .simulate import DarbouxSolution as DarbouxSolution  # noqa: E402
+from .simulate import SolveStatus as SolveStatus  # noqa: E402
+from .simulate import Trajectory as Trajectory  # noqa: E402
+from .simulate import simulate as simulate  # noqa: E402
+from .simulate import solve_darboux as solve_darboux  # noqa: E402
 
 __version__ = importlib.metadata.version("rbo_jax")

@@ -1,0 +1,168 @@
+r"""The rigid body oscillator: equations of motion (4.53)–(4.56).
+
+A rigid body with a fixed point, inertia tensor $A$ (reference position), on an elastic foundation
+of energy $U(\theta)$, under external moments. The state is the turn-vector $\theta$ and the right
+(body-frame) angular velocity $\Omega$; the turn-tensor is $P = Q(\theta)$ and the left (world-frame)
+angular velocity $\omega = P\cdot\Omega$.
+
+Right form, eqs. (4.55)–(4.56), used for simulation:
+
+$$A\cdot\dot\Omega + \Omega\times A\cdot\Omega + Z(\theta)\cdot\frac{d(U+V)}{d\theta}
+  = P^T\cdot M_{ex}, \qquad \dot\theta = Z^T(\theta)\cdot\Omega.$$
+
+Left form, eqs. (4.53)–(4.54), with the kinetic moment $L = P\cdot A\cdot P^T\cdot\omega$ (4.43):
+
+$$\dot L + Z^T(\theta)\cdot\frac{d(U+V)}{d\theta} = M_{ex}, \qquad \dot\theta = Z(\theta)\cdot\omega.$$
+
+The elastic moment $-Z^T\cdot dU/d\theta$ is :func:`rbo_jax.potential_moment` (4.23), (4.46); since
+$P^T\cdot Z^T = Z$ (4.13) the body-frame form of (4.55) follows. Loads are world-frame moments
+$M(t, \theta, \omega)$, potential ones (4.52) included.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._custom_types import Matrix, Scalar, Vector
+from .foundations import AbstractFoundation, potential_moment
+from .inertia import check_inertia
+from .kinematics import _as_vector, integrating_tensor, integrating_tensor_inv, turn_tensor
+from .loads import AbstractLoad, as_load
+
+__all__ = ["RigidBodyOscillator"]
+
+
+def _inv3(A: Matrix) -> Matrix:
+    """Inverse of a 3×3 matrix by cofactors (cheaper than an LU call inside vmapped solvers)."""
+    c0 = jnp.cross(A[1], A[2])
+    c1 = jnp.cross(A[2], A[0])
+    c2 = jnp.cross(A[0], A[1])
+    det = jnp.dot(A[0], c0)
+    return jnp.stack([c0, c1, c2], axis=1) / det
+
+
+class RigidBodyOscillator(eqx.Module):
+    r"""Rigid body with a fixed point on an elastic foundation, eqs. (4.53)–(4.56).
+
+    **Arguments:**
+
+    - `inertia`: the inertia tensor $A$ in the reference position, any symmetric positive
+      definite 3×3 (see :func:`rbo_jax.transversely_isotropic_inertia` (4.40) and
+      :func:`rbo_jax.principal_inertia` (4.39)).
+    - `foundation`: the elastic foundation, an :class:`rbo_jax.AbstractFoundation` giving $U(\theta)$.
+    - `loads`: external moments $M_{ex}$: a load or a sequence of loads
+      (:class:`rbo_jax.DeadMoment`, :class:`rbo_jax.FollowerMoment`, ...), or plain callables
+      ``f(t, theta, omega) -> (3,)`` giving a world-frame moment. They add up.
+
+    All float leaves (inertia entries, stiffnesses, load magnitudes) can be differentiated,
+    vmapped over and fitted; the model may be built inside ``jax.vmap``/``jax.jit``.
+    """
+
+    inertia: Float[Array, "3 3"]
+    foundation: AbstractFoundation
+    loads: tuple[AbstractLoad, ...]
+
+    def __init__(
+        self,
+        inertia,
+        foundation: AbstractFoundation,
+        loads: AbstractLoad | Callable | Sequence[AbstractLoad | Callable] = (),
+    ):
+        self.inertia = check_inertia(inertia)
+        if not isinstance(foundation, AbstractFoundation):
+            raise TypeError(
+                "foundation must be an rbo_jax foundation (QuadraticFoundation, BarrierFoundation, "
+                "IsotropicFoundation(F), TransverselyIsotropicFoundation(F, k), or a sum of them); "
+                f"got {type(foundation).__name__}."
+            )
+        self.foundation = foundation
+        if isinstance(loads, AbstractLoad) or (callable(loads) and not isinstance(loads, Sequence)):
+            loads = (loads,)
+        self.loads = tuple(as_load(load) for load in loads)
+
+    # ---------------------------------------------------------------------------------------
+    # Energies and kinetic quantities.
+    # ---------------------------------------------------------------------------------------
+
+    def potential_energy(self, theta) -> Scalar:
+        """Elastic energy $U(\\theta)$ plus the potential $V(\\theta)$ of potential loads (4.52)."""
+        theta = _as_vector(theta)
+        V = sum((load.potential_energy(theta) for load in self.loads), jnp.zeros(()))
+        return self.foundation.energy(theta) + V
+
+    def kinetic_energy(self, Omega) -> Scalar:
+        r"""$K = \frac12\,\Omega\cdot A\cdot\Omega$."""
+        Omega = _as_vector(Omega, "Omega")
+        return 0.5 * Omega @ self.inertia @ Omega
+
+    def energy(self, theta, Omega) -> Scalar:
+        """Total mechanical energy $K + U + V$ (conserved without friction and non-potential
+        loads, (4.124))."""
+        return self.kinetic_energy(Omega) + self.potential_energy(theta)
+
+    def omega(self, theta, Omega) -> Vector:
+        r"""Left angular velocity $\omega = P\cdot\Omega$ (definition before (4.14))."""
+        return turn_tensor(theta) @ _as_vector(Omega, "Omega")
+
+    def kinetic_moment(self, theta, Omega) -> Vector:
+        r"""Kinetic moment $L = P\cdot A\cdot\Omega$ (4.44), equal to $P A P^T\omega$ (4.43)."""
+        return turn_tensor(theta) @ (self.inertia @ _as_vector(Omega, "Omega"))
+
+    def inertia_world(self, theta) -> Matrix:
+        r"""Inertia tensor in the actual position $A^{(t)} = P\cdot A\cdot P^T$ (4.41)."""
+        P = turn_tensor(theta)
+        return P @ self.inertia @ P.T
+
+    def domain_margin(self, theta) -> Scalar:
+        """Margin of θ inside the domain of the foundation energy (> 0 inside)."""
+        return self.foundation.domain_margin(_as_vector(theta))
+
+    # ---------------------------------------------------------------------------------------
+    # Moments and vector fields.
+    # ---------------------------------------------------------------------------------------
+
+    def world_moment(self, t, theta, omega) -> Vector:
+        r"""Total world-frame moment on the body: $-Z^T\cdot dU/d\theta$ (4.46) plus every load
+        (4.52)."""
+        M = potential_moment(self.foundation.energy, theta)
+        for load in self.loads:
+            M = M + load.moment(t, theta, omega)
+        return M
+
+    def vector_field(self, t, y, args=None) -> tuple[Vector, Vector]:
+        r"""Right form (4.55)–(4.56) on the state ``y = (theta, Omega)``:
+        $\dot\Omega = A^{-1}\cdot(P^T\cdot M - \Omega\times A\cdot\Omega)$,
+        $\dot\theta = Z^T\cdot\Omega$ (4.14), (4.16)."""
+        del args
+        theta, Omega = y
+        P = turn_tensor(theta)
+        omega = P @ Omega
+        M_body = P.T @ self.world_moment(t, theta, omega)
+        A = self.inertia
+        Omega_dot = _inv3(A) @ (M_body - jnp.cross(Omega, A @ Omega))
+        theta_dot = integrating_tensor(theta).T @ Omega
+        return theta_dot, Omega_dot
+
+    def left_vector_field(self, t, y, args=None) -> tuple[Vector, Vector]:
+        r"""Left form (4.53)–(4.54) on the state ``y = (theta, L)``, $L$ the kinetic moment (4.43):
+        $\dot L = M$, $\dot\theta = Z\cdot\omega$ with $\omega = P\cdot A^{-1}\cdot P^T\cdot L$."""
+        del args
+        theta, L = y
+        P = turn_tensor(theta)
+        omega = P @ (_inv3(self.inertia) @ (P.T @ L))
+        L_dot = self.world_moment(t, theta, omega)
+        theta_dot = integrating_tensor(theta) @ omega
+        return theta_dot, L_dot
+
+    def Omega_from_kinetic_moment(self, theta, L) -> Vector:
+        r"""$\Omega = A^{-1}\cdot P^T\cdot L$, inverse of (4.44)."""
+        return _inv3(self.inertia) @ (turn_tensor(theta).T @ _as_vector(L, "L"))
+
+    def Omega_from_rate(self, theta, theta_dot) -> Vector:
+        r"""$\Omega = Z^{-T}\cdot\dot\theta$ (4.19)."""
+        return integrating_tensor_inv(theta).T @ _as_vector(theta_dot, "theta_dot")

@@ -1,0 +1,482 @@
+r"""Simulation of the rigid body oscillator with diffrax.
+
+:func:`simulate` integrates the right form (4.55)–(4.56) (or the left form (4.53)–(4.54)) and
+returns a :class:`Trajectory`. :func:`solve_darboux` integrates the turn-vector for a given
+angular-velocity history, the left and right Darboux problems (4.15), (4.16).
+
+Failures are never silent. The solve stops, with a :class:`SolveStatus` naming the cause, when
+
+- the step budget ``max_steps`` is exhausted;
+- the step size collapses below ``dtmin`` (non-finite vector field, stiff blow-up);
+- the turn-vector approaches a singular sphere $|\theta| = 2\pi k$ of the integrating tensor (4.11)
+  while $\theta\times\Omega \ne 0$ (within ``singular_tol``): there $\det Z = \infty$;
+- the state leaves the domain of the foundation energy (e.g. the barriers of (4.49));
+- the initial state is not finite or a model parameter is NaN.
+
+With ``throw=True`` (default) a failure raises an error carrying that message; with ``throw=False``
+the status is returned in the trajectory and the samples after the failure are ``inf`` (sweeps use
+this to flag a point and carry on).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ._custom_types import Vector
+from .kinematics import (
+    _as_vector,
+    _safe_norm,
+    distance_to_singularity,
+    integrating_tensor,
+    turn_tensor,
+)
+from .model import RigidBodyOscillator
+
+__all__ = ["SolveStatus", "Trajectory", "simulate", "DarbouxSolution", "solve_darboux"]
+
+
+class SolveStatus(eqx.Enumeration):
+    """Outcome of a solve; ``SolveStatus[status]`` gives the message."""
+
+    successful = ""
+    max_steps_reached = (
+        "The maximum number of solver steps was reached before the final time: increase "
+        "`max_steps`, or loosen rtol/atol."
+    )
+    step_size_collapse = (
+        "The step size collapsed below `dtmin`: the vector field became non-finite or the "
+        "solution blew up (check the parameters and the initial state)."
+    )
+    singular_point = (
+        "The turn-vector reached a singular point |theta| = 2*pi*k of the integrating tensor Z "
+        "(eq. 4.11) with theta x Omega != 0, where det Z is infinite and the equations (4.54)/(4.56) "
+        "break down."
+    )
+    domain_error = (
+        "The turn-vector left the domain of the foundation energy (e.g. a barrier of eq. 4.49 "
+        "was crossed)."
+    )
+    nonfinite_input = (
+        "The initial state (theta0, Omega0) is not finite, or a model parameter is NaN."
+    )
+    solver_error = "The differential equation solver failed (see diffrax.RESULTS)."
+
+
+def _status_from_solution(sol, bad_input, event_names):
+    result = sol.result
+    R = diffrax.RESULTS
+    status = SolveStatus.successful
+    status = SolveStatus.where(result == R.successful, status, SolveStatus.solver_error)
+    status = SolveStatus.where(result == R.max_steps_reached, SolveStatus.max_steps_reached, status)
+    status = SolveStatus.where(result == R.dt_min_reached, SolveStatus.step_size_collapse, status)
+    if sol.event_mask is not None:
+        for name, mask in zip(event_names, sol.event_mask):
+            status = SolveStatus.where(
+                (result == R.event_occurred) & mask, getattr(SolveStatus, name), status
+            )
+    status = SolveStatus.where(bad_input, SolveStatus.nonfinite_input, status)
+    return status
+
+
+class Trajectory(eqx.Module):
+    r"""Samples of a solution of the rigid body oscillator.
+
+    Fields: ``ts`` (n,), ``theta`` (n, 3) the turn-vector, ``Omega`` (n, 3) the right angular
+    velocity, ``model`` the :class:`RigidBodyOscillator`, ``status`` a :class:`SolveStatus`,
+    ``num_steps`` the number of accepted solver steps. Samples after a failure are ``inf``.
+
+    Derived (computed on access): ``omega`` = P·Ω (left angular velocity), ``turn_tensor`` P(t),
+    ``kinetic_moment`` L (4.44), ``kinetic_energy``, ``potential_energy``, ``energy`` = K + U + V.
+    """
+
+    ts: Float[Array, " n"]
+    theta: Float[Array, "n 3"]
+    Omega: Float[Array, "n 3"]
+    model: RigidBodyOscillator
+    status: SolveStatus
+    num_steps: Int[Array, ""]
+
+    @property
+    def ok(self):
+        """Whether the solve reached the final time."""
+        return self.status == SolveStatus.successful
+
+    @property
+    def message(self) -> str:
+        """The status message (for a concrete, unbatched trajectory)."""
+        return SolveStatus[self.status] or "successful"
+
+    def _map(self, f):
+        return jax.vmap(f)(self.theta, self.Omega)
+
+    @property
+    def omega(self) -> Float[Array, "n 3"]:
+        return self._map(self.model.omega)
+
+    @property
+    def turn_tensor(self) -> Float[Array, "n 3 3"]:
+        return jax.vmap(turn_tensor)(self.theta)
+
+    @property
+    def kinetic_moment(self) -> Float[Array, "n 3"]:
+        return self._map(self.model.kinetic_moment)
+
+    @property
+    def kinetic_energy(self) -> Float[Array, " n"]:
+        return jax.vmap(self.model.kinetic_energy)(self.Omega)
+
+    @property
+    def potential_energy(self) -> Float[Array, " n"]:
+        return jax.vmap(self.model.potential_energy)(self.theta)
+
+    @property
+    def energy(self) -> Float[Array, " n"]:
+        return self._map(self.model.energy)
+
+
+def _all_finite(tree):
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def _any_nan(tree):
+    leaves = [jnp.any(jnp.isnan(x)) for x in jax.tree_util.tree_leaves(tree)]
+    return jnp.any(jnp.stack(leaves)) if leaves else jnp.asarray(False)
+
+
+def _transverse_fraction(theta, Omega):
+    """|θ×Ω| / (|θ||Ω|): 0 for plane motion, where the singular spheres are harmless."""
+    return _safe_norm(jnp.cross(theta, Omega)) / (_safe_norm(theta) * _safe_norm(Omega) + 1e-300)
+
+
+_TRANSVERSE_TOL = 1e-6
+
+
+def _near_singular_cond(transverse, singular_tol, t, y, args, **kwargs):
+    theta, trans = transverse(t, y)
+    return (distance_to_singularity(theta) < singular_tol) & trans
+
+
+def _singular_crossing_cond(transverse, t, y, args, **kwargs):
+    theta, trans = transverse(t, y)
+    n = _safe_norm(theta)
+    f = jnp.where(n < jnp.pi, jnp.ones_like(n), jnp.sin(0.5 * n))
+    return jnp.where(trans, f, jnp.ones_like(n))
+
+
+def _singular_events(transverse, singular_tol):
+    r"""Two diffrax event conditions for the singular spheres $|\theta| = 2\pi k$ of Z (4.11).
+
+    ``transverse(t, y) -> (theta, is_transverse)``. The first (boolean) fires when a step ends within
+    ``singular_tol`` of a sphere; the second (continuous) fires when a step jumps across one: it
+    is $\sin(|\theta|/2)$ (positive on $[\pi, 2\pi)$, sign change at every $2\pi k$) clamped to
+    1 on $[0, \pi)$. Both are disarmed for plane motion ($\theta\times\Omega = 0$), which crosses
+    the spheres harmlessly.
+
+    The conditions (and ``transverse``) are ``jax.tree_util.Partial``s of module-level functions,
+    not closures: diffrax's ``diffeqsolve`` is ``eqx.filter_jit``-ed and treats functions as
+    static, so a fresh closure per call would recompile the solve on every call.
+    """
+    return (
+        jax.tree_util.Partial(_near_singular_cond, transverse, singular_tol),
+        jax.tree_util.Partial(_singular_crossing_cond, transverse),
+    )
+
+
+def _check_times(ts):
+    ts = jnp.asarray(ts)
+    if ts.ndim != 1 or ts.shape[0] < 1:
+        raise ValueError(f"ts must be a non-empty 1-D array of times, got shape {ts.shape}.")
+    if not jnp.issubdtype(ts.dtype, jnp.floating):
+        ts = ts.astype(jnp.result_type(float))
+    if not isinstance(ts, jax.core.Tracer):
+        ts_np = np.asarray(ts)
+        if not np.all(np.isfinite(ts_np)):
+            raise ValueError("ts must be finite.")
+        if ts_np.shape[0] > 1 and not np.all(np.diff(ts_np) > 0):
+            raise ValueError("ts must be strictly increasing.")
+    elif ts.shape[0] > 1:
+        ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "ts must be strictly increasing.")
+    return ts
+
+
+def _warn_if_float32(dtype, rtol, atol):
+    eps = float(jnp.finfo(dtype).eps)
+    try:
+        tol = min(float(rtol), float(atol))
+    except (TypeError, jax.errors.ConcretizationTypeError):
+        return
+    if tol < 10 * eps:
+        warnings.warn(
+            f"rbo_jax: integrating in {jnp.dtype(dtype).name} with tolerance {tol:g}, below what "
+            f"its precision (eps = {eps:.1e}) can deliver. Enable float64 (import rbo_jax before "
+            "creating arrays, and do not set JAX_ENABLE_X64=0), or loosen rtol/atol.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
+def _right_to_theta_Omega(model, y):
+    return y
+
+
+def _left_to_theta_Omega(model, y):
+    return y[0], model.Omega_from_kinetic_moment(*y)
+
+
+def _state_transverse(to_theta_Omega, t, y):
+    theta, Omega = to_theta_Omega(y)
+    return theta, _transverse_fraction(theta, Omega) > _TRANSVERSE_TOL
+
+
+def _domain_cond(model, t, y, args, **kwargs):
+    return ~(model.domain_margin(y[0]) > 0)
+
+
+def simulate(
+    model: RigidBodyOscillator,
+    theta0,
+    Omega0,
+    ts,
+    *,
+    t0=None,
+    solver: diffrax.AbstractSolver | None = None,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    dt0=None,
+    dtmin=None,
+    max_steps: int = 100_000,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    singular_tol: float = 1e-3,
+    form: str = "right",
+    throw: bool = True,
+    progress: bool = False,
+) -> Trajectory:
+    r"""Integrate the rigid body oscillator from $(\theta_0, \Omega_0)$ and sample it at ``ts``.
+
+    **Arguments:**
+
+    - `model`: a :class:`RigidBodyOscillator`.
+    - `theta0`, `Omega0`: initial turn-vector and right angular velocity, shape (3,).
+    - `ts`: strictly increasing sample times (n,); the solve runs from ``t0`` (default
+      ``ts[0]``) to ``ts[-1]``.
+    - `solver`: a diffrax solver; default ``diffrax.Dopri8()`` (8th order, adaptive), the
+      efficient choice at the tight float64 tolerances used here.
+    - `rtol`, `atol`: tolerances of the PID step-size controller (default 1e-10).
+    - `dt0`: initial step (default: chosen automatically). `dtmin`: step size below which the
+      solve stops as ``step_size_collapse`` (default ``1e-12·(t1 − t0)``).
+    - `max_steps`: step budget (default 100 000).
+    - `adjoint`: diffrax adjoint for reverse-mode gradients (default
+      ``RecursiveCheckpointAdjoint``, memory logarithmic in the step count); pass
+      ``diffrax.ForwardMode()`` for forward-mode autodiff (``jax.jvp``, ``jax.jacfwd``).
+    - `stepsize_controller`: a diffrax step-size controller replacing the default
+      ``diffrax.PIDController(rtol, atol, dtmin)`` (``rtol``, ``atol`` and ``dtmin`` are then
+      ignored), e.g. ``diffrax.ConstantStepSize()`` with ``dt0`` for fixed steps (convergence
+      studies); a fixed step never reports ``step_size_collapse``.
+    - `singular_tol`: stop when $\big||\theta| - 2\pi k\big| <$ ``singular_tol`` while the motion
+      is not plane ($|\theta\times\Omega| > 10^{-6}|\theta||\Omega|$).
+    - `form`: ``"right"`` integrates (4.55)–(4.56) in $(\theta, \Omega)$; ``"left"`` integrates
+      (4.53)–(4.54) in $(\theta, L)$ and converts back to $\Omega$.
+    - `throw`: raise on failure (default) or return the status in the trajectory.
+    - `progress`: show a tqdm progress bar (for long single runs; needs ``tqdm`` installed).
+
+    jit-, vmap- and grad-compatible: parameters of ``model`` and the initial state may be traced.
+    """
+    if not isinstance(model, RigidBodyOscillator):
+        raise TypeError(f"model must be a RigidBodyOscillator, got {type(model).__name__}.")
+    if form not in ("right", "left"):
+        raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
+    theta0 = _as_vector(theta0, "theta0")
+    Omega0 = _as_vector(Omega0, "Omega0")
+    ts = _check_times(ts)
+    # The state takes the precision of the model too: float32 initial values with a float64
+    # model (the default) are integrated in float64, not in a mix diffrax cannot store.
+    params = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_inexact_array))
+    dtype = jnp.result_type(theta0, Omega0, ts, *params)
+    theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
+    _warn_if_float32(dtype, rtol, atol)
+
+    t0 = ts[0] if t0 is None else jnp.asarray(t0, dtype)
+    t1 = ts[-1]
+    if dtmin is None:
+        dtmin = 1e-12 * jnp.maximum(t1 - t0, 1e-300)
+    solver = diffrax.Dopri8() if solver is None else solver
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    if stepsize_controller is None:
+        stepsize_controller = diffrax.PIDController(
+            rtol=rtol, atol=atol, dtmin=dtmin, force_dtmin=False
+        )
+
+    # Infinite parameters are legitimate (BarrierFoundation(alpha=inf) switches a barrier off);
+    # NaN ones never are.
+    bad_input = ~_all_finite((theta0, Omega0)) | _any_nan(eqx.filter(model, eqx.is_inexact_array))
+    zeros = jnp.zeros_like(theta0)
+    theta0 = jnp.where(bad_input, zeros, theta0)
+    Omega0 = jnp.where(bad_input, zeros, Omega0)
+
+    if form == "right":
+        y0 = (theta0, Omega0)
+        vf = model.vector_field
+        to_theta_Omega = jax.tree_util.Partial(_right_to_theta_Omega, model)
+    else:
+        y0 = (theta0, model.kinetic_moment(theta0, Omega0))
+        vf = model.left_vector_field
+        to_theta_Omega = jax.tree_util.Partial(_left_to_theta_Omega, model)
+
+    # Partials of module-level functions, not closures: see _singular_events.
+    transverse = jax.tree_util.Partial(_state_transverse, to_theta_Omega)
+    domain_cond = jax.tree_util.Partial(_domain_cond, model)
+    singular_tol = jnp.asarray(singular_tol, dtype)
+
+    event_names = ("singular_point", "singular_point", "domain_error")
+    event = diffrax.Event(cond_fn=[*_singular_events(transverse, singular_tol), domain_cond])
+
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf),
+        solver,
+        t0=t0,
+        t1=t1,
+        dt0=dt0,
+        y0=y0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=stepsize_controller,
+        adjoint=adjoint,
+        event=event,
+        max_steps=max_steps,
+        throw=False,
+        progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
+    )
+    status = _status_from_solution(sol, bad_input, event_names)
+    theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
+    failed = status != SolveStatus.successful
+    # Samples the solver never reached are inf (diffrax's convention); a non-finite input was
+    # replaced by zeros to run harmlessly, so none of its samples is a result either.
+    theta = jnp.where(bad_input, jnp.inf, theta)
+    Omega = jnp.where(bad_input, jnp.inf, Omega)
+    if throw:
+        theta = status.error_if(theta, failed)
+    return Trajectory(
+        ts=ts,
+        theta=theta,
+        Omega=Omega,
+        model=model,
+        status=status,
+        num_steps=sol.stats["num_accepted_steps"],
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Darboux problems (4.15), (4.16).
+# --------------------------------------------------------------------------------------------
+
+
+class DarbouxSolution(eqx.Module):
+    """Turn-vector path of a Darboux problem: ``ts`` (n,), ``theta`` (n, 3), ``status``."""
+
+    ts: Float[Array, " n"]
+    theta: Float[Array, "n 3"]
+    status: SolveStatus
+
+    @property
+    def turn_tensor(self) -> Float[Array, "n 3 3"]:
+        return jax.vmap(turn_tensor)(self.theta)
+
+
+def _velocity_function(angular_velocity) -> Callable[[Array], Vector]:
+    if callable(angular_velocity):
+        return angular_velocity
+    try:
+        t_s, w_s = angular_velocity
+    except (TypeError, ValueError):
+        raise TypeError(
+            "angular_velocity must be a callable t -> (3,) or a pair (times (m,), samples (m, 3))."
+        ) from None
+    t_s = _check_times(t_s)
+    w_s = jnp.asarray(w_s, dtype=t_s.dtype)
+    if w_s.shape != (t_s.shape[0], 3):
+        raise ValueError(
+            f"angular velocity samples must have shape ({t_s.shape[0]}, 3), got {w_s.shape}."
+        )
+    coeffs = diffrax.backward_hermite_coefficients(t_s, w_s)
+    interp = diffrax.CubicInterpolation(t_s, coeffs)
+    return interp.evaluate
+
+
+def _darboux_left(w, t, theta, args):
+    return integrating_tensor(theta) @ w(t)
+
+
+def _darboux_right(w, t, theta, args):
+    return integrating_tensor(theta).T @ w(t)
+
+
+def _darboux_transverse(w, t, theta):
+    return theta, _transverse_fraction(theta, w(t)) > _TRANSVERSE_TOL
+
+
+def solve_darboux(
+    angular_velocity,
+    theta0,
+    ts,
+    *,
+    frame: str = "left",
+    solver: diffrax.AbstractSolver | None = None,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    singular_tol: float = 1e-3,
+    throw: bool = True,
+) -> DarbouxSolution:
+    r"""Integrate the turn-vector for a given angular velocity: the Darboux problems.
+
+    ``frame="left"``: $\dot\theta = Z(\theta)\cdot\omega(t)$ (4.10), (4.15);
+    ``frame="right"``: $\dot\theta = Z^T(\theta)\cdot\Omega(t)$ (4.14), (4.16); $\theta(t_0) = \theta_0$.
+
+    `angular_velocity` is a callable ``t -> (3,)`` or samples ``(times, values)`` (interpolated by
+    cubic Hermite splines). The solve stops with ``SolveStatus.singular_point`` near
+    $|\theta| = 2\pi k$ unless $\theta\times\omega = 0$.
+    """
+    if frame not in ("left", "right"):
+        raise ValueError(f"frame must be 'left' or 'right', got {frame!r}.")
+    w = _velocity_function(angular_velocity)
+    theta0 = _as_vector(theta0, "theta0")
+    ts = _check_times(ts)
+    # The precision of the angular velocity counts too (as the model's in simulate): float32
+    # theta0 with a float64 angular velocity is integrated in float64.
+    dtype = jnp.result_type(theta0, ts, jax.eval_shape(w, ts[0]).dtype)
+    theta0, ts = theta0.astype(dtype), ts.astype(dtype)
+    _warn_if_float32(dtype, rtol, atol)
+
+    # Partials of module-level functions, not closures: see _singular_events.
+    vf = jax.tree_util.Partial(_darboux_left if frame == "left" else _darboux_right, w)
+    transverse = jax.tree_util.Partial(_darboux_transverse, w)
+    singular_tol = jnp.asarray(singular_tol, theta0.dtype)
+
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf),
+        diffrax.Dopri8() if solver is None else solver,
+        t0=ts[0],
+        t1=ts[-1],
+        dt0=None,
+        y0=theta0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        event=diffrax.Event(cond_fn=list(_singular_events(transverse, singular_tol))),
+        max_steps=max_steps,
+        throw=False,
+    )
+    bad_input = ~_all_finite(theta0)
+    status = _status_from_solution(sol, bad_input, ("singular_point", "singular_point"))
+    theta = sol.ys
+    if throw:
+        theta = status.error_if(theta, status != SolveStatus.successful)
+    return DarbouxSolution(ts=ts, theta=theta, status=status)
