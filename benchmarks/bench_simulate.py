@@ -21,9 +21,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.integrate import solve_ivp
-
 from _numpy_reference import numpy_rhs
+from scipy.integrate import solve_ivp
 
 import rbo_jax
 from rbo_jax import (

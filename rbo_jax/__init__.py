@@ -10,6 +10,12 @@ from ._precision import enable_float64_by_default as _enable_float64_by_default
 _enable_float64_by_default()
 
 from ._precision import float64_enabled as float64_enabled  # noqa: E402
+from .analytic import nikolai_bending_roots as nikolai_bending_roots  # noqa: E402
+from .analytic import nikolai_bending_roots_small_load as nikolai_bending_roots_small_load  # noqa: E402
+from .analytic import nikolai_bending_stiffness as nikolai_bending_stiffness  # noqa: E402
+from .analytic import nikolai_spectrum as nikolai_spectrum  # noqa: E402
+from .analytic import precession_rate as precession_rate  # noqa: E402
+from .analytic import torsion_roots as torsion_roots  # noqa: E402
 from .foundations import AbstractFoundation as AbstractFoundation  # noqa: E402
 from .foundations import BarrierFoundation as BarrierFoundation  # noqa: E402
 from .foundations import IsotropicFoundation as IsotropicFoundation  # noqa: E402
@@ -39,11 +45,30 @@ from .loads import Friction as Friction  # noqa: E402
 from .loads import PotentialLoad as PotentialLoad  # noqa: E402
 from .loads import SemiTangentialMoment as SemiTangentialMoment  # noqa: E402
 from .loads import as_load as as_load  # noqa: E402
+from .maps import critical_load as critical_load  # noqa: E402
+from .maps import stability_map as stability_map  # noqa: E402
 from .model import RigidBodyOscillator as RigidBodyOscillator  # noqa: E402
+from .precession import RegularPrecession as RegularPrecession  # noqa: E402
+from .precession import precession_residual as precession_residual  # noqa: E402
+from .precession import precession_spectrum as precession_spectrum  # noqa: E402
+from .precession import precession_variational_matrix as precession_variational_matrix  # noqa: E402
+from .precession import regular_precession as regular_precession  # noqa: E402
 from .simulate import DarbouxSolution as DarbouxSolution  # noqa: E402
 from .simulate import SolveStatus as SolveStatus  # noqa: E402
 from .simulate import Trajectory as Trajectory  # noqa: E402
 from .simulate import simulate as simulate  # noqa: E402
 from .simulate import solve_darboux as solve_darboux  # noqa: E402
+from .stability import EquilibriumSolution as EquilibriumSolution  # noqa: E402
+from .stability import EquilibriumStatus as EquilibriumStatus  # noqa: E402
+from .stability import SecondOrderForm as SecondOrderForm  # noqa: E402
+from .stability import StabilityKind as StabilityKind  # noqa: E402
+from .stability import classify as classify  # noqa: E402
+from .stability import equilibrium as equilibrium  # noqa: E402
+from .stability import fast_spectrum as fast_spectrum  # noqa: E402
+from .stability import linearize as linearize  # noqa: E402
+from .stability import second_order_form as second_order_form  # noqa: E402
+from .stability import solve_equilibrium as solve_equilibrium  # noqa: E402
+from .stability import spectral_abscissa as spectral_abscissa  # noqa: E402
+from .stability import spectrum as spectrum  # noqa: E402
 
 __version__ = importlib.metadata.version("rbo_jax")
