@@ -16,6 +16,9 @@ from .analytic import nikolai_bending_stiffness as nikolai_bending_stiffness  # 
 from .analytic import nikolai_spectrum as nikolai_spectrum  # noqa: E402
 from .analytic import precession_rate as precession_rate  # noqa: E402
 from .analytic import torsion_roots as torsion_roots  # noqa: E402
+from .fitting import FitResult as FitResult  # noqa: E402
+from .fitting import TrajectoryData as TrajectoryData  # noqa: E402
+from .fitting import fit as fit  # noqa: E402
 from .foundations import AbstractFoundation as AbstractFoundation  # noqa: E402
 from .foundations import BarrierFoundation as BarrierFoundation  # noqa: E402
 from .foundations import IsotropicFoundation as IsotropicFoundation  # noqa: E402
