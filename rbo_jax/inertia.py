@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Matrix, MatrixLike, ScalarLike, VectorLike
-from .foundations import _check, _float_dtype, _is_traced, _positive, _scalar_parameter, _unit_axis
+from ._validation import _check, _float_dtype, _is_traced, _positive, _scalar_parameter, _unit_axis
 
 __all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia"]
 

@@ -23,16 +23,15 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
-from .foundations import (
-    AbstractFoundation,
+from ._validation import (
     _callable_leaf,
     _check,
     _float_dtype,
     _nonnegative,
     _scalar_parameter,
     _unit_axis,
-    potential_moment,
 )
+from .foundations import AbstractFoundation, potential_moment
 from .kinematics import _as_vector, turn_tensor
 
 __all__ = [
