@@ -13,8 +13,11 @@ Numerical care (cf. jaxlie ``_so3.py``): every coefficient that is singular-look
 (``sin θ/θ``, ``(1 − cos θ)/θ²``, ...) is an analytic function of $t = \theta\cdot\theta$. It is
 evaluated by its Taylor polynomial in ``t`` for ``t < 1`` and by the closed form otherwise, with
 the *double-where* trick so that neither branch produces a NaN in the forward or the reverse pass.
-The Taylor polynomials are carried to machine precision at the hand-over point, so values and
-derivatives of all orders are exact at $\theta = 0$ and show no accuracy dip anywhere.
+The Taylor polynomials are carried to machine precision at the hand-over point ($t = 1$), so
+values and derivatives of all orders are exact at $\theta = 0$ and values show no accuracy dip
+anywhere (relative error ≤ 1.2e-15 against mpmath over $|\theta| \in [10^{-12}, 3]$). First and
+second derivatives lose a little just above the hand-over, where the closed forms cancel (measured:
+8e-14 and 6e-12 relative for $(1-g)/\theta^2$).
 """
 
 from __future__ import annotations
