@@ -70,7 +70,10 @@ def _point_function(model_fn, names, theta_eq_fn, rtol, fast, eq_kwargs_items):
             raise TypeError(f"model_fn must return a RigidBodyOscillator, got {type(model).__name__}.")
         if theta_eq_fn is not None:
             theta_eq = _as_vector(theta_eq_fn(**params), "theta_eq_fn(...)")
-            eq_status = EquilibriumStatus.successful
+            eq_status = EquilibriumStatus.where(
+                jnp.all(jnp.isfinite(theta_eq)), EquilibriumStatus.successful,
+                EquilibriumStatus.nonfinite,
+            )
         else:
             sol = solve_equilibrium(model, theta_guess, **eq_kwargs)
             theta_eq, eq_status = sol.theta, sol.status

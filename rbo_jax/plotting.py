@@ -34,6 +34,8 @@ def plot_stability_map(ds, x: str, y: str, *, ax=None, select: dict | None = Non
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
     vals = np.asarray(da.values, dtype=float)
+    if not np.any(np.isfinite(vals)):
+        raise ValueError("nothing to plot: the spectral abscissa is NaN everywhere (no equilibria).")
     vmax = np.nanmax(np.abs(vals)) or 1.0
     X, Y = np.asarray(da[x].values), np.asarray(da[y].values)
     mesh = ax.pcolormesh(X, Y, vals, cmap=cmap, vmin=-vmax, vmax=vmax, shading="auto")

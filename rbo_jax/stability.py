@@ -89,6 +89,7 @@ def _static_moment(model: RigidBodyOscillator, t):
     return fn
 
 
+@eqx.filter_jit
 def solve_equilibrium(
     model: RigidBodyOscillator,
     theta_guess,
@@ -104,6 +105,7 @@ def solve_equilibrium(
 
     Never raises (use :func:`equilibrium` for that): the status tells whether Newton converged,
     and flags a singular point of Z, an exit from the foundation's domain or non-finite values.
+    Compiled once per model structure (``eqx.filter_jit``); new parameter values reuse it.
     """
     theta_guess = _as_vector(theta_guess, "theta_guess")
     fn = _static_moment(model, t)
