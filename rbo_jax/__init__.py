@@ -73,5 +73,10 @@ from .stability import second_order_form as second_order_form  # noqa: E402
 from .stability import solve_equilibrium as solve_equilibrium  # noqa: E402
 from .stability import spectral_abscissa as spectral_abscissa  # noqa: E402
 from .stability import spectrum as spectrum  # noqa: E402
+from .sweep import SweepError as SweepError  # noqa: E402
+from .sweep import open_sweep as open_sweep  # noqa: E402
+from .sweep import plot_sweep as plot_sweep  # noqa: E402
+from .sweep import status_counts as status_counts  # noqa: E402
+from .sweep import sweep as sweep  # noqa: E402
 
 __version__ = importlib.metadata.version("rbo_jax")

@@ -1,0 +1,173 @@
+"""Trajectories per second of a simulation sweep (:func:`rbo_jax.sweep`) against the number of
+local devices, and against ``scipy.integrate.solve_ivp`` on a sample, in the same run.
+
+The problem is that of ``bench_simulate.py``: the Nikolai problem (4.57)–(4.62), transversely
+isotropic body (A1 = 1, A3 = 0.5), quadratic foundation (4.50), follower moment M; each point
+(c, d, M) starts 1e-3 rad off its equilibrium θ = (M/d)k; t ∈ [0, 20], rtol = atol = 1e-8,
+Dopri8 (diffrax) against DOP853 (scipy, plain NumPy right-hand side); the final state is kept.
+
+The CPU is split into ``max(--devices)`` XLA devices (``jax_num_cpu_devices``, set before JAX
+starts; on a GPU machine the GPUs are the devices); each sweep shards its chunks over the first
+k of them with ``shard_map``. Compilation
+is excluded (one warm-up chunk per device count). The jax/jaxlib versions, the machine and its
+load average are printed with the figures: the CPU runtime's speed changes between versions.
+
+Usage: ``python benchmarks/bench_sweep.py [--n 100000] [--devices 1,2] [--chunk 4096]
+[--scipy-sample 20] [--json out.json]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+
+def _parse(argv):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=100_000, help="points of the sweep")
+    parser.add_argument("--devices", default="1,2", help="device counts to time, e.g. 1,2")
+    parser.add_argument("--chunk", type=int, default=4096, help="chunk size (points per call)")
+    parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
+    parser.add_argument("--json", default=None, help="also write the figures to this file")
+    args = parser.parse_args(argv)
+    try:
+        args.devices = [int(x) for x in args.devices.split(",")]
+    except ValueError:
+        parser.error(f"--devices must be a comma-separated list of integers, got {args.devices!r}")
+    if min(args.devices) < 1 or args.n < 1 or args.chunk < 1 or args.scipy_sample < 0:
+        parser.error("--n, --chunk and the device counts must be >= 1, --scipy-sample >= 0")
+    return args
+
+
+def main(argv=None) -> dict:
+    args = _parse(argv)
+    import jax
+
+    # Before any computation: split the CPU into as many XLA devices as the largest count asked.
+    # (Run after other benchmarks in one process, JAX has started already: the devices it has
+    # are used and larger counts skipped.)
+    try:
+        jax.config.update("jax_num_cpu_devices", max(args.devices))
+    except RuntimeError:
+        pass
+    import jax.numpy as jnp
+    import numpy as np
+    from scipy.integrate import solve_ivp
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from _numpy_reference import numpy_rhs
+
+    import rbo_jax
+    from rbo_jax import (
+        FollowerMoment,
+        QuadraticFoundation,
+        RigidBodyOscillator,
+        simulate,
+        sweep,
+        transversely_isotropic_inertia,
+    )
+    from rbo_jax.sweep import _make_space
+
+    A1, A3, T1, RTOL = 1.0, 0.5, 20.0, 1e-8
+    K = np.array([0.0, 0.0, 1.0])
+    PERTURBATION = np.array([1e-3, -5e-4, 2e-4])
+
+    def final_state(c, d, M):
+        k = jnp.asarray(K)
+        model = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, k),
+                                    QuadraticFoundation(c, d, k), FollowerMoment(M, k))
+        traj = simulate(model, (M / d) * k + jnp.asarray(PERTURBATION), jnp.zeros(3),
+                        jnp.array([0.0, T1]), rtol=RTOL, atol=RTOL, throw=False)
+        return {"y": jnp.concatenate([traj.theta[-1], traj.Omega[-1]]),
+                "num_steps": traj.num_steps}, traj.status
+
+    rng = np.random.default_rng(0)
+    points = {"c": rng.uniform(0.5, 2.0, args.n), "d": rng.uniform(0.5, 2.0, args.n),
+              "M": rng.uniform(0.05, 0.6, args.n)}
+    n_local = jax.local_device_count()
+    counts = [k for k in args.devices if k <= n_local]
+    batch = _make_space(None, points, args.chunk).chunk_shape[0]
+    warm = {name: v[:batch] for name, v in points.items()}
+
+    results, reference = [], None
+    for k in counts:
+        t0 = time.perf_counter()
+        sweep(final_state, points=warm, chunk_size=args.chunk, devices=k, progress=False)
+        t_compile = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        ds = sweep(final_state, points=points, chunk_size=args.chunk, devices=k, progress=False)
+        ds["y"].values  # noqa: B018 - all results on the host
+        elapsed = time.perf_counter() - t0
+        ok = int((ds["status"].values == 0).sum())
+        if reference is None:
+            reference = ds
+        diff_1 = float(np.max(np.abs(ds["y"].values - reference["y"].values)))
+        results.append({"devices": k, "seconds": elapsed, "traj_per_s": args.n / elapsed,
+                        "compile_s": t_compile, "successful": ok,
+                        "steps_mean": float(ds["num_steps"].values.mean()),
+                        "max_diff_to_first": diff_1})
+
+    # scipy on a sample of the same points.
+    A = A1 * (np.eye(3) - np.outer(K, K)) + A3 * np.outer(K, K)
+    A_inv = np.linalg.inv(A)
+    ys = []
+    t0 = time.perf_counter()
+    for i in range(args.scipy_sample):
+        c, d, M = points["c"][i], points["d"][i], points["M"][i]
+        y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
+        sol = solve_ivp(numpy_rhs, (0.0, T1), y0, method="DOP853", rtol=RTOL, atol=RTOL,
+                        args=(c, d, M, A, A_inv, K))
+        assert sol.success, sol.message
+        ys.append(sol.y[:, -1])
+    t_scipy = time.perf_counter() - t0
+    per_scipy = t_scipy / args.scipy_sample if args.scipy_sample else float("nan")
+    diff = (float(np.max(np.abs(np.array(ys) - reference["y"].values[: args.scipy_sample])))
+            if args.scipy_sample else float("nan"))
+
+    env = {
+        "rbo_jax": rbo_jax.__version__, "jax": jax.__version__,
+        "jaxlib": __import__("jaxlib").__version__, "python": platform.python_version(),
+        "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+        "load_average_1min": os.getloadavg()[0], "backend": jax.default_backend(),
+        "local_devices": n_local,
+    }
+    print(f"rbo_jax {env['rbo_jax']}, jax {env['jax']}, jaxlib {env['jaxlib']}, Python "
+          f"{env['python']}, {env['machine']}, {env['cpu_count']} CPUs, load average "
+          f"{env['load_average_1min']:.2f}, {n_local} {env['backend']} device(s)")
+    print(f"Nikolai problem, t in [0, {T1}], rtol = atol = {RTOL:g}, {args.n} points, chunks of "
+          f"{batch} (scipy: {args.scipy_sample} points)")
+    header = (f"{'method':<40}{'traj / s':>12}{'s / traj':>12}{'compile s':>11}"
+              f"{'steps':>8}{'ok':>9}")
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        name = f"rbo_jax.sweep, shard_map over {r['devices']} device(s)"
+        print(f"{name:<40}{r['traj_per_s']:>12.1f}{1 / r['traj_per_s']:>12.3e}"
+              f"{r['compile_s']:>11.1f}{r['steps_mean']:>8.1f}{r['successful']:>9d}")
+    if args.scipy_sample:
+        print(f"{'scipy solve_ivp DOP853, NumPy RHS':<40}{1 / per_scipy:>12.1f}{per_scipy:>12.3e}")
+    base = results[0]["traj_per_s"] if results else float("nan")
+    for r in results[1:]:
+        print(f"{r['devices']} devices / {results[0]['devices']}: {r['traj_per_s'] / base:.2f}x; "
+              f"max |final state difference| {r['max_diff_to_first']:.1e} (another per-device "
+              "batch size may round differently)")
+    if results and args.scipy_sample:
+        print(f"sweep on {results[-1]['devices']} device(s) / scipy: "
+              f"{results[-1]['traj_per_s'] * per_scipy:.0f}x per trajectory; max |final state "
+              f"difference| on the sample: {diff:.2e}")
+    if len(counts) < len(args.devices):
+        print(f"(skipped device counts above the {n_local} local devices)")
+    out = {"env": env, "n": args.n, "chunk": batch, "sweep": results,
+           "scipy": {"sample": args.scipy_sample, "s_per_traj": per_scipy, "max_diff": diff}}
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=2)
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,692 @@
+"""Parameter sweeps (rbo_jax.sweep): chunks, devices, processes, storage, resumption, statuses,
+the CLI configuration.
+
+Expected values come from evaluating the quantity point by point (outside the sweep), from the
+store written by an uninterrupted run (for the killed-and-resumed one), and from a one-process
+run (for the two-process and four-device ones). The subprocess tests use the Nikolai spectrum at
+the closed-form equilibrium (cheap to compile); the statuses use real failing simulations.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+from sweep_quantities import (
+    DIST_AXES,
+    DIST_CHUNK,
+    HOOK,
+    KILL_AXES,
+    KILL_CHUNK,
+    NIKOLAI_AXES,
+    NIKOLAI_DIMS,
+    K,
+    nikolai_abscissa,
+    nikolai_model,
+)
+
+import rbo_jax as rbo
+from rbo_jax import cli
+from rbo_jax.simulate import SolveStatus
+from rbo_jax.stability import StabilityKind
+from rbo_jax.sweep import (
+    SweepError,
+    _chunk_shape,
+    _Chunks,
+    _make_space,
+    open_sweep,
+    plot_sweep,
+    status_counts,
+    sweep,
+)
+from rbo_jax.sweep_config import QUANTITIES, ConfigError, load_config
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+WORKER = HERE / "_sweep_worker.py"
+EXAMPLES = sorted((ROOT / "examples").glob("*.toml"))
+CHUNK = 2  # every in-process Nikolai sweep uses it: one compiled program for all of them
+
+
+def _child_env(**extra) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "RBO_SWEEP_TEST_LOG",
+                                                           "RBO_SWEEP_TEST_SLEEP")}
+    env["JAX_ENABLE_X64"] = "1"
+    env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(HERE), str(ROOT),
+                                                    os.environ.get("PYTHONPATH")) if p)
+    env.update(extra)
+    return env
+
+
+def _nikolai(**kwargs):
+    return sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims=NIKOLAI_DIMS,
+                 progress=False, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def nikolai():
+    return _nikolai()
+
+
+@pytest.fixture
+def hook_log(tmp_path):
+    """Counts the calls of the quantity's host hook (one per chunk and device)."""
+    log = tmp_path / "hook.log"
+    HOOK["log"] = str(log)
+    yield lambda: len(log.read_text().splitlines()) if log.exists() else 0
+    HOOK["log"] = None
+
+
+def _store_files(path: Path) -> dict[str, bytes]:
+    files = sorted(p for p in path.rglob("*") if p.is_file())
+    return {str(p.relative_to(path)): p.read_bytes() for p in files}
+
+
+# ---------------------------------------------------------------------------------------------
+# Values, labels, chunks.
+# ---------------------------------------------------------------------------------------------
+
+
+def test_grid_sweep_equals_pointwise_evaluation(nikolai):
+    """Every grid point equals the quantity evaluated alone; coordinates and dims are labelled;
+    the NaN value of M gives nonfinite_input with NaN values (and nothing is evaluated there)."""
+    ds = nikolai
+    assert ds["abscissa"].dims == ("c", "M") and ds["p"].dims == ("c", "M", "mode")
+    np.testing.assert_array_equal(ds["c"].values, NIKOLAI_AXES["c"])
+    np.testing.assert_array_equal(ds["M"].values, NIKOLAI_AXES["M"])
+    assert ds["abscissa"].dtype == np.float64 and ds["p"].dtype == np.complex128
+    single = jax.jit(nikolai_abscissa)
+    for i, c in enumerate(NIKOLAI_AXES["c"]):
+        for j, M in enumerate(NIKOLAI_AXES["M"]):
+            if np.isnan(M):
+                assert ds["status"].values[i, j] == SolveStatus.nonfinite_input._value
+                assert np.isnan(ds["abscissa"].values[i, j])
+                assert np.all(np.isnan(ds["p"].values[i, j]))
+                continue
+            ref = single(c, M)
+            assert ds["status"].values[i, j] == SolveStatus.successful._value
+            np.testing.assert_allclose(ds["abscissa"].values[i, j], ref["abscissa"], rtol=1e-12)
+            np.testing.assert_allclose(ds["p"].values[i, j], ref["p"], rtol=1e-12, atol=1e-14)
+            assert ds["kind"].values[i, j] == int(ref["kind"]._value)
+    # The follower moment of the Nikolai problem makes the undamped equilibrium flutter (4.69).
+    ok = ds["status"].values == 0
+    assert np.all(ds["kind"].values[ok] == StabilityKind.flutter._value)
+    assert ds["kind"].attrs["flag_meanings"].split()[StabilityKind.flutter._value] == "flutter"
+
+
+def test_status_counts_and_flags(nikolai):
+    counts = status_counts(nikolai)
+    assert counts["successful"] == 12 and counts["nonfinite_input"] == 3
+    assert sum(counts.values()) == 15
+    assert nikolai.attrs["status_counts"] == counts
+    flags = nikolai["status"].attrs["flag_meanings"].split()
+    assert flags == list(SolveStatus._name_to_item)  # SolveStatus codes, in order
+    assert nikolai["status"].attrs["enumeration"] == "rbo_jax.simulate.SolveStatus"
+
+
+def test_one_compilation_serves_every_chunk(hook_log):
+    """3 × 5 points in blocks of 1 × 2: 9 chunks, three of them partial (padded); one compiled
+    program runs them all, and repeated sweeps reuse it."""
+    space = _make_space(NIKOLAI_AXES, None, CHUNK)
+    assert space.chunk_shape == (1, 2) and space.n_chunks == 9
+    chunks = _Chunks(nikolai_abscissa, space, tuple(jax.local_devices()[:1]), NIKOLAI_DIMS)
+    program = chunks.program
+    assert program.strategy == "shard_map"
+    ds = _nikolai(devices=1)
+    again = _nikolai(devices=1)
+    assert _Chunks(nikolai_abscissa, space, tuple(jax.local_devices()[:1])).program is program
+    # one call per chunk that holds a finite point (a chunk of NaN points only is not evaluated)
+    n_calls = sum(np.isfinite(space.points(space.slices(c))).all(axis=1).any()
+                  for c in range(space.n_chunks))
+    assert hook_log() == 2 * n_calls
+    xr.testing.assert_identical(ds, again)
+
+
+def test_points_mode_matches_grid(nikolai):
+    cs = np.array([2.0, 0.5, 1.0, 1.0, 0.5])
+    Ms = np.array([0.4, 0.1, np.nan, 0.5, 0.2])
+    ds = sweep(nikolai_abscissa, points={"c": cs, "M": Ms}, chunk_size=CHUNK, dims=NIKOLAI_DIMS,
+               progress=False)
+    assert ds["abscissa"].dims == ("point",)
+    np.testing.assert_array_equal(ds["c"].values, cs)
+    np.testing.assert_array_equal(ds["M"].values, Ms)
+    for n, (c, M) in enumerate(zip(cs, Ms)):
+        i = int(np.flatnonzero(NIKOLAI_AXES["c"] == c)[0])
+        if np.isnan(M):
+            assert ds["status"].values[n] == SolveStatus.nonfinite_input._value
+            continue
+        j = int(np.flatnonzero(NIKOLAI_AXES["M"] == M)[0])
+        for v in ("abscissa", "p", "kind", "status"):
+            np.testing.assert_array_equal(ds[v].values[n], nikolai[v].values[i, j])
+
+
+@pytest.mark.parametrize(
+    "shape, size",
+    [((101, 41), 4096), ((5, 2000), 1500), ((1000, 3), 1024), ((7,), 3), ((3, 4, 5), 1),
+     ((2, 2), 99)],
+)
+def test_chunk_shape_bounded_and_balanced(shape, size):
+    c = _chunk_shape(shape, size)
+    assert np.prod(c) <= size and all(1 <= ci <= si for ci, si in zip(c, shape))
+    # the split axis is cut in nearly equal parts (no tiny last block)
+    for ci, si in zip(c, shape):
+        parts = -(-si // ci)
+        assert si - (parts - 1) * ci >= ci - parts + 1 or parts == 1
+    if np.prod(shape) <= size:
+        assert c == shape
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad points: statuses from real failing simulations.
+# ---------------------------------------------------------------------------------------------
+
+E1 = jnp.array([1.0, 0.0, 0.0])
+
+
+def failing_simulation(alpha, th, wt, t1):
+    """Body on the barrier foundation (4.49), c = d = 0.01, A = E, started at θ = th·e1 spinning
+    about e1 with a transverse component wt: status from simulate(..., throw=False)."""
+    model = rbo.RigidBodyOscillator(jnp.eye(3), rbo.BarrierFoundation(0.01, 0.01, alpha, 100.0, K))
+    traj = rbo.simulate(model, th * E1, jnp.stack([1.0, wt, 0.0]), jnp.linspace(0.0, 1.0, 5) * t1,
+                        rtol=1e-8, atol=1e-8, max_steps=256, throw=False)
+    E = traj.energy
+    return {"theta": traj.theta[-1], "drift": jnp.max(jnp.abs(E - E[0])),
+            "num_steps": traj.num_steps}, traj.status
+
+
+def test_bad_points_get_their_status_and_the_others_complete():
+    S = SolveStatus
+    cases = {  # name: (alpha, th, wt, t1)
+        "successful": (100.0, 0.5, 0.1, 1.0),
+        "domain_error": (0.3, 0.5, 0.1, 1.0),  # starts beyond the bending barrier α = 0.3
+        "max_steps_reached": (100.0, 0.5, 0.1, 1e4),  # 256 steps cannot reach t1 = 1e4
+        "singular_point": (100.0, 6.0, 1e-5, 1.0),  # |θ| reaches 2π with θ×Ω ≠ 0 (4.11)
+        "nonfinite_input": (100.0, np.nan, 0.1, 1.0),
+    }
+    cols = np.array(list(cases.values())).T
+    ds = sweep(failing_simulation, points=dict(zip(("alpha", "th", "wt", "t1"), cols)),
+               chunk_size=8, dims={"theta": ["component"]}, progress=False)
+    names = ds["status"].attrs["flag_meanings"].split()
+    assert [names[s] for s in ds["status"].values] == list(cases)
+    assert [int(getattr(S, n)._value) for n in cases] == list(ds["status"].values)
+    counts = status_counts(ds)
+    assert all(counts[n] == 1 for n in cases) and sum(counts.values()) == len(cases)
+    ok = ds.isel(point=0)
+    assert np.all(np.isfinite(ok["theta"].values)) and float(ok["drift"]) < 1e-7  # K + U conserved
+    assert np.all(np.isinf(ds["theta"].values[1])) and np.all(np.isnan(ds["theta"].values[4]))
+    assert ds["num_steps"].values[4] == -1  # not evaluated
+
+
+# ---------------------------------------------------------------------------------------------
+# Storage and resumption.
+# ---------------------------------------------------------------------------------------------
+
+
+def test_store_equals_in_memory_and_opens_with_xarray(tmp_path, nikolai):
+    path = tmp_path / "map.zarr"
+    ds = _nikolai(store=path)
+    xr.testing.assert_identical(ds.load(), nikolai)
+    raw = xr.open_zarr(path, consolidated=False, chunks=None)  # plain xarray reads it too
+    for v in nikolai.data_vars:
+        np.testing.assert_array_equal(raw[v].values, nikolai[v].values)
+    xr.testing.assert_identical(open_sweep(path).load(), nikolai)
+    # one zarr chunk (one file) per sweep chunk and variable
+    space = _make_space(NIKOLAI_AXES, None, CHUNK)
+    assert sum(f.is_file() for f in (path / "abscissa").rglob("*")) == space.n_chunks + 1
+    assert zarr.open_group(path, mode="r")["abscissa"].chunks == space.chunk_shape
+
+
+def test_points_mode_store_is_labelled(tmp_path):
+    pts = {"c": np.array([0.5, 1.0, 2.0]), "M": np.array([0.1, 0.2, 0.3])}
+    ds = sweep(nikolai_abscissa, points=pts, chunk_size=CHUNK, store=tmp_path / "p.zarr",
+               dims=NIKOLAI_DIMS, progress=False)
+    assert set(ds.coords) >= {"c", "M"} and ds["c"].dims == ("point",)
+    np.testing.assert_array_equal(ds["M"].values, pts["M"])
+
+
+def test_store_guards(tmp_path, nikolai):
+    path = tmp_path / "map.zarr"
+    _nikolai(store=path)
+    with pytest.raises(FileExistsError, match="resume=True"):
+        _nikolai(store=path)
+    other = dict(NIKOLAI_AXES, M=NIKOLAI_AXES["M"] * 2)
+    with pytest.raises(SweepError, match="values of 'M' differ"):
+        sweep(nikolai_abscissa, other, chunk_size=CHUNK, dims=NIKOLAI_DIMS, store=path,
+              resume=True, progress=False)
+    with pytest.raises(SweepError, match="attribute 'run'"):
+        _nikolai(store=path, resume=True, attrs={"run": 2})
+    with pytest.raises(SweepError, match="variables"):
+        sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
+              progress=False)  # other dimension names: a different sweep
+    with pytest.raises(ValueError, match="needs a store"):
+        _nikolai(resume=True)
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "x.txt").write_text("x")
+    with pytest.raises(SweepError, match="not a zarr store"):
+        _nikolai(store=tmp_path / "junk")
+    # A complete store resumes to itself, recomputing nothing.
+    before = _store_files(path)
+    xr.testing.assert_identical(_nikolai(store=path, resume=True).load(), nikolai)
+    assert _store_files(path) == before
+    # A missing marker makes the store incomplete (open_sweep refuses it) until resumed.
+    (path / "_sweep" / "chunk_done" / "c" / "1" / "0").unlink()
+    with pytest.raises(SweepError, match="incomplete: 1 of 9"):
+        open_sweep(path)
+    xr.testing.assert_identical(_nikolai(store=path, resume=True).load(), nikolai)
+    assert _store_files(path) == before
+    ds = _nikolai(store=path, overwrite=True)
+    xr.testing.assert_identical(ds.load(), nikolai)
+
+
+def _wait_for(predicate, proc, timeout):
+    t0 = time.monotonic()
+    while not predicate():
+        if proc.poll() is not None:
+            return False
+        if time.monotonic() - t0 > timeout:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def test_killed_sweep_resumes_to_an_identical_store(tmp_path, hook_log):
+    """A sweep killed by SIGKILL after some chunks are on disk: resume=True computes only the
+    missing chunks, and the store is byte for byte the store of an uninterrupted run."""
+    store = tmp_path / "killed.zarr"
+    done_dir = store / "_sweep" / "chunk_done" / "c"
+    proc = subprocess.Popen(
+        [sys.executable, str(WORKER), "kill", str(store)], cwd=ROOT,
+        env=_child_env(RBO_SWEEP_TEST_SLEEP="0.4"), stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        started = _wait_for(lambda: done_dir.exists() and
+                            sum(1 for p in done_dir.rglob("*") if p.is_file()) >= 3, proc, 180)
+        proc.send_signal(signal.SIGKILL)
+        out = proc.communicate(timeout=30)[0].decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
+    assert started, f"the sweep did not write 3 chunks in time:\n{out[-2000:]}"
+    assert proc.returncode == -signal.SIGKILL
+    space = _make_space(KILL_AXES, None, KILL_CHUNK)
+    done = np.asarray(zarr.open_group(store, mode="r")["_sweep/chunk_done"][...]).ravel()
+    n_done = int(done.sum())
+    assert 3 <= n_done < space.n_chunks, "killed too late to test anything"
+    with pytest.raises(SweepError, match="incomplete"):
+        open_sweep(store)
+
+    resumed = sweep(nikolai_abscissa, KILL_AXES, chunk_size=KILL_CHUNK, dims=NIKOLAI_DIMS,
+                    store=store, resume=True, progress=False)
+    assert hook_log() == space.n_chunks - n_done  # only the missing chunks were computed
+
+    fresh = tmp_path / "fresh.zarr"
+    uninterrupted = sweep(nikolai_abscissa, KILL_AXES, chunk_size=KILL_CHUNK, dims=NIKOLAI_DIMS,
+                          store=fresh, progress=False)
+    assert _store_files(store) == _store_files(fresh)
+    xr.testing.assert_identical(resumed.load(), uninterrupted.load())
+
+
+# ---------------------------------------------------------------------------------------------
+# Devices and processes.
+# ---------------------------------------------------------------------------------------------
+
+
+def test_four_local_devices_share_each_chunk(tmp_path):
+    """XLA_FLAGS=--xla_force_host_platform_device_count=4 in a child: each chunk is split over
+    the 4 devices by shard_map, and the results equal a one-device sweep bitwise."""
+    out = tmp_path / "report.json"
+    res = subprocess.run(
+        [sys.executable, str(WORKER), "devices", str(out)], cwd=ROOT, capture_output=True,
+        env=_child_env(XLA_FLAGS="--xla_force_host_platform_device_count=4"), timeout=300,
+    )
+    assert res.returncode == 0, res.stderr.decode()[-3000:]
+    report = json.loads(out.read_text())
+    assert report["local_devices"] == 4
+    assert report["strategy"] == "shard_map"
+    assert report["batch"] == 8  # a chunk of 6 points padded to a multiple of 4
+    assert report["shard_devices"] == 4 and report["shard_shapes"] == [[2]] * 4
+    assert report["identical"]
+    assert report["status_counts"]["nonfinite_input"] == 3
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_equal_one_process(tmp_path, hook_log):
+    """Two processes on localhost (jax.distributed, gloo): each computes its share of the chunks
+    (logged by the hook), the in-memory results are gathered and the store is written by both;
+    both equal the one-process sweep exactly."""
+    reference = sweep(nikolai_abscissa, DIST_AXES, chunk_size=DIST_CHUNK, dims=NIKOLAI_DIMS,
+                      progress=False)
+    port, store, log = _free_port(), tmp_path / "two.zarr", tmp_path / "calls.log"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(WORKER), "distributed", str(port), "2", str(i), str(store),
+             str(tmp_path / f"out{i}.pkl")],
+            cwd=ROOT, env=_child_env(RBO_SWEEP_TEST_LOG=str(log)),
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        )
+        for i in range(2)
+    ]
+    outputs = []
+    try:
+        for p in procs:
+            outputs.append(p.communicate(timeout=300)[0].decode())
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait(timeout=30)
+    for p, o in zip(procs, outputs):
+        assert p.returncode == 0, o[-3000:]
+    for i in range(2):
+        result = pickle.loads((tmp_path / f"out{i}.pkl").read_bytes())
+        assert result["process_count"] == 2
+        xr.testing.assert_identical(result["in_memory"], reference)
+        xr.testing.assert_identical(result["stored"], reference)
+    xr.testing.assert_identical(open_sweep(store).load(), reference)
+    calls = [line.split()[0] for line in log.read_text().splitlines()]
+    space = _make_space(DIST_AXES, None, DIST_CHUNK)
+    evaluated = sum(np.isfinite(space.points(space.slices(c))).all(axis=1).any()
+                    for c in range(space.n_chunks))
+    # two sweeps (in memory, stored); every evaluated chunk once, shared by the processes
+    assert len(calls) == 2 * evaluated
+    assert 0 < calls.count("0") < len(calls) and 0 < calls.count("1") < len(calls)
+
+
+# ---------------------------------------------------------------------------------------------
+# Progress, errors, validation.
+# ---------------------------------------------------------------------------------------------
+
+
+def test_progress_bar_and_quiet_mode(capsys):
+    _nikolai()
+    assert capsys.readouterr().err == ""
+    sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims=NIKOLAI_DIMS, progress=True,
+          desc="nikolai")
+    err = capsys.readouterr().err
+    assert "nikolai" in err and "15.0/15.0" in err and "pt/s" in err  # done/total, rate
+    assert "nikolai: 15 points: 12 successful, 3 nonfinite_input" in err
+
+
+def _raises_for_large_c(c, M):
+    import equinox as eqx
+
+    return {"x": eqx.error_if(c + M, c > 1.5, "c too large")}
+
+
+def test_an_error_inside_the_quantity_names_the_chunk_and_keeps_finished_chunks(tmp_path):
+    path = tmp_path / "err.zarr"
+    with pytest.raises(SweepError) as info:
+        sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, progress=False)
+    message = str(info.value)
+    assert message.startswith("chunk 6 (2 points, the first {'c': 2.0, 'M': 0.1}) raised: c too")
+    assert "throw=False" in message and len(message) < 600
+    done = np.asarray(zarr.open_group(path, mode="r")["_sweep/chunk_done"][...])
+    assert done[:2].all() and not done[2].any()  # rows c = 0.5, 1.0 are on disk
+
+
+@pytest.mark.parametrize(
+    "quantity, error, match",
+    [
+        (lambda c, M: (c, M, c), TypeError, "pair"),
+        (lambda c, M: (c, M), TypeError, "status .* got float64"),
+        (lambda c, M: [c, M], TypeError, "return a dict"),
+        (lambda c, M: {"c": c}, ValueError, "clashes"),
+        (lambda c, M: {"x": "text"}, TypeError, "'x' must be an array"),
+    ],
+)
+def test_bad_quantity_outputs_are_explained(quantity, error, match):
+    with pytest.raises(error, match=match):
+        sweep(quantity, {"c": [1.0], "M": [0.1]}, progress=False)
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        ({}, ValueError, "exactly one of"),
+        ({"axes": {"c": [1.0]}, "points": {"c": [1.0]}}, ValueError, "exactly one of"),
+        ({"points": {"c": [1.0, 2.0], "M": [1.0]}}, ValueError, "same number of values"),
+        ({"axes": {"c": []}}, ValueError, r"axes\['c'\] must be a non-empty"),
+        ({"axes": {"status": [1.0]}}, ValueError, "reserved"),
+        ({"axes": {"c": ["a"]}}, TypeError, "numbers"),
+        ({"axes": {"c": [1.0]}, "chunk_size": 0}, ValueError, "chunk_size must be >= 1"),
+        ({"axes": {"c": [1.0]}, "devices": 99}, ValueError, "local device"),
+    ],
+)
+def test_bad_sweep_arguments_are_explained(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        sweep(lambda c, M=0.0: c, progress=False, **kwargs)
+
+
+def test_dims_must_match_the_outputs():
+    with pytest.raises(ValueError, match="does not return"):
+        sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims={"q": ["x"]}, progress=False)
+    with pytest.raises(ValueError, match="2 names for an output of shape \\(6,\\)"):
+        sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims={"p": ["a", "b"]},
+              progress=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures.
+# ---------------------------------------------------------------------------------------------
+
+
+def test_plot_sweep_draws_grids_curves_and_points(nikolai):
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ds = nikolai.copy(deep=True)
+    ds["status"].values[1, 3] = SolveStatus.max_steps_reached._value  # (c, M) = (1.0, 0.4)
+    ax = plot_sweep(ds, "abscissa")
+    mesh = ax.collections[0]
+    assert ax.get_xlabel() == "c" and ax.get_ylabel() == "M"
+    # y (M) rows, x (c) columns; the row M = nan (non-finite coordinate) is left out
+    values = np.ma.getdata(mesh.get_array()).reshape(4, 3)
+    np.testing.assert_allclose(values[0], nikolai["abscissa"].values[:, 0])
+    assert np.isnan(values[2, 1]) and np.isfinite(values[2, 0])  # a failed point: blank
+    assert "3 nonfinite_input" in ax.get_title() and "1 max_steps_reached" in ax.get_title()
+    ax = plot_sweep(nikolai.isel(c=0), "p")  # one axis, complex vector: |p| against M
+    assert ax.get_ylabel() == "|p|" and len(ax.lines) == 1
+    pts = nikolai.stack(point=("c", "M")).reset_index("point")
+    ax = plot_sweep(pts, "abscissa")
+    assert ax.get_xlabel() == "c" and ax.get_ylabel() == "M"
+    with pytest.raises(KeyError, match="no variable 'nope'"):
+        plot_sweep(nikolai, "nope")
+    plt.close("all")
+
+
+# ---------------------------------------------------------------------------------------------
+# The CLI and its configuration.
+# ---------------------------------------------------------------------------------------------
+
+SMALL_CONFIG = """
+[sweep]
+quantity = "spectral_abscissa"
+output = "small.zarr"
+chunk_size = 4
+
+[axes]
+M = [0.0, 0.2, 0.4]
+b = { start = 0.0, stop = 0.3, num = 4 }
+
+[model]
+inertia = { A1 = 1.0, A3 = 0.5 }
+foundation = { type = "quadratic", c = 1.0, d = 2.0 }
+loads = [{ type = "follower", M = "M" }, { type = "friction", b = "b" }]
+"""
+
+
+def test_cli_sweep_writes_store_and_png_and_resumes(tmp_path, capsys):
+    cfg = tmp_path / "small.toml"
+    cfg.write_text(SMALL_CONFIG)
+    assert cli.main(["sweep", str(cfg), "--quiet"]) == 0
+    store, png = tmp_path / "small.zarr", tmp_path / "small.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    ds = open_sweep(store).load()
+    assert status_counts(ds) == {"successful": 12, "not_converged": 0, "singular_point": 0,
+                                 "domain_error": 0, "nonfinite": 0, "nonfinite_input": 0}
+    assert ds["theta_eq"].dims == ("M", "b", "component")
+    # Newton finds θ_eq = (M/d) k (4.62); without friction the spectrum there is (4.69).
+    np.testing.assert_allclose(ds["theta_eq"].values[..., 2], ds["M"].values[:, None] / 2.0
+                               * np.ones((1, 4)), atol=1e-12)
+    for M in (0.2, 0.4):
+        closed_form = float(jnp.max(jnp.real(rbo.nikolai_spectrum(1.0, 0.5, 1.0, 2.0, M))))
+        np.testing.assert_allclose(float(ds["spectral_abscissa"].sel(M=M, b=0.0)), closed_form,
+                                   rtol=1e-9)
+    # conservative (M = 0, b = 0): marginally stable; friction without load: asymptotically
+    kinds = ds["kind"].attrs["flag_meanings"].split()
+    assert kinds[int(ds["kind"].sel(M=0.0, b=0.0))] == "marginally_stable"
+    assert kinds[int(ds["kind"].sel(M=0.0, b=0.1, method="nearest"))] == "asymptotically_stable"
+    capsys.readouterr()
+    assert cli.main(["sweep", str(cfg), "--quiet"]) == 2
+    assert "--resume" in capsys.readouterr().err
+    before = _store_files(store)
+    assert cli.main(["sweep", str(cfg), "--quiet", "--resume"]) == 0
+    assert _store_files(store) == before
+    cfg.write_text(SMALL_CONFIG.replace("c = 1.0", "c = 1.5"))
+    assert cli.main(["sweep", str(cfg), "--quiet", "--resume"]) == 2
+    assert "attribute 'config' differs" in capsys.readouterr().err
+
+
+def test_cli_final_state_at_equilibrium(tmp_path):
+    """A list of points, each started exactly at its equilibrium θ = (M/d)k (4.62), at rest: the
+    final state of the simulation is the equilibrium."""
+    cfg = tmp_path / "rest.toml"
+    cfg.write_text("""
+[sweep]
+quantity = "final_state"
+output = "rest.zarr"
+
+[points]
+M = [0.1, 0.3, 0.5]
+d = [2.0, 1.0, 4.0]
+
+[model]
+inertia = { moments = [1.0, 0.8, 0.6] }
+foundation = { type = "quadratic", c = 1.0, d = "d" }
+loads = [{ type = "follower", M = "M" }]
+
+[initial]
+about_equilibrium = true
+
+[solver]
+t1 = 2.0
+""")
+    assert cli.main(["sweep", str(cfg), "--quiet", "--no-plot"]) == 0
+    ds = open_sweep(tmp_path / "rest.zarr")
+    assert not (tmp_path / "rest.png").exists()
+    assert ds["theta"].dims == ("point", "component") and status_counts(ds)["successful"] == 3
+    expected = (ds["M"].values / ds["d"].values)[:, None] * np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(ds["theta"].values, expected, atol=1e-12)
+    np.testing.assert_allclose(ds["Omega"].values, 0.0, atol=1e-12)
+    assert np.all(ds["num_steps"].values > 0)
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=[p.name for p in EXAMPLES])
+def test_example_configs_are_valid(path):
+    cfg = load_config(path)
+    assert cfg.quantity_name in QUANTITIES
+    assert cfg.output.parent == path.parent and cfg.png.suffix == ".png"
+    assert (cfg.axes is None) != (cfg.points is None)
+
+
+BAD_CONFIGS = [
+    ("[sweep]\nquantity='x'", "exactly one of the tables [axes]"),
+    (SMALL_CONFIG + "[solverr]\n", "unknown table [solverr] (did you mean [solver]?)"),
+    (SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 4\nchunks = 3"),
+     "[sweep]: unknown key 'chunks' (did you mean 'chunk_size'?)"),
+    (SMALL_CONFIG.replace('M = "M"', 'M = "MM"'),
+     "[model.loads][0] M: 'MM' is neither a number nor an axis name (axes: M, b)"),
+    (SMALL_CONFIG.replace('b = "b"', "b = 0.1"), "[axes] b: this axis is not used"),
+    (SMALL_CONFIG.replace("c = 1.0", "c = -1.0"), "[model.foundation] c: must be > 0, got -1"),
+    (SMALL_CONFIG.replace("c = 1.0", 'c = "M"'), "axis 'M' takes the value 0, but c must be > 0"),
+    (SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 'big'"),
+     "[sweep] chunk_size: must be an"),
+    (SMALL_CONFIG.replace("spectral_abscissa", "speed"), "[sweep] quantity: must be one of"),
+    (SMALL_CONFIG.replace('"quadratic"', '"cubic"'), "[model.foundation] type: must be"),
+    (SMALL_CONFIG.replace("num = 4", "num = 0"), "[axes] b.num: must be an integer >= 1"),
+    (SMALL_CONFIG + "[solver]\nt1 = 1.0\n",
+     "[solver]: is not used by quantity 'spectral_abscissa'"),
+    (SMALL_CONFIG.replace("spectral_abscissa", "final_state"),
+     "config: missing required key 'solver'"),
+    (SMALL_CONFIG.replace("spectral_abscissa", "energy_drift") + "[solver]\nrtol = 1e-8\n",
+     "[solver]: missing required key 't1'"),
+    (SMALL_CONFIG.replace("[axes]", "[points]").replace("b = { start = 0.0, stop = 0.3, num = 4 }",
+                                                        "b = [0.1, 0.2]"),
+     "[points]: every parameter needs the same number of values"),
+    (SMALL_CONFIG.replace("A1 = 1.0, ", ""), "[model.inertia]: missing required key 'A1'"),
+    (SMALL_CONFIG.replace('output = "small.zarr"', "output = 3"), "[sweep] output: must be a path"),
+    (SMALL_CONFIG + "plot = 'x'\n", "unknown key 'plot'"),
+    (SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 4\nplot = 'energy'"),
+     "[sweep] plot: must be an output of 'spectral_abscissa'"),
+    ("[sweep\n", "not valid TOML"),
+]
+
+
+@pytest.mark.parametrize("text, message", BAD_CONFIGS)
+def test_config_errors_name_the_key(tmp_path, text, message, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(cfg)
+    assert message in str(info.value) and str(cfg) in str(info.value)
+    assert cli.main(["sweep", str(cfg)]) == 2
+    assert message in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# Slow: the examples end to end, and a million points in bounded memory.
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", EXAMPLES, ids=[p.name for p in EXAMPLES])
+def test_examples_run(tmp_path, path):
+    store = tmp_path / "out.zarr"
+    assert cli.main(["sweep", str(path), "--quiet", "--output", str(store)]) == 0
+    ds = open_sweep(store)
+    assert status_counts(ds)["successful"] > 0
+    assert (tmp_path / "out.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def _energy(c, M):
+    model = nikolai_model(c, M)
+    return {"U": model.potential_energy(M * K)}
+
+
+@pytest.mark.slow
+def test_a_million_points_in_bounded_memory(tmp_path):
+    """10⁶ points in chunks of 2¹⁶ written to a store: the peak memory stays far below what
+    holding every chunk's device buffers would take, and U = ½ d (M/d)² (4.50)."""
+    import resource
+
+    axes = {"c": np.linspace(0.5, 2.0, 1000), "M": np.linspace(0.0, 1.0, 1000)}
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    ds = sweep(_energy, axes, chunk_size=2**16, store=tmp_path / "big.zarr", progress=False)
+    grown_mib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert ds["U"].shape == (1000, 1000)
+    np.testing.assert_allclose(ds["U"].values[3], 0.5 * axes["M"] ** 2, rtol=1e-14, atol=1e-16)
+    assert grown_mib < 400, grown_mib
