@@ -1,6 +1,7 @@
 """The ``rbo-jax`` command.
 
-``rbo-jax demo`` runs the main job of the quick start: two short simulations printed as tables,
+``rbo-jax reproduce`` (run by ``make demo``) reproduces the paper into ``out/report.md``.
+``rbo-jax demo`` prints two short simulations as tables,
 (1) a conservative oscillator whose energy K + U stays constant, and (2) the Nikolai problem
 (4.57)–(4.62): a body displaced by 1e-6 rad from the equilibrium θ = (M/d)k under a follower
 moment, whose bending deviation grows although the linear theory (4.74) predicts none.
@@ -77,6 +78,67 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def sweep_command(args: argparse.Namespace) -> int:
+    """``rbo-jax sweep CONFIG.toml``: run a declarative sweep (see ``examples/*.toml`` and
+    :func:`rbo_jax.sweep_config.load_config`), write its zarr store and a PNG of the map."""
+    import jax
+
+    from rbo_jax.sweep import SweepError, status_counts
+    from rbo_jax.sweep_config import ConfigError, load_config, run_config
+
+    distributed = (args.coordinator, args.num_processes, args.process_id)
+    if any(x is not None for x in distributed):
+        if args.coordinator is None or args.num_processes is None or args.process_id is None:
+            print("rbo-jax sweep: error: --coordinator, --num-processes and --process-id go "
+                  "together.", file=sys.stderr)
+            return 2
+        jax.distributed.initialize(coordinator_address=args.coordinator,
+                                   num_processes=args.num_processes, process_id=args.process_id)
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as e:
+        print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        plot = not args.no_plot
+    except ImportError:
+        print("rbo-jax sweep: matplotlib is not installed, no PNG (pip install 'rbo_jax[plot]').",
+              file=sys.stderr)
+        plot = False
+    try:
+        ds, png = run_config(cfg, resume=args.resume, overwrite=args.overwrite,
+                             progress=not args.quiet, output=args.output, plot=plot)
+    except (FileExistsError, SweepError) as e:
+        print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
+        return 2
+    out = args.output or cfg.output
+    counts = status_counts(ds)
+    failed = {k: v for k, v in counts.items() if v and k != "successful"}
+    if jax.process_index() == 0 and (not args.quiet or failed):
+        print(f"{cfg.quantity_name}: {sum(counts.values())} points -> {out}"
+              + (f", map {png}" if png else ""))
+        print("  status: " + ", ".join(f"{k} {v}" for k, v in counts.items() if v))
+    return 0
+
+
+def reproduce_command(args: argparse.Namespace) -> int:
+    """``rbo-jax reproduce``: every check of the paper, written to OUT/report.md with figures."""
+    from rbo_jax.reproduce import run_reproduction
+
+    checks = run_reproduction(args.out, quick=args.quick, figures=not args.no_figures)
+    failed = [c for c in checks if not c.passed]
+    width = max(len(c.section) for c in checks)
+    print()
+    for c in checks:
+        print(f"  {'pass' if c.passed else 'FAIL'}  {c.section:<{width}}  {c.quantity}  [{c.ours}]")
+    print(f"\n{len(checks) - len(failed)} of {len(checks)} checks passed; report: "
+          f"{args.out}/report.md")
+    return 1 if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="rbo-jax",
@@ -87,6 +149,38 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--t1", type=float, default=20.0, help="final time of the first run (default 20)")
     p.add_argument("--samples", type=int, default=11, help="number of printed rows (default 11)")
     p.set_defaults(func=demo)
+    p = sub.add_parser(
+        "reproduce",
+        help="Reproduce the paper's results: a table of checks and figures in OUT/report.md.",
+        description="Reproduce every result of the paper (kinematics identities, the Nikolai "
+        "paradox and its stability maps, the balance (4.78), energy conservation, the integrals "
+        "of the simplest oscillator, the Euler-angle comparison of 4.6.3, regular precession and "
+        "its stability, a stiffness fit). Exits non-zero if any check fails.",
+    )
+    p.add_argument("--out", default="out", help="output folder (default: out)")
+    p.add_argument("--quick", action="store_true",
+                   help="smaller maps and samples (the version run by the tests)")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.set_defaults(func=reproduce_command)
+    p = sub.add_parser(
+        "sweep",
+        help="Run a parameter sweep described by a TOML file (see examples/*.toml).",
+        description="Run a declarative parameter sweep: write the results to a zarr store chunk "
+        "by chunk and draw a PNG of the map.",
+    )
+    p.add_argument("config", help="the sweep configuration (TOML)")
+    p.add_argument("--resume", action="store_true",
+                   help="finish an interrupted sweep: compute only the chunks not in the store")
+    p.add_argument("--overwrite", action="store_true", help="delete an existing store first")
+    p.add_argument("--output", default=None,
+                   help="store path (overrides [sweep] output; the PNG goes beside it)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-plot", action="store_true", help="do not draw the PNG")
+    p.add_argument("--coordinator", default=None,
+                   help="multi-process run: address host:port of process 0 (jax.distributed)")
+    p.add_argument("--num-processes", type=int, default=None, help="multi-process run: count")
+    p.add_argument("--process-id", type=int, default=None, help="multi-process run: this index")
+    p.set_defaults(func=sweep_command)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -1,0 +1,51 @@
+"""Run every benchmark in one process and print their tables (``make bench``).
+
+``--smoke`` runs each at a tiny size (used by the test suite to keep the scripts working).
+Results worth keeping go to ``benchmarks/README.md`` with the machine description.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import rbo_jax  # noqa: E402,F401  (float64 on before anything else)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes, for tests")
+    parser.add_argument("--only", nargs="*", default=None,
+                        help="subset of: simulate stability fitting")
+    args = parser.parse_args(argv)
+    import jax
+
+    import bench_fitting
+    import bench_simulate
+    import bench_stability
+
+    runs = {
+        "simulate": (bench_simulate.main, ["--n", "40", "--chunk", "20", "--scipy-sample", "2"]
+                     if args.smoke else []),
+        "stability": (bench_stability.main, ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"]
+                      if args.smoke else []),
+        "fitting": (bench_fitting.main, ["--samples", "20", "--trajectories", "1"] if args.smoke else []),
+    }
+    print(f"{time.strftime('%Y-%m-%d')}  {platform.platform()}  {os.cpu_count()} CPUs  "
+          f"jax {jax.__version__}  python {platform.python_version()}")
+    results = {}
+    for name, (fn, fargs) in runs.items():
+        if args.only and name not in args.only:
+            continue
+        print(f"\n=== {name} ===")
+        results[name] = fn(fargs)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
