@@ -112,7 +112,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=10_000, help="parameter points for JAX")
     parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
-    parser.add_argument("--chunk", type=int, default=2500, help="vmap chunk size")
+    parser.add_argument("--chunk", type=int, default=500, help="vmap chunk size")
     args = parser.parse_args(argv)
 
     points = parameter_points(args.n)
