@@ -23,11 +23,10 @@ def main(argv=None) -> int:
     parser.add_argument("--only", nargs="*", default=None,
                         help="subset of: simulate stability fitting")
     args = parser.parse_args(argv)
-    import jax
-
     import bench_fitting
     import bench_simulate
     import bench_stability
+    import jax
 
     runs = {
         "simulate": (bench_simulate.main, ["--n", "40", "--chunk", "20", "--scipy-sample", "2"]

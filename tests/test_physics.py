@@ -18,7 +18,7 @@ from rbo_jax.foundations import (
 )
 from rbo_jax.inertia import principal_inertia, transversely_isotropic_inertia
 from rbo_jax.kinematics import integrating_tensor, turn_tensor
-from rbo_jax.loads import Friction, FollowerMoment, SemiTangentialMoment
+from rbo_jax.loads import FollowerMoment, Friction, SemiTangentialMoment
 from rbo_jax.model import RigidBodyOscillator
 from rbo_jax.simulate import simulate
 
