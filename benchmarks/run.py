@@ -21,28 +21,32 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, for tests")
     parser.add_argument("--only", nargs="*", default=None,
-                        help="subset of: simulate stability fitting")
+                        help="subset of: sweep simulate stability fitting")
     args = parser.parse_args(argv)
-    import bench_fitting
-    import bench_simulate
-    import bench_stability
+    import importlib
+
     import jax
 
     runs = {
-        "simulate": (bench_simulate.main, ["--n", "40", "--chunk", "20", "--scipy-sample", "2"]
+        # first: it splits the CPU into 2 XLA devices, which must happen before JAX starts
+        "sweep": ("bench_sweep", ["--n", "60", "--chunk", "30", "--scipy-sample", "2"]
+                  if args.smoke else []),
+        "simulate": ("bench_simulate", ["--n", "40", "--chunk", "20", "--scipy-sample", "2"]
                      if args.smoke else []),
-        "stability": (bench_stability.main, ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"]
+        "stability": ("bench_stability", ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"]
                       if args.smoke else []),
-        "fitting": (bench_fitting.main, ["--samples", "20", "--trajectories", "1"] if args.smoke else []),
+        "fitting": ("bench_fitting", ["--samples", "20", "--trajectories", "1"] if args.smoke else []),
     }
     print(f"{time.strftime('%Y-%m-%d')}  {platform.platform()}  {os.cpu_count()} CPUs  "
-          f"jax {jax.__version__}  python {platform.python_version()}")
+          f"jax {jax.__version__}  python {platform.python_version()}", flush=True)
     results = {}
-    for name, (fn, fargs) in runs.items():
+    for name, (module, fargs) in runs.items():
         if args.only and name not in args.only:
             continue
-        print(f"\n=== {name} ===")
-        results[name] = fn(fargs)
+        print(f"\n=== {name} ===", flush=True)
+        # imported here: a benchmark module may create arrays at import, which starts JAX (the
+        # sweep benchmark must set the CPU device count before that)
+        results[name] = importlib.import_module(module).main(fargs)
     return 0
 
 

@@ -54,5 +54,5 @@ def test_benchmarks_smoke_run():
     proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "run.py"), "--smoke"],
                           capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    for marker in ["speed-up per trajectory", "max |p - (4.69)|", "first fit"]:
+    for marker in ["speed-up per trajectory", "max |p - (4.69)|", "first fit", "shard_map over"]:
         assert marker in proc.stdout
