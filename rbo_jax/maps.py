@@ -220,7 +220,9 @@ def critical_load(
     ``axes``; ``inf`` where the equilibrium is stable on the whole interval, ``load_min`` where it
     is unstable already at the first scan point past ``load_min``. Example: the critical follower
     load of the Nikolai problem against the damping ``b`` (with damping the paradox disappears
-    below a critical load that tends to 0 with ``b``).
+    below a critical load that tends to 0 with ``b``). Points whose equilibrium cannot be
+    computed (classification ``undefined``) count as not unstable; check them with
+    :func:`stability_map` when equilibria are solved by Newton.
     """
     import xarray as xr
 

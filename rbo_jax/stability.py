@@ -270,7 +270,9 @@ def classify(eigenvalues, *, rtol: float = 1e-9) -> tuple[StabilityKind, Scalar]
     ``rtol`` is relative to $\max|p|$: real parts within $\pm$``rtol``$\cdot\max|p|$ count as
     zero, so conservative spectra (roots on the imaginary axis up to rounding) come out
     ``marginally_stable``. An unstable root whose imaginary part is also below that tolerance is
-    ``divergence``, otherwise ``flutter``.
+    ``divergence``, otherwise ``flutter``. Growth rates below the tolerance are not resolved:
+    the Nikolai roots have Re p ≈ |M|/(4√(A1 c)) for small M, so at |M| ≲ 1e-8 the default calls
+    the equilibrium marginal; pass a smaller ``rtol`` (e.g. 1e-12) to resolve them.
     """
     p = jnp.asarray(eigenvalues)
     scale = jnp.maximum(jnp.max(jnp.abs(p)), jnp.finfo(jnp.real(p).dtype).tiny)
