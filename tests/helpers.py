@@ -40,3 +40,14 @@ def random_rotation_vectors(key, n, max_angle=jnp.pi):
     axes = axes / jnp.linalg.norm(axes, axis=1, keepdims=True)
     angles = jax.random.uniform(k2, (n, 1), maxval=max_angle)
     return axes * angles
+
+
+def spectrum_match_error(p, q) -> float:
+    """max |p_i − q_σ(i)| over the best one-to-one matching σ (spectra compared as multisets)."""
+    from scipy.optimize import linear_sum_assignment
+
+    p, q = np.asarray(p).ravel(), np.asarray(q).ravel()
+    assert p.shape == q.shape
+    cost = np.abs(p[:, None] - q[None, :])
+    rows, cols = linear_sum_assignment(cost)
+    return float(cost[rows, cols].max())

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-from scipy.optimize import linear_sum_assignment
+from helpers import spectrum_match_error
 
 import rbo_jax as rbo
 
@@ -21,12 +21,7 @@ K = jnp.array([0.0, 0.0, 1.0])
 KN = np.array([0.0, 0.0, 1.0])
 
 
-def _match_error(p, q) -> float:
-    """max |p_i − q_σ(i)| over the best one-to-one matching σ (spectra as multisets)."""
-    p, q = np.asarray(p).ravel(), np.asarray(q).ravel()
-    cost = np.abs(p[:, None] - q[None, :])
-    rows, cols = linear_sum_assignment(cost)
-    return float(cost[rows, cols].max())
+_match_error = spectrum_match_error
 
 
 def _skew(v):

@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.optimize import brentq, linear_sum_assignment
+from helpers import spectrum_match_error
+from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 import rbo_jax as rbo
@@ -35,14 +36,7 @@ INF = float("inf")
 # ---------------------------------------------------------------------------------------------
 
 
-def _match_error(p, q) -> float:
-    """max |p_i − q_σ(i)| over the best one-to-one matching σ: compares two spectra as
-    multisets (robust to the ordering of nearly equal real parts)."""
-    p, q = np.asarray(p).ravel(), np.asarray(q).ravel()
-    assert p.shape == q.shape
-    cost = np.abs(p[:, None] - q[None, :])
-    rows, cols = linear_sum_assignment(cost)
-    return float(cost[rows, cols].max())
+_match_error = spectrum_match_error
 
 
 def _skew(v):
