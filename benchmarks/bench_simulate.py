@@ -1,15 +1,26 @@
-"""Trajectories per second: ``jax.vmap(simulate)`` vs ``scipy.integrate.solve_ivp`` (DOP853).
+"""Trajectories per second: ``jax.vmap(simulate)`` vs a numba-compiled DOP853 and
+``scipy.integrate.solve_ivp`` (DOP853).
 
 The Nikolai problem (4.57)–(4.62): transversely isotropic body (A1 = 1, A3 = 0.5), quadratic
 foundation (4.50), follower moment M; each parameter point (c, d, M) starts 1e-3 rad off its
 equilibrium θ = (M/d)k; t ∈ [0, 20], rtol = atol = 1e-8, final state only.
 
-Both sides use an 8th-order Dormand–Prince method at the same tolerances: diffrax ``Dopri8`` on
-the JAX side, ``solve_ivp(method="DOP853")`` with a plain NumPy right-hand side on the scipy side
-(run on a sample of the points: it is ~1000x slower). The final states of the sample are compared
-(an independent check of the vector field), and the per-trajectory time ratio is printed.
+Every side uses an 8th-order Dormand–Prince method at the same tolerances:
 
-Usage: ``python benchmarks/bench_simulate.py [--n 10000] [--scipy-sample 20] [--chunk 2500]``
+* diffrax ``Dopri8`` on the JAX side (``jax.jit(jax.vmap(...))`` over chunks, one device);
+* ``_numba_reference``: a per-trajectory DOP853 compiled with numba (scipy's tableau, error
+  estimator and step-size controller; scalar right-hand side), a serial loop over all points (one
+  core) and a ``prange`` loop (all cores numba sees) — skipped when numba is not installed;
+* ``solve_ivp(method="DOP853")`` with a plain NumPy right-hand side (run on a sample of the
+  points: it is ~1000x slower).
+
+Final states are compared (independent checks of the vector field), numba's function-evaluation
+counts against scipy's (same algorithm: they should be equal), and the per-trajectory time ratios
+are printed. Compilation is timed separately (JAX: the first chunk; numba: a first call on one
+point) and not included in the per-trajectory times.
+
+Usage: ``python benchmarks/bench_simulate.py [--n 10000] [--scipy-sample 20] [--chunk 500]
+[--no-numba-parallel]``
 """
 
 from __future__ import annotations
@@ -23,6 +34,11 @@ import jax.numpy as jnp
 import numpy as np
 from _numpy_reference import numpy_rhs
 from scipy.integrate import solve_ivp
+
+try:
+    import _numba_reference as numba_ref
+except ImportError:  # numba is optional (the "bench" extra)
+    numba_ref = None
 
 import rbo_jax
 from rbo_jax import (
@@ -91,9 +107,8 @@ def run_jax(points: np.ndarray, chunk: int):
 
 
 def run_scipy(points: np.ndarray):
-    A = A1 * (np.eye(3) - np.outer(K, K)) + A3 * np.outer(K, K)
-    A_inv = np.linalg.inv(A)
-    outs, nfev = [], []
+    A, A_inv = inertia()
+    outs, nfev, steps = [], [], []
     start = time.perf_counter()
     for c, d, M in points:
         y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
@@ -104,39 +119,112 @@ def run_scipy(points: np.ndarray):
         assert sol.success, sol.message
         outs.append(sol.y[:, -1])
         nfev.append(sol.nfev)
+        steps.append(sol.t.size - 1)  # accepted steps
     elapsed = time.perf_counter() - start
-    return np.array(outs), np.array(nfev), elapsed
+    return np.array(outs), np.array(nfev), np.array(steps), elapsed
+
+
+def inertia():
+    A = A1 * (np.eye(3) - np.outer(K, K)) + A3 * np.outer(K, K)
+    return A, np.linalg.inv(A)
+
+
+def run_numba(points: np.ndarray, parallel: bool) -> dict:
+    A, A_inv = inertia()
+    return numba_ref.timed_solve(points, parallel, T1, RTOL, RTOL, PERTURBATION, A, A_inv, K)
 
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=10_000, help="parameter points for JAX")
+    parser.add_argument("--n", type=int, default=10_000, help="parameter points (JAX, numba)")
     parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
     parser.add_argument("--chunk", type=int, default=500, help="vmap chunk size")
+    parser.add_argument("--no-numba-parallel", action="store_true",
+                        help="skip the numba prange run (all cores)")
     args = parser.parse_args(argv)
 
     points = parameter_points(args.n)
     y_jax, steps, t_jax, t_compile = run_jax(points, min(args.chunk, args.n))
-    sample = points[: args.scipy_sample]
-    y_sp, nfev, t_sp = run_scipy(sample)
-    err = np.max(np.abs(y_jax[: args.scipy_sample] - y_sp))
+    nb = {}
+    if numba_ref is not None:
+        nb["serial"] = run_numba(points, parallel=False)
+        if not args.no_numba_parallel:
+            nb["prange"] = run_numba(points, parallel=True)
+    ns = args.scipy_sample
+    sample = points[:ns]
+    y_sp, nfev, steps_sp, t_sp = run_scipy(sample)
+    err = np.max(np.abs(y_jax[:ns] - y_sp))
     per_jax = t_jax / args.n
-    per_sp = t_sp / args.scipy_sample
-    print(f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, {platform.processor() or platform.machine()}, "
-          f"{jax.device_count()} {jax.default_backend()} device(s)")
+    per_sp = t_sp / ns
+    per_nb = {k: r["seconds"] / args.n for k, r in nb.items()}
+
+    print(f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, "
+          f"{platform.processor() or platform.machine()}, {jax.device_count()} "
+          f"{jax.default_backend()} device(s); "
+          + (f"numba {numba_ref.NUMBA_VERSION} ({nb['prange']['threads'] if 'prange' in nb else 1}"
+             " threads for prange)" if numba_ref is not None else "numba not installed, skipped"))
     print(f"Nikolai problem, t in [0, {T1}], rtol = atol = {RTOL:g}, {args.n} points "
-          f"(scipy: {args.scipy_sample})")
-    header = f"{'method':<38}{'s / trajectory':>16}{'traj / s':>12}{'steps (mean)':>14}"
+          f"(scipy: {ns})")
+    header = (f"{'method':<42}{'s / trajectory':>16}{'traj / s':>12}{'steps (mean)':>14}"
+              f"{'compile [s]':>13}")
     print(header)
     print("-" * len(header))
-    print(f"{'jax.vmap(simulate), Dopri8, chunks':<38}{per_jax:>16.3e}{1 / per_jax:>12.1f}"
-          f"{steps.mean():>14.1f}")
-    print(f"{'scipy solve_ivp DOP853, NumPy RHS':<38}{per_sp:>16.3e}{1 / per_sp:>12.1f}"
-          f"{nfev.mean() / 12:>14.1f}")
-    print(f"speed-up per trajectory: {per_sp / per_jax:.0f}x   (compile once: {t_compile:.1f} s, "
-          f"not included)")
+    rows = [("jax.vmap(simulate), Dopri8, 1 device", per_jax, steps.mean(), f"{t_compile:.1f}")]
+    labels = {"serial": "numba DOP853, serial loop (1 core)",
+              "prange": "numba DOP853, prange (all cores)"}
+    for key, r in nb.items():
+        comp = "(earlier)" if r["already_compiled"] else f"{r['compile_s']:.1f}"
+        rows.append((labels[key], per_nb[key], r["steps"].mean(), comp))
+    rows.append(("scipy solve_ivp DOP853, NumPy RHS", per_sp, steps_sp.mean(), "-"))
+    for name, per, st, comp in rows:
+        print(f"{name:<42}{per:>16.3e}{1 / per:>12.1f}{st:>14.1f}{comp:>13}")
+    print("(steps: accepted steps; compile: first call incl. JIT, not in the per-trajectory "
+          "times; numba's serial compile includes the shared integrator, prange reuses it; "
+          "'(earlier)': compiled by an earlier benchmark in this process)")
+    print("ratios below: time per trajectory of the other method / jax's (> 1: jax faster)")
+    print(f"speed-up per trajectory: {per_sp / per_jax:.0f}x   (jax vs scipy; compile once: "
+          f"{t_compile:.1f} s, not included)")
+    out = {"per_jax": per_jax, "per_scipy": per_sp, "ratio": per_sp / per_jax, "max_diff": err,
+           "compile_jax": t_compile, "steps_jax": float(steps.mean()),
+           "steps_scipy": float(steps_sp.mean()), "numba": None}
+    if nb:
+        ser = nb["serial"]
+        r_ser = per_nb["serial"] / per_jax
+        print(f"jax vs numba serial (one core each): {r_ser:.2f}x per trajectory"
+              + (f" -- numba is {1 / r_ser:.1f}x faster than jax" if r_ser < 1 else ""))
+        if "prange" in nb:
+            r_par = per_nb["prange"] / per_jax
+            print(f"jax (1 device) vs numba prange ({nb['prange']['threads']} threads): "
+                  f"{r_par:.2f}x per trajectory; numba prange / serial speed-up "
+                  f"{per_nb['serial'] / per_nb['prange']:.2f}x")
+        print(f"numba serial vs scipy: {per_sp / per_nb['serial']:.0f}x per trajectory")
+        d_sp = float(np.max(np.abs(ser["y"][:ns] - y_sp)))
+        d_jax = float(np.max(np.abs(ser["y"] - y_jax)))
+        d_par = (float(np.max(np.abs(nb["prange"]["y"] - ser["y"]))) if "prange" in nb
+                 else float("nan"))
+        nfev_diff = int(np.max(np.abs(ser["nfev"][:ns] - nfev))) if ns else 0
+        print(f"numba check: max |final state difference| vs scipy (sample) {d_sp:.2e}, vs jax "
+              f"(all points) {d_jax:.2e}, prange vs serial {d_par:.1e}; max |nfev numba - nfev "
+              f"scipy| = {nfev_diff} (mean nfev {ser['nfev'][:ns].mean():.1f}); failed: "
+              f"{int((ser['status'] != 0).sum())}")
+        out["numba"] = {
+            "version": numba_ref.NUMBA_VERSION,
+            "per_serial": per_nb["serial"], "compile_serial": ser["compile_s"],
+            "already_compiled": ser["already_compiled"],
+            "per_prange": per_nb.get("prange"),
+            "compile_prange": nb["prange"]["compile_s"] if "prange" in nb else None,
+            "threads": nb["prange"]["threads"] if "prange" in nb else 1,
+            "steps": float(ser["steps"].mean()),
+            # speed-up of jax over numba per trajectory (t_numba / t_jax; < 1: numba faster)
+            "ratio_serial": per_nb["serial"] / per_jax,
+            "ratio_prange": per_nb["prange"] / per_jax if "prange" in nb else None,
+            "scipy_over_numba_serial": per_sp / per_nb["serial"],
+            "max_diff_scipy": d_sp, "max_diff_jax": d_jax, "nfev_diff_scipy": nfev_diff,
+        }
+    else:
+        print("numba not installed, skipped (pip install numba, or the 'bench' extra)")
     print(f"max |final state difference| jax vs scipy on the sample: {err:.2e}")
-    return {"per_jax": per_jax, "per_scipy": per_sp, "ratio": per_sp / per_jax, "max_diff": err}
+    return out
 
 
 if __name__ == "__main__":

@@ -41,7 +41,8 @@ K = jnp.array([0.0, 0.0, 1.0])
 
 def model_fn(M, c, A3):
     return RigidBodyOscillator(
-        transversely_isotropic_inertia(1.0, A3, K), QuadraticFoundation(c, 1.0, K), FollowerMoment(M, K)
+        transversely_isotropic_inertia(1.0, A3, K), QuadraticFoundation(c, 1.0, K),
+        FollowerMoment(M, K),
     )
 
 
@@ -88,8 +89,8 @@ def run_numpy(flat_points):
 
 
 def max_error_vs_closed_form(points, eigs):
-    ref = np.asarray(jax.jit(jax.vmap(lambda x: jnp.sort(nikolai_spectrum(1.0, x[2], x[1], 1.0, x[0]))))(
-        jnp.asarray(points)))
+    spectrum = jax.vmap(lambda x: jnp.sort(nikolai_spectrum(1.0, x[2], x[1], 1.0, x[0])))
+    ref = np.asarray(jax.jit(spectrum)(jnp.asarray(points)))
     return float(np.max(np.abs(np.sort_complex(eigs) - np.sort_complex(ref))))
 
 
@@ -100,7 +101,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--chunk", type=int, default=50_000)
     args = parser.parse_args(argv)
     n = args.n_per_axis
-    axes = {"M": np.linspace(-0.9, 0.9, n), "c": np.linspace(0.2, 2.0, n), "A3": np.linspace(0.3, 2.0, n)}
+    axes = {"M": np.linspace(-0.9, 0.9, n), "c": np.linspace(0.2, 2.0, n),
+            "A3": np.linspace(0.3, 2.0, n)}
     grids = np.meshgrid(*axes.values(), indexing="ij")
     flat_points = np.stack([g.ravel() for g in grids], axis=1)
     N = flat_points.shape[0]
@@ -139,7 +141,11 @@ def main(argv=None) -> dict:
     print(f"first map run incl. compilation {t_first:.1f} s; plain compile {t_compile_plain:.1f} s "
           "(compilation not included above)")
     print(f"unstable points (max Re p > 0): {int((ds['kind'] >= 2).sum())} of {N}")
-    return {"per_point": per, "errors": {"map": err_map, "plain": err_plain, "numpy": err_np}}
+    return {"per_point": per, "errors": {"map": err_map, "plain": err_plain, "numpy": err_np},
+            "ratio": {"plain": per["plain"] / per["map"], "numpy": per["numpy"] / per["map"]},
+            "first_run_s": t_first, "compile_map_estimate": t_first - t_map,
+            "compile_plain": t_compile_plain, "n": N,
+            "numpy_sample": int(sample.shape[0])}
 
 
 if __name__ == "__main__":

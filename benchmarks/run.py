@@ -1,4 +1,5 @@
-"""Run every benchmark in one process and print their tables (``make bench``).
+"""Run every benchmark in one process and print their tables (``make bench``), then one summary
+table of the headline ratios and compile times collected from the benchmarks' results.
 
 ``--smoke`` runs each at a tiny size (used by the test suite to keep the scripts working).
 Results worth keeping go to ``benchmarks/README.md`` with the machine description.
@@ -16,6 +17,90 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import rbo_jax  # noqa: E402,F401  (float64 on before anything else)
 
+SMOKE_ARGS = {
+    "sweep": ["--n", "60", "--chunk", "30", "--scipy-sample", "2"],
+    "simulate": ["--n", "40", "--chunk", "20", "--scipy-sample", "2"],
+    "stability": ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"],
+    "fitting": ["--samples", "20", "--trajectories", "1"],
+}
+
+
+def _fmt(x, spec):
+    return "-" if x is None or x != x else format(x, spec)  # None / NaN -> "-"
+
+
+def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
+    """(benchmark, comparison, value, compile [s]) rows from the benchmarks' result dicts.
+    Ratios are the other method's time per item / rbo_jax's (> 1: rbo_jax faster)."""
+    rows = []
+    sim = results.get("simulate")
+    if sim:
+        rows.append(("simulate", "jax.vmap(simulate) vs scipy DOP853 (1 core each)",
+                     _fmt(sim["ratio"], ".0f") + "x", f"jax {sim['compile_jax']:.1f}"))
+        nb = sim.get("numba")
+        if nb:
+            pre = nb.get("already_compiled")
+            rows.append(("simulate", "jax.vmap(simulate) vs numba DOP853 serial (1 core each)",
+                         _fmt(nb["ratio_serial"], ".2f") + "x",
+                         "numba: compiled in sweep" if pre
+                         else f"numba {nb['compile_serial']:.1f}"))
+            if nb.get("ratio_prange") is not None:
+                rows.append(("simulate", f"jax.vmap (1 device) vs numba prange "
+                             f"({nb['threads']} threads)", _fmt(nb["ratio_prange"], ".2f") + "x",
+                             "" if pre else f"numba prange {nb['compile_prange']:.1f}"))
+        else:
+            rows.append(("simulate", "numba not installed, skipped", "-", ""))
+    sw = results.get("sweep")
+    if sw and sw["sweep"]:
+        last = sw["sweep"][-1]
+        k = last["devices"]
+        compiles = ", ".join(f"{r['devices']} dev {r['compile_s']:.1f}" for r in sw["sweep"])
+        if sw["scipy"]["sample"]:
+            rows.append(("sweep", f"sweep on {k} device(s) vs scipy DOP853 (1 core)",
+                         _fmt(last["traj_per_s"] * sw["scipy"]["s_per_traj"], ".0f") + "x",
+                         f"sweep {compiles}"))
+        nb = sw.get("numba")
+        if nb:
+            for key, r in nb.items():
+                who = "1 core" if key == "serial" else f"{r['threads']} threads"
+                rows.append(("sweep", f"sweep on {k} device(s) vs numba {key} ({who})",
+                             _fmt(last["traj_per_s"] / r["traj_per_s"], ".2f") + "x",
+                             f"numba {key} {r['compile_s']:.1f}"))
+        else:
+            rows.append(("sweep", "numba not installed, skipped", "-", ""))
+    st = results.get("stability")
+    if st:
+        rows.append(("stability", "stability_map vs vmap(eigvals(jacfwd))",
+                     _fmt(st["ratio"]["plain"], ".1f") + "x",
+                     f"map ~{st['compile_map_estimate']:.1f}, plain {st['compile_plain']:.1f}"))
+        rows.append(("stability", "stability_map vs NumPy loop (FD + eigvals)",
+                     _fmt(st["ratio"]["numpy"], ".0f") + "x", ""))
+    fi = results.get("fitting")
+    if fi:
+        rows.append(("fitting", "first fit, wall incl. compilation [s]", f"{fi['first']:.1f}",
+                     f"~{fi['compile_estimate']:.1f}"))
+        rows.append(("fitting", "second fit, compiled program reused [s]", f"{fi['second']:.1f}",
+                     ""))
+    return rows
+
+
+def print_summary(results: dict) -> None:
+    rows = summary_rows(results)
+    if not rows:
+        return
+    print("\n=== summary ===")
+    print("ratio: the other method's time per trajectory / point over rbo_jax's (> 1: rbo_jax "
+          "faster, < 1: the other is faster); compile [s]: first call incl. compilation, not in "
+          "the ratios (~: first run minus second run)")
+    w = [max(len(r[i]) for r in rows) for i in range(4)]
+    w = [max(a, len(h)) for a, h in zip(w, ["benchmark", "comparison", "ratio", "compile [s]"])]
+    header = (f"{'benchmark':<{w[0]}}  {'comparison':<{w[1]}}  {'ratio':>{w[2]}}  "
+              f"{'compile [s]':<{w[3]}}")
+    print(header.rstrip())
+    print("-" * len(header))
+    for b, c, v, comp in rows:
+        print(f"{b:<{w[0]}}  {c:<{w[1]}}  {v:>{w[2]}}  {comp}".rstrip())
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -27,26 +112,23 @@ def main(argv=None) -> int:
 
     import jax
 
-    runs = {
-        # first: it splits the CPU into 2 XLA devices, which must happen before JAX starts
-        "sweep": ("bench_sweep", ["--n", "60", "--chunk", "30", "--scipy-sample", "2"]
-                  if args.smoke else []),
-        "simulate": ("bench_simulate", ["--n", "40", "--chunk", "20", "--scipy-sample", "2"]
-                     if args.smoke else []),
-        "stability": ("bench_stability", ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"]
-                      if args.smoke else []),
-        "fitting": ("bench_fitting", ["--samples", "20", "--trajectories", "1"] if args.smoke else []),
-    }
+    # sweep first: it splits the CPU into 2 XLA devices, which must happen before JAX starts
+    modules = {"sweep": "bench_sweep", "simulate": "bench_simulate",
+               "stability": "bench_stability", "fitting": "bench_fitting"}
     print(f"{time.strftime('%Y-%m-%d')}  {platform.platform()}  {os.cpu_count()} CPUs  "
-          f"jax {jax.__version__}  python {platform.python_version()}", flush=True)
+          f"jax {jax.__version__}  python {platform.python_version()}  load average "
+          f"{os.getloadavg()[0]:.2f}", flush=True)
     results = {}
-    for name, (module, fargs) in runs.items():
+    for name, module in modules.items():
         if args.only and name not in args.only:
             continue
         print(f"\n=== {name} ===", flush=True)
         # imported here: a benchmark module may create arrays at import, which starts JAX (the
         # sweep benchmark must set the CPU device count before that)
+        fargs = SMOKE_ARGS[name] if args.smoke else []
         results[name] = importlib.import_module(module).main(fargs)
+    print_summary(results)
+    print(f"load average at the end: {os.getloadavg()[0]:.2f}")
     return 0
 
 
