@@ -114,6 +114,13 @@ class Trajectory(eqx.Module):
         """The status message (for a concrete, unbatched trajectory)."""
         return SolveStatus[self.status] or "successful"
 
+    @property
+    def status_name(self) -> str:
+        """The status as a name, e.g. ``"singular_point"`` (for a concrete, unbatched
+        trajectory; the names are the fields of :class:`SolveStatus`)."""
+        value = int(self.status._value)
+        return next(n for n, item in SolveStatus._name_to_item.items() if int(item._value) == value)
+
     def _map(self, f):
         return jax.vmap(f)(self.theta, self.Omega)
 

@@ -1,10 +1,14 @@
-"""The `rbo-jax` command: demo, reproduce (the main job of `make demo`), benchmark smoke runs."""
+"""The `rbo-jax` command: demo, reproduce (the main job of `make demo`), simulate,
+stability-map, fit, benchmark smoke runs."""
 
+import argparse
 import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
+from helpers import spectrum_match_error
 
 from rbo_jax import cli
 from rbo_jax.reproduce import Check
@@ -56,3 +60,372 @@ def test_benchmarks_smoke_run():
     assert proc.returncode == 0, proc.stderr[-3000:]
     for marker in ["speed-up per trajectory", "max |p - (4.69)|", "first fit", "shard_map over"]:
         assert marker in proc.stdout
+
+
+# ---------------------------------------------------------------------------------------------
+# simulate, stability-map, fit
+# ---------------------------------------------------------------------------------------------
+
+# Runs of one model structure share one compiled solve (diffrax caches on the structure, the
+# number of samples and the solver settings), so the tests below keep them equal where they can:
+# the quadratic foundation without loads always runs with 21 samples at the default tolerances.
+K = (0.0, 0.0, 1.0)
+N_QUAD = "21"
+
+
+def _run(capsys, argv):
+    """``rbo-jax ARGV`` in-process: (exit status, stdout, stderr)."""
+    try:
+        code = cli.main(argv)
+    except SystemExit as e:  # argparse: --help and usage errors
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _summary_drift(out: str) -> float:
+    return float(out.split("max |energy drift| = ")[1].split()[0])
+
+
+def test_every_subcommand_help_explains_each_option(capsys):
+    """`rbo-jax CMD --help` lists every option of CMD with a help text; the new subcommands cite
+    the paper's equations and give examples."""
+    parser = cli.build_parser()
+    (subparsers,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    assert {"demo", "reproduce", "sweep", "simulate", "stability-map", "fit"} <= set(
+        subparsers.choices)
+    for name, sub in subparsers.choices.items():
+        code, out, _ = _run(capsys, [name, "--help"])
+        assert code == 0
+        for action in sub._actions:
+            assert action.help, (name, action.dest)
+            for option in action.option_strings:
+                assert option in out, (name, option)
+        if name in ("simulate", "stability-map", "fit"):
+            assert "examples:" in out and "(4.4" in out and "(4.5" in out, name
+            assert "default" in out
+    code, out, _ = _run(capsys, ["fit", "--help"])
+    for array in ("t ", "theta ", "Omega ", "(n, 3)"):
+        assert array in out  # the data file format
+
+
+def test_simulate_conservative_energy_and_files_match_rbo_jax_simulate(capsys, tmp_path):
+    """Barrier foundation (4.49), no loads: K + U is conserved (drift < 1e-8 reported, energies of
+    the .npz constant to 1e-9), and the trajectory of --out is rbo_jax.simulate's."""
+    import jax.numpy as jnp
+
+    from rbo_jax import (
+        BarrierFoundation,
+        RigidBodyOscillator,
+        simulate,
+        transversely_isotropic_inertia,
+    )
+
+    argv = ["simulate", "--foundation", "barrier", "--c", "1", "--d", "2", "--alpha", "2",
+            "--beta", "1.5", "--A1", "1", "--A3", "0.6", "--theta0", "0.8,-0.3,0.5",
+            "--Omega0=0.2,1.1,-0.7", "--t1", "5", "--samples", "11", "--rtol", "1e-12",
+            "--atol", "1e-12"]
+    code, out, err = _run(capsys, argv + ["--out", str(tmp_path / "run.npz")])
+    assert code == 0, err
+    assert "status: successful" in out and "K + U" in out
+    assert _summary_drift(out) < 1e-8
+    assert out.count("e+00") > 11  # the table has the 11 rows
+    f = np.load(tmp_path / "run.npz")
+    E = f["energy"]
+    assert f["theta"].shape == f["Omega"].shape == (11, 3) and E.shape == (11,)
+    assert np.max(np.abs(E - E[0])) < 1e-9
+    k = jnp.asarray(K)
+    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 0.6, k),
+                                BarrierFoundation(1.0, 2.0, 2.0, 1.5, k))
+    ts = jnp.linspace(0.0, 5.0, 11)
+    traj = simulate(model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
+                    rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(f["ts"], np.asarray(ts), rtol=0, atol=0)
+    np.testing.assert_allclose(f["theta"], np.asarray(traj.theta), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(f["Omega"], np.asarray(traj.Omega), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(E, np.asarray(traj.energy), rtol=1e-12)
+    # the same run as CSV: the same numbers, to the last digit printed (%.17g)
+    code, out, _ = _run(capsys, argv + ["--out", str(tmp_path / "run.csv"), "--max-rows", "0"])
+    assert code == 0 and "K + U" not in out  # --max-rows 0: the summary only
+    csv = np.loadtxt(tmp_path / "run.csv", delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(csv, np.column_stack([f["ts"], f["theta"], f["Omega"], E]))
+
+
+def test_simulate_inertia_forms_and_a_rotated_axis_give_the_same_motion(capsys, tmp_path):
+    """--principal A1,A1,A3 (4.39) is --A1/--A3 (4.40) with k = e3; turning k, the principal axes
+    and the initial state by R (e3 -> e1, e1 -> e2, e2 -> e3) turns the whole motion, θ -> Rθ."""
+
+    common = ["simulate", "--c", "1", "--d", "2", "--t1", "4", "--samples", N_QUAD]
+    runs = {
+        "ti": ["--A1", "1", "--A3", "0.6", "--theta0", "0.3,-0.2,0.5", "--Omega0", "0.4,0.1,-0.6"],
+        "principal": ["--principal", "1,1,0.6", "--theta0", "0.3,-0.2,0.5",
+                      "--Omega0", "0.4,0.1,-0.6"],
+        "rotated": ["--principal", "0.6,1,1", "--axis", "1,0,0", "--theta0=0.5,0.3,-0.2",
+                    "--Omega0=-0.6,0.4,0.1"],
+    }
+    theta = {}
+    for name, extra in runs.items():
+        code, out, err = _run(capsys, common + extra + ["--out", str(tmp_path / f"{name}.npz")])
+        assert code == 0, err
+        theta[name] = np.load(tmp_path / f"{name}.npz")["theta"]
+    assert np.max(np.abs(theta["ti"])) > 0.3  # a real motion
+    np.testing.assert_allclose(theta["principal"], theta["ti"], rtol=0, atol=1e-13)
+    R = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # R e3 = e1, R e1 = e2
+    np.testing.assert_allclose(theta["rotated"], theta["ti"] @ R.T, rtol=0, atol=1e-9)
+
+
+def test_simulate_follower_moment_near_equilibrium_grows_at_the_rate_of_4_69(capsys, tmp_path):
+    """--follower M --about-equilibrium: Newton finds θ = (M/d)k (4.62); a 1e-6 bending offset
+    grows like exp(t max Re p) with the Nikolai root of (4.69), while the torsion stays put."""
+
+    from rbo_jax import nikolai_bending_roots
+
+    M, c, d = 0.4, 1.0, 2.0
+    code, out, err = _run(capsys, [
+        "simulate", "--follower", str(M), "--c", str(c), "--d", str(d), "--about-equilibrium",
+        "--theta0", "1e-6,0,0", "--t1", "60", "--samples", "61", "--max-rows", "5",
+        "--out", str(tmp_path / "nikolai.npz")])
+    assert code == 0, err
+    assert "equilibrium theta_eq = [0.0, 0.0, 0.2]" in out and "5 of 61 samples" in out
+    f = np.load(tmp_path / "nikolai.npz")
+    t, theta = f["ts"], f["theta"]
+    np.testing.assert_allclose(theta[0], [1e-6, 0.0, M / d], rtol=0, atol=1e-15)
+    bending = np.linalg.norm(theta[:, :2], axis=1)
+    late = t >= 20
+    rate = np.polyfit(t[late], np.log(bending[late]), 1)[0]
+    expected = float(np.max(np.real(nikolai_bending_roots(1.0, c, d, M))))
+    assert rate == pytest.approx(expected, rel=0.03)
+    assert bending[-1] > 50 * bending[0]
+    assert np.max(np.abs(theta[:, 2] - M / d)) < 1e-8  # second order in the bending deviation
+
+
+def test_simulate_loads_add_up_as_in_the_package(capsys, tmp_path):
+    """--follower, --dead and --friction together are the model with FollowerMoment (4.57),
+    DeadMoment (4.75) and Friction (4.84), in any order of the options."""
+    import jax.numpy as jnp
+
+    from rbo_jax import (
+        DeadMoment,
+        FollowerMoment,
+        Friction,
+        QuadraticFoundation,
+        RigidBodyOscillator,
+        simulate,
+        transversely_isotropic_inertia,
+    )
+
+    code, out, err = _run(capsys, [
+        "simulate", "--friction", "0.2", "--dead", "0.1", "--follower", "0.3", "--theta0",
+        "0.4,0.2,0.1", "--Omega0", "0.3,-0.5,0.2", "--t1", "8", "--samples", "9",
+        "--out", str(tmp_path / "loads.npz")])
+    assert code == 0, err
+    assert "follower M = 0.3, dead M = 0.1, friction b = 0.2" in out
+    k = jnp.asarray(K)
+    model = RigidBodyOscillator(
+        transversely_isotropic_inertia(1.0, 0.6, k), QuadraticFoundation(1.0, 2.0, k),
+        [FollowerMoment(0.3, k), DeadMoment(0.1, k), Friction(0.2)])
+    traj = simulate(model, jnp.array([0.4, 0.2, 0.1]), jnp.array([0.3, -0.5, 0.2]),
+                    jnp.linspace(0.0, 8.0, 9))
+    f = np.load(tmp_path / "loads.npz")
+    np.testing.assert_allclose(f["theta"], np.asarray(traj.theta), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(f["energy"], np.asarray(traj.energy), rtol=1e-12)
+
+
+def test_simulate_singular_point_exits_1_with_the_solver_status(capsys, tmp_path):
+    """A nearly plane rotation through |θ| = 2π (4.11) (cf. tests/test_simulate.py): exit status 1,
+    the SolveStatus message, the table up to the failure, the samples after it inf in --out."""
+
+    code, out, err = _run(capsys, [
+        "simulate", "--A1", "1", "--A3", "1", "--c", "0.01", "--d", "0.01", "--theta0", "0,0,6",
+        "--Omega0", "1e-5,0,1", "--t1", "4", "--samples", N_QUAD,
+        "--out", str(tmp_path / "singular.npz")])
+    assert code == 1
+    assert "status: singular_point" in out and "singular point" in err and "(eq. 4.11)" in err
+    # |θ| = R cos(wt − φ) reaches 2π at t ≈ 0.28 (w = 0.1): the first two samples exist
+    f = np.load(tmp_path / "singular.npz")
+    assert np.all(np.isfinite(f["theta"][:2])) and np.all(np.isinf(f["theta"][2:]))
+    assert "after t = 0.2 " in err and "singular point" in str(f["status"])
+
+
+def test_simulate_step_budget_exits_1(capsys):
+    """--max-steps exhausted: exit status 1 with SolveStatus.max_steps_reached's message."""
+    code, out, err = _run(capsys, ["simulate", "--theta0", "0.5,0,0", "--t1", "50",
+                                   "--samples", N_QUAD, "--max-steps", "4"])
+    assert code == 1
+    assert "status: max_steps_reached" in out
+    assert "maximum number of solver steps" in err and "max_steps" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--c", "-1"], "parameter c must be > 0"),
+    (["--d", "0"], "parameter d must be > 0"),
+    (["--theta0", "1,2"], "theta0 must have shape (3,)"),
+    (["--Omega0", "1,2,3,4"], "Omega0 must have shape (3,)"),
+    (["--A3", "-0.6"], "parameter A3 must be > 0"),
+    (["--principal", "1,2"], "moments must have shape (3,)"),
+    (["--principal", "1,1,0.6", "--A1", "2"], "--principal replaces --A1"),
+    (["--foundation", "barrier", "--alpha", "1"], "needs --alpha and --beta"),
+    (["--alpha", "1"], "belong to --foundation barrier"),
+    (["--foundation", "barrier", "--alpha", "1", "--beta", "0"], "parameter beta must be > 0"),
+    (["--friction", "-0.1"], "parameter b must be >= 0"),
+    (["--axis", "0,0,0"], "axis k must be a nonzero"),
+    (["--out", "run.txt"], "unknown format '.txt'"),
+    (["--samples", "1"], "--samples must be >= 2"),
+    (["--theta0", "a,b,c"], None),
+])
+def test_simulate_invalid_input_exits_2_naming_the_parameter(capsys, argv, message):
+    code, out, err = _run(capsys, ["simulate", *argv])
+    assert code == 2
+    assert "Traceback" not in err
+    assert (message or "--theta0") in err
+
+
+def test_stability_map_matches_the_closed_form_4_69(capsys, tmp_path):
+    """A grid over M, c and A3: the spectral abscissa is max Re of the roots (4.69) to 1e-10, the
+    eigenvalues are the six roots, θ_eq = (M/d)k, M = 0 is marginally stable and M ≠ 0 flutter."""
+
+    from rbo_jax import nikolai_bending_roots, nikolai_spectrum
+
+    d, A1 = 2.0, 1.0
+    code, out, err = _run(capsys, [
+        "stability-map", "--M=-0.6:0.6:5", "--c", "0.5,1,2", "--A3", "0.4:1.2:2", "--d", str(d),
+        "--A1", str(A1), "--out", str(tmp_path / "map.npz"), "--progress"])
+    assert code == 0, err
+    f = np.load(tmp_path / "map.npz")
+    assert list(f["dims"]) == ["M", "c", "A3"] and f["spectral_abscissa"].shape == (5, 3, 2)
+    assert float(f["d"]) == d
+    kinds = f["kind_names"][f["kind"]]
+    assert "marginally_stable 6, flutter 24" in out  # 6 points with M = 0
+    closed = np.empty((5, 3, 2))
+    for i, M in enumerate(f["M"]):
+        for j, c in enumerate(f["c"]):
+            for m, A3 in enumerate(f["A3"]):
+                closed[i, j, m] = np.max(np.real(nikolai_bending_roots(A1, c, d, M)))
+                err6 = spectrum_match_error(f["eigenvalues"][i, j, m],
+                                            nikolai_spectrum(A1, A3, c, d, M))
+                assert err6 < 1e-10
+                np.testing.assert_allclose(f["theta_eq"][i, j, m], [0, 0, M / d], atol=1e-15)
+                expected = "marginally_stable" if M == 0 else "flutter"
+                assert kinds[i, j, m] == expected
+    np.testing.assert_allclose(f["spectral_abscissa"], closed, rtol=0, atol=1e-10)
+    assert np.all(closed[np.asarray(f["M"]) != 0] > 0.01)  # the Nikolai paradox
+    reported = out.split("max Re p: min ")[1].split(", max ")
+    assert float(reported[1].split()[0]) == pytest.approx(closed.max(), rel=1e-6)
+    assert float(out.split("max Re (4.69) roots| = ")[1].split()[0]) < 1e-10
+
+
+def test_stability_map_writes_netcdf_zarr_and_a_figure(capsys, tmp_path):
+    """--out .nc (complex eigenvalues as real/imaginary parts), .zarr and --plot: the same map;
+    with friction b > 0 (4.84) the M = 0 equilibrium becomes asymptotically stable."""
+    import xarray as xr
+
+    pytest.importorskip("matplotlib")
+    args = ["stability-map", "--M=-0.4:0.4:3", "--c", "0.5:1.5:3", "--friction", "0.1"]
+    nc, zarr_store, png = tmp_path / "map.nc", tmp_path / "map.zarr", tmp_path / "map.png"
+    if cli._netcdf_engine() is not None:
+        code, out, err = _run(capsys, args + ["--out", str(nc), "--plot", str(png)])
+        assert code == 0, err
+        assert "asymptotically_stable 3, flutter 6" in out and "closed form" not in out
+        assert png.stat().st_size > 1000
+        with xr.open_dataset(nc) as ds:
+            a = ds["spectral_abscissa"].values
+            p = ds["eigenvalues_real"].values + 1j * ds["eigenvalues_imag"].values
+            assert float(ds.attrs["friction_b"]) == 0.1
+        assert np.all(a[1] < 0) and np.all(a[[0, 2]] > 0)
+        assert np.max(np.abs(np.max(p.real, axis=-1) - a)) == 0
+    pytest.importorskip("zarr")
+    code, out, err = _run(capsys, args + ["--out", str(zarr_store)])
+    assert code == 0, err
+    with xr.open_zarr(zarr_store, consolidated=False) as ds:
+        assert ds["eigenvalues"].dtype == np.complex128
+        assert ds["kind"].attrs["flag_meanings"].split()[int(ds["kind"][1, 0])] == \
+            "asymptotically_stable"
+
+
+def test_stability_map_invalid_input_exits_2(capsys, monkeypatch, tmp_path):
+    """Bad grid values name the parameter; --plot needs two ranged axes and matplotlib (checked
+    before anything is computed)."""
+    code, _, err = _run(capsys, ["stability-map", "--c=-1:1:3"])
+    assert code == 2 and "parameter c must be > 0" in err
+    code, _, err = _run(capsys, ["stability-map", "--A3", "0"])
+    assert code == 2 and "parameter A3 must be > 0" in err
+    code, _, err = _run(capsys, ["stability-map", "--M", "0:1:x"])
+    assert code == 2 and "start:stop:num" in err
+    code, _, err = _run(capsys, ["stability-map", "--c", "1", "--plot", str(tmp_path / "a.png")])
+    assert code == 2 and "two axes" in err
+    code, _, err = _run(capsys, ["stability-map", "--out", str(tmp_path / "a.h5")])
+    assert code == 2 and "unknown format '.h5'" in err
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    code, _, err = _run(capsys, ["stability-map", "--plot", str(tmp_path / "a.png")])
+    assert code == 2 and "needs matplotlib" in err
+
+
+def _estimates(out: str) -> dict[str, tuple[float, float]]:
+    est = {}
+    for line in out.splitlines():
+        parts = line.split()
+        if len(parts) > 4 and parts[1] == "=" and parts[3] == "+/-":
+            est[parts[0]] = (float(parts[2]), float(parts[4]))
+    return est
+
+
+def test_fit_synthetic_recovers_c_and_d(capsys):
+    """fit --synthetic: noise-free data of c = 1, d = 2 (4.50), the fit started 30 % off recovers
+    both to 1e-6 relative with tiny standard errors."""
+    code, out, err = _run(capsys, ["fit", "--synthetic", "--c", "1", "--d", "2", "--t1", "4",
+                                   "--samples", N_QUAD])
+    assert code == 0, err
+    est = _estimates(out)
+    assert set(est) == {"c", "d"}
+    for name, truth in (("c", 1.0), ("d", 2.0)):
+        value, se = est[name]
+        assert value == pytest.approx(truth, rel=1e-6)
+        assert se < 1e-6 * truth
+    assert "start 1.3" in out and "iterations" in out and "converged" in out
+    assert float(out.split("final loss ")[1].split(",")[0]) < 1e-12
+
+
+def test_simulate_out_then_fit_data_roundtrip(capsys, tmp_path):
+    """`simulate --out obs.npz` then `fit --data obs.npz` from wrong starting values: the
+    stiffnesses of the simulation come back."""
+    path = str(tmp_path / "obs.npz")
+    code, _, err = _run(capsys, ["simulate", "--c", "1", "--d", "2", "--theta0", "0.8,-0.3,0.5",
+                                 "--Omega0=0.2,1.1,-0.7", "--t1", "4", "--samples", N_QUAD,
+                                 "--out", path, "--max-rows", "0"])
+    assert code == 0, err
+    code, out, err = _run(capsys, ["fit", "--data", path, "--c", "1.3", "--d", "2.6"])
+    assert code == 0, err
+    assert "21 samples of Omega, theta" in out
+    est = _estimates(out)
+    assert est["c"][0] == pytest.approx(1.0, rel=1e-6)
+    assert est["d"][0] == pytest.approx(2.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("arrays, message", [
+    ({"theta": np.zeros((5, 3))}, "missing array 't'"),
+    ({"t": np.arange(5.0), "energy": np.zeros(5)}, "missing array 'theta'"),
+    ({"t": np.arange(5.0), "theta": np.zeros((5, 2))}, "theta must have shape (n, 3)"),
+    ({"t": np.arange(5.0), "theta": np.zeros((4, 3))}, "theta has 4 samples but ts has 5"),
+    ({"t": np.arange(5.0), "theta": np.zeros((5, 3))}, "Omega0 is needed"),
+    ({"t": np.arange(5.0)[::-1], "theta": np.zeros((5, 3)), "Omega": np.zeros((5, 3))},
+     "strictly increasing"),
+    (None, "no such file"),
+])
+def test_fit_bad_data_file_exits_2_naming_the_problem(capsys, tmp_path, arrays, message):
+    path = tmp_path / "data.npz"
+    if arrays is not None:
+        np.savez(path, **arrays)
+    code, _, err = _run(capsys, ["fit", "--data", str(path)])
+    assert code == 2 and "Traceback" not in err
+    assert message in err and str(path) in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--params", "c,e"], "--params must be distinct names"),
+    (["--params", "alpha"], "needs --foundation barrier"),
+    (["--params", "b"], "needs --friction"),
+    (["--c", "0"], "starting value must be finite and > 0"),
+])
+def test_fit_invalid_options_exit_2(capsys, argv, message):
+    code, _, err = _run(capsys, ["fit", "--synthetic", *argv])
+    assert code == 2 and message in err

@@ -390,6 +390,7 @@ def test_infinite_barrier_parameters_are_not_nonfinite_input():
     """alpha = beta = inf is a valid BarrierFoundation ((4.50)): the solve succeeds."""
     traj = simulate(free_model(), THETA0, OMEGA0, TS, **TIGHT)
     assert bool(traj.ok) and np.all(np.isfinite(np.asarray(traj.theta)))
+    assert traj.status_name == "successful"
 
 
 def test_nan_load_gives_step_size_collapse():
@@ -415,7 +416,7 @@ def test_nearly_plane_rotation_stops_at_singular_point_4_11():
     t_cross = (phi - np.arccos(2 * np.pi / R)) / w
     assert 0.0 < t_cross < float(TS[1])
     _assert_failed_after(traj, SolveStatus.singular_point, t_cross)
-    assert "singular point" in traj.message
+    assert "singular point" in traj.message and traj.status_name == "singular_point"
     with pytest.raises(RUNTIME_ERRORS, match="singular point"):
         jax.block_until_ready(simulate(model, 6.0 * K, Omega0, TS, **TIGHT).theta)
 
