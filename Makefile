@@ -5,6 +5,9 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 PYTEST_ARGS ?=
+# the suite runs in 2 processes (pytest-xdist; one per core of the CI machine), test files kept
+# whole per process so that each compiles its JAX programs once
+WORKERS ?= 2
 
 .PHONY: demo test test-all bench clean
 
@@ -19,10 +22,10 @@ demo: $(STAMP)
 	$(BIN)/rbo-jax reproduce --out out
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile -m "not slow" $(PYTEST_ARGS)
 
 test-all: $(STAMP)
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py

@@ -48,6 +48,15 @@ def _floats(text: str) -> tuple[float, ...]:
             f"expected comma-separated numbers such as 0.1,0,-0.2, got {text!r}") from None
 
 
+def _horizons(text: str) -> tuple[float, ...]:
+    """``"0.2,0.5,1"`` -> increasing fractions in (0, 1] (staged fitting of :func:`rbo_jax.fit`)."""
+    values = _floats(text)
+    if any(not 0.0 < h <= 1.0 for h in values) or list(values) != sorted(values):
+        raise argparse.ArgumentTypeError(
+            f"expected increasing fractions in (0, 1] such as 0.2,0.5,1, got {text!r}")
+    return values
+
+
 def _grid(text: str):
     """``"start:stop:num"`` (inclusive linspace), ``"a,b,c"`` or ``"a"`` -> 1-D float array."""
     import numpy as np
@@ -730,7 +739,7 @@ def fit_command(args: argparse.Namespace) -> int:
     try:
         res = fit(model, data, selector, fit_initial_state=args.fit_initial_state,
                   max_steps=args.max_steps, tol=args.tol, solve_rtol=args.rtol,
-                  solve_atol=args.atol, progress=args.progress)
+                  solve_atol=args.atol, progress=args.progress, horizons=args.horizons)
     except FloatingPointError as e:
         raise _Failure(f"the fit could not start: {e}", code=1) from None
     for name, value, se in zip(names, res.params, res.stderr):
@@ -748,6 +757,14 @@ def fit_command(args: argparse.Namespace) -> int:
           "(compilation included)")
     if not res.converged:
         raise _Failure(f"the fit did not converge: {res.message}", code=1)
+    # whitened residuals (rms ~ 1 at the right answer) when the noise is given, else in rad, rad/s
+    whitened = args.sigma_theta is not None or args.sigma_Omega is not None
+    if res.residual_rms > (3.0 if whitened else 1e-2):
+        print(f"  note: the residual rms {res.residual_rms:.3g} is large "
+              f"({'> 3 noise standard deviations' if whitened else '> 1e-2 rad or rad/s'}): the "
+              "fit may have stopped in a local minimum (or the model does not describe the data), "
+              "and the standard errors are then meaningless; try staged horizons "
+              "(--horizons 0.2,0.5,1) or starting values closer to the answer.")
     return 0
 
 
@@ -929,8 +946,14 @@ def _add_fit(sub) -> None:
     g.add_argument("--Omega0", type=_floats, default=None, metavar="X,Y,Z",
                    help="initial right angular velocity (rad/s), as --theta0 (default: the "
                    "data's; synthetic 0.2,1.1,-0.7)")
+    g.add_argument("--horizons", type=_horizons, default=(1.0,), metavar="F1,F2,...",
+                   help="staged fitting: fit on the first fractions F1 < F2 < ... <= 1 of the "
+                   "record in turn, each stage starting from the previous estimate; helps long "
+                   "or unstable records, where the loss over the whole record has many local "
+                   "minima (default 1: the whole record at once)")
     g.add_argument("--max-steps", type=int, default=100,
-                   help="maximum number of Levenberg-Marquardt iterations (default 100)")
+                   help="maximum number of Levenberg-Marquardt iterations per stage (default "
+                   "100)")
     g.add_argument("--tol", type=float, default=1e-8,
                    help="convergence tolerance: relative step size and relative decrease of the "
                    "loss (default 1e-8)")

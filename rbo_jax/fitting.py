@@ -648,8 +648,8 @@ def _run_least_squares(u, model, datas, spec, optimizer, tol, max_steps, history
         _log(history, F, bar, verbose)
         if stalled >= _PATIENCE:
             return _unflatten_like(x, u), steps, True, (
-                f"converged (no relative decrease of the loss above tol in {_PATIENCE} steps: at "
-                "the noise floor of the ODE solves)"
+                f"converged (no relative decrease of the loss above tol in {_PATIENCE} steps: a "
+                "minimum, possibly local, or the noise floor of the ODE solves)"
             )
     return _unflatten_like(x, u), max_steps, False, f"max_steps = {max_steps} reached before convergence"
 

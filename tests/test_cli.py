@@ -3,7 +3,6 @@ stability-map, fit, benchmark smoke runs."""
 
 import argparse
 import os
-import subprocess
 import sys
 
 import numpy as np
@@ -38,7 +37,6 @@ def test_reproduce_exit_status_reflects_failed_checks(monkeypatch, tmp_path, cap
     assert not Check("s", "q", "p", "o", float("nan"), 1.0).passed
 
 
-@pytest.mark.slow
 def test_reproduce_quick_passes_and_writes_the_report(tmp_path):
     """The full chain of `make demo` at --quick size: every check of the paper passes, the report
     lists them and the figures exist."""
@@ -49,17 +47,6 @@ def test_reproduce_quick_passes_and_writes_the_report(tmp_path):
     for name in ["map_M_c.png", "map_M_A3.png", "root_locus.png", "nikolai_growth.png",
                  "simplest_oscillator.png", "precession_growth.png"]:
         assert (tmp_path / name).stat().st_size > 1000
-
-
-@pytest.mark.slow
-def test_benchmarks_smoke_run():
-    """Every benchmark runs at a tiny size (benchmarks are not part of the default suite)."""
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "run.py"), "--smoke"],
-                          capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    for marker in ["speed-up per trajectory", "max |p - (4.69)|", "first fit", "shard_map over"]:
-        assert marker in proc.stdout
 
 
 # ---------------------------------------------------------------------------------------------
@@ -399,6 +386,30 @@ def test_simulate_out_then_fit_data_roundtrip(capsys, tmp_path):
     est = _estimates(out)
     assert est["c"][0] == pytest.approx(1.0, rel=1e-6)
     assert est["d"][0] == pytest.approx(2.0, rel=1e-6)
+
+
+def test_fit_of_an_unstable_record_needs_staged_horizons(capsys, tmp_path):
+    """The Nikolai problem (4.57)-(4.62) grows from 0.18 to 1.7 rad over t in [0, 50]: fitted over
+    the whole record at once, Levenberg-Marquardt stops in a local minimum far from (c, d) = (1, 2)
+    and the command says so; fitted on growing horizons (0.2, 0.5, 1) it recovers them."""
+    path = str(tmp_path / "nikolai.npz")
+    code, _, err = _run(capsys, ["simulate", "--c", "1", "--d", "2", "--follower", "0.3",
+                                 "--theta0", "0.1,0,0.15", "--t1", "50", "--samples", "11",
+                                 "--out", path, "--max-rows", "0"])
+    assert code == 0, err
+    start = ["fit", "--data", path, "--c", "1.3", "--d", "1.6", "--follower", "0.3"]
+    code, out, err = _run(capsys, start)
+    est = _estimates(out)
+    if code == 0 and abs(est["c"][0] - 1.0) > 1e-3:  # stopped away from the answer (it does
+        assert "local minimum" in out                 # here): the note must say why it may be
+    code, out, err = _run(capsys, start + ["--horizons", "0.2,0.5,1"])
+    assert code == 0, err
+    est = _estimates(out)
+    assert est["c"][0] == pytest.approx(1.0, rel=1e-6)
+    assert est["d"][0] == pytest.approx(2.0, rel=1e-6)
+    assert "local minimum" not in out
+    code, _, err = _run(capsys, start + ["--horizons", "0.5,0.2"])
+    assert code == 2 and "increasing fractions" in err
 
 
 @pytest.mark.parametrize("arrays, message", [

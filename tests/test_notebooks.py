@@ -57,7 +57,6 @@ def test_notebook_is_stored_without_outputs(name):
     assert code[1].source.lstrip().startswith("import rbo_jax"), f"{name}: import rbo_jax first"
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_executes(name, monkeypatch):
     import nbclient  # test extra

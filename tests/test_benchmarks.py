@@ -1,0 +1,66 @@
+"""A smoke run of every benchmark at a tiny size (`benchmarks/run.py --smoke`).
+
+Timings are not asserted (speed is measured by the benchmarks themselves, not by tests). What is
+asserted is what the benchmarks' tables rely on: every script runs, the three independent
+integrators of the Nikolai problem (4.57)-(4.62) — rbo_jax's Dopri8, the numba DOP853 reference
+and scipy's DOP853 — agree on the final states to the tolerance level (rtol = atol = 1e-8), the
+numba reference takes exactly scipy's steps, the stability map matches (4.69), the fit converges,
+and the summary table of ratios and compile times is printed.
+"""
+
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def smoke_output():
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "run.py"), "--smoke"],
+                          capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout
+
+
+def _floats(pattern, text):
+    found = re.findall(pattern, text)
+    assert found, f"no match for {pattern!r} in the benchmark output"
+    return [float(x) for x in found]
+
+
+def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
+    for marker in ["=== sweep ===", "=== simulate ===", "=== stability ===", "=== fitting ===",
+                   "speed-up per trajectory", "max |p - (4.69)|", "first fit", "shard_map over",
+                   "=== summary ===", "compile [s]"]:
+        assert marker in smoke_output, marker
+
+
+def test_the_three_integrators_agree_to_the_tolerance(smoke_output):
+    """rbo_jax vs scipy, numba vs scipy and numba vs rbo_jax final states differ at the level of
+    rtol = atol = 1e-8 (different step sequences), not more."""
+    jax_scipy = _floats(r"max \|final state difference\| jax vs scipy on the sample: ([0-9.e+-]+)",
+                        smoke_output)
+    sweep_scipy = _floats(r"/ scipy: \d+x per trajectory; max \|final state difference\| on the "
+                          r"sample: ([0-9.e+-]+)", smoke_output)
+    assert max(jax_scipy + sweep_scipy) < 1e-6
+    if "numba not installed" in smoke_output:
+        pytest.skip("numba (the `bench` extra) is not installed: its rows were skipped")
+    vs_scipy = _floats(r"numba check: max \|final state difference\| vs (?:the sweep [0-9.e+-]+, "
+                       r"vs )?scipy \(sample\) ([0-9.e+-]+)", smoke_output)
+    assert max(vs_scipy) < 1e-10  # same tableau, same controller: the same steps as scipy
+    nfev = _floats(r"max \|nfev numba - nfev scipy\| = (\d+)", smoke_output)
+    assert max(nfev) == 0
+    vs_jax = _floats(r"vs jax \(all points\) ([0-9.e+-]+)", smoke_output)
+    assert max(vs_jax) < 1e-6
+
+
+def test_stability_map_and_fit_are_accurate(smoke_output):
+    errors = _floats(r"rbo_jax\.stability_map \(block fast path\)\s+[0-9.]+\s+[0-9.]+\s+"
+                     r"([0-9.e+-]+)", smoke_output)
+    assert max(errors) < 1e-12  # against the closed-form roots (4.69)
+    assert "converged: True" in smoke_output
