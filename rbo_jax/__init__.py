@@ -25,6 +25,7 @@ from .foundations import IsotropicFoundation as IsotropicFoundation  # noqa: E40
 from .foundations import QuadraticFoundation as QuadraticFoundation  # noqa: E402
 from .foundations import SumFoundation as SumFoundation  # noqa: E402
 from .foundations import TransverselyIsotropicFoundation as TransverselyIsotropicFoundation  # noqa: E402
+from .foundations import body_potential_moment as body_potential_moment  # noqa: E402
 from .foundations import potential_moment as potential_moment  # noqa: E402
 from .foundations import transverse_coefficients as transverse_coefficients  # noqa: E402
 from .inertia import check_inertia as check_inertia  # noqa: E402

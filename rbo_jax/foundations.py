@@ -50,6 +50,7 @@ __all__ = [
     "TransverselyIsotropicFoundation",
     "SumFoundation",
     "potential_moment",
+    "body_potential_moment",
     "transverse_coefficients",
 ]
 
@@ -351,6 +352,15 @@ def potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> Vector
     theta = _as_vector(theta)
     grad = jax.grad(lambda th: _as_scalar_output(U(th), "potential_moment: U"))(theta)
     return -(grad @ integrating_tensor(theta))
+
+
+def body_potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> Vector:
+    r"""The potential moment in the body frame, $P^T\cdot M = -Z(\theta)\cdot\frac{dU}{d\theta}$
+    ($P = Q(\theta)$; equal to $P^T$ times :func:`potential_moment` because
+    $Z^T = P\cdot Z$, eq. (4.13)): the elastic term of the right form (4.55)."""
+    theta = _as_vector(theta)
+    grad = jax.grad(lambda th: _as_scalar_output(U(th), "potential_moment: U"))(theta)
+    return -(integrating_tensor(theta) @ grad)
 
 
 def transverse_coefficients(foundation: AbstractFoundation, theta: VectorLike):

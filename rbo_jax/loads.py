@@ -31,7 +31,7 @@ from ._validation import (
     _scalar_parameter,
     _unit_axis,
 )
-from .foundations import AbstractFoundation, potential_moment
+from .foundations import AbstractFoundation, body_potential_moment, potential_moment
 from .kinematics import _as_vector, turn_tensor
 
 __all__ = [
@@ -61,6 +61,14 @@ class AbstractLoad(eqx.Module):
     @abc.abstractmethod
     def potential_energy(self, theta: VectorLike) -> Scalar:
         r"""The potential $V(\theta)$ of the load, eq. (4.52); 0 for non-potential loads."""
+
+    def body_moment(self, t: ScalarLike, theta: Vector, Omega: Vector, P) -> Vector:
+        r"""The moment in the body frame, $P^T\cdot M_{ex}$ (the right-hand side of (4.55)),
+        given the right angular velocity $\Omega$ and $P = Q(\theta)$ (computed once by the
+        caller). By default $P^T\cdot$ :meth:`moment` $(t, \theta, P\cdot\Omega)$; loads with a
+        simpler body-frame form override it (a follower moment is constant there), which spares
+        the right-form vector field the turn-tensor and two products per load."""
+        return P.T @ self.moment(t, theta, P @ Omega)
 
 
 class DeadMoment(AbstractLoad):
@@ -102,6 +110,10 @@ class FollowerMoment(AbstractLoad):
         """M P(θ)·k, eq. (4.57)."""
         theta = _as_vector(theta)
         return self.M * (turn_tensor(theta) @ self.k)
+
+    def body_moment(self, t, theta, Omega, P) -> Vector:
+        """Pᵀ·(M P·k) = M k: constant in the body frame."""
+        return self.M * self.k
 
     def potential_energy(self, theta) -> Scalar:
         return _zero()
@@ -180,6 +192,10 @@ class Friction(AbstractLoad):
         """−b ω, eq. (4.84)."""
         return -self.b * _as_vector(omega, "omega")
 
+    def body_moment(self, t, theta, Omega, P) -> Vector:
+        """Pᵀ·(−b P·Ω) = −b Ω."""
+        return -self.b * Omega
+
     def potential_energy(self, theta) -> Scalar:
         return _zero()
 
@@ -199,6 +215,10 @@ class PotentialLoad(AbstractLoad):
     def moment(self, t, theta, omega) -> Vector:
         """−Zᵀ·dV/dθ, eqs. (4.52), (4.23)."""
         return potential_moment(self.V, theta)
+
+    def body_moment(self, t, theta, Omega, P) -> Vector:
+        """Pᵀ·(−Zᵀ·dV/dθ) = −Z·dV/dθ, by Zᵀ = P·Z (4.13)."""
+        return body_potential_moment(self.V, theta)
 
     def potential_energy(self, theta) -> Scalar:
         out = jnp.asarray(self.V(_as_vector(theta)))

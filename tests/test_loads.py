@@ -234,3 +234,34 @@ def test_parameter_and_state_gradients_match_finite_differences():
     J = jax.jit(jax.jacrev(fn))(p0)
     np.testing.assert_allclose(J, finite_difference_jacobian(fn, p0), rtol=1e-8, atol=1e-10)
     assert np.all(np.abs(np.asarray(J)).max(axis=0) > 1e-3)
+
+
+@pytest.mark.parametrize("make", [
+    lambda: rbo.DeadMoment(0.7, K),
+    lambda: rbo.FollowerMoment(-0.4, K),
+    lambda: rbo.SemiTangentialMoment(0.5, K, 1.0, 0.6),
+    lambda: rbo.Friction(0.3),
+    lambda: rbo.PotentialLoad(lambda th: 0.5 * jnp.sum(th**2) + jnp.sin(th[0]) * th[2]),
+    lambda: rbo.as_load(lambda t, th, w: jnp.array([jnp.cos(t), th[0], w[2]])),
+], ids=["dead", "follower", "semi", "friction", "potential", "callable"])
+def test_body_moment_is_the_world_moment_in_the_body_frame(make):
+    """body_moment(t, θ, Ω, P) = Pᵀ·M_ex(t, θ, P·Ω), P = Q(θ) (4.3): the right-hand side of (4.55),
+    whether a load uses the default or its own body-frame form (follower: M k; friction: −bΩ;
+    potential: −Z·dV/dθ through Zᵀ = P·Z (4.13))."""
+    load = make()
+    for theta, Omega in zip(THETAS, OMEGAS):
+        P = np_Q(theta)
+        expected = P.T @ np.asarray(moment(load, 0.3, jnp.asarray(theta), jnp.asarray(P @ Omega)))
+        got = load.body_moment(0.3, jnp.asarray(theta), jnp.asarray(Omega), jnp.asarray(P))
+        np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-13, atol=1e-14)
+
+
+def test_body_potential_moment_4_13_4_23():
+    """−Z·dU/dθ = Pᵀ·(−Zᵀ·dU/dθ) (4.23) by Zᵀ = P·Z (4.13), Z and P from NumPy/scipy."""
+    U = rbo.BarrierFoundation(1.0, 2.0, 2.0, 1.5, K).energy
+    for theta in THETAS:
+        grad = np.asarray(jax.grad(U)(jnp.asarray(theta)))
+        got = np.asarray(rbo.body_potential_moment(U, jnp.asarray(theta)))
+        np.testing.assert_allclose(got, -np_Z(theta) @ grad, rtol=1e-13, atol=1e-14)
+        np.testing.assert_allclose(got, np_Q(theta).T @ (-np_Z(theta).T @ grad),
+                                   rtol=1e-12, atol=1e-14)
