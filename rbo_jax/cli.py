@@ -758,7 +758,8 @@ def fit_command(args: argparse.Namespace) -> int:
     if not res.converged:
         raise _Failure(f"the fit did not converge: {res.message}", code=1)
     # whitened residuals (rms ~ 1 at the right answer) when the noise is given, else in rad, rad/s
-    whitened = args.sigma_theta is not None or args.sigma_Omega is not None
+    whitened = any(getattr(data, name) is not None
+                   for name in ("sigma_theta", "sigma_omega", "sigma_Omega"))
     if res.residual_rms > (3.0 if whitened else 1e-2):
         print(f"  note: the residual rms {res.residual_rms:.3g} is large "
               f"({'> 3 noise standard deviations' if whitened else '> 1e-2 rad or rad/s'}): the "

@@ -374,6 +374,22 @@ def test_fit_synthetic_recovers_c_and_d(capsys):
     assert float(out.split("final loss ")[1].split(",")[0]) < 1e-12
 
 
+def test_fit_synthetic_with_noise_reports_consistent_standard_errors(capsys):
+    """fit --synthetic --noise 1e-3: the residuals are whitened by the known noise, so their rms
+    is ≈ 1 at the answer (no local-minimum note), and c, d lie within 4 standard errors of the
+    truth."""
+    code, out, err = _run(capsys, ["fit", "--synthetic", "--c", "1", "--d", "2", "--t1", "4",
+                                   "--samples", N_QUAD, "--noise", "1e-3", "--seed", "3"])
+    assert code == 0, err
+    est = _estimates(out)
+    for name, truth in (("c", 1.0), ("d", 2.0)):
+        value, se = est[name]
+        assert 0 < se < 1e-2 and abs(value - truth) < 4 * se
+    rms = float(out.split("residual rms ")[1].split(",")[0])
+    assert 0.5 < rms < 1.5
+    assert "local minimum" not in out
+
+
 def test_simulate_out_then_fit_data_roundtrip(capsys, tmp_path):
     """`simulate --out obs.npz` then `fit --data obs.npz` from wrong starting values: the
     stiffnesses of the simulation come back."""
