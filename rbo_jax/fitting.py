@@ -62,7 +62,9 @@ __all__ = ["TrajectoryData", "FitResult", "fit", "residuals"]
 def _host_array(x, name, shape_tail, n=None):
     a = np.asarray(x, dtype=np.float64)
     if a.ndim != 1 + len(shape_tail) or tuple(a.shape[1:]) != tuple(shape_tail):
-        raise ValueError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))}), got {a.shape}.")
+        raise ValueError(
+            f"{name} must have shape (n, {', '.join(map(str, shape_tail))}), got {a.shape}."
+        )
     if n is not None and a.shape[0] != n:
         raise ValueError(f"{name} has {a.shape[0]} samples but ts has {n}.")
     return a
@@ -156,7 +158,9 @@ class TrajectoryData(eqx.Module):
 
         # Initial state (the starting guess if it is fitted).
         if theta0 is None:
-            if arrays["theta"] is not None and (weights["theta_weight"] is None or np.all(weights["theta_weight"][0] > 0)):
+            if arrays["theta"] is not None and (
+                weights["theta_weight"] is None or np.all(weights["theta_weight"][0] > 0)
+            ):
                 theta0 = arrays["theta"][0]
             elif arrays["Q"] is not None:
                 theta0 = np.asarray(turn_vector(arrays["Q"][0]))
@@ -164,9 +168,13 @@ class TrajectoryData(eqx.Module):
                 raise ValueError("theta0 is needed: the attitude at t0 is not fully observed.")
         if Omega0 is None:
             th0 = np.asarray(theta0, dtype=np.float64)
-            if arrays["Omega"] is not None and (weights["Omega_weight"] is None or np.all(weights["Omega_weight"][0] > 0)):
+            if arrays["Omega"] is not None and (
+                weights["Omega_weight"] is None or np.all(weights["Omega_weight"][0] > 0)
+            ):
                 Omega0 = arrays["Omega"][0]
-            elif arrays["omega"] is not None and (weights["omega_weight"] is None or np.all(weights["omega_weight"][0] > 0)):
+            elif arrays["omega"] is not None and (
+                weights["omega_weight"] is None or np.all(weights["omega_weight"][0] > 0)
+            ):
                 Omega0 = np.asarray(turn_tensor(th0)).T @ arrays["omega"][0]
             else:
                 raise ValueError("Omega0 is needed: the angular velocity at t0 is not observed.")
@@ -182,7 +190,8 @@ class TrajectoryData(eqx.Module):
             return None if x is None else jnp.asarray(x)
 
         self.ts, self.theta0, self.Omega0, self.t0 = j(ts), j(theta0), j(Omega0), jnp.asarray(t0)
-        self.theta, self.Q, self.omega, self.Omega = (j(arrays[k]) for k in ("theta", "Q", "omega", "Omega"))
+        self.theta, self.Q, self.omega, self.Omega = (
+            j(arrays[k]) for k in ("theta", "Q", "omega", "Omega"))
         self.theta_weight, self.omega_weight, self.Omega_weight = (
             j(weights[k]) for k in ("theta_weight", "omega_weight", "Omega_weight"))
         self.sigma_theta, self.sigma_omega, self.sigma_Omega = sigma_theta, sigma_omega, sigma_Omega
@@ -264,7 +273,9 @@ def _resolve_transforms(values, transforms):
         if t not in _TRANSFORMS:
             raise ValueError(f"unknown transform {t!r}; choose from {sorted(_TRANSFORMS)}.")
         if t in ("log", "softplus") and not np.all(np.asarray(v) > 0):
-            raise ValueError(f"a {t} transform needs a positive starting value, got {np.asarray(v)}.")
+            raise ValueError(
+                f"a {t} transform needs a positive starting value, got {np.asarray(v)}."
+            )
     return transforms
 
 
@@ -306,7 +317,8 @@ def _as_data_list(data) -> list[TrajectoryData]:
 
 @dataclasses.dataclass(frozen=True)
 class _Spec:
-    """Static description of a fit (hashable: one compilation per structure, reused across calls)."""
+    """Static description of a fit (hashable: one compilation per structure, reused across
+    calls)."""
 
     paths: tuple
     transforms: tuple
@@ -405,7 +417,10 @@ def _unflatten_like(flat, tree):
 
 def _jacobian_matrix(J_tree, n_res):
     return np.concatenate(
-        [np.asarray(b, dtype=np.float64).reshape(n_res, -1) for b in jax.tree_util.tree_leaves(J_tree)],
+        [
+            np.asarray(b, dtype=np.float64).reshape(n_res, -1)
+            for b in jax.tree_util.tree_leaves(J_tree)
+        ],
         axis=1,
     )
 
@@ -466,10 +481,15 @@ def fit(
     datas = tuple(_as_data_list(data))
     if optimizer not in ("levenberg_marquardt", "gauss_newton", "adam", "lbfgs"):
         raise ValueError(
-            f"optimizer must be 'levenberg_marquardt', 'gauss_newton', 'adam' or 'lbfgs', got {optimizer!r}."
+            "optimizer must be 'levenberg_marquardt', 'gauss_newton', 'adam' or 'lbfgs', "
+            f"got {optimizer!r}."
         )
     horizons = tuple(float(h) for h in horizons)
-    if not horizons or any(not (0 < h <= 1) for h in horizons) or list(horizons) != sorted(horizons):
+    if (
+        not horizons
+        or any(not (0 < h <= 1) for h in horizons)
+        or list(horizons) != sorted(horizons)
+    ):
         raise ValueError(f"horizons must be increasing fractions in (0, 1], got {horizons}.")
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
@@ -479,7 +499,9 @@ def fit(
         raise ValueError(f"params selector failed on the model: {e}") from e
     values = tuple(values) if isinstance(values, (tuple, list)) else (values,)
     if not values or not all(eqx.is_inexact_array(v) for v in values):
-        raise ValueError("params must select float array leaves of the model (e.g. m.foundation.c).")
+        raise ValueError(
+            "params must select float array leaves of the model (e.g. m.foundation.c)."
+        )
     least_squares = optimizer in ("levenberg_marquardt", "gauss_newton")
     spec = _Spec(
         paths=_leaf_paths(model, values),
@@ -651,7 +673,12 @@ def _run_least_squares(u, model, datas, spec, optimizer, tol, max_steps, history
                 f"converged (no relative decrease of the loss above tol in {_PATIENCE} steps: a "
                 "minimum, possibly local, or the noise floor of the ODE solves)"
             )
-    return _unflatten_like(x, u), max_steps, False, f"max_steps = {max_steps} reached before convergence"
+    return (
+        _unflatten_like(x, u),
+        max_steps,
+        False,
+        f"max_steps = {max_steps} reached before convergence",
+    )
 
 
 def _run_optax(u, model, datas, spec, optimizer, learning_rate, max_steps, tol, history, bar,

@@ -2,8 +2,9 @@ r"""Kinematics of the turn-vector: section 4.2 of the paper.
 
 A turn of the body is described by the turn-vector $\theta = \theta n$ ($|n| = 1$) and by the
 turn-tensor $Q(\theta) = \exp(\theta\times E)$, eq. (4.3). The integrating tensor $Z(\theta)$,
-eq. (4.11), maps the left angular velocity to the rate of the turn-vector, $\dot\theta = Z\cdot\omega$
-(4.10); its transpose maps the right angular velocity, $\dot\theta = Z^T\cdot\Omega$ (4.14).
+eq. (4.11), maps the left angular velocity to the rate of the turn-vector,
+$\dot\theta = Z\cdot\omega$ (4.10); its transpose maps the right angular velocity,
+$\dot\theta = Z^T\cdot\Omega$ (4.14).
 
 Conventions: every function takes a single, unbatched input (a ``(3,)`` vector or a ``(3, 3)``
 tensor) and is jit-, vmap- and grad-compatible; batch with ``jax.vmap``. Tensors are stored as
@@ -266,9 +267,9 @@ def turn_vector(Q: MatrixLike) -> Vector:
     of :func:`turn_tensor` (4.3) on rotations.
 
     Goes through the unit quaternion, extracted with Shepperd's branch choice (the largest of
-    $1 + \mathrm{tr}\,Q$ and $1 + 2Q_{ii} - \mathrm{tr}\,Q$ is the pivot), so it is accurate for every
-    rotation, including angles at and near $\pi$, where the vector invariant $Q_\times$ of (4.7)
-    loses the axis. At exactly $|\theta| = \pi$ either of $\pm\theta$ may be returned.
+    $1 + \mathrm{tr}\,Q$ and $1 + 2Q_{ii} - \mathrm{tr}\,Q$ is the pivot), so it is accurate for
+    every rotation, including angles at and near $\pi$, where the vector invariant $Q_\times$ of
+    (4.7) loses the axis. At exactly $|\theta| = \pi$ either of $\pm\theta$ may be returned.
     ``Q`` is assumed orthogonal with determinant +1; small deviations are projected away by
     normalising the quaternion. Non-finite input gives non-finite output.
     """

@@ -38,7 +38,9 @@ def _items(kwargs: dict) -> tuple:
         items = tuple(sorted(kwargs.items()))
         hash(items)
     except TypeError:
-        raise TypeError("equilibrium keyword arguments must be hashable (numbers, not arrays).") from None
+        raise TypeError(
+            "equilibrium keyword arguments must be hashable (numbers, not arrays)."
+        ) from None
     return items
 
 
@@ -67,7 +69,9 @@ def _point_function(model_fn, names, theta_eq_fn, rtol, fast, eq_kwargs_items):
         params = {n: values[i] for i, n in enumerate(names)}
         model = model_fn(**params)
         if not isinstance(model, RigidBodyOscillator):
-            raise TypeError(f"model_fn must return a RigidBodyOscillator, got {type(model).__name__}.")
+            raise TypeError(
+                f"model_fn must return a RigidBodyOscillator, got {type(model).__name__}."
+            )
         if theta_eq_fn is not None:
             theta_eq = _as_vector(theta_eq_fn(**params), "theta_eq_fn(...)")
             eq_status = EquilibriumStatus.where(
@@ -151,7 +155,8 @@ def stability_map(
     - `progress`: tqdm progress bar over points.
 
     **Returns:** a Dataset with coordinates the axes (plus ``mode`` 0..5 and ``component``)
-    and variables ``eigenvalues`` (complex, axes × mode, sorted by real then imaginary part), ``spectral_abscissa`` (max Re p),
+    and variables ``eigenvalues`` (complex, axes × mode, sorted by real then imaginary part),
+    ``spectral_abscissa`` (max Re p),
     ``kind`` (int8 codes of :class:`rbo_jax.StabilityKind`, names in its ``flag_meanings``),
     ``equilibrium_status`` (int8 codes of :class:`rbo_jax.EquilibriumStatus`) and ``theta_eq``.
     """
@@ -179,7 +184,11 @@ def stability_map(
             "equilibrium_status": (dims, eq_status.astype(np.int8).reshape(shape)),
             "theta_eq": (dims + ["component"], theta_eq.reshape(shape + (3,))),
         },
-        coords={**{n: v for n, v in axes.items()}, "mode": np.arange(6), "component": ["x", "y", "z"]},
+        coords={
+            **{n: v for n, v in axes.items()},
+            "mode": np.arange(6),
+            "component": ["x", "y", "z"],
+        },
     )
     ds["kind"].attrs.update(
         flag_values=list(range(len(STABILITY_KIND_NAMES))),
@@ -216,13 +225,13 @@ def critical_load(
 
     The interval is scanned at ``n_scan`` points, then the first sign change is refined by
     ``n_bisect`` bisection steps (everything vmapped; if the first scan point is already
-    unstable, the interval from ``load_min`` to it is bisected). Returns an :class:`xarray.DataArray` over
-    ``axes``; ``inf`` where the equilibrium is stable on the whole interval, ``load_min`` where it
-    is unstable already at the first scan point past ``load_min``. Example: the critical follower
-    load of the Nikolai problem against the damping ``b`` (with damping the paradox disappears
-    below a critical load that tends to 0 with ``b``). Points whose equilibrium cannot be
-    computed (classification ``undefined``) count as not unstable; check them with
-    :func:`stability_map` when equilibria are solved by Newton.
+    unstable, the interval from ``load_min`` to it is bisected). Returns an
+    :class:`xarray.DataArray` over ``axes``; ``inf`` where the equilibrium is stable on the whole
+    interval, ``load_min`` where it is unstable already at the first scan point past
+    ``load_min``. Example: the critical follower load of the Nikolai problem against the damping
+    ``b`` (with damping the paradox disappears below a critical load that tends to 0 with
+    ``b``). Points whose equilibrium cannot be computed (classification ``undefined``) count as
+    not unstable; check them with :func:`stability_map` when equilibria are solved by Newton.
     """
     import xarray as xr
 
@@ -261,4 +270,6 @@ def critical_load(
     grids = np.meshgrid(*axes.values(), indexing="ij")
     flat = np.stack([g.ravel() for g in grids], axis=1)
     crit = _run_chunks(lambda x, _: search(x), flat, chunk_size, progress, f"critical {load}", None)
-    return xr.DataArray(crit.reshape(shape), coords=dict(axes), dims=list(axes), name=f"critical_{load}")
+    return xr.DataArray(
+        crit.reshape(shape), coords=dict(axes), dims=list(axes), name=f"critical_{load}"
+    )

@@ -1,9 +1,9 @@
 r"""The rigid body oscillator: equations of motion (4.53)–(4.56).
 
-A rigid body with a fixed point, inertia tensor $A$ (reference position), on an elastic foundation
-of energy $U(\theta)$, under external moments. The state is the turn-vector $\theta$ and the right
-(body-frame) angular velocity $\Omega$; the turn-tensor is $P = Q(\theta)$ and the left (world-frame)
-angular velocity $\omega = P\cdot\Omega$.
+A rigid body with a fixed point, inertia tensor $A$ (reference position), on an elastic
+foundation of energy $U(\theta)$, under external moments. The state is the turn-vector $\theta$
+and the right (body-frame) angular velocity $\Omega$; the turn-tensor is $P = Q(\theta)$ and the
+left (world-frame) angular velocity $\omega = P\cdot\Omega$.
 
 Right form, eqs. (4.55)–(4.56), used for simulation:
 
@@ -12,7 +12,8 @@ $$A\cdot\dot\Omega + \Omega\times A\cdot\Omega + Z(\theta)\cdot\frac{d(U+V)}{d\t
 
 Left form, eqs. (4.53)–(4.54), with the kinetic moment $L = P\cdot A\cdot P^T\cdot\omega$ (4.43):
 
-$$\dot L + Z^T(\theta)\cdot\frac{d(U+V)}{d\theta} = M_{ex}, \qquad \dot\theta = Z(\theta)\cdot\omega.$$
+$$\dot L + Z^T(\theta)\cdot\frac{d(U+V)}{d\theta}
+  = M_{ex}, \qquad \dot\theta = Z(\theta)\cdot\omega.$$
 
 The elastic moment $-Z^T\cdot dU/d\theta$ is :func:`rbo_jax.potential_moment` (4.23), (4.46); since
 $P^T\cdot Z^T = Z$ (4.13) the body-frame form of (4.55) follows. Loads are world-frame moments
@@ -54,7 +55,8 @@ class RigidBodyOscillator(eqx.Module):
     - `inertia`: the inertia tensor $A$ in the reference position, any symmetric positive
       definite 3×3 (see :func:`rbo_jax.transversely_isotropic_inertia` (4.40) and
       :func:`rbo_jax.principal_inertia` (4.39)).
-    - `foundation`: the elastic foundation, an :class:`rbo_jax.AbstractFoundation` giving $U(\theta)$.
+    - `foundation`: the elastic foundation, an :class:`rbo_jax.AbstractFoundation` giving
+      $U(\theta)$.
     - `loads`: external moments $M_{ex}$: a load or a sequence of loads
       (:class:`rbo_jax.DeadMoment`, :class:`rbo_jax.FollowerMoment`, ...), or plain callables
       ``f(t, theta, omega) -> (3,)`` giving a world-frame moment. They add up.

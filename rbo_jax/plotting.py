@@ -35,7 +35,9 @@ def plot_stability_map(ds, x: str, y: str, *, ax=None, select: dict | None = Non
         _, ax = plt.subplots(figsize=(6, 4.5))
     vals = np.asarray(da.values, dtype=float)
     if not np.any(np.isfinite(vals)):
-        raise ValueError("nothing to plot: the spectral abscissa is NaN everywhere (no equilibria).")
+        raise ValueError(
+            "nothing to plot: the spectral abscissa is NaN everywhere (no equilibria)."
+        )
     vmax = np.nanmax(np.abs(vals)) or 1.0
     X, Y = np.asarray(da[x].values), np.asarray(da[y].values)
     mesh = ax.pcolormesh(X, Y, vals, cmap=cmap, vmin=-vmax, vmax=vmax, shading="auto")
@@ -60,7 +62,8 @@ def plot_root_locus(values, eigenvalues, *, ax=None, label: str = "parameter",
     p = np.asarray(eigenvalues)
     if p.ndim != 2 or p.shape[0] != values.shape[0]:
         raise ValueError(
-            f"eigenvalues must have shape (len(values), m), got {p.shape} for {values.shape[0]} values."
+            f"eigenvalues must have shape (len(values), m), got {p.shape} "
+            f"for {values.shape[0]} values."
         )
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))

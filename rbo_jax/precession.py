@@ -2,8 +2,9 @@ r"""Regular precession of the rigid body oscillator and its stability, section 4
 
 A regular precession (4.110)–(4.111) is $\theta(t) = \vartheta\,Q(\psi(t)k)\cdot p$ with
 $\vartheta$, $\dot\psi$ constant and $p\perp k$; its left angular velocity is
-$\omega = Q(\psi k)\cdot\omega_0$, $\omega_0 = \dot\psi[(1-\cos\vartheta)k + \sin\vartheta\,k\times p]$
-(4.112), and the rate follows from (4.113) (:func:`rbo_jax.analytic.precession_rate`).
+$\omega = Q(\psi k)\cdot\omega_0$,
+$\omega_0 = \dot\psi[(1-\cos\vartheta)k + \sin\vartheta\,k\times p]$ (4.112), and the rate
+follows from (4.113) (:func:`rbo_jax.analytic.precession_rate`).
 
 Stability (4.115)–(4.118): in the precessing frame, $\theta = Q(\psi k)\cdot x$,
 $\omega = Q(\psi k)\cdot w$, the equations of motion of a model invariant under turns about $k$

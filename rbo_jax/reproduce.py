@@ -94,7 +94,8 @@ def _kinematics(n: int) -> list[Check]:
             jnp.max(jnp.abs(Q @ Q.T - eye)),                      # (4.27)
             jnp.max(jnp.abs(Q @ th - th)),                        # (4.8)
             jnp.max(jnp.abs(Z @ Zi - eye)),                       # (4.11)/(4.20)
-            jnp.abs(integrating_tensor_det(th) * 2 * (1 - jnp.cos(jnp.sqrt(t))) / t - 1),  # det Z, rel.
+            # det Z, rel.
+            jnp.abs(integrating_tensor_det(th) * 2 * (1 - jnp.cos(jnp.sqrt(t))) / t - 1),
             jnp.max(jnp.abs(Z.T - Q @ Z)) + jnp.max(jnp.abs(Q @ Z - Z @ Q)),  # (4.13)
             jnp.max(jnp.abs(integrating_tensor(S @ th) - S @ Z @ S.T)),      # (4.12)
             jnp.max(jnp.abs(Qdot - skew(omega) @ Q)),            # (4.9)
@@ -125,8 +126,8 @@ def _kinematics(n: int) -> list[Check]:
 
 
 def _nikolai_model(M, c, A3, d=1.0, A1=1.0):
-    return RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K), QuadraticFoundation(c, d, K),
-                               FollowerMoment(M, K))
+    return RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K),
+                               QuadraticFoundation(c, d, K), FollowerMoment(M, K))
 
 
 def _nikolai(n_grid: int, out: str, plt) -> list[Check]:
@@ -144,12 +145,14 @@ def _nikolai(n_grid: int, out: str, plt) -> list[Check]:
     maps = [stability_map(model_fn, ax, theta_eq_fn=theta_eq_fn) for ax in (axes1, axes2)]
     err = 0.0
     for ds in maps:
-        pts = np.stack(np.meshgrid(*[ds[k].values for k in ("M", "c", "A3")], indexing="ij"), -1).reshape(-1, 3)
-        ref = np.asarray(jax.jit(jax.vmap(lambda x: jnp.sort(nikolai_spectrum(1.0, x[2], x[1], 1.0, x[0]))))(
-            jnp.asarray(pts)))
+        pts = np.stack(np.meshgrid(*[ds[k].values for k in ("M", "c", "A3")], indexing="ij"),
+                       -1).reshape(-1, 3)
+        ref = np.asarray(jax.jit(jax.vmap(
+            lambda x: jnp.sort(nikolai_spectrum(1.0, x[2], x[1], 1.0, x[0]))))(jnp.asarray(pts)))
         ours = ds["eigenvalues"].values.reshape(-1, 6)
         err = max(err, float(np.max(np.abs(np.sort_complex(ours) - np.sort_complex(ref)))))
-    checks.append(Check("4.4 Nikolai", "autodiff spectrum vs bending/torsion roots of (4.69), all map points",
+    checks.append(Check("4.4 Nikolai",
+                        "autodiff spectrum vs bending/torsion roots of (4.69), all map points",
                         "(A1p²+K)²+M²/4 = 0, A3p²+d = 0", f"max |Δp| = {err:.2e}", err, 1e-10))
     ab = maps[0]["spectral_abscissa"]
     nonzero = ab.sel(M=ab.M[np.abs(ab.M) > 1e-12])
@@ -165,7 +168,8 @@ def _nikolai(n_grid: int, out: str, plt) -> list[Check]:
         lin = max(lin, float(np.max(np.linalg.eigvals(Jl).real)))
     ours = float(ab.sel(M=ab.M[np.abs(ab.M) > 1e-12]).min())
     checks.append(Check("4.4 (4.73)-(4.74)", "max Re p of the linear theory (4.73) over the c grid",
-                        f"0: misses the instability (ours: min over M ≠ 0 of max Re p = {ours:.3g} > 0)",
+                        "0: misses the instability "
+                        f"(ours: min over M ≠ 0 of max Re p = {ours:.3g} > 0)",
                         f"{lin:.2e}", abs(lin), 1e-12))
 
     # root locus against M
@@ -177,7 +181,8 @@ def _nikolai(n_grid: int, out: str, plt) -> list[Check]:
 
         for ds, (x, y, sel, name) in zip(maps, [("M", "c", {"A3": 0.6}, "map_M_c.png"),
                                                ("M", "A3", {"c": 1.0}, "map_M_A3.png")]):
-            ax = plot_stability_map(ds, x, y, select=sel, title=f"Nikolai problem: max Re p over ({x}, {y}/d)")
+            ax = plot_stability_map(ds, x, y, select=sel,
+                                    title=f"Nikolai problem: max Re p over ({x}, {y}/d)")
             ax.figure.savefig(os.path.join(out, name), dpi=110, bbox_inches="tight")
             plt.close(ax.figure)
         ax = plot_root_locus(Ms_locus, eigs, label="follower moment M")
@@ -194,11 +199,13 @@ def _nikolai(n_grid: int, out: str, plt) -> list[Check]:
     t = np.asarray(ts)
     slope = np.polyfit(t[t > 30], np.log(dev[t > 30]), 1)[0]
     checks.append(Check("4.4 Nikolai", "growth rate of a 1e-9 perturbation in a simulation",
-                        f"max Re p of (4.69) = {rate:.6f}", f"{slope:.6f}", abs(slope / rate - 1), 0.02))
+                        f"max Re p of (4.69) = {rate:.6f}", f"{slope:.6f}", abs(slope / rate - 1),
+                        0.02))
     if plt is not None:
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.semilogy(t, dev, label="simulation |bending deviation|")
-        ax.semilogy(t, dev[t > 30][0] * np.exp(rate * (t - t[t > 30][0])), "--", label="exp(max Re p · t), (4.69)")
+        ax.semilogy(t, dev[t > 30][0] * np.exp(rate * (t - t[t > 30][0])), "--",
+                    label="exp(max Re p · t), (4.69)")
         ax.set_xlabel("t")
         ax.legend()
         ax.set_title(f"Nikolai paradox, follower M = {M}, c = {c}, d = 2")
@@ -234,14 +241,19 @@ def _balance_and_energy() -> list[Check]:
     G = A1 * (traj.omega - traj.Omega) @ K + (A1 - A3) * (traj.Omega @ K) * (1 - cv)
     rhs = np.asarray(jax.vmap(load.gamma)(traj.theta) * M * (l1 - l2) * (1 - cv))[1:-1]
     lhs, integral = float(G[-1] - G[0]), float(np.sum(weights * rhs))
-    checks = [Check("4.5 (4.78)", "Δ[A1(ω−Ω)·k + (A1−A3)(k·Ω)(1−cosϑ)] over t ∈ [0, 8], barrier (4.49), l1=1, l2=0.4",
+    checks = [Check("4.5 (4.78)",
+                    "Δ[A1(ω−Ω)·k + (A1−A3)(k·Ω)(1−cosϑ)] over t ∈ [0, 8], "
+                    "barrier (4.49), l1=1, l2=0.4",
                     f"∫γM(l1−l2)(1−cosϑ)dt = {integral:.10f}", f"{lhs:.10f}",
                     abs(lhs - integral) / abs(integral), 1e-8)]
-    free = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K), BarrierFoundation(1.0, 2.0, 2.0, 1.5, K))
+    free = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K),
+                               BarrierFoundation(1.0, 2.0, 2.0, 1.5, K))
     ts = jnp.linspace(0.0, 200 * np.pi, 401)
-    E = np.asarray(simulate(free, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts, **TIGHT).energy)
+    E = np.asarray(simulate(free, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
+                            **TIGHT).energy)
     drift = float(np.max(np.abs(E - E[0])) / abs(E[0]))
-    checks.append(Check("4.3, (4.124)", "relative energy drift K + U over 100 periods (barrier foundation)",
+    checks.append(Check("4.3, (4.124)",
+                        "relative energy drift K + U over 100 periods (barrier foundation)",
                         "0 (conserved)", f"{drift:.2e}", drift, 1e-9))
     return checks
 
@@ -273,26 +285,31 @@ def _simplest(out: str, plt) -> list[Check]:
     pred = (1 - np.cos(n[0])) / (1 - np.cos(n)) * psi_dot[0] * np.exp(-b * t / A)
     err99 = np.max(np.abs(psi_dot / pred - 1))
     checks = [
-        Check("4.6 (4.94)", "ω − Ω − (ω0 − Ω0)e^{−bt/A}, relative", "0", f"{err94:.2e}", err94, 1e-8),
+        Check("4.6 (4.94)", "ω − Ω − (ω0 − Ω0)e^{−bt/A}, relative", "0", f"{err94:.2e}", err94,
+              1e-8),
         Check("4.6 (4.96)", "max |θ(t)·e|", "0", f"{err96:.2e}", err96, 1e-8),
-        Check("4.6 (4.99)", "ψ̇ vs (1−cosθ0)/(1−cosθ) ψ̇0 e^{−bt/A}, relative", "0", f"{err99:.2e}", err99, 1e-8),
+        Check("4.6 (4.99)", "ψ̇ vs (1−cosθ0)/(1−cosθ) ψ̇0 e^{−bt/A}, relative", "0",
+              f"{err99:.2e}", err99, 1e-8),
     ]
     # (4.101): reduced nutation equation, integrated independently
     ndot0 = theta[0] @ th_dot[0] / n[0]
 
     def rhs(tt, y):
         x, v = y
-        cen = A * np.sin(x) / x * ((1 - np.cos(n[0])) / (1 - np.cos(x))) ** 2 * psi_dot[0] ** 2 * np.exp(-2 * b * tt / A)
+        cen = (A * np.sin(x) / x * ((1 - np.cos(n[0])) / (1 - np.cos(x))) ** 2 * psi_dot[0] ** 2
+               * np.exp(-2 * b * tt / A))
         return [v, -(b * v + (c_of(x * x) - cen) * x) / A]
 
-    sol = solve_ivp(rhs, (0, t[-1]), [n[0], ndot0], method="DOP853", t_eval=t, rtol=1e-12, atol=1e-12)
+    sol = solve_ivp(rhs, (0, t[-1]), [n[0], ndot0], method="DOP853", t_eval=t, rtol=1e-12,
+                    atol=1e-12)
     err101 = float(np.max(np.abs(sol.y[0] - n)))
     checks.append(Check("4.6 (4.101)", "|θ(t)| of the 3-D solution vs the reduced equation (scipy)",
                         "solution of (4.101)", f"max |Δθ| = {err101:.2e}", err101, 1e-8))
 
     # 4.6.3: Euler angles (4.88)-(4.92) with φ = −ψ (β = 0, ϑ = θ): the system after (4.107)
     #   A(ψ̇(1−cosθ))˙ + bψ̇(1−cosθ) = 0,  A(θ̈ − ψ̇² sinθ) + bθ̇ + c(θ²)θ = 0
-    psi = np.arctan2(np.cross(theta[0] / n[0], theta / n[:, None]) @ e, theta @ theta[0] / (n * n[0]))
+    psi = np.arctan2(np.cross(theta[0] / n[0], theta / n[:, None]) @ e,
+                     theta @ theta[0] / (n * n[0]))
     psi = np.unwrap(psi)
 
     def euler(tt, y):
@@ -303,7 +320,9 @@ def _simplest(out: str, plt) -> list[Check]:
     y0 = [n[0], ndot0, 0.0, psi_dot[0] * (1 - np.cos(n[0]))]
     sol = solve_ivp(euler, (0, t[-1]), y0, method="DOP853", t_eval=t, rtol=1e-12, atol=1e-12)
     err_e = float(max(np.max(np.abs(sol.y[0] - n)), np.max(np.abs(sol.y[2] - psi))))
-    checks.append(Check("4.6.3 (4.88)-(4.92)", "Euler-angle equations (special solution φ = −ψ) vs turn-vector solution: θ(t), ψ(t)",
+    checks.append(Check("4.6.3 (4.88)-(4.92)",
+                        "Euler-angle equations (special solution φ = −ψ) vs turn-vector solution: "
+                        "θ(t), ψ(t)",
                         "same motion", f"max |Δ| = {err_e:.2e}", err_e, 1e-8))
     if plt is not None:
         fig, axs = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -329,7 +348,8 @@ def _simplest(out: str, plt) -> list[Check]:
 def _precession(out: str, plt) -> list[Check]:
     checks = []
     for A1, A3, vt in [(1.0, 0.6, 0.7), (1.0, 1.0, 1.5)]:
-        model = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K), QuadraticFoundation(1.2, 2.0, K))
+        model = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K),
+                                    QuadraticFoundation(1.2, 2.0, K))
         pr = regular_precession(model, vt)
         rate = float(pr.rate)
         paper = float(precession_rate(1.2, vt, A1, A3))
@@ -338,11 +358,14 @@ def _precession(out: str, plt) -> list[Check]:
         expected = jax.vmap(pr.theta)(ts)
         err = float(jnp.max(jnp.abs(tr.theta - expected)))
         eq = "(4.106)" if A1 == A3 else "(4.113)"
-        checks.append(Check(f"4.7 {eq}", f"simulation started on the precession, A1={A1}, A3={A3}, ϑ={vt}: θ(t) − ϑQ(ψ̇tk)·p",
+        checks.append(Check(f"4.7 {eq}",
+                            f"simulation started on the precession, A1={A1}, A3={A3}, ϑ={vt}: "
+                            "θ(t) − ϑQ(ψ̇tk)·p",
                             f"ψ̇ = {paper:.10f}", f"max |Δθ| = {err:.2e}", err, 1e-8))
     # stability in the precessing frame: an unstable case (softening foundation) and its growth
     F = lambda x, t: 0.5 * t - 0.075 * t**2 + 0.5 * x**2  # noqa: E731
-    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 1.2, K), TransverselyIsotropicFoundation(F, K))
+    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 1.2, K),
+                                TransverselyIsotropicFoundation(F, K))
     pr = regular_precession(model, 1.8)
     p = np.asarray(precession_spectrum(model, pr))
     growth = float(np.max(p.real))
@@ -353,12 +376,15 @@ def _precession(out: str, plt) -> list[Check]:
     tt = np.asarray(ts)
     win = (tt > 3) & (dev < 1e-3)
     slope = float(np.polyfit(tt[win], np.log(dev[win]), 1)[0])
-    checks.append(Check("4.7 (4.115)-(4.118)", "growth of a perturbed precession (softening foundation, ϑ = 1.8) vs rotating-frame spectrum",
+    checks.append(Check("4.7 (4.115)-(4.118)",
+                        "growth of a perturbed precession (softening foundation, ϑ = 1.8) "
+                        "vs rotating-frame spectrum",
                         f"max Re p = {growth:.6f}", f"{slope:.6f}", abs(slope / growth - 1), 0.03))
     if plt is not None:
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.semilogy(tt, dev, label="simulation: deviation in the precessing frame")
-        ax.semilogy(tt[win], dev[win][0] * np.exp(growth * (tt[win] - tt[win][0])), "--", label="exp(max Re p · t)")
+        ax.semilogy(tt[win], dev[win][0] * np.exp(growth * (tt[win] - tt[win][0])), "--",
+                    label="exp(max Re p · t)")
         ax.set_xlabel("t")
         ax.legend()
         ax.set_title("Unstable regular precession (4.113): autodiff variational spectrum")
@@ -387,7 +413,8 @@ def _fitting() -> list[Check]:
     checks = []
     for name, truth, val, se in zip(("c", "d"), (1.0, 2.0), res.params, res.stderr):
         z = abs(float(val) - truth) / float(se)
-        checks.append(Check("fitting", f"{name} from noisy attitudes (σ = 1e-3 rad), start 30 % off",
+        checks.append(Check("fitting",
+                            f"{name} from noisy attitudes (σ = 1e-3 rad), start 30 % off",
                             f"{truth}", f"{float(val):.5f} ± {float(se):.1e}", z, 3.0))
     return checks
 
@@ -452,7 +479,8 @@ def _write_report(out, checks, elapsed, quick, figures):
             ("map_M_A3.png", "Stability map over (M, A3/A1), c/d = 1"),
             ("root_locus.png", "Root locus against the follower moment M"),
             ("nikolai_growth.png", "Simulated growth vs max Re p of (4.69)"),
-            ("simplest_oscillator.png", "Simplest oscillator: (4.99), (4.101) and the Euler-angle equations"),
+            ("simplest_oscillator.png",
+             "Simplest oscillator: (4.99), (4.101) and the Euler-angle equations"),
             ("precession_growth.png", "Unstable regular precession vs its rotating-frame spectrum"),
         ]:
             if os.path.exists(os.path.join(out, name)):

@@ -57,8 +57,8 @@ class SolveStatus(eqx.Enumeration):
     )
     singular_point = (
         "The turn-vector reached a singular point |theta| = 2*pi*k of the integrating tensor Z "
-        "(eq. 4.11) with theta x Omega != 0, where det Z is infinite and the equations (4.54)/(4.56) "
-        "break down."
+        "(eq. 4.11) with theta x Omega != 0, where det Z is infinite and the equations "
+        "(4.54)/(4.56) break down."
     )
     domain_error = (
         "The turn-vector left the domain of the foundation energy (e.g. a barrier of eq. 4.49 "
@@ -182,11 +182,11 @@ def _singular_crossing_cond(transverse, t, y, args, **kwargs):
 def _singular_events(transverse, singular_tol):
     r"""Two diffrax event conditions for the singular spheres $|\theta| = 2\pi k$ of Z (4.11).
 
-    ``transverse(t, y) -> (theta, is_transverse)``. The first (boolean) fires when a step ends within
-    ``singular_tol`` of a sphere; the second (continuous) fires when a step jumps across one: it
-    is $\sin(|\theta|/2)$ (positive on $[\pi, 2\pi)$, sign change at every $2\pi k$) clamped to
-    1 on $[0, \pi)$. Both are disarmed for plane motion ($\theta\times\Omega = 0$), which crosses
-    the spheres harmlessly.
+    ``transverse(t, y) -> (theta, is_transverse)``. The first (boolean) fires when a step ends
+    within ``singular_tol`` of a sphere; the second (continuous) fires when a step jumps across
+    one: it is $\sin(|\theta|/2)$ (positive on $[\pi, 2\pi)$, sign change at every $2\pi k$)
+    clamped to 1 on $[0, \pi)$. Both are disarmed for plane motion ($\theta\times\Omega = 0$),
+    which crosses the spheres harmlessly.
 
     The conditions (and ``transverse``) are ``jax.tree_util.Partial``s of module-level functions,
     not closures: diffrax's ``diffeqsolve`` is ``eqx.filter_jit``-ed and treats functions as
@@ -446,7 +446,8 @@ def solve_darboux(
     r"""Integrate the turn-vector for a given angular velocity: the Darboux problems.
 
     ``frame="left"``: $\dot\theta = Z(\theta)\cdot\omega(t)$ (4.10), (4.15);
-    ``frame="right"``: $\dot\theta = Z^T(\theta)\cdot\Omega(t)$ (4.14), (4.16); $\theta(t_0) = \theta_0$.
+    ``frame="right"``: $\dot\theta = Z^T(\theta)\cdot\Omega(t)$ (4.14), (4.16);
+    $\theta(t_0) = \theta_0$.
 
     `angular_velocity` is a callable ``t -> (3,)`` or samples ``(times, values)`` (interpolated by
     cubic Hermite splines). The solve stops with ``SolveStatus.singular_point`` near

@@ -5,7 +5,8 @@ At an equilibrium $\theta_{eq}$ ($\Omega = 0$, zero total moment (4.61)) the per
 the linear system (4.66)–(4.67); here it is obtained by automatic differentiation of the
 equations of motion (4.55)–(4.56):
 
-$$\dot\varphi = Z^T(\theta_{eq})\cdot\eta,\qquad \dot\eta = J_\theta\cdot\varphi + J_\Omega\cdot\eta,$$
+$$\dot\varphi = Z^T(\theta_{eq})\cdot\eta,\qquad
+  \dot\eta = J_\theta\cdot\varphi + J_\Omega\cdot\eta,$$
 
 $J_\theta = \partial\dot\Omega/\partial\theta$, $J_\Omega = \partial\dot\Omega/\partial\Omega$ at
 $(\theta_{eq}, 0)$. Eliminating $\eta = Z^{-T}\dot\varphi$ gives the second-order form
@@ -169,10 +170,11 @@ def _blocks(model, theta_eq, t):
 
 
 class SecondOrderForm(eqx.Module):
-    r"""$\mathsf M\ddot\varphi + (\mathsf D + \mathsf G)\dot\varphi + (\mathsf K_s + \mathsf K_c)\varphi
-    = 0$ at an equilibrium: mass $\mathsf M$ (symmetric), damping $\mathsf D$ (symmetric),
-    gyroscopic $\mathsf G$ (antisymmetric), conservative stiffness $\mathsf K_s$ (symmetric) and
-    circulatory stiffness $\mathsf K_c$ (antisymmetric, zero for potential problems)."""
+    r"""$\mathsf M\ddot\varphi + (\mathsf D + \mathsf G)\dot\varphi
+    + (\mathsf K_s + \mathsf K_c)\varphi = 0$ at an equilibrium: mass $\mathsf M$ (symmetric),
+    damping $\mathsf D$ (symmetric), gyroscopic $\mathsf G$ (antisymmetric), conservative
+    stiffness $\mathsf K_s$ (symmetric) and circulatory stiffness $\mathsf K_c$ (antisymmetric,
+    zero for potential problems)."""
 
     mass: Matrix
     damping: Matrix

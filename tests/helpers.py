@@ -13,7 +13,9 @@ def tree_allclose(x, y, *, rtol=1e-12, atol=1e-12) -> bool:
     ys, yd = jax.tree_util.tree_flatten(y)
     if xd != yd:
         return False
-    return all(np.allclose(np.asarray(a), np.asarray(b), rtol=rtol, atol=atol) for a, b in zip(xs, ys))
+    return all(
+        np.allclose(np.asarray(a), np.asarray(b), rtol=rtol, atol=atol) for a, b in zip(xs, ys)
+    )
 
 
 def finite_difference_jacobian(f, x, *, scale=1.0, order=4):

@@ -26,7 +26,9 @@ def _synthetic(model, inits, ts, **kwargs):
     out = []
     for th0, Om0 in inits:
         tr = simulate(model, th0, Om0, ts, rtol=1e-12, atol=1e-12)
-        out.append(TrajectoryData(ts, theta=tr.theta, Omega=tr.Omega, theta0=th0, Omega0=Om0, **kwargs))
+        out.append(
+            TrajectoryData(ts, theta=tr.theta, Omega=tr.Omega, theta0=th0, Omega0=Om0, **kwargs)
+        )
     return out
 
 
@@ -37,7 +39,11 @@ def test_noise_free_barrier_parameters_recovered_from_30_percent_off():
     true_model = RigidBodyOscillator(A, BarrierFoundation(k=K, **truth))
     datas = _synthetic(true_model, INITS, jnp.linspace(0.0, 8.0, 100))
     start = RigidBodyOscillator(A, BarrierFoundation(1.3, 1.4, 1.95, 0.84, K))
-    res = fit(start, datas, lambda m: (m.foundation.c, m.foundation.d, m.foundation.alpha, m.foundation.beta))
+    res = fit(
+        start,
+        datas,
+        lambda m: (m.foundation.c, m.foundation.d, m.foundation.alpha, m.foundation.beta),
+    )
     assert res.converged, res.message
     fitted = np.array([float(v) for v in res.params])
     np.testing.assert_allclose(fitted, list(truth.values()), rtol=1e-6)
@@ -143,7 +149,9 @@ def test_partial_observations_omega_only_and_masked_theta():
     w[:, 2] = 0.0
     theta_obs = np.array(tr.theta)
     theta_obs[:, 2] = np.nan  # unobserved: NaN is fine under weight 0
-    res = fit(start, TrajectoryData(ts, theta=theta_obs, theta_weight=w, theta0=th0, Omega0=Om0), sel)
+    res = fit(
+        start, TrajectoryData(ts, theta=theta_obs, theta_weight=w, theta0=th0, Omega0=Om0), sel
+    )
     np.testing.assert_allclose([float(v) for v in res.params], [1.0, 2.0], rtol=1e-6)
 
 

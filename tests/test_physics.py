@@ -83,7 +83,9 @@ def test_friction_dissipates_energy_at_rate_b_omega_squared_4_84():
 
 
 @pytest.mark.parametrize(
-    "l1, l2", [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, 0.4)], ids=["dead", "follower", "semi", "mixed"]
+    "l1, l2",
+    [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, 0.4)],
+    ids=["dead", "follower", "semi", "mixed"],
 )
 def test_balance_4_78_semi_tangential_barrier(l1, l2):
     r"""(4.78): d/dt[A1(ω−Ω)·k + (A1−A3)(k·Ω)(1−cosϑ)] = γM(l1−l2)(1−cosϑ), cosϑ = k·P·k,
@@ -231,7 +233,9 @@ def test_plane_oscillations_4_87():
 
 def _precession_rate(C, vartheta, A1, A3):
     """ψ̇ of (4.113): ψ̇² = Cϑ / (sinϑ [A3(1 − cosϑ) + A1 cosϑ])."""
-    return np.sqrt(C * vartheta / (np.sin(vartheta) * (A3 * (1 - np.cos(vartheta)) + A1 * np.cos(vartheta))))
+    return np.sqrt(
+        C * vartheta / (np.sin(vartheta) * (A3 * (1 - np.cos(vartheta)) + A1 * np.cos(vartheta)))
+    )
 
 
 @pytest.mark.parametrize(
@@ -304,7 +308,9 @@ def test_follower_equilibrium_4_62_stays_put():
     the quadratic foundation (4.50)."""
     A1, A3, c, d, M = 1.0, 0.6, 1.0, 2.0, 0.7
     model = RigidBodyOscillator(
-        transversely_isotropic_inertia(A1, A3, K), QuadraticFoundation(c, d, K), FollowerMoment(M, K)
+        transversely_isotropic_inertia(A1, A3, K),
+        QuadraticFoundation(c, d, K),
+        FollowerMoment(M, K),
     )
     theta_eq = (M / d) * K
     th_dot, Om_dot = model.vector_field(0.0, (theta_eq, jnp.zeros(3)))
@@ -324,7 +330,9 @@ def test_nikolai_growth_rate_matches_4_69():
     rate max Re p of the roots of (4.69), although (4.74) predicts bounded motion."""
     A1, A3, c, d, M = 1.0, 0.6, 1.0, 2.0, 0.5
     model = RigidBodyOscillator(
-        transversely_isotropic_inertia(A1, A3, K), QuadraticFoundation(c, d, K), FollowerMoment(M, K)
+        transversely_isotropic_inertia(A1, A3, K),
+        QuadraticFoundation(c, d, K),
+        FollowerMoment(M, K),
     )
     theta_eq = (M / d) * K
     rate = float(np.max(_bending_roots_4_69(A1, c, d, M).real))
