@@ -94,8 +94,8 @@ def _kinematics(n: int) -> list[Check]:
             jnp.max(jnp.abs(Q @ Q.T - eye)),                      # (4.27)
             jnp.max(jnp.abs(Q @ th - th)),                        # (4.8)
             jnp.max(jnp.abs(Z @ Zi - eye)),                       # (4.11)/(4.20)
-            # det Z, rel.
-            jnp.abs(integrating_tensor_det(th) * 2 * (1 - jnp.cos(jnp.sqrt(t))) / t - 1),
+            # det Z, rel.; 2(1 − cos θ) written as 4 sin²(θ/2), free of cancellation at small θ
+            jnp.abs(integrating_tensor_det(th) * 4 * jnp.sin(0.5 * jnp.sqrt(t)) ** 2 / t - 1),
             jnp.max(jnp.abs(Z.T - Q @ Z)) + jnp.max(jnp.abs(Q @ Z - Z @ Q)),  # (4.13)
             jnp.max(jnp.abs(integrating_tensor(S @ th) - S @ Z @ S.T)),      # (4.12)
             jnp.max(jnp.abs(Qdot - skew(omega) @ Q)),            # (4.9)
