@@ -685,7 +685,7 @@ def fit_command(args: argparse.Namespace) -> int:
         if not (np.isfinite(v) and v > 0):
             raise _Failure(f"--params {name}: the starting value must be finite and > 0 (the fit "
                            f"works with log {name}), got {v:g}.")
-    for option in ("max_steps", "samples"):
+    for option in ("max_steps", "samples", "solver_max_steps"):
         if getattr(args, option) < 1:
             raise _Failure(f"--{option.replace('_', '-')} must be >= 1.")
     if not (args.tol > 0 and args.rtol > 0 and args.atol > 0):
@@ -739,7 +739,8 @@ def fit_command(args: argparse.Namespace) -> int:
     try:
         res = fit(model, data, selector, fit_initial_state=args.fit_initial_state,
                   max_steps=args.max_steps, tol=args.tol, solve_rtol=args.rtol,
-                  solve_atol=args.atol, progress=args.progress, horizons=args.horizons)
+                  solve_atol=args.atol, solve_max_steps=args.solver_max_steps,
+                  progress=args.progress, horizons=args.horizons)
     except FloatingPointError as e:
         raise _Failure(f"the fit could not start: {e}", code=1) from None
     for name, value, se in zip(names, res.params, res.stderr):
@@ -960,6 +961,9 @@ def _add_fit(sub) -> None:
                    "loss (default 1e-8)")
     g.add_argument("--rtol", type=float, default=1e-10,
                    help="relative tolerance of the ODE solves (default 1e-10)")
+    g.add_argument("--solver-max-steps", type=int, default=100_000,
+                   help="step budget of each ODE solve inside the fit; a solve that exhausts it "
+                   "counts as a failed trial step (default 100000)")
     g.add_argument("--atol", type=float, default=1e-10,
                    help="absolute tolerance of the ODE solves (default 1e-10)")
     g.add_argument("--sigma-theta", type=float, default=None,

@@ -326,6 +326,7 @@ class _Spec:
     rtol: float
     atol: float
     forward: bool
+    max_solver_steps: int = 100_000
 
 
 def _leaf_paths(model, values) -> tuple:
@@ -368,7 +369,8 @@ def _unpack(u, model, n_data, spec: _Spec):
 def _stack_residuals(model, datas, states, spec: _Spec):
     adjoint = diffrax.ForwardMode() if spec.forward else diffrax.RecursiveCheckpointAdjoint()
     return jnp.concatenate([
-        residuals(model, d, th0, Om0, rtol=spec.rtol, atol=spec.atol, adjoint=adjoint)
+        residuals(model, d, th0, Om0, rtol=spec.rtol, atol=spec.atol, adjoint=adjoint,
+                  max_steps=spec.max_solver_steps)
         for d, (th0, Om0) in zip(datas, states)
     ])
 
@@ -449,6 +451,7 @@ def fit(
     horizons: Sequence[float] = (1.0,),
     solve_rtol: float = 1e-10,
     solve_atol: float = 1e-10,
+    solve_max_steps: int = 100_000,
     progress: bool = False,
     verbose: bool = False,
 ) -> FitResult:
@@ -471,7 +474,8 @@ def fit(
     - `max_steps`: iterations per stage; `tol`: relative/absolute tolerance of the least-squares
       solvers (and the stagnation test); `learning_rate`: for Adam.
     - `horizons`: staged fitting on growing fractions of each record (module docstring).
-    - `solve_rtol`, `solve_atol`: tolerances of the ODE solves.
+    - `solve_rtol`, `solve_atol`: tolerances of the ODE solves; `solve_max_steps`: their step
+      budget (a solve that exhausts it gives infinite residuals, which the optimizer rejects).
     - `progress`: tqdm bar over iterations; `verbose`: print the loss each iteration.
 
     Compiled programs are cached on the model's structure, the data's shapes and these options,
@@ -493,6 +497,8 @@ def fit(
         raise ValueError(f"horizons must be increasing fractions in (0, 1], got {horizons}.")
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+    if solve_max_steps < 1:
+        raise ValueError(f"solve_max_steps must be >= 1, got {solve_max_steps}.")
     try:
         values = params(model)
     except Exception as e:  # a selector that does not match the model
@@ -510,6 +516,7 @@ def fit(
         rtol=float(solve_rtol),
         atol=float(solve_atol),
         forward=least_squares,
+        max_solver_steps=int(solve_max_steps),
     )
     u = {"p": tuple(_TRANSFORMS[n][0](jnp.asarray(v)) for n, v in zip(spec.transforms, values))}
     if fit_initial_state:
@@ -619,7 +626,8 @@ def _run_least_squares(u, model, datas, spec, optimizer, tol, max_steps, history
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
         raise FloatingPointError(
             "the residuals or their Jacobian are not finite at the starting point: check the "
-            "starting parameters and initial states (the simulation may fail there)."
+            "starting parameters and initial states (the simulation may fail there: a singular "
+            "point, the foundation's domain, or the step budget solve_max_steps)."
         )
     F = 0.5 * float(r @ r)
     _log(history, F, bar, verbose)

@@ -284,6 +284,21 @@ def test_bad_data_is_refused_before_compilation():
         fit(model, data, lambda m: m.foundation.nope)
     with pytest.raises(ValueError, match="leaves of the model"):
         fit(model, data, lambda m: jnp.asarray(1.0))
+    with pytest.raises(ValueError, match="solve_max_steps"):
+        fit(model, data, lambda m: m.foundation.c, solve_max_steps=0)
+
+
+def test_solver_step_budget_reaches_the_ode_solves():
+    """solve_max_steps is the step budget of every ODE solve inside the fit: 3 steps cannot cover
+    t in [0, 3], so the residuals are not finite at the start and the fit says so; the default
+    budget fits the same data."""
+    true_model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
+    (data,) = _synthetic(true_model, INITS[:1], jnp.linspace(0.0, 3.0, 30))
+    start = RigidBodyOscillator(A, QuadraticFoundation(1.3, 2.0, K))
+    with pytest.raises(FloatingPointError, match="not finite at the starting point"):
+        fit(start, data, lambda m: m.foundation.c, solve_max_steps=3)
+    res = fit(start, data, lambda m: m.foundation.c)
+    assert res.converged and abs(float(res.params[0]) - 1.0) < 1e-6
 
 
 def test_residuals_are_zero_on_the_generating_model():
