@@ -82,7 +82,7 @@ def main(argv=None) -> dict:
         sweep,
         transversely_isotropic_inertia,
     )
-    from rbo_jax.sweep import _make_space
+    from rbo_jax.batch._space import make_space
 
     A1, A3, T1, RTOL = 1.0, 0.5, 20.0, 1e-8
     K = np.array([0.0, 0.0, 1.0])
@@ -102,7 +102,7 @@ def main(argv=None) -> dict:
               "M": rng.uniform(0.05, 0.6, args.n)}
     n_local = jax.local_device_count()
     counts = [k for k in args.devices if k <= n_local]
-    batch = _make_space(None, points, args.chunk).chunk_shape[0]
+    batch = make_space(None, points, args.chunk).chunk_shape[0]
     warm = {name: v[:batch] for name, v in points.items()}
 
     results, reference = [], None

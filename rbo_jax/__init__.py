@@ -13,13 +13,23 @@ from ._precision import float64_enabled as float64_enabled  # noqa: E402
 from .analytic import nikolai_bending_roots as nikolai_bending_roots  # noqa: E402
 from .analytic import nikolai_bending_roots_small_load as nikolai_bending_roots_small_load  # noqa: E402
 from .analytic import nikolai_bending_stiffness as nikolai_bending_stiffness  # noqa: E402
+from .analytic import nikolai_equilibrium as nikolai_equilibrium  # noqa: E402
 from .analytic import nikolai_spectrum as nikolai_spectrum  # noqa: E402
 from .analytic import precession_rate as precession_rate  # noqa: E402
 from .analytic import torsion_roots as torsion_roots  # noqa: E402
+from .batch import SweepError as SweepError  # noqa: E402
+from .batch import critical_load as critical_load  # noqa: E402
+from .batch import open_sweep as open_sweep  # noqa: E402
+from .batch import stability_map as stability_map  # noqa: E402
+from .batch import status_counts as status_counts  # noqa: E402
+from .batch import sweep as sweep  # noqa: E402
 from .fitting import FitResult as FitResult  # noqa: E402
 from .fitting import TrajectoryData as TrajectoryData  # noqa: E402
 from .fitting import fit as fit  # noqa: E402
 from .foundations import AbstractFoundation as AbstractFoundation  # noqa: E402
+from .foundations import (  # noqa: E402
+    AbstractTransverselyIsotropicFoundation as AbstractTransverselyIsotropicFoundation,
+)
 from .foundations import BarrierFoundation as BarrierFoundation  # noqa: E402
 from .foundations import IsotropicFoundation as IsotropicFoundation  # noqa: E402
 from .foundations import QuadraticFoundation as QuadraticFoundation  # noqa: E402
@@ -31,6 +41,7 @@ from .foundations import transverse_coefficients as transverse_coefficients  # n
 from .inertia import check_inertia as check_inertia  # noqa: E402
 from .inertia import principal_inertia as principal_inertia  # noqa: E402
 from .inertia import transversely_isotropic_inertia as transversely_isotropic_inertia  # noqa: E402
+from .kinematics import Turn as Turn  # noqa: E402
 from .kinematics import compose as compose  # noqa: E402
 from .kinematics import composition_invariants as composition_invariants  # noqa: E402
 from .kinematics import distance_to_singularity as distance_to_singularity  # noqa: E402
@@ -49,35 +60,33 @@ from .loads import Friction as Friction  # noqa: E402
 from .loads import PotentialLoad as PotentialLoad  # noqa: E402
 from .loads import SemiTangentialMoment as SemiTangentialMoment  # noqa: E402
 from .loads import as_load as as_load  # noqa: E402
-from .maps import critical_load as critical_load  # noqa: E402
-from .maps import stability_map as stability_map  # noqa: E402
+from .model import RightForm as RightForm  # noqa: E402
 from .model import RigidBodyOscillator as RigidBodyOscillator  # noqa: E402
+from .plotting import plot_sweep as plot_sweep  # noqa: E402
 from .precession import RegularPrecession as RegularPrecession  # noqa: E402
 from .precession import precession_residual as precession_residual  # noqa: E402
 from .precession import precession_spectrum as precession_spectrum  # noqa: E402
 from .precession import precession_variational_matrix as precession_variational_matrix  # noqa: E402
 from .precession import regular_precession as regular_precession  # noqa: E402
+from .problems import nikolai_model as nikolai_model  # noqa: E402
 from .simulate import DarbouxSolution as DarbouxSolution  # noqa: E402
 from .simulate import SolveStatus as SolveStatus  # noqa: E402
 from .simulate import Trajectory as Trajectory  # noqa: E402
 from .simulate import simulate as simulate  # noqa: E402
 from .simulate import solve_darboux as solve_darboux  # noqa: E402
 from .stability import EquilibriumSolution as EquilibriumSolution  # noqa: E402
+from .stability import EquilibriumStability as EquilibriumStability  # noqa: E402
 from .stability import EquilibriumStatus as EquilibriumStatus  # noqa: E402
 from .stability import SecondOrderForm as SecondOrderForm  # noqa: E402
 from .stability import StabilityKind as StabilityKind  # noqa: E402
 from .stability import classify as classify  # noqa: E402
 from .stability import equilibrium as equilibrium  # noqa: E402
+from .stability import equilibrium_stability as equilibrium_stability  # noqa: E402
 from .stability import fast_spectrum as fast_spectrum  # noqa: E402
 from .stability import linearize as linearize  # noqa: E402
 from .stability import second_order_form as second_order_form  # noqa: E402
 from .stability import solve_equilibrium as solve_equilibrium  # noqa: E402
 from .stability import spectral_abscissa as spectral_abscissa  # noqa: E402
 from .stability import spectrum as spectrum  # noqa: E402
-from .sweep import SweepError as SweepError  # noqa: E402
-from .sweep import open_sweep as open_sweep  # noqa: E402
-from .sweep import plot_sweep as plot_sweep  # noqa: E402
-from .sweep import status_counts as status_counts  # noqa: E402
-from .sweep import sweep as sweep  # noqa: E402
 
 __version__ = importlib.metadata.version("rbo_jax")

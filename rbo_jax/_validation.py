@@ -1,12 +1,17 @@
-"""Validation of user parameters, shared by foundations, loads and inertia.
+"""Validation of user parameters, shared by foundations, loads, inertia and model descriptions.
 
 Concrete (Python/NumPy) values are checked eagerly and raise ``ValueError`` naming the parameter;
 traced values (objects built inside ``jax.vmap``/``jax.jit``/``jax.grad``) are checked with
 :func:`equinox.error_if`, which raises when the computation runs.
+
+The requirements themselves (:data:`POSITIVE`, :data:`NONNEGATIVE`, ...) are named objects, so
+that the constructors and the application's model descriptions (:mod:`rbo_jax.app.spec`) check
+and describe them the same way.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import equinox as eqx
@@ -15,6 +20,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
+
+
+@dataclasses.dataclass(frozen=True)
+class Requirement:
+    """A condition on a parameter value: ``text`` completes "must be ...", ``holds`` maps an
+    array (NumPy or JAX) to a boolean array."""
+
+    text: str
+    holds: Callable
+
+
+FINITE = Requirement("finite", lambda x: (x > -np.inf) & (x < np.inf))
+POSITIVE = Requirement("> 0", lambda x: (x > 0) & (x < np.inf))
+POSITIVE_OR_INF = Requirement("> 0 or inf", lambda x: x > 0)
+NONNEGATIVE = Requirement(">= 0", lambda x: (x >= 0) & (x < np.inf))
 
 
 def _float_dtype():
@@ -39,41 +59,37 @@ def _check(x, valid, message: str):
     return x
 
 
+def _as_float(x, shape: tuple[int, ...], what: str, owner: str):
+    """``x`` as a real float array of the given shape, or an error naming ``what``."""
+    x = jnp.asarray(x)
+    if x.shape != shape and shape == ():
+        raise ValueError(
+            f"{owner}: {what} must be a scalar, got shape {x.shape}. rbo_jax objects hold a "
+            "single parameter set: use jax.vmap to build batches."
+        )
+    if x.shape != shape:
+        raise ValueError(
+            f"{owner}: {what} must have shape {shape}, got {x.shape}. rbo_jax objects hold a "
+            "single parameter set: use jax.vmap to build batches."
+        )
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise TypeError(f"{owner}: {what} must be real, got dtype {x.dtype}.")
+    return x.astype(_float_dtype())
+
+
 def _scalar_parameter(
     x: ScalarLike,
     name: str,
     owner: str,
-    requirement: str = "",
-    valid: Callable | None = None,
+    meaning: str = "",
+    requirement: Requirement = FINITE,
 ) -> Scalar:
-    """``x`` as a float scalar array, checked with ``valid`` (described by ``requirement``).
-
-    Non-finite values are always refused unless ``valid`` says otherwise.
-    """
-    x = jnp.asarray(x)
-    if x.shape != ():
-        raise ValueError(
-            f"{owner}: the parameter {name} must be a scalar, got shape {x.shape}. rbo_jax "
-            "objects hold a single parameter set: use jax.vmap to build batches."
-        )
-    if jnp.issubdtype(x.dtype, jnp.complexfloating):
-        raise TypeError(f"{owner}: the parameter {name} must be real, got dtype {x.dtype}.")
-    x = x.astype(_float_dtype())
-    if valid is None:
-        return _check(x, jnp.isfinite(x), f"{owner}: the parameter {name} must be finite")
-    return _check(x, valid(x), f"{owner}: the parameter {name} must be {requirement}")
-
-
-def _positive(x):
-    return (x > 0) & jnp.isfinite(x)
-
-
-def _positive_or_inf(x):
-    return x > 0
-
-
-def _nonnegative(x):
-    return (x >= 0) & jnp.isfinite(x)
+    """``x`` as a float scalar array, checked against ``requirement`` (NaN is always refused;
+    ``meaning`` says what the parameter is, in the message)."""
+    x = _as_float(x, (), f"the parameter {name}", owner)
+    detail = f" ({meaning})" if meaning else ""
+    return _check(x, requirement.holds(x), f"{owner}: the parameter {name} must be "
+                                           f"{requirement.text}{detail}")
 
 
 def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
@@ -94,15 +110,7 @@ def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
 
 def _unit_axis(k: VectorLike, owner: str, name: str = "k") -> Vector:
     """The axis ``k`` normalised to unit length; a zero or non-finite axis is refused."""
-    k = jnp.asarray(k)
-    if k.shape != (3,):
-        raise ValueError(
-            f"{owner}: the axis {name} must have shape (3,), got {k.shape}. rbo_jax objects "
-            "hold a single parameter set: use jax.vmap to build batches."
-        )
-    if jnp.issubdtype(k.dtype, jnp.complexfloating):
-        raise TypeError(f"{owner}: the axis {name} must be real, got dtype {k.dtype}.")
-    k = k.astype(_float_dtype())
+    k = _as_float(k, (3,), f"the axis {name}", owner)
     k2 = jnp.dot(k, k)
     k = _check(
         k, (k2 > 0) & jnp.isfinite(k2), f"{owner}: the axis {name} must be a nonzero finite vector"

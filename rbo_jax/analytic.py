@@ -9,10 +9,11 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Complex
 
-from ._custom_types import Scalar, ScalarLike
+from ._custom_types import Scalar, ScalarLike, Vector
 from .kinematics import _gcoef, _sinc
 
 __all__ = [
+    "nikolai_equilibrium",
     "nikolai_bending_stiffness",
     "nikolai_bending_roots",
     "nikolai_bending_roots_small_load",
@@ -20,6 +21,14 @@ __all__ = [
     "nikolai_spectrum",
     "precession_rate",
 ]
+
+
+def nikolai_equilibrium(M: ScalarLike, d: ScalarLike, k=(0.0, 0.0, 1.0)) -> Vector:
+    r"""The equilibrium $\theta_0 = (M/d)\,k$ of the Nikolai problem, eq. (4.62): the quadratic
+    foundation (4.50) under a follower moment $M\,P\cdot k$ (4.57). ``k`` is normalised."""
+    k = jnp.asarray(k, dtype=jnp.result_type(float))
+    k = k / jnp.sqrt(k[0] * k[0] + k[1] * k[1] + k[2] * k[2])
+    return (jnp.asarray(M) / jnp.asarray(d)) * k
 
 
 def _g(theta0):

@@ -34,13 +34,13 @@ import jax.numpy as jnp
 
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
 from ._validation import (
+    POSITIVE,
+    POSITIVE_OR_INF,
     _callable_leaf,
-    _positive,
-    _positive_or_inf,
     _scalar_parameter,
     _unit_axis,
 )
-from .kinematics import _as_vector, integrating_tensor
+from .kinematics import Turn, _as_vector, dot3
 
 __all__ = [
     "AbstractFoundation",
@@ -49,6 +49,7 @@ __all__ = [
     "IsotropicFoundation",
     "TransverselyIsotropicFoundation",
     "SumFoundation",
+    "AbstractTransverselyIsotropicFoundation",
     "potential_moment",
     "body_potential_moment",
     "transverse_coefficients",
@@ -66,9 +67,9 @@ def _axial_split(theta, k):
     The perpendicular part is formed before squaring, which avoids the cancellation of
     $\theta^2 - (k\cdot\theta)^2$ when $\theta$ is nearly parallel to $k$.
     """
-    x = jnp.dot(k, theta)
+    x = dot3(k, theta)
     perp = theta - x * k
-    return x, jnp.dot(perp, perp)
+    return x, dot3(perp, perp)
 
 
 class AbstractFoundation(eqx.Module):
@@ -91,6 +92,33 @@ class AbstractFoundation(eqx.Module):
     def domain_margin(self, theta: VectorLike) -> Scalar:
         r"""$> 0$ strictly inside the domain of definition of :meth:`energy`, $\le 0$
         outside; ``inf`` for energies defined everywhere."""
+
+    @property
+    def isotropic(self) -> bool:
+        r"""Whether the energy depends on $\theta^2$ only (section 4.2.3)."""
+        return False
+
+    def gradient(self, theta: VectorLike) -> Vector:
+        r"""$dU/d\theta$, the derivative in the elastic moment $-Z^T\cdot dU/d\theta$ (4.23):
+        by automatic differentiation of :meth:`energy`; the transversely isotropic foundations
+        use the closed form $C\theta + D k$ of (4.47)–(4.48) instead."""
+        return jax.grad(lambda th: _as_scalar_output(self.energy(th), "energy"))(
+            _as_vector(theta))
+
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        r"""$C$ and $D$ of (4.48), $dU/d\theta = C\theta + D k$, for transversely isotropic
+        foundations (4.24); a general foundation has none and raises ``TypeError``."""
+        raise TypeError(
+            "transverse_coefficients: expected a QuadraticFoundation, BarrierFoundation, "
+            "TransverselyIsotropicFoundation, IsotropicFoundation or a SumFoundation of them, got "
+            f"{type(self).__name__}. Wrap the energy as a TransverselyIsotropicFoundation(F, k)."
+        )
+
+    def symmetry_axis(self) -> Vector | None:
+        """The axis $k$ about which the energy is invariant (4.24), or ``None``: for a general
+        foundation, and for an isotropic one, which is symmetric about every axis (see
+        ``isotropic``)."""
+        return None
 
     def __call__(self, theta: VectorLike) -> Scalar:
         """The energy U(θ), raising an error when θ is outside the domain of definition.
@@ -117,7 +145,30 @@ def _describe(foundation: AbstractFoundation) -> str:
     return f"{type(foundation).__name__}, which requires {foundation.domain_description}"
 
 
-class QuadraticFoundation(AbstractFoundation):
+class AbstractTransverselyIsotropicFoundation(AbstractFoundation):
+    r"""A foundation invariant under turns about its unit axis $k$: $U = F(k\cdot\theta,
+    \theta^2)$, eq. (4.24). Subclasses give the coefficients (4.48), $C = 2\,\partial
+    U/\partial(\theta^2)$ and $D = \partial U/\partial(k\cdot\theta)$, from which the gradient
+    is $C\theta + D k$ and the elastic moment (4.47) $M_e = -C\theta - D\,Z^T\cdot k$; the
+    regular precessions of section 4.7 and the fast paths of the equations of motion use them."""
+
+    k: eqx.AbstractVar[Vector]
+
+    @abc.abstractmethod
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        r"""$C$ and $D$ of (4.48) at $\theta$."""
+
+    def gradient(self, theta: VectorLike) -> Vector:
+        r"""$dU/d\theta = C\theta + D k$ (4.47)."""
+        theta = _as_vector(theta)
+        C, D = self.coefficients(theta)
+        return C * theta + D * self.k
+
+    def symmetry_axis(self) -> Vector:
+        return self.k
+
+
+class QuadraticFoundation(AbstractTransverselyIsotropicFoundation):
     r"""The quadratic transversely isotropic foundation, eq. (4.50):
 
     $U = \tfrac12 c\,(\theta^2 - (k\cdot\theta)^2) + \tfrac12 d\,(k\cdot\theta)^2$,
@@ -134,8 +185,8 @@ class QuadraticFoundation(AbstractFoundation):
 
     def __init__(self, c: ScalarLike, d: ScalarLike, k: VectorLike):
         name = type(self).__name__
-        self.c = _scalar_parameter(c, "c", name, "> 0 (bending stiffness)", _positive)
-        self.d = _scalar_parameter(d, "d", name, "> 0 (torsional stiffness)", _positive)
+        self.c = _scalar_parameter(c, "c", name, "bending stiffness", POSITIVE)
+        self.d = _scalar_parameter(d, "d", name, "torsional stiffness", POSITIVE)
         self.k = _unit_axis(k, name)
 
     def energy(self, theta: VectorLike) -> Scalar:
@@ -148,8 +199,13 @@ class QuadraticFoundation(AbstractFoundation):
         theta = _as_vector(theta)
         return jnp.full((), jnp.inf, dtype=theta.dtype)
 
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        r"""(4.51): $C = c$, $D = (d - c)\,k\cdot\theta$."""
+        theta = _as_vector(theta)
+        return self.c, (self.d - self.c) * dot3(self.k, theta)
 
-class BarrierFoundation(AbstractFoundation):
+
+class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
     r"""The transversely isotropic foundation with barriers, eq. (4.49):
 
     $U = \frac12\frac{\alpha^2 c\,\theta^2}{\alpha^2 - \theta^2 + (k\cdot\theta)^2}
@@ -191,13 +247,13 @@ class BarrierFoundation(AbstractFoundation):
         k: VectorLike,
     ):
         name = type(self).__name__
-        self.c = _scalar_parameter(c, "c", name, "> 0 (bending stiffness)", _positive)
-        self.d = _scalar_parameter(d, "d", name, "> 0 (torsional stiffness)", _positive)
+        self.c = _scalar_parameter(c, "c", name, "bending stiffness", POSITIVE)
+        self.d = _scalar_parameter(d, "d", name, "torsional stiffness", POSITIVE)
         self.alpha = _scalar_parameter(
-            alpha, "alpha", name, "> 0 (bending barrier; inf switches it off)", _positive_or_inf
+            alpha, "alpha", name, "bending barrier; inf switches it off", POSITIVE_OR_INF
         )
         self.beta = _scalar_parameter(
-            beta, "beta", name, "> 0 (torsion barrier; inf switches it off)", _positive_or_inf
+            beta, "beta", name, "torsion barrier; inf switches it off", POSITIVE_OR_INF
         )
         self.k = _unit_axis(k, name)
 
@@ -254,14 +310,30 @@ class IsotropicFoundation(AbstractFoundation):
     def energy(self, theta: VectorLike) -> Scalar:
         r"""$U = F(\theta\cdot\theta)$."""
         theta = _as_vector(theta)
-        return _as_scalar_output(self.F(jnp.dot(theta, theta)), "IsotropicFoundation: F")
+        return _as_scalar_output(self.F(dot3(theta, theta)), "IsotropicFoundation: F")
 
     def domain_margin(self, theta: VectorLike) -> Scalar:
         theta = _as_vector(theta)
         return jnp.full((), jnp.inf, dtype=theta.dtype)
 
+    @property
+    def isotropic(self) -> bool:
+        return True
 
-class TransverselyIsotropicFoundation(AbstractFoundation):
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        r"""$C = 2F'(\theta^2)$ and $D = 0$ (an isotropic energy is transversely isotropic about
+        every axis)."""
+        theta = _as_vector(theta)
+        dF = jax.grad(lambda t_: _as_scalar_output(self.F(t_), "F"))(dot3(theta, theta))
+        return 2.0 * dF, jnp.zeros_like(dF)
+
+    def gradient(self, theta: VectorLike) -> Vector:
+        r"""$dU/d\theta = 2F'(\theta^2)\,\theta$."""
+        theta = _as_vector(theta)
+        return self.coefficients(theta)[0] * theta
+
+
+class TransverselyIsotropicFoundation(AbstractTransverselyIsotropicFoundation):
     r"""A transversely isotropic foundation $U = F(k\cdot\theta, \theta^2)$, eq. (4.24).
 
     ``F(x, t)`` takes $x = k\cdot\theta$ and $t = \theta^2$ in this order, as in (4.24). The
@@ -285,13 +357,21 @@ class TransverselyIsotropicFoundation(AbstractFoundation):
         r"""$U = F(k\cdot\theta, \theta\cdot\theta)$, eq. (4.24)."""
         theta = _as_vector(theta)
         return _as_scalar_output(
-            self.F(jnp.dot(self.k, theta), jnp.dot(theta, theta)),
+            self.F(dot3(self.k, theta), dot3(theta, theta)),
             "TransverselyIsotropicFoundation: F",
         )
 
     def domain_margin(self, theta: VectorLike) -> Scalar:
         theta = _as_vector(theta)
         return jnp.full((), jnp.inf, dtype=theta.dtype)
+
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        r"""$C = 2\,\partial F/\partial t$, $D = \partial F/\partial x$ by automatic
+        differentiation of ``F`` on the two scalars (4.48)."""
+        theta = _as_vector(theta)
+        D, dF_dt = jax.grad(lambda x_, t_: _as_scalar_output(self.F(x_, t_), "F"),
+                            argnums=(0, 1))(dot3(self.k, theta), dot3(theta, theta))
+        return 2.0 * dF_dt, D
 
 
 class SumFoundation(AbstractFoundation):
@@ -327,6 +407,54 @@ class SumFoundation(AbstractFoundation):
         theta = _as_vector(theta)
         return jnp.min(jnp.stack([f.domain_margin(theta) for f in self.terms]))
 
+    def gradient(self, theta: VectorLike) -> Vector:
+        """The sum of the terms' gradients."""
+        theta = _as_vector(theta)
+        return sum((f.gradient(theta) for f in self.terms[1:]), self.terms[0].gradient(theta))
+
+    @property
+    def isotropic(self) -> bool:
+        return all(f.isotropic for f in self.terms)
+
+    def _axes(self):
+        """The axes of the non-isotropic terms, or None if a term has no symmetry axis."""
+        axes = []
+        for f in self.terms:
+            if f.isotropic:
+                continue
+            k = f.symmetry_axis()
+            if k is None:
+                return None
+            axes.append(k)
+        return axes
+
+    def _common(self, x, axes):
+        """``x``, checked (:func:`equinox.error_if`) that all ``axes`` are equal."""
+        if len(axes) < 2:
+            return x
+        mismatch = jnp.max(jnp.stack([jnp.max(jnp.abs(a - axes[0])) for a in axes[1:]]))
+        return eqx.error_if(
+            x, mismatch > 1e-12,
+            "SumFoundation: the transversely isotropic terms have different axes k, so the sum "
+            "is not transversely isotropic (its moment is not of the form (4.47)).")
+
+    def symmetry_axis(self) -> Vector | None:
+        """The common axis of the transversely isotropic terms (checked equal), ``None`` if a
+        term has no axis or every term is isotropic."""
+        axes = self._axes()
+        if not axes:
+            return None
+        return self._common(axes[0], axes)
+
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        """The sums of the terms' $C$ and $D$ (4.48), provided all transversely isotropic terms
+        share one axis $k$ (checked with :func:`equinox.error_if`)."""
+        theta = _as_vector(theta)
+        coefficients = [f.coefficients(theta) for f in self.terms]
+        C = sum(c for c, _ in coefficients[1:]) + coefficients[0][0]
+        D = sum(d for _, d in coefficients[1:]) + coefficients[0][1]
+        return C, self._common(D, self._axes() or [])
+
 
 def _as_scalar_output(u, what: str) -> Scalar:
     u = jnp.asarray(u)
@@ -351,7 +479,7 @@ def potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> Vector
     """
     theta = _as_vector(theta)
     grad = jax.grad(lambda th: _as_scalar_output(U(th), "potential_moment: U"))(theta)
-    return -(grad @ integrating_tensor(theta))
+    return -Turn(theta).ZT(grad)
 
 
 def body_potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> Vector:
@@ -360,7 +488,7 @@ def body_potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> V
     $Z^T = P\cdot Z$, eq. (4.13)): the elastic term of the right form (4.55)."""
     theta = _as_vector(theta)
     grad = jax.grad(lambda th: _as_scalar_output(U(th), "potential_moment: U"))(theta)
-    return -(integrating_tensor(theta) @ grad)
+    return -Turn(theta).Z(grad)
 
 
 def transverse_coefficients(foundation: AbstractFoundation, theta: VectorLike):
@@ -369,7 +497,7 @@ def transverse_coefficients(foundation: AbstractFoundation, theta: VectorLike):
     $C = 2\,\partial U/\partial(\theta^2)$, $D = \partial U/\partial(k\cdot\theta)$,
 
     so that the elastic moment is (4.47), $M_e = -C\theta - D\,Z^T(\theta)\cdot k$. Returns the
-    pair ``(C, D)``.
+    pair ``(C, D)``: ``foundation.coefficients(theta)``.
 
     - :class:`QuadraticFoundation` (4.50): $C = c$, $D = (d - c)\,k\cdot\theta$ (4.51);
     - :class:`BarrierFoundation` (4.49): closed forms, see
@@ -379,41 +507,7 @@ def transverse_coefficients(foundation: AbstractFoundation, theta: VectorLike):
     - :class:`SumFoundation`: the sums, provided all transversely isotropic terms share the
       same axis $k$ (checked with :func:`equinox.error_if`).
 
-    A user-defined :class:`AbstractFoundation` raises ``TypeError``: wrap the energy as a
+    A general :class:`AbstractFoundation` raises ``TypeError``: wrap the energy as a
     :class:`TransverselyIsotropicFoundation` instead.
     """
-    theta = _as_vector(theta)
-    if isinstance(foundation, QuadraticFoundation):
-        x = jnp.dot(foundation.k, theta)
-        return foundation.c, (foundation.d - foundation.c) * x
-    if isinstance(foundation, BarrierFoundation):
-        return foundation.coefficients(theta)
-    if isinstance(foundation, TransverselyIsotropicFoundation):
-        x, t = jnp.dot(foundation.k, theta), jnp.dot(theta, theta)
-        D, dF_dt = jax.grad(
-            lambda x_, t_: _as_scalar_output(foundation.F(x_, t_), "F"), argnums=(0, 1)
-        )(x, t)
-        return 2.0 * dF_dt, D
-    if isinstance(foundation, IsotropicFoundation):
-        t = jnp.dot(theta, theta)
-        dF_dt = jax.grad(lambda t_: _as_scalar_output(foundation.F(t_), "F"))(t)
-        return 2.0 * dF_dt, jnp.zeros_like(dF_dt)
-    if isinstance(foundation, SumFoundation):
-        coefficients = [transverse_coefficients(f, theta) for f in foundation.terms]
-        C = sum(c for c, _ in coefficients[1:]) + coefficients[0][0]
-        D = sum(d for _, d in coefficients[1:]) + coefficients[0][1]
-        axes = [f.k for f in foundation.terms if not isinstance(f, IsotropicFoundation)]
-        if len(axes) > 1:
-            mismatch = jnp.max(jnp.stack([jnp.max(jnp.abs(a - axes[0])) for a in axes[1:]]))
-            D = eqx.error_if(
-                D,
-                mismatch > 1e-12,
-                "transverse_coefficients: the transversely isotropic terms of the SumFoundation "
-                "have different axes k, so its moment is not of the form (4.47).",
-            )
-        return C, D
-    raise TypeError(
-        "transverse_coefficients: expected a QuadraticFoundation, BarrierFoundation, "
-        "TransverselyIsotropicFoundation, IsotropicFoundation or a SumFoundation of them, got "
-        f"{type(foundation).__name__}."
-    )
+    return foundation.coefficients(_as_vector(theta))

@@ -14,7 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Matrix, MatrixLike, ScalarLike, VectorLike
-from ._validation import _check, _float_dtype, _is_traced, _positive, _scalar_parameter, _unit_axis
+from ._validation import (
+    POSITIVE,
+    _check,
+    _float_dtype,
+    _is_traced,
+    _scalar_parameter,
+    _unit_axis,
+)
 
 __all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia"]
 
@@ -36,8 +43,8 @@ def transversely_isotropic_inertia(A1: ScalarLike, A3: ScalarLike, k: VectorLike
     r"""The transversely isotropic inertia tensor $A = A_1(E - k\otimes k) + A_3\,k\otimes k$,
     eq. (4.40): symmetry axis $d_3 = k$ (normalised here), $A_1 = A_2 > 0$, $A_3 > 0$."""
     owner = "transversely_isotropic_inertia"
-    A1 = _scalar_parameter(A1, "A1", owner, "> 0 (principal moment of inertia)", _positive)
-    A3 = _scalar_parameter(A3, "A3", owner, "> 0 (principal moment of inertia)", _positive)
+    A1 = _scalar_parameter(A1, "A1", owner, "principal moment of inertia", POSITIVE)
+    A3 = _scalar_parameter(A3, "A3", owner, "principal moment of inertia", POSITIVE)
     k = _unit_axis(k, owner)
     kk = jnp.outer(k, k)
     return A1 * (jnp.eye(3, dtype=kk.dtype) - kk) + A3 * kk
@@ -54,7 +61,7 @@ def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
     moments = moments.astype(_float_dtype())
     moments = _check(
         moments,
-        _positive(moments),
+        POSITIVE.holds(moments),
         f"{owner}: the principal moments of inertia (moments) must all be > 0 and finite",
     )
     axes = _float_matrix(axes, "axes", owner)

@@ -41,6 +41,7 @@ __all__ = [
     "integrating_tensor_inv",
     "integrating_tensor_det",
     "distance_to_singularity",
+    "Turn",
 ]
 
 # --------------------------------------------------------------------------------------------
@@ -410,3 +411,101 @@ def distance_to_singularity(theta: VectorLike) -> Scalar:
     two_pi = 2.0 * jnp.pi
     k = jnp.maximum(jnp.round(n / two_pi), 1.0)
     return jnp.abs(n - two_pi * k)
+
+
+# --------------------------------------------------------------------------------------------
+# Component-wise operators: Q·v, Qᵀ·v, Z·v, Zᵀ·v without forming 3×3 matrices.
+# --------------------------------------------------------------------------------------------
+
+
+def dot3(a, b):
+    """a·b written out component by component (under ``vmap`` an elementwise expression, not a
+    batched ``dot_general``)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def cross3(a, b):
+    """a×b written out component by component."""
+    return jnp.stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def matvec3(A, v):
+    """A·v for a 3×3 ``A``, written out component by component."""
+    return jnp.stack([A[i, 0] * v[0] + A[i, 1] * v[1] + A[i, 2] * v[2] for i in range(3)])
+
+
+class Turn:
+    r"""The tensors of a turn $\theta$ applied to vectors without forming them: the hot path of
+    the equations of motion.
+
+    With $R = \theta\times E$ and $R^2\cdot v = \theta(\theta\cdot v) - \theta^2 v$ (4.4):
+
+    - :meth:`rotate` $Q\cdot v = v + \frac{\sin\theta}{\theta}\,\theta\times v
+      + \frac{1-\cos\theta}{\theta^2} R^2\cdot v$ (4.3); :meth:`rotate_back` $Q^T\cdot v$ (the
+      sign of the middle term flips);
+    - :meth:`Z` $Z\cdot v = v - \frac12\theta\times v + \frac{1-g}{\theta^2} R^2\cdot v$ (4.11);
+      :meth:`ZT` $Z^T\cdot v$.
+
+    Each is a handful of elementwise operations on the three components, which XLA fuses into one
+    kernel under ``vmap`` (a batched 3×3 product becomes a ``dot_general`` that runs poorly on
+    CPU). The scalar coefficients are the same safe functions of $t = \theta\cdot\theta$ as in
+    :func:`turn_tensor` and :func:`integrating_tensor` (exact at $\theta = 0$), computed once
+    per turn and only if used. ``P @ v`` and ``P.T @ v`` work too, so code written for the
+    turn-tensor matrix $P$ keeps working with a :class:`Turn`.
+    """
+
+    def __init__(self, theta: VectorLike):
+        self.theta = _as_vector(theta)
+        self.t = dot3(self.theta, self.theta)
+        self._coefficients = {}
+
+    def _coef(self, name, fn):
+        if name not in self._coefficients:
+            self._coefficients[name] = fn(self.t)
+        return self._coefficients[name]
+
+    def _r2(self, v):
+        th = self.theta
+        return th * dot3(th, v) - self.t * v
+
+    def rotate(self, v) -> Vector:
+        """$Q(\\theta)\\cdot v$, eq. (4.3)."""
+        return v + self._coef("sinc", _sinc) * cross3(self.theta, v) + \
+            self._coef("cosc", _cosc) * self._r2(v)
+
+    def rotate_back(self, v) -> Vector:
+        """$Q^T(\\theta)\\cdot v$."""
+        return v - self._coef("sinc", _sinc) * cross3(self.theta, v) + \
+            self._coef("cosc", _cosc) * self._r2(v)
+
+    def Z(self, v) -> Vector:
+        """$Z(\\theta)\\cdot v$, eq. (4.11)."""
+        return v - 0.5 * cross3(self.theta, v) + self._coef("gcoef", _gcoef) * self._r2(v)
+
+    def ZT(self, v) -> Vector:
+        """$Z^T(\\theta)\\cdot v$: the rate $\\dot\\theta = Z^T\\cdot\\Omega$ (4.14)."""
+        return v + 0.5 * cross3(self.theta, v) + self._coef("gcoef", _gcoef) * self._r2(v)
+
+    @property
+    def matrix(self) -> Matrix:
+        """The turn-tensor $Q(\\theta)$ as a matrix (:func:`turn_tensor`)."""
+        return turn_tensor(self.theta)
+
+    def __matmul__(self, v):
+        return self.rotate(v)
+
+    @property
+    def T(self) -> _TransposedTurn:
+        return _TransposedTurn(self)
+
+
+class _TransposedTurn:
+    """``turn.T @ v`` is ``turn.rotate_back(v)``."""
+
+    def __init__(self, turn: Turn):
+        self._turn = turn
+
+    def __matmul__(self, v):
+        return self._turn.rotate_back(v)

@@ -18,21 +18,22 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
 from ._validation import (
+    NONNEGATIVE,
     _callable_leaf,
     _check,
     _float_dtype,
-    _nonnegative,
     _scalar_parameter,
     _unit_axis,
 )
 from .foundations import AbstractFoundation, body_potential_moment, potential_moment
-from .kinematics import _as_vector, turn_tensor
+from .kinematics import Turn, _as_vector, dot3
 
 __all__ = [
     "AbstractLoad",
@@ -51,7 +52,14 @@ def _zero():
 
 
 class AbstractLoad(eqx.Module):
-    """An external moment acting on the body (world frame)."""
+    """An external moment acting on the body (world frame).
+
+    ``depends_on_velocity`` says whether the moment can depend on the angular velocity; the
+    linearization at rest uses it (a velocity-independent load has no damping block). A load
+    class that does not set it is assumed to depend on the velocity.
+    """
+
+    depends_on_velocity: ClassVar[bool] = True
 
     @abc.abstractmethod
     def moment(self, t: ScalarLike, theta: VectorLike, omega: VectorLike) -> Vector:
@@ -62,61 +70,62 @@ class AbstractLoad(eqx.Module):
     def potential_energy(self, theta: VectorLike) -> Scalar:
         r"""The potential $V(\theta)$ of the load, eq. (4.52); 0 for non-potential loads."""
 
-    def body_moment(self, t: ScalarLike, theta: Vector, Omega: Vector, P) -> Vector:
+    def body_moment(self, t: ScalarLike, theta: Vector, Omega: Vector, turn: Turn) -> Vector:
         r"""The moment in the body frame, $P^T\cdot M_{ex}$ (the right-hand side of (4.55)),
-        given the right angular velocity $\Omega$ and $P = Q(\theta)$ (computed once by the
-        caller). By default $P^T\cdot$ :meth:`moment` $(t, \theta, P\cdot\Omega)$; loads with a
-        simpler body-frame form override it (a follower moment is constant there), which spares
-        the right-form vector field the turn-tensor and two products per load."""
-        return P.T @ self.moment(t, theta, P @ Omega)
+        given the right angular velocity $\Omega$ and the turn $P = Q(\theta)$ as a
+        :class:`rbo_jax.kinematics.Turn` (made once by the caller; ``turn @ v`` is $P\cdot v$,
+        ``turn.T @ v`` is $P^T\cdot v$). By default $P^T\cdot$ :meth:`moment`
+        $(t, \theta, P\cdot\Omega)$; loads with a simpler body-frame form override it (a
+        follower moment is constant there), which spares the right-form vector field the
+        turn-tensor."""
+        return turn.rotate_back(self.moment(t, theta, turn.rotate(Omega)))
 
 
-class DeadMoment(AbstractLoad):
-    r"""A dead moment of fixed world direction, $M_{ex} = M k$: (4.75) with $l_1 = 1$, $l_2 = 0$.
-
-    Not potential (its work depends on the path), so ``potential_energy`` is 0.
-    """
+class _AbstractAxialMoment(AbstractLoad):
+    """A moment of magnitude ``M`` about the unit axis ``k`` (dead or follower)."""
 
     M: Scalar
     k: Vector
+
+    depends_on_velocity: ClassVar[bool] = False
 
     def __init__(self, M: ScalarLike, k: VectorLike):
         self.M = _scalar_parameter(M, "M", type(self).__name__)
         self.k = _unit_axis(k, type(self).__name__)
 
-    def moment(self, t, theta, omega) -> Vector:
-        """M k, eq. (4.75) with l1 = 1, l2 = 0."""
-        return self.M * self.k
-
     def potential_energy(self, theta) -> Scalar:
         return _zero()
 
 
-class FollowerMoment(AbstractLoad):
+class DeadMoment(_AbstractAxialMoment):
+    r"""A dead moment of fixed world direction, $M_{ex} = M k$: (4.75) with $l_1 = 1$, $l_2 = 0$.
+
+    Not potential (its work depends on the path), so ``potential_energy`` is 0.
+    """
+
+    def moment(self, t, theta, omega) -> Vector:
+        """M k, eq. (4.75) with l1 = 1, l2 = 0."""
+        return self.M * self.k
+
+    def body_moment(self, t, theta, Omega, turn) -> Vector:
+        """Pᵀ·(M k)."""
+        return turn.rotate_back(self.M * self.k)
+
+
+class FollowerMoment(_AbstractAxialMoment):
     r"""A follower (tangential) moment turning with the body, $M_{ex} = M\,P\cdot k$,
     $P = Q(\theta)$, eq. (4.57); (4.75) with $l_1 = 0$, $l_2 = 1$.
 
     Non-conservative (the source of the Nikolai paradox, section 4.4); ``potential_energy`` is 0.
     """
 
-    M: Scalar
-    k: Vector
-
-    def __init__(self, M: ScalarLike, k: VectorLike):
-        self.M = _scalar_parameter(M, "M", type(self).__name__)
-        self.k = _unit_axis(k, type(self).__name__)
-
     def moment(self, t, theta, omega) -> Vector:
         """M P(θ)·k, eq. (4.57)."""
-        theta = _as_vector(theta)
-        return self.M * (turn_tensor(theta) @ self.k)
+        return self.M * Turn(theta).rotate(self.k)
 
-    def body_moment(self, t, theta, Omega, P) -> Vector:
+    def body_moment(self, t, theta, Omega, turn) -> Vector:
         """Pᵀ·(M P·k) = M k: constant in the body frame."""
         return self.M * self.k
-
-    def potential_energy(self, theta) -> Scalar:
-        return _zero()
 
 
 class SemiTangentialMoment(AbstractLoad):
@@ -150,31 +159,38 @@ class SemiTangentialMoment(AbstractLoad):
         )
         self.l2 = l2
 
+    depends_on_velocity: ClassVar[bool] = False
+
     def gamma(self, theta: VectorLike) -> Scalar:
         r"""$\gamma = (l_1^2 + l_2^2 + 2l_1l_2\,k\cdot P\cdot k)^{-1/2}$ of eq. (4.75)."""
-        _, norm = self._direction(_as_vector(theta))
-        return 1.0 / norm
+        theta = _as_vector(theta)
+        return 1.0 / self._norm(self.l1 * self.k + self.l2 * Turn(theta).rotate(self.k))
 
-    def _direction(self, theta):
-        v = self.l1 * self.k + self.l2 * (turn_tensor(theta) @ self.k)
-        n2 = jnp.dot(v, v)
+    def _norm(self, v):
+        """|v| for v = l1 k + l2 P·k (or its body-frame image, of the same length), raising
+        where the direction of (4.75) is undefined."""
+        n2 = dot3(v, v)
         # |v| is zero only at the degenerate configuration; the rounding floor of v is
         # ~eps(|l1| + |l2|). Double where: no NaN in the reverse pass at v = 0.
         tol = 64 * jnp.finfo(n2.dtype).eps * (jnp.abs(self.l1) + jnp.abs(self.l2))
         degenerate = n2 <= tol**2
         norm = jnp.sqrt(jnp.where(degenerate, jnp.ones_like(n2), n2))
-        norm = eqx.error_if(
+        return eqx.error_if(
             norm,
             degenerate,
             "SemiTangentialMoment: l1 k + l2 P.k = 0 (|l1| = |l2| and the turned axis P.k is "
             "-sign(l1 l2) k), so the direction of the moment (4.75) is undefined.",
         )
-        return v, norm
 
     def moment(self, t, theta, omega) -> Vector:
         """γM(l1 k + l2 P·k), eq. (4.75)."""
-        v, norm = self._direction(_as_vector(theta))
-        return (self.M / norm) * v
+        v = self.l1 * self.k + self.l2 * Turn(theta).rotate(self.k)
+        return (self.M / self._norm(v)) * v
+
+    def body_moment(self, t, theta, Omega, turn) -> Vector:
+        """Pᵀ·M_ex = γM(l1 Pᵀ·k + l2 k) (|Pᵀ·v| = |v|: the same γ)."""
+        v = self.l1 * turn.rotate_back(self.k) + self.l2 * self.k
+        return (self.M / self._norm(v)) * v
 
     def potential_energy(self, theta) -> Scalar:
         return _zero()
@@ -185,14 +201,16 @@ class Friction(AbstractLoad):
 
     b: Scalar
 
+    depends_on_velocity: ClassVar[bool] = True
+
     def __init__(self, b: ScalarLike):
-        self.b = _scalar_parameter(b, "b", type(self).__name__, ">= 0 (friction)", _nonnegative)
+        self.b = _scalar_parameter(b, "b", type(self).__name__, "friction", NONNEGATIVE)
 
     def moment(self, t, theta, omega) -> Vector:
         """−b ω, eq. (4.84)."""
         return -self.b * _as_vector(omega, "omega")
 
-    def body_moment(self, t, theta, Omega, P) -> Vector:
+    def body_moment(self, t, theta, Omega, turn) -> Vector:
         """Pᵀ·(−b P·Ω) = −b Ω."""
         return -self.b * Omega
 
@@ -216,7 +234,9 @@ class PotentialLoad(AbstractLoad):
         """−Zᵀ·dV/dθ, eqs. (4.52), (4.23)."""
         return potential_moment(self.V, theta)
 
-    def body_moment(self, t, theta, Omega, P) -> Vector:
+    depends_on_velocity: ClassVar[bool] = False
+
+    def body_moment(self, t, theta, Omega, turn) -> Vector:
         """Pᵀ·(−Zᵀ·dV/dθ) = −Z·dV/dθ, by Zᵀ = P·Z (4.13)."""
         return body_potential_moment(self.V, theta)
 

@@ -26,26 +26,76 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._custom_types import Matrix, Scalar, Vector
-from .foundations import AbstractFoundation, potential_moment
+from .foundations import AbstractFoundation
 from .inertia import check_inertia
-from .kinematics import _as_vector, integrating_tensor, integrating_tensor_inv, turn_tensor
+from .kinematics import (
+    Turn,
+    _as_vector,
+    cross3,
+    dot3,
+    integrating_tensor_inv,
+    matvec3,
+    turn_tensor,
+)
 from .loads import AbstractLoad, as_load
 
-__all__ = ["RigidBodyOscillator"]
+__all__ = ["RigidBodyOscillator", "RightForm", "LeftForm"]
 
 
-def _inv3(A: Matrix) -> Matrix:
-    """Inverse of a 3×3 matrix by cofactors (cheaper than an LU call inside vmapped solvers)."""
-    c0 = jnp.cross(A[1], A[2])
-    c1 = jnp.cross(A[2], A[0])
-    c2 = jnp.cross(A[0], A[1])
-    det = jnp.dot(A[0], c0)
+def inverse3(A: Matrix) -> Matrix:
+    """Inverse of a 3×3 matrix by cofactors, written out component by component (cheaper than
+    an LU call inside vmapped solvers)."""
+    c0 = cross3(A[1], A[2])
+    c1 = cross3(A[2], A[0])
+    c2 = cross3(A[0], A[1])
+    det = dot3(A[0], c0)
     return jnp.stack([c0, c1, c2], axis=1) / det
+
+
+class RightForm(eqx.Module):
+    r"""The right form (4.55)–(4.56) of a model, ready to evaluate: ``rhs(t, (theta, Omega))``
+    returns $(\dot\theta, \dot\Omega)$. Made by :meth:`RigidBodyOscillator.right_form`, which
+    computes $A^{-1}$ once; solvers make it once per solve, outside their step loop.
+
+    $\dot\Omega = A^{-1}\cdot(P^T\cdot M - \Omega\times A\cdot\Omega)$ with the body-frame
+    moment $P^T\cdot M = -Z\cdot dU/d\theta + \sum P^T\cdot M_{ex}$ (the elastic part by
+    $P^T\cdot Z^T = Z$, (4.13)), and $\dot\theta = Z^T\cdot\Omega$ (4.14). Everything is
+    written component by component (:class:`rbo_jax.kinematics.Turn`): no batched 3×3 products
+    under ``vmap``, one source of truth for :func:`rbo_jax.simulate` and
+    :func:`rbo_jax.fast_simulate`.
+    """
+
+    model: RigidBodyOscillator
+    inertia_inv: Float[Array, "3 3"]
+
+    def __call__(self, t, y, args=None) -> tuple[Vector, Vector]:
+        theta, Omega = y
+        model = self.model
+        turn = Turn(theta)
+        M = -turn.Z(model.foundation.gradient(theta))
+        for load in model.loads:
+            M = M + load.body_moment(t, theta, Omega, turn)
+        Omega_dot = matvec3(self.inertia_inv, M - cross3(Omega, matvec3(model.inertia, Omega)))
+        return turn.ZT(Omega), Omega_dot
+
+
+class LeftForm(eqx.Module):
+    r"""The left form (4.53)–(4.54) on the state ``(theta, L)``, $L$ the kinetic moment (4.43):
+    $\dot L = M$, $\dot\theta = Z\cdot\omega$ with $\omega = P\cdot A^{-1}\cdot P^T\cdot L$.
+    Made by :meth:`RigidBodyOscillator.left_form`."""
+
+    model: RigidBodyOscillator
+    inertia_inv: Float[Array, "3 3"]
+
+    def __call__(self, t, y, args=None) -> tuple[Vector, Vector]:
+        theta, L = y
+        turn = Turn(theta)
+        omega = turn.rotate(matvec3(self.inertia_inv, turn.rotate_back(L)))
+        return turn.Z(omega), self.model.world_moment(t, theta, omega)
 
 
 class RigidBodyOscillator(eqx.Module):
@@ -129,50 +179,43 @@ class RigidBodyOscillator(eqx.Module):
     # Moments and vector fields.
     # ---------------------------------------------------------------------------------------
 
+    def inertia_inverse(self) -> Matrix:
+        """$A^{-1}$ (by cofactors)."""
+        return inverse3(self.inertia)
+
     def world_moment(self, t, theta, omega) -> Vector:
         r"""Total world-frame moment on the body: $-Z^T\cdot dU/d\theta$ (4.46) plus every load
         (4.52)."""
-        M = potential_moment(self.foundation.energy, theta)
+        theta = _as_vector(theta)
+        M = -Turn(theta).ZT(self.foundation.gradient(theta))
         for load in self.loads:
             M = M + load.moment(t, theta, omega)
         return M
 
+    def right_form(self) -> RightForm:
+        """The right form (4.55)–(4.56), ready to evaluate (:class:`RightForm`; $A^{-1}$ computed
+        here, once)."""
+        return RightForm(self, self.inertia_inverse())
+
+    def left_form(self) -> LeftForm:
+        """The left form (4.53)–(4.54), ready to evaluate (:class:`LeftForm`)."""
+        return LeftForm(self, self.inertia_inverse())
+
     def vector_field(self, t, y, args=None) -> tuple[Vector, Vector]:
         r"""Right form (4.55)–(4.56) on the state ``y = (theta, Omega)``:
         $\dot\Omega = A^{-1}\cdot(P^T\cdot M - \Omega\times A\cdot\Omega)$,
-        $\dot\theta = Z^T\cdot\Omega$ (4.14), (4.16)."""
-        del args
-        theta, Omega = y
-        # The moments are formed in the body frame: the elastic one as -Z·dU/dθ (= Pᵀ·(-Zᵀ·dU/dθ)
-        # by (4.13)), each load by its body_moment (a follower moment is M k there). P is only
-        # used by loads without a body-frame form (XLA drops it otherwise). On the Nikolai
-        # problem this costs 97 ns per vmapped evaluation against 214 ns for rotating the world
-        # moment into the body frame (benchmarks/README.md).
-        P = turn_tensor(theta)
-        Z = integrating_tensor(theta)
-        grad = jax.grad(self.foundation.energy)(theta)
-        M_body = -(Z @ grad)
-        for load in self.loads:
-            M_body = M_body + load.body_moment(t, theta, Omega, P)
-        A = self.inertia
-        Omega_dot = _inv3(A) @ (M_body - jnp.cross(Omega, A @ Omega))
-        theta_dot = Z.T @ Omega
-        return theta_dot, Omega_dot
+        $\dot\theta = Z^T\cdot\Omega$ (4.14), (4.16). Evaluates :meth:`right_form`; solvers make
+        that once and call it instead."""
+        return self.right_form()(t, y, args)
 
     def left_vector_field(self, t, y, args=None) -> tuple[Vector, Vector]:
         r"""Left form (4.53)–(4.54) on the state ``y = (theta, L)``, $L$ the kinetic moment (4.43):
         $\dot L = M$, $\dot\theta = Z\cdot\omega$ with $\omega = P\cdot A^{-1}\cdot P^T\cdot L$."""
-        del args
-        theta, L = y
-        P = turn_tensor(theta)
-        omega = P @ (_inv3(self.inertia) @ (P.T @ L))
-        L_dot = self.world_moment(t, theta, omega)
-        theta_dot = integrating_tensor(theta) @ omega
-        return theta_dot, L_dot
+        return self.left_form()(t, y, args)
 
     def Omega_from_kinetic_moment(self, theta, L) -> Vector:
         r"""$\Omega = A^{-1}\cdot P^T\cdot L$, inverse of (4.44)."""
-        return _inv3(self.inertia) @ (turn_tensor(theta).T @ _as_vector(L, "L"))
+        return matvec3(self.inertia_inverse(), Turn(theta).rotate_back(_as_vector(L, "L")))
 
     def Omega_from_rate(self, theta, theta_dot) -> Vector:
         r"""$\Omega = Z^{-T}\cdot\dot\theta$ (4.19)."""

@@ -29,8 +29,7 @@ from jaxtyping import Array, Complex, Float
 
 from ._custom_types import Scalar, Vector
 from .analytic import precession_rate
-from .foundations import transverse_coefficients
-from .kinematics import _as_vector, integrating_tensor, turn_tensor
+from .kinematics import Turn, _as_vector, cross3, turn_tensor
 from .model import RigidBodyOscillator
 
 __all__ = [
@@ -73,17 +72,26 @@ class RegularPrecession(eqx.Module):
 
 
 def _symmetry_axis(model: RigidBodyOscillator, k) -> Vector:
+    """``k`` (normalised) if given, else the foundation's symmetry axis (4.24)."""
     if k is not None:
         k = _as_vector(k, "k")
         return k / jnp.linalg.norm(k)
-    k = getattr(model.foundation, "k", None)
-    if k is None:
+    foundation = model.foundation
+    axis = foundation.symmetry_axis()
+    if axis is not None:
+        return axis
+    if foundation.isotropic:
         raise TypeError(
-            "regular_precession needs the symmetry axis k: the foundation "
-            f"{type(model.foundation).__name__} has none, pass k=... (an isotropic foundation is "
-            "transversely isotropic about any axis)."
+            f"regular_precession needs the symmetry axis k: the foundation "
+            f"{type(foundation).__name__} is isotropic, hence transversely isotropic about any "
+            "axis; pass k=..."
         )
-    return k
+    raise TypeError(
+        f"regular_precession needs a transversely isotropic foundation (4.24), invariant under "
+        f"turns about an axis k; {type(foundation).__name__} has no symmetry axis. Build it from "
+        "QuadraticFoundation, BarrierFoundation, TransverselyIsotropicFoundation(F, k) or "
+        "IsotropicFoundation terms (sums of terms with one axis k are fine)."
+    )
 
 
 def _inertia_about(model: RigidBodyOscillator, k, p):
@@ -125,7 +133,7 @@ def regular_precession(model: RigidBodyOscillator, vartheta, p=None, *, k=None
         p = p - (p @ k) * k
         p = p / jnp.linalg.norm(p)
     vartheta = jnp.asarray(vartheta, dtype=k.dtype)
-    C, D = transverse_coefficients(model.foundation, vartheta * p)
+    C, D = model.foundation.coefficients(vartheta * p)
     C = eqx.error_if(
         C,
         jnp.abs(D) > 1e-12 * (jnp.abs(C) + 1.0),
@@ -139,12 +147,13 @@ def precessing_frame_vector_field(model: RigidBodyOscillator, k, rate):
     r"""The autonomous vector field of the precessing frame, $(x, w) \mapsto (\dot x, \dot w)$
     (module docstring), for a frame turning at ``rate`` about ``k``."""
 
+    rhs = model.right_form()
+
     def f(x, w):
-        P = turn_tensor(x)
-        Omega = P.T @ w
-        _, Omega_dot = model.vector_field(0.0, (x, Omega))
-        x_dot = integrating_tensor(x) @ w - rate * jnp.cross(k, x)
-        w_dot = P @ Omega_dot - rate * jnp.cross(k, w)
+        turn = Turn(x)
+        _, Omega_dot = rhs(0.0, (x, turn.rotate_back(w)))
+        x_dot = turn.Z(w) - rate * cross3(k, x)
+        w_dot = turn.rotate(Omega_dot) - rate * cross3(k, w)
         return x_dot, w_dot
 
     return f

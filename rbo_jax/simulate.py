@@ -20,15 +20,13 @@ this to flag a point and carry on).
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
 from ._custom_types import Vector
 from .kinematics import (
@@ -39,35 +37,18 @@ from .kinematics import (
     turn_tensor,
 )
 from .model import RigidBodyOscillator
+from .trajectory import (
+    TRANSVERSE_TOL,
+    SolveStatus,
+    Trajectory,
+    all_finite,
+    any_nan,
+    check_times,
+    transverse_fraction,
+    warn_if_float32,
+)
 
 __all__ = ["SolveStatus", "Trajectory", "simulate", "DarbouxSolution", "solve_darboux"]
-
-
-class SolveStatus(eqx.Enumeration):
-    """Outcome of a solve; ``SolveStatus[status]`` gives the message."""
-
-    successful = ""
-    max_steps_reached = (
-        "The maximum number of solver steps was reached before the final time: increase "
-        "`max_steps`, or loosen rtol/atol."
-    )
-    step_size_collapse = (
-        "The step size collapsed below `dtmin`: the vector field became non-finite or the "
-        "solution blew up (check the parameters and the initial state)."
-    )
-    singular_point = (
-        "The turn-vector reached a singular point |theta| = 2*pi*k of the integrating tensor Z "
-        "(eq. 4.11) with theta x Omega != 0, where det Z is infinite and the equations "
-        "(4.54)/(4.56) break down."
-    )
-    domain_error = (
-        "The turn-vector left the domain of the foundation energy (e.g. a barrier of eq. 4.49 "
-        "was crossed)."
-    )
-    nonfinite_input = (
-        "The initial state (theta0, Omega0) is not finite, or a model parameter is NaN."
-    )
-    solver_error = "The differential equation solver failed (see diffrax.RESULTS)."
 
 
 def _status_from_solution(sol, bad_input, event_names):
@@ -84,87 +65,6 @@ def _status_from_solution(sol, bad_input, event_names):
             )
     status = SolveStatus.where(bad_input, SolveStatus.nonfinite_input, status)
     return status
-
-
-class Trajectory(eqx.Module):
-    r"""Samples of a solution of the rigid body oscillator.
-
-    Fields: ``ts`` (n,), ``theta`` (n, 3) the turn-vector, ``Omega`` (n, 3) the right angular
-    velocity, ``model`` the :class:`RigidBodyOscillator`, ``status`` a :class:`SolveStatus`,
-    ``num_steps`` the number of accepted solver steps. Samples after a failure are ``inf``.
-
-    Derived (computed on access): ``omega`` = P·Ω (left angular velocity), ``turn_tensor`` P(t),
-    ``kinetic_moment`` L (4.44), ``kinetic_energy``, ``potential_energy``, ``energy`` = K + U + V.
-    """
-
-    ts: Float[Array, " n"]
-    theta: Float[Array, "n 3"]
-    Omega: Float[Array, "n 3"]
-    model: RigidBodyOscillator
-    status: SolveStatus
-    num_steps: Int[Array, ""]
-
-    @property
-    def ok(self):
-        """Whether the solve reached the final time."""
-        return self.status == SolveStatus.successful
-
-    @property
-    def message(self) -> str:
-        """The status message (for a concrete, unbatched trajectory)."""
-        return SolveStatus[self.status] or "successful"
-
-    @property
-    def status_name(self) -> str:
-        """The status as a name, e.g. ``"singular_point"`` (for a concrete, unbatched
-        trajectory; the names are the fields of :class:`SolveStatus`)."""
-        value = int(self.status._value)
-        return next(n for n, item in SolveStatus._name_to_item.items() if int(item._value) == value)
-
-    def _map(self, f):
-        return jax.vmap(f)(self.theta, self.Omega)
-
-    @property
-    def omega(self) -> Float[Array, "n 3"]:
-        return self._map(self.model.omega)
-
-    @property
-    def turn_tensor(self) -> Float[Array, "n 3 3"]:
-        return jax.vmap(turn_tensor)(self.theta)
-
-    @property
-    def kinetic_moment(self) -> Float[Array, "n 3"]:
-        return self._map(self.model.kinetic_moment)
-
-    @property
-    def kinetic_energy(self) -> Float[Array, " n"]:
-        return jax.vmap(self.model.kinetic_energy)(self.Omega)
-
-    @property
-    def potential_energy(self) -> Float[Array, " n"]:
-        return jax.vmap(self.model.potential_energy)(self.theta)
-
-    @property
-    def energy(self) -> Float[Array, " n"]:
-        return self._map(self.model.energy)
-
-
-def _all_finite(tree):
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
-
-
-def _any_nan(tree):
-    leaves = [jnp.any(jnp.isnan(x)) for x in jax.tree_util.tree_leaves(tree)]
-    return jnp.any(jnp.stack(leaves)) if leaves else jnp.asarray(False)
-
-
-def _transverse_fraction(theta, Omega):
-    """|θ×Ω| / (|θ||Ω|): 0 for plane motion, where the singular spheres are harmless."""
-    return _safe_norm(jnp.cross(theta, Omega)) / (_safe_norm(theta) * _safe_norm(Omega) + 1e-300)
-
-
-_TRANSVERSE_TOL = 1e-6
 
 
 def _near_singular_cond(transverse, singular_tol, t, y, args, **kwargs):
@@ -198,39 +98,6 @@ def _singular_events(transverse, singular_tol):
     )
 
 
-def _check_times(ts):
-    ts = jnp.asarray(ts)
-    if ts.ndim != 1 or ts.shape[0] < 1:
-        raise ValueError(f"ts must be a non-empty 1-D array of times, got shape {ts.shape}.")
-    if not jnp.issubdtype(ts.dtype, jnp.floating):
-        ts = ts.astype(jnp.result_type(float))
-    if not isinstance(ts, jax.core.Tracer):
-        ts_np = np.asarray(ts)
-        if not np.all(np.isfinite(ts_np)):
-            raise ValueError("ts must be finite.")
-        if ts_np.shape[0] > 1 and not np.all(np.diff(ts_np) > 0):
-            raise ValueError("ts must be strictly increasing.")
-    elif ts.shape[0] > 1:
-        ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "ts must be strictly increasing.")
-    return ts
-
-
-def _warn_if_float32(dtype, rtol, atol):
-    eps = float(jnp.finfo(dtype).eps)
-    try:
-        tol = min(float(rtol), float(atol))
-    except (TypeError, jax.errors.ConcretizationTypeError):
-        return
-    if tol < 10 * eps:
-        warnings.warn(
-            f"rbo_jax: integrating in {jnp.dtype(dtype).name} with tolerance {tol:g}, below what "
-            f"its precision (eps = {eps:.1e}) can deliver. Enable float64 (import rbo_jax before "
-            "creating arrays, and do not set JAX_ENABLE_X64=0), or loosen rtol/atol.",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-
-
 def _right_to_theta_Omega(model, y):
     return y
 
@@ -241,7 +108,7 @@ def _left_to_theta_Omega(model, y):
 
 def _state_transverse(to_theta_Omega, t, y):
     theta, Omega = to_theta_Omega(y)
-    return theta, _transverse_fraction(theta, Omega) > _TRANSVERSE_TOL
+    return theta, transverse_fraction(theta, Omega) > TRANSVERSE_TOL
 
 
 def _domain_cond(model, t, y, args, **kwargs):
@@ -304,13 +171,13 @@ def simulate(
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
     theta0 = _as_vector(theta0, "theta0")
     Omega0 = _as_vector(Omega0, "Omega0")
-    ts = _check_times(ts)
+    ts = check_times(ts)
     # The state takes the precision of the model too: float32 initial values with a float64
     # model (the default) are integrated in float64, not in a mix diffrax cannot store.
     params = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_inexact_array))
     dtype = jnp.result_type(theta0, Omega0, ts, *params)
     theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
-    _warn_if_float32(dtype, rtol, atol)
+    warn_if_float32(dtype, rtol, atol)
 
     t0 = ts[0] if t0 is None else jnp.asarray(t0, dtype)
     t1 = ts[-1]
@@ -325,18 +192,18 @@ def simulate(
 
     # Infinite parameters are legitimate (BarrierFoundation(alpha=inf) switches a barrier off);
     # NaN ones never are.
-    bad_input = ~_all_finite((theta0, Omega0)) | _any_nan(eqx.filter(model, eqx.is_inexact_array))
+    bad_input = ~all_finite((theta0, Omega0)) | any_nan(eqx.filter(model, eqx.is_inexact_array))
     zeros = jnp.zeros_like(theta0)
     theta0 = jnp.where(bad_input, zeros, theta0)
     Omega0 = jnp.where(bad_input, zeros, Omega0)
 
     if form == "right":
         y0 = (theta0, Omega0)
-        vf = model.vector_field
+        vf = model.right_form()
         to_theta_Omega = jax.tree_util.Partial(_right_to_theta_Omega, model)
     else:
         y0 = (theta0, model.kinetic_moment(theta0, Omega0))
-        vf = model.left_vector_field
+        vf = model.left_form()
         to_theta_Omega = jax.tree_util.Partial(_left_to_theta_Omega, model)
 
     # Partials of module-level functions, not closures: see _singular_events.
@@ -407,7 +274,7 @@ def _velocity_function(angular_velocity) -> Callable[[Array], Vector]:
         raise TypeError(
             "angular_velocity must be a callable t -> (3,) or a pair (times (m,), samples (m, 3))."
         ) from None
-    t_s = _check_times(t_s)
+    t_s = check_times(t_s)
     w_s = jnp.asarray(w_s, dtype=t_s.dtype)
     if w_s.shape != (t_s.shape[0], 3):
         raise ValueError(
@@ -427,7 +294,7 @@ def _darboux_right(w, t, theta, args):
 
 
 def _darboux_transverse(w, t, theta):
-    return theta, _transverse_fraction(theta, w(t)) > _TRANSVERSE_TOL
+    return theta, transverse_fraction(theta, w(t)) > TRANSVERSE_TOL
 
 
 def solve_darboux(
@@ -457,12 +324,12 @@ def solve_darboux(
         raise ValueError(f"frame must be 'left' or 'right', got {frame!r}.")
     w = _velocity_function(angular_velocity)
     theta0 = _as_vector(theta0, "theta0")
-    ts = _check_times(ts)
+    ts = check_times(ts)
     # The precision of the angular velocity counts too (as the model's in simulate): float32
     # theta0 with a float64 angular velocity is integrated in float64.
     dtype = jnp.result_type(theta0, ts, jax.eval_shape(w, ts[0]).dtype)
     theta0, ts = theta0.astype(dtype), ts.astype(dtype)
-    _warn_if_float32(dtype, rtol, atol)
+    warn_if_float32(dtype, rtol, atol)
 
     # Partials of module-level functions, not closures: see _singular_events.
     vf = jax.tree_util.Partial(_darboux_left if frame == "left" else _darboux_right, w)
@@ -482,7 +349,7 @@ def solve_darboux(
         max_steps=max_steps,
         throw=False,
     )
-    bad_input = ~_all_finite(theta0)
+    bad_input = ~all_finite(theta0)
     status = _status_from_solution(sol, bad_input, ("singular_point", "singular_point"))
     theta = sol.ys
     if throw:

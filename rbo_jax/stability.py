@@ -28,9 +28,13 @@ import optimistix as optx
 from jaxtyping import Array, Complex, Float, Int
 
 from ._custom_types import Matrix, Scalar, Vector
-from .kinematics import _as_vector, distance_to_singularity, integrating_tensor
-from .loads import DeadMoment, FollowerMoment, PotentialLoad, SemiTangentialMoment
-from .model import RigidBodyOscillator, _inv3
+from .kinematics import (
+    _as_vector,
+    distance_to_singularity,
+    integrating_tensor,
+    integrating_tensor_inv,
+)
+from .model import RigidBodyOscillator
 
 __all__ = [
     "EquilibriumStatus",
@@ -45,6 +49,8 @@ __all__ = [
     "StabilityKind",
     "classify",
     "spectral_abscissa",
+    "EquilibriumStability",
+    "equilibrium_stability",
 ]
 
 
@@ -146,8 +152,10 @@ def linearize(model: RigidBodyOscillator, theta_eq, *, t=0.0) -> Float[Array, "6
     equations (4.63)–(4.67) computed by the machine."""
     theta_eq = _as_vector(theta_eq, "theta_eq")
 
+    rhs = model.right_form()
+
     def flat(x):
-        th_dot, Om_dot = model.vector_field(t, (x[:3], x[3:]))
+        th_dot, Om_dot = rhs(t, (x[:3], x[3:]))
         return jnp.concatenate([th_dot, Om_dot])
 
     return jax.jacfwd(flat)(jnp.concatenate([theta_eq, jnp.zeros_like(theta_eq)]))
@@ -164,8 +172,9 @@ def _blocks(model, theta_eq, t):
     """Z(θ_eq), J_θ = ∂Ω̇/∂θ and J_Ω = ∂Ω̇/∂Ω at (θ_eq, 0)."""
     theta_eq = _as_vector(theta_eq, "theta_eq")
     zero = jnp.zeros_like(theta_eq)
-    J_theta = jax.jacfwd(lambda th: model.vector_field(t, (th, zero))[1])(theta_eq)
-    J_Omega = jax.jacfwd(lambda Om: model.vector_field(t, (theta_eq, Om))[1])(zero)
+    rhs = model.right_form()
+    J_theta = jax.jacfwd(lambda th: rhs(t, (th, zero))[1])(theta_eq)
+    J_Omega = jax.jacfwd(lambda Om: rhs(t, (theta_eq, Om))[1])(zero)
     return integrating_tensor(theta_eq), J_theta, J_Omega
 
 
@@ -193,9 +202,9 @@ def second_order_form(model: RigidBodyOscillator, theta_eq, *, t=0.0) -> SecondO
     $\mathsf C = -Z^{-1}AJ_\Omega Z^{-T}$, $\mathsf K = -Z^{-1}AJ_\theta$, split into symmetric
     and antisymmetric parts. Follower loads (4.57) make $\mathsf K$ non-symmetric: its
     antisymmetric part is the circulatory stiffness behind the Nikolai paradox."""
-    Z, J_theta, J_Omega = _blocks(model, theta_eq, t)
+    _, J_theta, J_Omega = _blocks(model, theta_eq, t)
     A = model.inertia
-    Zinv = _inv3(Z)
+    Zinv = integrating_tensor_inv(theta_eq)
     ZinvA = Zinv @ A
     mass = ZinvA @ Zinv.T
     C = -ZinvA @ J_Omega @ Zinv.T
@@ -209,13 +218,11 @@ def second_order_form(model: RigidBodyOscillator, theta_eq, *, t=0.0) -> SecondO
     )
 
 
-_VELOCITY_INDEPENDENT = (DeadMoment, FollowerMoment, SemiTangentialMoment, PotentialLoad)
-
-
 def _velocity_independent(model: RigidBodyOscillator) -> bool:
-    """Whether every load is known not to depend on ω, so that J_Ω = 0 at Ω = 0 (the gyroscopic
-    term Ω×AΩ is quadratic in Ω). Decided from the model's structure, at trace time."""
-    return all(isinstance(load, _VELOCITY_INDEPENDENT) for load in model.loads)
+    """Whether no load depends on ω (:attr:`rbo_jax.AbstractLoad.depends_on_velocity`), so that
+    J_Ω = 0 at Ω = 0 (the gyroscopic term Ω×AΩ is quadratic in Ω). Decided from the model's
+    structure, at trace time."""
+    return not any(load.depends_on_velocity for load in model.loads)
 
 
 def fast_spectrum(model: RigidBodyOscillator, theta_eq, *, t=0.0) -> Complex[Array, "6"]:
@@ -233,7 +240,8 @@ def fast_spectrum(model: RigidBodyOscillator, theta_eq, *, t=0.0) -> Complex[Arr
     if _velocity_independent(model):
         theta_eq = _as_vector(theta_eq, "theta_eq")
         zero = jnp.zeros_like(theta_eq)
-        J_theta = jax.jacfwd(lambda th: model.vector_field(t, (th, zero))[1])(theta_eq)
+        rhs = model.right_form()
+        J_theta = jax.jacfwd(lambda th: rhs(t, (th, zero))[1])(theta_eq)
         lam = jnp.linalg.eigvals(integrating_tensor(theta_eq).T @ J_theta)
         r = jnp.sqrt(lam)
         return jnp.concatenate([r, -r])
@@ -288,3 +296,62 @@ def classify(eigenvalues, *, rtol: float = 1e-9) -> tuple[StabilityKind, Scalar]
     kind = K.where(a > tol, unstable, kind)
     kind = K.where(jnp.all(jnp.isfinite(p)), kind, K.undefined)
     return kind, a
+
+
+# --------------------------------------------------------------------------------------------
+# Equilibrium -> spectrum -> classification, in one place
+# --------------------------------------------------------------------------------------------
+
+
+class EquilibriumStability(eqx.Module):
+    r"""Result of :func:`equilibrium_stability`: the equilibrium ``theta`` (4.61), its six
+    ``eigenvalues`` (NaN where the equilibrium could not be computed), the spectral
+    ``abscissa`` max Re p, the classification ``kind`` (:class:`StabilityKind`) and the
+    equilibrium ``status`` (:class:`EquilibriumStatus`)."""
+
+    theta: Float[Array, "3"]
+    eigenvalues: Complex[Array, "6"]
+    abscissa: Float[Array, ""]
+    kind: StabilityKind
+    status: EquilibriumStatus
+
+    @property
+    def ok(self):
+        return self.status == EquilibriumStatus.successful
+
+
+def equilibrium_stability(
+    model: RigidBodyOscillator,
+    theta_guess=None,
+    *,
+    theta_eq=None,
+    rtol: float = 1e-9,
+    fast: bool = True,
+    t=0.0,
+    **equilibrium_kwargs,
+) -> EquilibriumStability:
+    r"""The stability of an equilibrium of ``model``: Lyapunov's first method in one call.
+
+    1. The equilibrium: ``theta_eq`` if given (a closed form such as (4.62), checked finite), else
+       :func:`solve_equilibrium` (Newton for the moment balance (4.61)) from ``theta_guess``
+       (default 0) with ``equilibrium_kwargs``.
+    2. Its spectrum (4.63)–(4.69): :func:`fast_spectrum` (block structure) or, with
+       ``fast=False``, :func:`spectrum`; NaN when the equilibrium failed.
+    3. :func:`classify` with tolerance ``rtol``.
+
+    Never raises for a failed equilibrium: ``status`` says why. This is what
+    :func:`rbo_jax.stability_map`, the ``spectral_abscissa`` quantity of ``rbo-jax sweep`` and
+    ``rbo-jax stability-map`` compute at every point; jit- and vmap-compatible.
+    """
+    if theta_eq is not None:
+        theta = _as_vector(theta_eq, "theta_eq")
+        status = EquilibriumStatus.where(jnp.all(jnp.isfinite(theta)),
+                                         EquilibriumStatus.successful, EquilibriumStatus.nonfinite)
+    else:
+        guess = jnp.zeros(3) if theta_guess is None else theta_guess
+        sol = solve_equilibrium(model, guess, t=t, **equilibrium_kwargs)
+        theta, status = sol.theta, sol.status
+    p = (fast_spectrum if fast else spectrum)(model, theta, t=t)
+    p = jnp.where(status == EquilibriumStatus.successful, p, jnp.nan + 0j)
+    kind, a = classify(p, rtol=rtol)
+    return EquilibriumStability(theta=theta, eigenvalues=p, abscissa=a, kind=kind, status=status)

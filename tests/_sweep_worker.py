@@ -22,7 +22,9 @@ def devices(out):
     import numpy as np
     from sweep_quantities import NIKOLAI_AXES, NIKOLAI_DIMS, nikolai_abscissa
 
-    from rbo_jax.sweep import _Chunks, _make_space, sweep
+    from rbo_jax.batch import sweep
+    from rbo_jax.batch._engine import Chunks
+    from rbo_jax.batch._space import make_space
 
     n_dev = jax.local_device_count()
     # Chunks of 6 points, padded to 8 on 4 devices, and chunks of 2 on one device: the same
@@ -31,8 +33,8 @@ def devices(out):
     on1 = sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=2, dims=NIKOLAI_DIMS, progress=False,
                 devices=1)
     # Where do the shards of one chunk live? (Same shape as above: no new compilation.)
-    space = _make_space(NIKOLAI_AXES, None, 6)
-    chunks = _Chunks(nikolai_abscissa, space, tuple(jax.local_devices()), NIKOLAI_DIMS)
+    space = make_space(NIKOLAI_AXES, None, 6)
+    chunks = Chunks(nikolai_abscissa, space, tuple(jax.local_devices()), NIKOLAI_DIMS)
     values, _ = chunks.launch(0)[3]
     report = {
         "local_devices": n_dev,
@@ -51,7 +53,7 @@ def devices(out):
 def kill(store):
     from sweep_quantities import KILL_AXES, KILL_CHUNK, NIKOLAI_DIMS, nikolai_abscissa
 
-    from rbo_jax.sweep import sweep
+    from rbo_jax.batch import sweep
 
     sweep(nikolai_abscissa, KILL_AXES, chunk_size=KILL_CHUNK, dims=NIKOLAI_DIMS, store=store,
           progress=False)
@@ -63,7 +65,7 @@ def distributed(port, nproc, pid, store, out):
                                process_id=int(pid), initialization_timeout=60)
     from sweep_quantities import DIST_AXES, DIST_CHUNK, NIKOLAI_DIMS, nikolai_abscissa
 
-    from rbo_jax.sweep import sweep
+    from rbo_jax.batch import sweep
 
     assert jax.process_count() == int(nproc)
     in_memory = sweep(nikolai_abscissa, DIST_AXES, chunk_size=DIST_CHUNK, dims=NIKOLAI_DIMS,

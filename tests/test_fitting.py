@@ -6,7 +6,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rbo_jax.fitting import TrajectoryData, _loss, _loss_and_grad, _Spec, fit, residuals
+from rbo_jax.fitting import TrajectoryData, fit, residuals
+from rbo_jax.fitting._residuals import Spec as _Spec
+from rbo_jax.fitting._residuals import loss as _loss
+from rbo_jax.fitting._residuals import loss_and_grad as _loss_and_grad
 from rbo_jax.foundations import BarrierFoundation, IsotropicFoundation, QuadraticFoundation
 from rbo_jax.inertia import transversely_isotropic_inertia
 from rbo_jax.kinematics import turn_tensor

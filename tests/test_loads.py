@@ -245,14 +245,16 @@ def test_parameter_and_state_gradients_match_finite_differences():
     lambda: rbo.as_load(lambda t, th, w: jnp.array([jnp.cos(t), th[0], w[2]])),
 ], ids=["dead", "follower", "semi", "friction", "potential", "callable"])
 def test_body_moment_is_the_world_moment_in_the_body_frame(make):
-    """body_moment(t, θ, Ω, P) = Pᵀ·M_ex(t, θ, P·Ω), P = Q(θ) (4.3): the right-hand side of (4.55),
-    whether a load uses the default or its own body-frame form (follower: M k; friction: −bΩ;
-    potential: −Z·dV/dθ through Zᵀ = P·Z (4.13))."""
+    """body_moment(t, θ, Ω, P) = Pᵀ·M_ex(t, θ, P·Ω), P = Q(θ) (4.3) with P given as a
+    component-wise :class:`rbo_jax.Turn`: the right-hand side of (4.55), whether a load uses the
+    default or its own body-frame form (follower: M k; friction: −bΩ; potential: −Z·dV/dθ through
+    Zᵀ = P·Z (4.13); semi-tangential: γM(l1 Pᵀ·k + l2 k))."""
     load = make()
     for theta, Omega in zip(THETAS, OMEGAS):
         P = np_Q(theta)
         expected = P.T @ np.asarray(moment(load, 0.3, jnp.asarray(theta), jnp.asarray(P @ Omega)))
-        got = load.body_moment(0.3, jnp.asarray(theta), jnp.asarray(Omega), jnp.asarray(P))
+        turn = rbo.Turn(jnp.asarray(theta))
+        got = load.body_moment(0.3, jnp.asarray(theta), jnp.asarray(Omega), turn)
         np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-13, atol=1e-14)
 
 

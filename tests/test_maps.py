@@ -1,4 +1,4 @@
-"""Stability maps and critical loads (rbo_jax.maps).
+"""Stability maps and critical loads (rbo_jax.stability_map, a preset of the batch engine).
 
 Expected values: per-point spectra from rbo_jax.spectrum (the map must reproduce them),
 equilibria found by scipy's brentq, the closed forms (4.62), (4.69), and the small-load limit
@@ -17,7 +17,7 @@ from helpers import spectrum_match_error
 from scipy.optimize import brentq
 
 import rbo_jax as rbo
-from rbo_jax.maps import STABILITY_KIND_NAMES
+from rbo_jax.batch import STABILITY_KIND_NAMES
 from rbo_jax.stability import StabilityKind
 
 K = jnp.array([0.0, 0.0, 1.0])

@@ -38,20 +38,15 @@ from sweep_quantities import (
 )
 
 import rbo_jax as rbo
-from rbo_jax import cli
+from rbo_jax._enumeration import code, names
+from rbo_jax.app import cli
+from rbo_jax.app.config import QUANTITIES, ConfigError, load_config
+from rbo_jax.batch import SweepError, open_sweep, status_counts, sweep
+from rbo_jax.batch._engine import Chunks
+from rbo_jax.batch._space import _chunk_shape, make_space
+from rbo_jax.plotting import plot_sweep
 from rbo_jax.simulate import SolveStatus
 from rbo_jax.stability import StabilityKind
-from rbo_jax.sweep import (
-    SweepError,
-    _chunk_shape,
-    _Chunks,
-    _make_space,
-    open_sweep,
-    plot_sweep,
-    status_counts,
-    sweep,
-)
-from rbo_jax.sweep_config import QUANTITIES, ConfigError, load_config
 
 try:
     import zarr
@@ -119,19 +114,19 @@ def test_grid_sweep_equals_pointwise_evaluation(nikolai):
     for i, c in enumerate(NIKOLAI_AXES["c"]):
         for j, M in enumerate(NIKOLAI_AXES["M"]):
             if np.isnan(M):
-                assert ds["status"].values[i, j] == SolveStatus.nonfinite_input._value
+                assert ds["status"].values[i, j] == code(SolveStatus.nonfinite_input)
                 assert np.isnan(ds["abscissa"].values[i, j])
                 assert np.all(np.isnan(ds["p"].values[i, j]))
                 continue
             ref = single(c, M)
-            assert ds["status"].values[i, j] == SolveStatus.successful._value
+            assert ds["status"].values[i, j] == code(SolveStatus.successful)
             np.testing.assert_allclose(ds["abscissa"].values[i, j], ref["abscissa"], rtol=1e-12)
             np.testing.assert_allclose(ds["p"].values[i, j], ref["p"], rtol=1e-12, atol=1e-14)
-            assert ds["kind"].values[i, j] == int(ref["kind"]._value)
+            assert ds["kind"].values[i, j] == int(code(ref["kind"]))
     # The follower moment of the Nikolai problem makes the undamped equilibrium flutter (4.69).
     ok = ds["status"].values == 0
-    assert np.all(ds["kind"].values[ok] == StabilityKind.flutter._value)
-    assert ds["kind"].attrs["flag_meanings"].split()[StabilityKind.flutter._value] == "flutter"
+    assert np.all(ds["kind"].values[ok] == code(StabilityKind.flutter))
+    assert ds["kind"].attrs["flag_meanings"].split()[int(code(StabilityKind.flutter))] == "flutter"
 
 
 def test_status_counts_and_flags(nikolai):
@@ -140,21 +135,21 @@ def test_status_counts_and_flags(nikolai):
     assert sum(counts.values()) == 15
     assert nikolai.attrs["status_counts"] == counts
     flags = nikolai["status"].attrs["flag_meanings"].split()
-    assert flags == list(SolveStatus._name_to_item)  # SolveStatus codes, in order
-    assert nikolai["status"].attrs["enumeration"] == "rbo_jax.simulate.SolveStatus"
+    assert flags == list(names(SolveStatus))  # SolveStatus codes, in order
+    assert nikolai["status"].attrs["enumeration"] == "rbo_jax.SolveStatus"
 
 
 def test_one_compilation_serves_every_chunk(hook_log):
     """3 × 5 points in blocks of 1 × 2: 9 chunks, three of them partial (padded); one compiled
     program runs them all, and repeated sweeps reuse it."""
-    space = _make_space(NIKOLAI_AXES, None, CHUNK)
+    space = make_space(NIKOLAI_AXES, None, CHUNK)
     assert space.chunk_shape == (1, 2) and space.n_chunks == 9
-    chunks = _Chunks(nikolai_abscissa, space, tuple(jax.local_devices()[:1]), NIKOLAI_DIMS)
+    chunks = Chunks(nikolai_abscissa, space, tuple(jax.local_devices()[:1]), NIKOLAI_DIMS)
     program = chunks.program
     assert program.strategy == "shard_map"
     ds = _nikolai(devices=1)
     again = _nikolai(devices=1)
-    assert _Chunks(nikolai_abscissa, space, tuple(jax.local_devices()[:1])).program is program
+    assert Chunks(nikolai_abscissa, space, tuple(jax.local_devices()[:1])).program is program
     # one call per chunk that holds a finite point (a chunk of NaN points only is not evaluated)
     n_calls = sum(np.isfinite(space.points(space.slices(c))).all(axis=1).any()
                   for c in range(space.n_chunks))
@@ -173,7 +168,7 @@ def test_points_mode_matches_grid(nikolai):
     for n, (c, M) in enumerate(zip(cs, Ms)):
         i = int(np.flatnonzero(NIKOLAI_AXES["c"] == c)[0])
         if np.isnan(M):
-            assert ds["status"].values[n] == SolveStatus.nonfinite_input._value
+            assert ds["status"].values[n] == code(SolveStatus.nonfinite_input)
             continue
         j = int(np.flatnonzero(NIKOLAI_AXES["M"] == M)[0])
         for v in ("abscissa", "p", "kind", "status"):
@@ -228,7 +223,7 @@ def test_bad_points_get_their_status_and_the_others_complete():
                chunk_size=8, dims={"theta": ["component"]}, progress=False)
     names = ds["status"].attrs["flag_meanings"].split()
     assert [names[s] for s in ds["status"].values] == list(cases)
-    assert [int(getattr(S, n)._value) for n in cases] == list(ds["status"].values)
+    assert [int(code(getattr(S, n))) for n in cases] == list(ds["status"].values)
     counts = status_counts(ds)
     assert all(counts[n] == 1 for n in cases) and sum(counts.values()) == len(cases)
     ok = ds.isel(point=0)
@@ -252,7 +247,7 @@ def test_store_equals_in_memory_and_opens_with_xarray(tmp_path, nikolai):
         np.testing.assert_array_equal(raw[v].values, nikolai[v].values)
     xr.testing.assert_identical(open_sweep(path).load(), nikolai)
     # one zarr chunk (one file) per sweep chunk and variable
-    space = _make_space(NIKOLAI_AXES, None, CHUNK)
+    space = make_space(NIKOLAI_AXES, None, CHUNK)
     assert sum(f.is_file() for f in (path / "abscissa").rglob("*")) == space.n_chunks + 1
     assert zarr.open_group(path, mode="r")["abscissa"].chunks == space.chunk_shape
 
@@ -344,7 +339,7 @@ def test_killed_sweep_resumes_to_an_identical_store(tmp_path, hook_log):
             proc.wait(timeout=30)
     assert started, f"the sweep did not write 3 chunks in time:\n{out[-2000:]}"
     assert proc.returncode == -signal.SIGKILL
-    space = _make_space(KILL_AXES, None, KILL_CHUNK)
+    space = make_space(KILL_AXES, None, KILL_CHUNK)
     done = np.asarray(zarr.open_group(store, mode="r")["_sweep/chunk_done"][...]).ravel()
     n_done = int(done.sum())
     assert 3 <= n_done < space.n_chunks, "killed too late to test anything"
@@ -426,7 +421,7 @@ def test_two_processes_equal_one_process(tmp_path, hook_log):
         xr.testing.assert_identical(result["stored"], reference)
     xr.testing.assert_identical(open_sweep(store).load(), reference)
     calls = [line.split()[0] for line in log.read_text().splitlines()]
-    space = _make_space(DIST_AXES, None, DIST_CHUNK)
+    space = make_space(DIST_AXES, None, DIST_CHUNK)
     evaluated = sum(np.isfinite(space.points(space.slices(c))).all(axis=1).any()
                     for c in range(space.n_chunks))
     # two sweeps (in memory, stored); every evaluated chunk once, shared by the processes
@@ -521,7 +516,7 @@ def test_plot_sweep_draws_grids_curves_and_points(nikolai):
     import matplotlib.pyplot as plt
 
     ds = nikolai.copy(deep=True)
-    ds["status"].values[1, 3] = SolveStatus.max_steps_reached._value  # (c, M) = (1.0, 0.4)
+    ds["status"].values[1, 3] = code(SolveStatus.max_steps_reached)  # (c, M) = (1.0, 0.4)
     ax = plot_sweep(ds, "abscissa")
     mesh = ax.collections[0]
     assert ax.get_xlabel() == "c" and ax.get_ylabel() == "M"

@@ -1,0 +1,59 @@
+"""The ``rbo-jax`` command.
+
+``rbo-jax reproduce`` (run by ``make demo``) reproduces the paper into ``out/report.md``;
+``rbo-jax demo`` prints two short simulations; ``rbo-jax sweep CONFIG.toml`` runs a declarative
+parameter sweep; ``rbo-jax simulate`` integrates one oscillator given on the command line;
+``rbo-jax stability-map`` draws the Nikolai map (4.57)–(4.62), (4.69) over a grid of M, c, d,
+A3; ``rbo-jax fit`` fits foundation parameters to a recorded (or synthetic) trajectory.
+
+The commands only compose library calls: a :class:`~rbo_jax.app.spec.ModelSpec` from the
+options, the library's functions, xarray Datasets written as netCDF or zarr.
+
+Exit codes: 0 success; 1 the computation failed (a solver status, a fit that did not converge);
+2 invalid input (options, parameters, files), with a message naming it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import rbo_jax  # noqa: F401  (enables float64 before any array is made)
+
+from ._common import Failure
+from ._fit import add_fit
+from ._map import add_stability_map
+from ._misc import add_misc
+from ._simulate import add_simulate
+
+__all__ = ["main", "build_parser"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``rbo-jax`` argument parser (all subcommands)."""
+    parser = argparse.ArgumentParser(
+        prog="rbo-jax",
+        description="Rigid body oscillator in JAX: simulation and analysis of the turn-vector "
+        "model.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_misc(sub)
+    add_simulate(sub)
+    add_stability_map(sub)
+    add_fit(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(argv)
+    args.argv = argv
+    try:
+        return args.func(args)
+    except Failure as e:
+        print(f"rbo-jax {args.command}: error: {e}", file=sys.stderr)
+        return e.code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

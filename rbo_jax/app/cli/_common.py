@@ -1,0 +1,211 @@
+"""What the ``rbo-jax`` commands share: option parsing, the model options (turned into a
+:class:`~rbo_jax.app.spec.ModelSpec`), exit statuses and small printing helpers."""
+
+from __future__ import annotations
+
+import argparse
+import textwrap
+
+from .._io import suffix
+from .._reader import SpecError
+from ..spec import ModelSpec
+
+FORMATTER = argparse.RawDescriptionHelpFormatter  # the epilogs are laid out by hand
+UNITS = ("Units: any consistent set, e.g. inertia kg m^2, stiffnesses N m/rad, moments N m, "
+         "friction N m s, time s, angles rad.")
+NEGATIVE = ("Write a value starting with a minus sign as --opt=-0.3,1,0 (with '='), so that it "
+            "is not read as an option.")
+
+
+class Failure(Exception):
+    """A command ends with ``message`` on stderr and exit status ``code`` (1: the computation
+    failed; 2: invalid input)."""
+
+    def __init__(self, message: str, code: int = 2):
+        super().__init__(message)
+        self.code = code
+
+
+def wrap(text: str) -> str:
+    """A description paragraph wrapped to 88 columns (the raw formatter keeps it as is)."""
+    return textwrap.fill(text, width=88)
+
+
+def floats(text: str) -> tuple[float, ...]:
+    """``"x,y,z"`` -> floats (any count: the model description checks the shape)."""
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers such as 0.1,0,-0.2, got {text!r}") from None
+
+
+def horizons(text: str) -> tuple[float, ...]:
+    """``"0.2,0.5,1"`` -> increasing fractions in (0, 1] (staged fitting of :func:`rbo_jax.fit`)."""
+    values = floats(text)
+    if any(not 0.0 < h <= 1.0 for h in values) or list(values) != sorted(values):
+        raise argparse.ArgumentTypeError(
+            f"expected increasing fractions in (0, 1] such as 0.2,0.5,1, got {text!r}")
+    return values
+
+
+def grid(text: str):
+    """``"start:stop:num"`` (inclusive linspace), ``"a,b,c"`` or ``"a"`` -> 1-D float array."""
+    import numpy as np
+
+    try:
+        if ":" in text:
+            start, stop, num = text.split(":")
+            n = int(num)
+            if n < 1:
+                raise ValueError
+            values = np.linspace(float(start), float(stop), n)
+        else:
+            values = np.asarray([float(x) for x in text.split(",")])
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a value (0.5), a list (0.1,0.2,0.5) or start:stop:num with num >= 1 "
+            f"(-0.8:0.8:41), got {text!r}") from None
+    if not np.all(np.isfinite(values)):
+        raise argparse.ArgumentTypeError(f"values must be finite, got {text!r}")
+    return values
+
+
+def check_suffix(path: str, allowed: tuple[str, ...], option: str) -> str:
+    ext = suffix(path)
+    if ext not in allowed:
+        raise Failure(f"{option} {path}: unknown format {ext or '(no suffix)'!r}; use "
+                      + " or ".join(allowed) + ".")
+    return ext
+
+
+def check_vector(x, name: str):
+    """A (3,) vector, or exit status 2 with the package's message naming ``name``."""
+    from ...kinematics import _as_vector
+
+    try:
+        return _as_vector(x, name)
+    except (ValueError, TypeError) as e:
+        raise Failure(str(e)) from None
+
+
+def table(header: list[str], rows: list[list[float]]) -> str:
+    widths = [max(12, len(h)) for h in header]
+    out = ["  ".join(h.rjust(w) for h, w in zip(header, widths))]
+    out.append("  ".join("-" * w for w in widths))
+    for r in rows:
+        out.append("  ".join(f"{v:{w}.4e}" if isinstance(v, float) else str(v).rjust(w)
+                             for v, w in zip(r, widths)))
+    return "\n".join(out)
+
+
+def pyplot_or_fail(command: str):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise Failure(f"--plot needs matplotlib, which is not installed (pip install "
+                      f"'rbo_jax[plot]'); run {command} without --plot.") from None
+    return plt
+
+
+# ---------------------------------------------------------------------------------------------
+# The model options of simulate and fit
+# ---------------------------------------------------------------------------------------------
+
+
+def add_model_options(p: argparse.ArgumentParser, role: str) -> None:
+    """The model options of ``simulate`` and ``fit``; ``role`` says what the values are."""
+    g = p.add_argument_group("model", wrap(
+        f"The rigid body oscillator (4.55)-(4.56) with symmetry axis k; {role}"))
+    g.add_argument("--A1", type=float, default=None, metavar="A1",
+                   help="transverse principal moment of inertia A1 = A2 > 0 of the transversely "
+                   "isotropic inertia tensor A = A1 (E - k k) + A3 k k, eq. (4.40) (default 1)")
+    g.add_argument("--A3", type=float, default=None, metavar="A3",
+                   help="axial principal moment of inertia A3 > 0 about k, eq. (4.40) "
+                   "(default 0.6)")
+    g.add_argument("--principal", type=floats, default=None, metavar="A1,A2,A3",
+                   help="instead of --A1/--A3: three principal moments of inertia (all > 0) "
+                   "about the reference basis vectors e1, e2, e3, A = sum A_i e_i e_i, eq. (4.39)")
+    g.add_argument("--axis", type=floats, default=(0.0, 0.0, 1.0), metavar="X,Y,Z",
+                   help="the axis k (normalised) of the foundation, the moments and the "
+                   "inertia (4.40) (default 0,0,1)")
+    g.add_argument("--foundation", choices=("quadratic", "barrier"), default="quadratic",
+                   help="elastic foundation: 'quadratic' U = c/2 (theta^2 - (k.theta)^2) + "
+                   "d/2 (k.theta)^2, eq. (4.50); 'barrier' the energy (4.49) with barriers "
+                   "alpha, beta (default quadratic)")
+    g.add_argument("--c", type=float, default=1.0,
+                   help="bending stiffness c > 0 of (4.49)/(4.50) (default 1)")
+    g.add_argument("--d", type=float, default=2.0,
+                   help="torsional stiffness d > 0 of (4.49)/(4.50) (default 2)")
+    g.add_argument("--alpha", type=float, default=None,
+                   help="bending barrier alpha > 0 (rad) of (4.49): the domain is "
+                   "|theta - (k.theta)k| < alpha; 'inf' switches it off (required by "
+                   "--foundation barrier)")
+    g.add_argument("--beta", type=float, default=None,
+                   help="torsion barrier beta > 0 (rad) of (4.49): |k.theta| < beta; 'inf' "
+                   "switches it off (required by --foundation barrier)")
+    g = p.add_argument_group("loads", "External moments; any combination, they add up.")
+    g.add_argument("--follower", type=float, default=None, metavar="M",
+                   help="follower moment M_ex = M P.k turning with the body, eq. (4.57) (the "
+                   "Nikolai problem; non-conservative) (default: none)")
+    g.add_argument("--dead", type=float, default=None, metavar="M",
+                   help="dead moment M_ex = M k of fixed direction, eq. (4.75) with l1 = 1, "
+                   "l2 = 0 (default: none)")
+    g.add_argument("--friction", type=float, default=None, metavar="b",
+                   help="viscous friction M_ex = -b omega, b >= 0, omega the left angular "
+                   "velocity, eq. (4.84) (default: none)")
+
+
+_LOAD_OPTIONS = (("follower", "M"), ("dead", "M"), ("friction", "b"))
+
+
+def model_table(args: argparse.Namespace) -> tuple[dict, dict]:
+    """The model options in the table form of :class:`ModelSpec` (loads in the order follower,
+    dead, friction) and the option that sets each key (for messages)."""
+    if args.principal is not None and (args.A1 is not None or args.A3 is not None):
+        raise Failure("--principal replaces --A1 and --A3: give one or the other.")
+    if args.foundation == "barrier" and (args.alpha is None or args.beta is None):
+        raise Failure("--foundation barrier needs --alpha and --beta (the barriers of (4.49); "
+                      "'inf' switches one off).")
+    if args.foundation != "barrier" and (args.alpha is not None or args.beta is not None):
+        raise Failure("--alpha and --beta belong to --foundation barrier (4.49); the quadratic "
+                      "foundation (4.50) has no barriers.")
+    options = {"[model] axis": "--axis", "[model.inertia] A1": "--A1",
+               "[model.inertia] A3": "--A3", "[model.inertia] moments": "--principal"}
+    if args.principal is not None:
+        inertia = {"moments": list(args.principal)}
+    else:
+        inertia = {"A1": 1.0 if args.A1 is None else args.A1,
+                   "A3": 0.6 if args.A3 is None else args.A3}
+    foundation = {"type": args.foundation, "c": args.c, "d": args.d}
+    if args.foundation == "barrier":
+        foundation |= {"alpha": args.alpha, "beta": args.beta}
+    options |= {f"[model.foundation] {n}": f"--{n}" for n in ("c", "d", "alpha", "beta")}
+    loads = []
+    for option, key in _LOAD_OPTIONS:
+        if getattr(args, option) is not None:
+            options[f"[model.loads][{len(loads)}] {key}"] = f"--{option}"
+            loads.append({"type": option, key: getattr(args, option)})
+    return {"axis": list(args.axis), "inertia": inertia, "foundation": foundation,
+            "loads": loads}, options
+
+
+def model_spec(table_: dict, options: dict, axes=None) -> ModelSpec:
+    """:meth:`ModelSpec.from_mapping`, its errors re-worded with the option at fault (exit
+    status 2)."""
+    try:
+        return ModelSpec.from_mapping(table_, axes=axes)
+    except SpecError as e:
+        raise Failure(f"{options.get(e.where, e.where)}: {e.message}") from None
+
+
+def spec_from_args(args: argparse.Namespace) -> ModelSpec:
+    return model_spec(*model_table(args))
+
+
+def load_index(spec: ModelSpec, kind: str) -> int:
+    """The position of the load of type ``kind`` in the model's loads."""
+    return [t.type for t in spec.loads].index(kind)

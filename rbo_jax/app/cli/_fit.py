@@ -1,0 +1,310 @@
+"""``rbo-jax fit``: foundation (and friction) parameters from a trajectory, by least squares
+through the ODE solver (:func:`rbo_jax.fit`), with Gauss-Newton standard errors."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from .._io import DATASET_SUFFIXES, read_trajectory_file, write_dataset
+from ._common import (
+    FORMATTER,
+    NEGATIVE,
+    UNITS,
+    Failure,
+    add_model_options,
+    check_suffix,
+    check_vector,
+    floats,
+    horizons,
+    load_index,
+    model_spec,
+    model_table,
+    wrap,
+)
+
+PARAMS = ("c", "d", "alpha", "beta", "b")
+_SYNTHETIC_STATE = ((0.8, -0.3, 0.5), (0.2, 1.1, -0.7))
+
+
+def _read_data(path: str, theta0, Omega0, sigma_theta, sigma_Omega):
+    """A :class:`rbo_jax.TrajectoryData` from a file (format in ``rbo-jax fit --help``)."""
+    from ... import TrajectoryData
+
+    check_suffix(path, DATASET_SUFFIXES + (".npz",), "--data")
+    if not os.path.exists(path):
+        raise Failure(f"--data {path}: no such file.")
+    try:
+        arrays = read_trajectory_file(path)
+    except (OSError, ValueError, KeyError) as e:
+        raise Failure(f"--data {path}: not a readable trajectory file ({e}).") from None
+    if "t" not in arrays:
+        raise Failure(f"--data {path}: missing array 't' (the sample times, shape (n,); 'ts' "
+                      f"is accepted too); the file has {sorted(arrays) or 'no arrays'}.")
+    observed = {name: arrays[name] for name in ("theta", "Q", "Omega", "omega") if name in arrays}
+    if not observed:
+        raise Failure(f"--data {path}: missing array 'theta' (the turn-vectors, shape (n, 3)); "
+                      "or give the attitude as 'Q' (n, 3, 3) or angular velocities 'Omega' / "
+                      f"'omega' (n, 3); the file has {sorted(arrays)}.")
+    if "theta" in observed or "Q" in observed:
+        observed.pop("omega", None)  # a trajectory dataset holds both; Omega is the state
+    theta0 = arrays.get("theta0") if theta0 is None else theta0
+    Omega0 = arrays.get("Omega0") if Omega0 is None else Omega0
+    try:
+        data = TrajectoryData(arrays["t"], **observed, theta0=theta0, Omega0=Omega0,
+                              sigma_theta=sigma_theta if ("theta" in observed or "Q" in observed)
+                              else None,
+                              sigma_Omega=sigma_Omega if "Omega" in observed else None)
+    except (ValueError, TypeError) as e:
+        hint = (" Give the initial state with --theta0/--Omega0, or as arrays 'theta0'/'Omega0' "
+                "(3,) in the file." if " is needed" in str(e) else "")
+        raise Failure(f"--data {path}: {e}{hint}") from None
+    return data, sorted(observed)
+
+
+def _check_options(args, names, table):
+    bad = [x for x in names if x not in PARAMS]
+    if not names or bad or len(set(names)) != len(names):
+        raise Failure(f"--params must be distinct names among {', '.join(PARAMS)}, got "
+                      f"{args.params!r}.")
+    for name in names:
+        if name in ("alpha", "beta") and args.foundation != "barrier":
+            raise Failure(f"--params {name} needs --foundation barrier (4.49).")
+        if name == "b" and args.friction is None:
+            raise Failure("--params b needs --friction (its starting value).")
+        v = args.friction if name == "b" else table["foundation"][name]
+        if not (v > 0 and v < float("inf")):
+            raise Failure(f"--params {name}: the starting value must be finite and > 0 (the fit "
+                          f"works with log {name}), got {v:g}.")
+    for option in ("max_steps", "samples", "solver_max_steps"):
+        if getattr(args, option) < 1:
+            raise Failure(f"--{option.replace('_', '-')} must be >= 1.")
+    if not (args.tol > 0 and args.rtol > 0 and args.atol > 0):
+        raise Failure("--tol, --rtol and --atol must be > 0.")
+    if args.out is not None:
+        check_suffix(args.out, DATASET_SUFFIXES, "--out")
+
+
+def _set(table, name, value):
+    """Set a fitted parameter in the model table."""
+    if name == "b":
+        next(t for t in table["loads"] if t["type"] == "friction")["b"] = value
+    else:
+        table["foundation"][name] = value
+
+
+def _get(table, name):
+    if name == "b":
+        return next(t for t in table["loads"] if t["type"] == "friction")["b"]
+    return table["foundation"][name]
+
+
+def _synthetic(args, table, options, names, theta0, Omega0):
+    """Data simulated from the model options (the truth); the table then holds the start."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ... import TrajectoryData, simulate
+
+    if not args.t1 > 0 or args.samples < 2 or not args.noise >= 0:
+        raise Failure("--synthetic needs --t1 > 0, --samples >= 2 and --noise >= 0.")
+    if not args.offset > -1:
+        raise Failure(f"--offset must be > -1, got {args.offset:g}.")
+    true_model = model_spec(table, options).build()
+    th0 = jnp.asarray(_SYNTHETIC_STATE[0]) if theta0 is None else theta0
+    Om0 = jnp.asarray(_SYNTHETIC_STATE[1]) if Omega0 is None else Omega0
+    ts = jnp.linspace(0.0, args.t1, args.samples)
+    traj = simulate(true_model, th0, Om0, ts, rtol=args.rtol, atol=args.atol, throw=False)
+    if not bool(traj.ok):
+        raise Failure(f"the synthetic trajectory failed: {traj.message}", code=1)
+    theta, Omega = np.asarray(traj.theta), np.asarray(traj.Omega)
+    if args.noise > 0:
+        rng = np.random.default_rng(args.seed)
+        theta = theta + args.noise * rng.standard_normal(theta.shape)
+        Omega = Omega + args.noise * rng.standard_normal(Omega.shape)
+    sigma = args.noise if args.noise > 0 else None
+    data = TrajectoryData(ts, theta=theta, Omega=Omega, theta0=th0, Omega0=Om0,
+                          sigma_theta=sigma, sigma_Omega=sigma)
+    truth = {name: _get(table, name) for name in names}
+    for name in names:
+        _set(table, name, truth[name] * (1.0 + args.offset))
+    source = (f"a synthetic trajectory (t1 = {args.t1:g}, {args.samples} samples, noise "
+              f"{args.noise:g}) of the model with " + ", ".join(
+                  f"{n} = {v:g}" for n, v in truth.items()))
+    return data, ["Omega", "theta"], truth, source
+
+
+def _report(res, names, table, truth, data, args) -> str:
+    """Print the estimates; returns the local-minimum note ("" if none)."""
+    import numpy as np
+
+    for name, value, se in zip(names, res.params, res.stderr):
+        line = (f"  {name:>5} = {float(value):.12g} +/- {float(se):.2e}   "
+                f"(start {_get(table, name):g}")
+        if truth is not None:
+            line += f", truth {truth[name]:g}, relative error " \
+                    f"{abs(float(value) / truth[name] - 1):.1e}"
+        print(line + ")")
+    if args.fit_initial_state:
+        th, Om = res.initial_states[0]
+        print(f"  theta0 = {np.asarray(th).tolist()}, Omega0 = {np.asarray(Om).tolist()}")
+    print(f"  {res.num_steps} iterations, final loss {res.loss_history[-1]:.3e}, residual rms "
+          f"{res.residual_rms:.3e}, {res.message}, wall time {res.wall_time:.2f} s "
+          "(compilation included)")
+    # whitened residuals (rms ~ 1 at the right answer) when the noise is given, else in rad, rad/s
+    whitened = any(getattr(data, name) is not None
+                   for name in ("sigma_theta", "sigma_omega", "sigma_Omega"))
+    note = ""
+    if res.converged and res.residual_rms > (3.0 if whitened else 1e-2):
+        note = (f"the residual rms {res.residual_rms:.3g} is large "
+                f"({'> 3 noise standard deviations' if whitened else '> 1e-2 rad or rad/s'}): "
+                "the fit may have stopped in a local minimum (or the model does not describe the "
+                "data), and the standard errors are then meaningless; try staged horizons "
+                "(--horizons 0.2,0.5,1) or starting values closer to the answer.")
+        print(f"  note: {note}")
+    return note
+
+
+def fit_command(args: argparse.Namespace) -> int:
+    """``rbo-jax fit``: foundation parameters from a trajectory, by least squares through the
+    ODE solver (:func:`rbo_jax.fit`), with Gauss-Newton standard errors."""
+    from ... import fit
+
+    names = [x.strip() for x in args.params.split(",") if x.strip()]
+    table, options = model_table(args)
+    _check_options(args, names, table)
+    model_spec(table, options)  # the values given are valid
+    theta0 = None if args.theta0 is None else check_vector(args.theta0, "theta0")
+    Omega0 = None if args.Omega0 is None else check_vector(args.Omega0, "Omega0")
+    truth = None
+    if args.synthetic:
+        data, observed, truth, source = _synthetic(args, table, options, names, theta0, Omega0)
+    else:
+        data, observed = _read_data(args.data, theta0, Omega0, args.sigma_theta,
+                                    args.sigma_Omega)
+        source = args.data
+    spec = model_spec(table, options)
+    print(f"Model: {spec.describe()} (starting values)")
+    print(f"Fitting {', '.join(names)} to {source}: {data.num_samples} samples of "
+          f"{', '.join(observed)}; Levenberg-Marquardt through the ODE solver")
+    friction = load_index(spec, "friction") if "b" in names else None
+
+    def selector(m):
+        return tuple(m.loads[friction].b if name == "b" else getattr(m.foundation, name)
+                     for name in names)
+
+    try:
+        res = fit(spec.build(), data, selector, fit_initial_state=args.fit_initial_state,
+                  max_steps=args.max_steps, tol=args.tol, solve_rtol=args.rtol,
+                  solve_atol=args.atol, solve_max_steps=args.solver_max_steps,
+                  progress=args.progress, horizons=args.horizons)
+    except FloatingPointError as e:
+        raise Failure(f"the fit could not start: {e}", code=1) from None
+    note = _report(res, names, table, truth, data, args)
+    if args.out is not None:
+        attrs = {"model": spec.describe(), "data": str(source), "note": note,
+                 "command": "rbo-jax " + " ".join(args.argv), "num_samples": data.num_samples,
+                 "observed": " ".join(observed)}
+        if truth is not None:
+            attrs["truth"] = " ".join(f"{n}={v:.17g}" for n, v in truth.items())
+        write_dataset(res.to_xarray(names, **attrs), args.out)
+        print(f"  result -> {args.out}")
+    if not res.converged:
+        raise Failure(f"the fit did not converge: {res.message}", code=1)
+    return 0
+
+
+def add_fit(sub) -> None:
+    p = sub.add_parser(
+        "fit", formatter_class=FORMATTER,
+        help="Fit foundation parameters (c, d, alpha, beta) to a trajectory.",
+        description=wrap(
+            "Fit parameters of the foundation (4.49)/(4.50) (and the friction b of (4.84)) so "
+            "that simulated trajectories match observed ones: Levenberg-Marquardt on the "
+            "whitened residuals (the rotation angle between observed and simulated attitude, "
+            "and angular velocity differences), with forward-mode derivatives through the ODE "
+            "solver (rbo_jax.fit). Prints the estimates +/- Gauss-Newton standard errors, the "
+            "iterations and the final loss (1/2 sum r^2). The model options give the starting "
+            "values of the fitted parameters and the fixed values of all others; with "
+            "--synthetic they are the truth instead. Exit status 1 if the fit does not "
+            "converge, 2 for invalid options or a bad data file. " + UNITS),
+        epilog="data file (--data FILE), by suffix:\n"
+        "  .nc, .zarr  a trajectory dataset as written by 'rbo-jax simulate --out' (variables\n"
+        "              theta, Omega over t; samples the solver did not reach are skipped)\n"
+        "  .npz        arrays t (sample times, shape (n,), strictly increasing; 'ts' is\n"
+        "              accepted too), theta (n, 3) (or Q: attitudes (n, 3, 3)), optional\n"
+        "              Omega / omega (n, 3), theta0, Omega0 (3,)\n\n"
+        "examples:\n"
+        "  rbo-jax fit --synthetic --c 1 --d 2 --params c,d --noise 1e-3\n"
+        "  rbo-jax simulate --c 1 --d 2 --theta0 0.8,-0.3,0.5 --Omega0 0.2,1.1,-0.7 --t1 6 \\\n"
+        "      --samples 61 --out obs.nc && rbo-jax fit --data obs.nc --c 1.3 --d 1.5\n\n"
+        + wrap(NEGATIVE),
+    )
+    src = p.add_argument_group("data").add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", default=None, metavar="FILE",
+                     help="the observed trajectory: FILE.nc, FILE.zarr or FILE.npz (below)")
+    src.add_argument("--synthetic", action="store_true",
+                     help="fit a trajectory simulated here from the model options (the truth), "
+                     "starting from the truth times (1 + --offset)")
+    add_model_options(p, "starting values of the fitted parameters (with --synthetic: "
+                      "the true values), fixed values of the others.")
+    _add_fit_options(p)
+
+
+def _add_fit_options(p) -> None:
+    g = p.add_argument_group("fit")
+    g.add_argument("--params", default="c,d", metavar="NAMES",
+                   help="comma-separated parameters to fit, among c, d, alpha, beta "
+                   "(--foundation barrier) and b (--friction); fitted as logarithms, so they "
+                   "stay > 0 (default c,d)")
+    g.add_argument("--fit-initial-state", action="store_true",
+                   help="also fit theta0 and Omega0 (starting from the data's)")
+    g.add_argument("--theta0", type=floats, default=None, metavar="X,Y,Z",
+                   help="initial turn-vector (rad): with --data it replaces the data's, with "
+                   "--synthetic it is the true one (default: the data's; synthetic 0.8,-0.3,0.5)")
+    g.add_argument("--Omega0", type=floats, default=None, metavar="X,Y,Z",
+                   help="initial right angular velocity (rad/s), as --theta0 (default: the "
+                   "data's; synthetic 0.2,1.1,-0.7)")
+    g.add_argument("--horizons", type=horizons, default=(1.0,), metavar="F1,F2,...",
+                   help="staged fitting: fit on the first fractions F1 < F2 < ... <= 1 of the "
+                   "record in turn, each stage starting from the previous estimate; helps long "
+                   "or unstable records, where the loss over the whole record has many local "
+                   "minima (default 1: the whole record at once)")
+    g.add_argument("--max-steps", type=int, default=100,
+                   help="maximum number of Levenberg-Marquardt iterations per stage (default "
+                   "100)")
+    g.add_argument("--tol", type=float, default=1e-8,
+                   help="convergence tolerance: relative step size and relative decrease of the "
+                   "loss (default 1e-8)")
+    g.add_argument("--rtol", type=float, default=1e-10,
+                   help="relative tolerance of the ODE solves (default 1e-10)")
+    g.add_argument("--atol", type=float, default=1e-10,
+                   help="absolute tolerance of the ODE solves (default 1e-10)")
+    g.add_argument("--solver-max-steps", type=int, default=100_000,
+                   help="step budget of each ODE solve inside the fit; a solve that exhausts it "
+                   "counts as a failed trial step (default 100000)")
+    g.add_argument("--sigma-theta", type=float, default=None,
+                   help="noise standard deviation of the attitude (rad), if known: standard "
+                   "errors then use it (default: estimated from the residuals)")
+    g.add_argument("--sigma-Omega", type=float, default=None,
+                   help="noise standard deviation of Omega (rad/s), if known (default: "
+                   "estimated from the residuals)")
+    g.add_argument("--out", default=None, metavar="FILE",
+                   help="write the result: FILE.nc or FILE.zarr, the xarray Dataset of "
+                   "FitResult.to_xarray() (estimate, stderr over parameter; covariance; "
+                   "loss_history; attributes converged, message, ...)")
+    g.add_argument("--progress", action="store_true",
+                   help="show a progress bar over the iterations (tqdm)")
+    g = p.add_argument_group("synthetic data (with --synthetic)")
+    g.add_argument("--t1", type=float, default=6.0,
+                   help="length of the synthetic record, from t = 0 (default 6)")
+    g.add_argument("--samples", type=int, default=61,
+                   help="number of equally spaced synthetic samples (default 61)")
+    g.add_argument("--noise", type=float, default=0.0,
+                   help="standard deviation of Gaussian noise added to every component of theta "
+                   "(rad) and Omega (rad/s); also passed to the fit as the known noise level "
+                   "(default 0)")
+    g.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
+    g.add_argument("--offset", type=float, default=0.3,
+                   help="the fit starts from the true values times (1 + offset) (default 0.3)")
+    p.set_defaults(func=fit_command)

@@ -1,0 +1,205 @@
+"""``rbo-jax stability-map``: the Nikolai map (4.57)-(4.62), (4.69) over a grid of M, c, d, A3."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from .._io import DATASET_SUFFIXES, netcdf_engine, write_dataset
+from ._common import (
+    FORMATTER,
+    NEGATIVE,
+    UNITS,
+    Failure,
+    check_suffix,
+    grid,
+    model_spec,
+    pyplot_or_fail,
+    wrap,
+)
+
+AXES = ("M", "c", "d", "A3")
+K = (0.0, 0.0, 1.0)
+
+
+def _spec(args, axes):
+    """The Nikolai model (4.57)-(4.62) with the grid parameters as axis references."""
+    table = {"axis": list(K), "inertia": {"A1": args.A1, "A3": "A3"},
+             "foundation": {"type": "quadratic", "c": "c", "d": "d"},
+             "loads": [{"type": "follower", "M": "M"}]}
+    options = {"[model.inertia] A1": "--A1", "[model.inertia] A3": "--A3",
+               "[model.foundation] c": "--c", "[model.foundation] d": "--d",
+               "[model.loads][0] M": "--M", "[model.loads][1] b": "--friction"}
+    if args.friction is not None:
+        table["loads"].append({"type": "friction", "b": args.friction})
+    return model_spec(table, options, axes=axes)
+
+
+def _check_options(args, ranged):
+    if args.out is not None:
+        kind = check_suffix(args.out, DATASET_SUFFIXES, "--out")
+        if kind == ".nc" and netcdf_engine() is None:
+            raise Failure("--out .nc needs a NetCDF engine for xarray (pip install netCDF4, "
+                          "h5netcdf or scipy); or write .zarr.")
+        if kind == ".zarr":
+            import importlib.util
+
+            if importlib.util.find_spec("zarr") is None:
+                raise Failure("--out .zarr needs zarr (pip install 'zarr>=3'); or write .nc.")
+    plt = None
+    if args.plot is not None:
+        check_suffix(args.plot, (".png", ".pdf", ".svg"), "--plot")
+        if len(ranged) < 2:
+            raise Failure("--plot draws a map over two axes: give at least two of --M, --c, "
+                          "--d, --A3 as ranges start:stop:num.")
+        plt = pyplot_or_fail("rbo-jax stability-map")
+    if args.chunk_size < 1:
+        raise Failure(f"--chunk-size must be >= 1, got {args.chunk_size}.")
+    if not args.rtol > 0:
+        raise Failure(f"--rtol must be > 0, got {args.rtol:g}.")
+    return plt
+
+
+def _summary(ds, args, axes):
+    """Counts of the classification, range of max Re p and (without friction) the deviation
+    from the closed form (4.69)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ... import nikolai_spectrum
+    from ...batch import STABILITY_KIND_NAMES
+
+    kind = np.asarray(ds["kind"].values).ravel()
+    counts = {name: int(np.sum(kind == i)) for i, name in enumerate(STABILITY_KIND_NAMES)}
+    print("classification (Lyapunov's first method, rbo_jax.classify, rtol "
+          f"{args.rtol:g}): " + ", ".join(f"{name} {c}" for name, c in counts.items() if c))
+    a = np.asarray(ds["spectral_abscissa"].values)
+    finite = a[np.isfinite(a)]
+    if finite.size:
+        print(f"spectral abscissa max Re p: min {finite.min():.6e}, max {finite.max():.6e}")
+    if args.friction is None:
+        grids = [jnp.asarray(g.ravel()) for g in np.meshgrid(*axes.values(), indexing="ij")]
+        roots = jax.vmap(lambda M, c, d, A3: nikolai_spectrum(args.A1, A3, c, d, M))(*grids)
+        closed = np.max(np.real(np.asarray(roots)), axis=1)
+        ds.attrs["max_deviation_from_4_69"] = float(np.max(np.abs(closed - a.ravel())))
+        print("closed form (4.69): max |max Re p - max Re (4.69) roots| = "
+              f"{ds.attrs['max_deviation_from_4_69']:.1e}")
+
+
+def _figure(plt, ds, args, axes, ranged):
+    from ...plotting import plot_stability_map
+
+    x, y = ranged[:2]
+    select = {name: float(axes[name][axes[name].size // 2]) for name in ranged[2:]}
+    where = ", ".join(f"{name} = {v:g}" for name, v in select.items())
+    ax = plot_stability_map(ds, x, y, select=select or None,
+                            title=f"Nikolai problem: max Re p over ({x}, {y})"
+                            + (f" at {where}" if where else ""))
+    ax.figure.savefig(args.plot, dpi=120, bbox_inches="tight")
+    plt.close(ax.figure)
+    print(f"figure -> {args.plot}")
+
+
+def stability_map_command(args: argparse.Namespace) -> int:
+    """``rbo-jax stability-map``: the Nikolai map (4.57)-(4.62), (4.69) over a grid."""
+    import numpy as np
+
+    from ... import nikolai_equilibrium, stability_map
+
+    axes = {name: getattr(args, name) for name in AXES}
+    ranged = [n for n, v in axes.items() if v.size > 1]
+    plt = _check_options(args, ranged)
+    spec = _spec(args, axes)
+
+    def model_fn(M, c, d, A3):
+        return spec.build({"M": M, "c": c, "d": d, "A3": A3})
+
+    def theta_eq_fn(M, c, d, A3):
+        return nikolai_equilibrium(M, d, K)  # (4.62); friction vanishes at rest
+
+    n = int(np.prod([v.size for v in axes.values()]))
+    fixed = ", ".join(f"{name} = {axes[name][0]:g}" for name in AXES if name not in ranged)
+    print(f"Nikolai problem (4.57)-(4.62): {spec.describe()}; equilibrium theta = (M/d) k "
+          "(4.62), spectrum of (4.63)-(4.67)")
+    grid_ = " x ".join(f"{name} ({axes[name].size})" for name in ranged)
+    print(f"grid: {grid_ + f' = {n} points' if grid_ else 'a single point'}"
+          + (f"; fixed {fixed}" if fixed else ""))
+    start = time.perf_counter()
+    ds = stability_map(model_fn, axes, theta_eq_fn=theta_eq_fn, chunk_size=args.chunk_size,
+                       rtol=args.rtol, progress=args.progress)
+    elapsed = time.perf_counter() - start
+    ds = ds.squeeze([name for name in AXES if name not in ranged])
+    ds.attrs.update(description="Nikolai problem (4.57)-(4.62): spectra of the equilibrium "
+                    "theta = (M/d) k under a follower moment M on the quadratic foundation (4.50)",
+                    model=spec.describe(), A1=args.A1, command="rbo-jax " + " ".join(args.argv))
+    if args.friction is not None:
+        ds.attrs["friction_b"] = args.friction
+    _summary(ds, args, axes)
+    print(f"wall time {elapsed:.2f} s (compilation included)")
+    if args.out is not None:
+        write_dataset(ds, args.out)
+        print(f"map -> {args.out}")
+    if plt is not None:
+        _figure(plt, ds, args, axes, ranged)
+    return 0
+
+
+def add_stability_map(sub) -> None:
+    p = sub.add_parser(
+        "stability-map", formatter_class=FORMATTER,
+        help="Stability map of the Nikolai problem over a grid of M, c, d, A3.",
+        description=wrap(
+            "The Nikolai problem (4.57)-(4.62): a transversely isotropic body (4.40) on the "
+            "quadratic foundation (4.50) under a follower moment M k turning with the body "
+            "(4.57) has the equilibrium theta = (M/d) k (4.62). Its linearization (4.63)-(4.67) "
+            "has the roots (4.69): bending (A1 p^2 + K)^2 + M^2/4 = 0 and torsion A3 p^2 + d = "
+            "0; every M != 0 gives a root with Re p > 0 (flutter). This command evaluates the 6 "
+            "eigenvalues at every point of the grid of --M, --c, --d, --A3 (each a single value, "
+            "a list or a range start:stop:num) with rbo_jax.stability_map (a sweep of "
+            "rbo_jax.equilibrium_stability in compiled chunks), classifies them "
+            "(asymptotically_stable, marginally_stable, divergence, flutter, undefined), and "
+            "prints the counts, the range of the spectral abscissa max Re p and, without "
+            "friction, its largest deviation from the closed form (4.69). " + UNITS),
+        epilog="examples:\n"
+        "  rbo-jax stability-map --M=-0.8:0.8:41 --c 0.2:2:37 --plot map.png --out map.nc\n"
+        "  rbo-jax stability-map --M 0:1:101 --A3 0.2:2:50 --c 1 --friction 0.05\n\n"
+        "output formats (--out, by suffix): the xarray Dataset of rbo_jax.stability_map\n"
+        "(eigenvalues, spectral_abscissa, kind, equilibrium_status, theta_eq over the ranged\n"
+        "axes; fixed axes as scalar coordinates)\n"
+        "  .nc    netCDF, if netCDF4, h5netcdf or scipy is installed; eigenvalues split into\n"
+        "         eigenvalues_real / eigenvalues_imag (netCDF has no complex type)\n"
+        "  .zarr  a zarr v3 store (zarr is installed with rbo_jax on Python >= 3.11)\n\n"
+        + wrap(NEGATIVE),
+    )
+    g = p.add_argument_group("grid", wrap(
+        "Each of these is a value (0.5), a list (0.1,0.2,0.5) or an inclusive range "
+        "start:stop:num (numpy.linspace); the grid is their Cartesian product."))
+    g.add_argument("--M", type=grid, default=grid("-0.8:0.8:41"), metavar="SPEC",
+                   help="follower moment M of (4.57) (default -0.8:0.8:41)")
+    g.add_argument("--c", type=grid, default=grid("0.2:2:37"), metavar="SPEC",
+                   help="bending stiffness c > 0 of (4.50) (default 0.2:2:37)")
+    g.add_argument("--d", type=grid, default=grid("1"), metavar="SPEC",
+                   help="torsional stiffness d > 0 of (4.50) (default 1)")
+    g.add_argument("--A3", type=grid, default=grid("0.6"), metavar="SPEC",
+                   help="axial moment of inertia A3 > 0 of (4.40) (default 0.6)")
+    g = p.add_argument_group("fixed parameters and output")
+    g.add_argument("--A1", type=float, default=1.0,
+                   help="transverse moment of inertia A1 > 0 of (4.40) (default 1)")
+    g.add_argument("--friction", type=float, default=None, metavar="b",
+                   help="add viscous friction -b omega, b >= 0, eq. (4.84) (the equilibrium is "
+                   "unchanged; the closed form (4.69) does not apply then) (default: none)")
+    g.add_argument("--rtol", type=float, default=1e-9,
+                   help="classification tolerance, relative to max|p|: real parts within "
+                   "+-rtol max|p| count as zero (default 1e-9)")
+    g.add_argument("--chunk-size", type=int, default=16_384,
+                   help="grid points per compiled call; memory grows with it (default 16384)")
+    g.add_argument("--out", default=None, metavar="FILE",
+                   help="write the map: FILE.nc or FILE.zarr (formats below)")
+    g.add_argument("--plot", default=None, metavar="FILE",
+                   help="draw max Re p over the first two ranged axes (in the order M, c, d, "
+                   "A3; further ranged axes at their middle value) with the stability boundary "
+                   "into FILE.png/.pdf/.svg (needs matplotlib: pip install 'rbo_jax[plot]')")
+    g.add_argument("--progress", action="store_true",
+                   help="show a progress bar over the grid points (tqdm)")
+    p.set_defaults(func=stability_map_command)

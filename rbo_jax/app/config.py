@@ -1,0 +1,264 @@
+r"""Declarative sweeps: the TOML configuration of ``rbo-jax sweep CONFIG.toml``.
+
+:func:`load_config` validates a configuration — model, axes or points, quantity, chunk size,
+output — with messages naming the file and the key at fault, describes the model as a
+:class:`~rbo_jax.app.spec.ModelSpec` and builds the quantity (:mod:`rbo_jax.app.quantities`);
+:func:`run_config` runs it with :func:`rbo_jax.sweep` and draws the map with
+:func:`rbo_jax.plot_sweep`. Examples: ``examples/*.toml``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import json
+import math
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from .._validation import POSITIVE
+from ..batch import POINT_DIM, summary_line, sweep
+from ..plotting import plot_sweep, pyplot
+from ._reader import Reader, SpecError
+from .quantities import DEFAULT_PLOT, OUTPUTS, QUANTITIES, Settings, make_quantity
+from .spec import ModelSpec
+
+__all__ = ["QUANTITIES", "ConfigError", "SweepConfig", "load_config", "run_config"]
+
+_TABLES = ("sweep", "axes", "points", "model", "initial", "solver", "equilibrium")
+
+
+class ConfigError(ValueError):
+    """A sweep configuration is invalid; the message names the file and the key."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    """A validated sweep configuration (from :func:`load_config`).
+
+    Fields: ``source`` (the file), ``quantity_name``, ``quantity`` (the function of one point),
+    ``axes`` or ``points`` (``{name: values}``), ``chunk_size``, ``output`` (the store),
+    ``png`` (the figure, or None), ``plot`` (the variable drawn), ``dims`` (per-point dimension
+    names), ``canonical`` (the parsed configuration as canonical JSON, stored with the results
+    so that ``--resume`` refuses a changed configuration), ``model`` (the
+    :class:`~rbo_jax.app.spec.ModelSpec`).
+    """
+
+    source: Path
+    quantity_name: str
+    quantity: Callable[..., Any]
+    axes: dict | None
+    points: dict | None
+    chunk_size: int
+    output: Path
+    png: Path | None
+    plot: str
+    dims: dict
+    canonical: str
+    model: ModelSpec | None = None
+
+
+def _axis_values(r: Reader, spec, where: str, grid: bool) -> np.ndarray:
+    if isinstance(spec, list):
+        if not spec or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                               for x in spec):
+            r.fail(where, "must be a non-empty list of numbers.")
+        return np.asarray(spec, dtype=np.float64)
+    if not (isinstance(spec, Mapping) and grid):
+        form = "a list of numbers or {start, stop, num[, log]}" if grid else "a list of numbers"
+        r.fail(where, f"must be {form}, got {spec!r}.")
+    r.keys(spec, ("start", "stop", "num", "log"), where, required=("start", "stop", "num"))
+    start, stop, num, log = spec["start"], spec["stop"], spec["num"], spec.get("log", False)
+    for k, x in (("start", start), ("stop", stop)):
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            r.fail(f"{where}.{k}", f"must be a finite number, got {x!r}.")
+    if isinstance(num, bool) or not isinstance(num, int) or num < 1:
+        r.fail(f"{where}.num", f"must be an integer >= 1, got {num!r}.")
+    if not isinstance(log, bool):
+        r.fail(f"{where}.log", f"must be true or false, got {log!r}.")
+    if log:
+        if not (start > 0 and stop > 0):
+            r.fail(where, "log = true needs start, stop > 0.")
+        return np.geomspace(float(start), float(stop), num)
+    return np.linspace(float(start), float(stop), num)
+
+
+def _read_axes(cfg: Mapping) -> tuple[str, dict]:
+    r = Reader()
+    if ("axes" in cfg) == ("points" in cfg):
+        r.fail("config", "give exactly one of the tables [axes] (a grid) or [points] (a list of "
+                         "points).")
+    key = "axes" if "axes" in cfg else "points"
+    table = cfg[key]
+    if not isinstance(table, Mapping) or not table:
+        r.fail(f"[{key}]", "must be a non-empty table of parameters.")
+    values = {}
+    for name, spec in table.items():
+        where = f"[{key}] {name}"
+        if not name.isidentifier() or name in (POINT_DIM, "status") or name.startswith("_"):
+            r.fail(where, "not a valid (or a reserved) parameter name.")
+        values[name] = _axis_values(r, spec, where, key == "axes")
+    if key == "points":
+        sizes = {n: v.size for n, v in values.items()}
+        if len(set(sizes.values())) != 1:
+            r.fail("[points]", f"every parameter needs the same number of values, got {sizes}.")
+    return key, values
+
+
+def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
+    eq = r.table(cfg, "equilibrium", "config", required=False)
+    r.keys(eq, ("theta_guess", "classify_rtol"), "[equilibrium]")
+    guess = r.vector(eq, "theta_guess", "[equilibrium]", default=(0.0, 0.0, 0.0))
+    if name == "spectral_abscissa":
+        for section in ("initial", "solver"):
+            if section in cfg:
+                r.fail(f"[{section}]", "is not used by quantity 'spectral_abscissa'; remove it.")
+        crtol = r.number(eq, "classify_rtol", "[equilibrium]", default=1e-9, requirement=POSITIVE,
+                         axis=False)
+        return Settings(theta_guess=guess, classify_rtol=crtol)
+    if "classify_rtol" in eq:
+        r.fail("[equilibrium] classify_rtol", "is only used by quantity 'spectral_abscissa'.")
+    init = r.table(cfg, "initial", "config", required=False)
+    r.keys(init, ("theta0", "Omega0", "about_equilibrium"), "[initial]")
+    about_eq = r.boolean(init, "about_equilibrium", "[initial]", default=False)
+    if eq and not about_eq:
+        r.fail("[equilibrium]", "is only used with [initial] about_equilibrium = true.")
+    solver = r.table(cfg, "solver", "config", required=True)
+    where = "[solver]"
+    r.keys(solver, ("t1", "rtol", "atol", "max_steps", "samples"), where, required=("t1",))
+    if "samples" in solver and name == "final_state":
+        r.fail(f"{where} samples", "is not used by quantity 'final_state' (it keeps t1 only).")
+    return Settings(
+        theta0=r.vector(init, "theta0", "[initial]", default=(0.0, 0.0, 0.0)),
+        Omega0=r.vector(init, "Omega0", "[initial]", default=(0.0, 0.0, 0.0)),
+        about_equilibrium=about_eq, theta_guess=guess,
+        t1=r.number(solver, "t1", where, requirement=POSITIVE),
+        rtol=r.number(solver, "rtol", where, default=1e-8, requirement=POSITIVE, axis=False),
+        atol=r.number(solver, "atol", where, default=1e-8, requirement=POSITIVE, axis=False),
+        max_steps=r.integer(solver, "max_steps", where, default=100_000),
+        samples=r.integer(solver, "samples", where, default=101, minimum=2),
+    )
+
+
+def _parse_toml(path: Path) -> dict:
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file.") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: cannot be read: {e}") from None
+
+
+def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
+    sw = r.table(cfg, "sweep", "config", required=True)
+    r.keys(sw, ("quantity", "output", "chunk_size", "plot", "png"), "[sweep]",
+           required=("quantity", "output"))
+    if sw["quantity"] not in QUANTITIES:
+        r.fail("[sweep] quantity", f"must be one of {', '.join(QUANTITIES)}; "
+                                   f"got {sw['quantity']!r}.")
+    for k in ("output", "png"):
+        if k in sw and (not isinstance(sw[k], str) or not sw[k]):
+            r.fail(f"[sweep] {k}", f"must be a path (a string), got {sw[k]!r}.")
+    sw["chunk_size"] = r.integer(sw, "chunk_size", "[sweep]", default=4096)
+    name = sw["quantity"]
+    sw.setdefault("plot", DEFAULT_PLOT[name])
+    if sw["plot"] not in OUTPUTS[name]:
+        r.fail("[sweep] plot", f"must be an output of {name!r}: {', '.join(OUTPUTS[name])}; "
+                               f"got {sw['plot']!r}.")
+    return sw
+
+
+def _check_table_names(cfg: Mapping):
+    for k in cfg:
+        if k not in _TABLES:
+            near = difflib.get_close_matches(k, _TABLES, n=1)
+            hint = f" (did you mean [{near[0]}]?)" if near else ""
+            raise SpecError("config", f"unknown table [{k}]{hint}; allowed: "
+                                      f"{', '.join(f'[{a}]' for a in _TABLES)}.")
+
+
+def load_config(path: str | os.PathLike) -> SweepConfig:
+    """Read and validate a sweep configuration (TOML); see ``examples/*.toml``.
+
+    Tables: ``[sweep]`` (``quantity``, ``output``, optional ``chunk_size``, ``plot``, ``png``);
+    ``[axes]`` (a grid: ``name = [values]`` or ``{start, stop, num[, log]}``) or ``[points]``
+    (equal-length lists); ``[model]`` (the table form of
+    :class:`~rbo_jax.app.spec.ModelSpec`: ``axis``, ``inertia`` ``{A1, A3}`` or ``{moments}``,
+    ``foundation`` ``{type = "quadratic", c, d}`` or ``{type = "barrier", c, d, alpha, beta}``
+    or a list of such terms, ``loads`` a list of ``{type = "follower"|"dead", M}``,
+    ``{type = "semi_tangential", M, l1, l2}``, ``{type = "friction", b}``); for simulation
+    quantities ``[solver]`` (``t1``, ``rtol``, ``atol``, ``max_steps``, ``samples``) and
+    ``[initial]`` (``theta0``, ``Omega0``, ``about_equilibrium``); ``[equilibrium]``
+    (``theta_guess``, ``classify_rtol``).
+
+    Every number of ``[model]``, ``[initial]``, ``[solver]`` and ``[equilibrium]`` may instead be
+    the name of an axis (a string); every axis must be used. Relative paths are relative to the
+    configuration file's folder. Raises :class:`ConfigError` naming the key at fault.
+    """
+    path = Path(path)
+    cfg = _parse_toml(path)
+    try:
+        _check_table_names(cfg)
+        key, values = _read_axes(cfg)
+        r = Reader(values)
+        sw = _read_sweep_table(r, cfg)
+        name = sw["quantity"]
+        model = ModelSpec.from_mapping(r.table(cfg, "model", "config", required=True), reader=r)
+        settings = _read_settings(r, cfg, name)
+        unused = [n for n in values if n not in r.used]
+        if unused:
+            r.fail(f"[{key}] {unused[0]}", "this axis is not used by any parameter; refer to it "
+                                           f"by name, e.g. c = \"{unused[0]}\" in "
+                                           "[model.foundation].")
+    except SpecError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    quantity, dims = make_quantity(name, model, settings)
+    output = path.parent / sw["output"]
+    png = path.parent / sw["png"] if "png" in sw else output.with_suffix(".png")
+    return SweepConfig(
+        source=path, quantity_name=name, quantity=quantity,
+        axes=values if key == "axes" else None, points=values if key == "points" else None,
+        chunk_size=sw["chunk_size"], output=output, png=png, plot=sw["plot"], dims=dims,
+        canonical=json.dumps(cfg, sort_keys=True), model=model,
+    )
+
+
+def run_config(config: SweepConfig | str | os.PathLike, *, resume: bool = False,
+               overwrite: bool = False, progress: bool = True, output=None, png=None,
+               plot: bool = True):
+    """Run a configured sweep (:func:`load_config`): write the store and, on process 0, the PNG
+    of the map. ``output`` / ``png`` override the configured paths. Returns ``(dataset, png path
+    or None)``."""
+    cfg = config if isinstance(config, SweepConfig) else load_config(config)
+    out = Path(output) if output is not None else cfg.output
+    ds = sweep(
+        cfg.quantity, cfg.axes, points=cfg.points, chunk_size=cfg.chunk_size, store=out,
+        resume=resume, overwrite=overwrite, progress=progress, dims=cfg.dims,
+        attrs={"quantity": cfg.quantity_name, "config": cfg.canonical}, desc=cfg.quantity_name,
+    )
+    png_path = None
+    if plot and jax.process_index() == 0:
+        png_path = Path(png) if png is not None else (
+            out.with_suffix(".png") if output is not None else cfg.png)
+        plt = pyplot()
+        fig, ax = plt.subplots(figsize=(6.4, 4.8))
+        what = cfg.plot if cfg.plot == cfg.quantity_name else f"{cfg.quantity_name}: {cfg.plot}"
+        plot_sweep(ds, cfg.plot, ax=ax,
+                   title=f"{what}   ({summary_line(ds.attrs['status_counts'])})")
+        fig.tight_layout()
+        fig.savefig(png_path, dpi=120)
+        plt.close(fig)
+    return ds, png_path
+

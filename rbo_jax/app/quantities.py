@@ -1,0 +1,101 @@
+r"""The quantities of ``rbo-jax sweep``: functions of one parameter point, composed from library
+calls on a :class:`~rbo_jax.app.spec.ModelSpec`.
+
+- ``final_state``: $\theta(t_1)$, $\Omega(t_1)$ of a simulation (and the number of steps);
+- ``energy_drift``: $\max_t |E(t) - E(0)|/|E(0)|$ over ``samples`` times;
+- ``max_deviation``: $\max_t |\theta(t) - \theta(0)|$ over ``samples`` times;
+- ``spectral_abscissa``: :func:`rbo_jax.equilibrium_stability` of the equilibrium found by Newton
+  (max Re p, the classification and $\theta_{eq}$).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax.numpy as jnp
+
+from ..simulate import simulate
+from ..stability import equilibrium_stability, solve_equilibrium
+from ._reader import Ref
+from .spec import ModelSpec
+
+QUANTITIES = {
+    "final_state": "theta(t1) and Omega(t1) of simulate (and the number of steps)",
+    "energy_drift": "max_t |E(t) - E(0)| / |E(0)| over `samples` times of simulate",
+    "max_deviation": "max_t |theta(t) - theta(0)| over `samples` times of simulate",
+    "spectral_abscissa": "max Re p of the spectrum at the equilibrium (Newton from theta_guess)",
+}
+OUTPUTS = {
+    "final_state": ("theta", "Omega", "num_steps"),
+    "energy_drift": ("energy_drift", "num_steps"),
+    "max_deviation": ("max_deviation", "num_steps"),
+    "spectral_abscissa": ("spectral_abscissa", "kind", "theta_eq"),
+}
+DEFAULT_PLOT = {"final_state": "theta", "energy_drift": "energy_drift",
+                "max_deviation": "max_deviation", "spectral_abscissa": "spectral_abscissa"}
+SIMULATION = ("final_state", "energy_drift", "max_deviation")
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """The numbers of a quantity besides the model: initial state, solver, equilibrium."""
+
+    theta0: tuple = (0.0, 0.0, 0.0)
+    Omega0: tuple = (0.0, 0.0, 0.0)
+    about_equilibrium: bool = False
+    theta_guess: tuple = (0.0, 0.0, 0.0)
+    classify_rtol: float = 1e-9
+    t1: Any = 1.0
+    rtol: float = 1e-8
+    atol: float = 1e-8
+    max_steps: int = 100_000
+    samples: int = 101
+
+
+def _vector(xs, point):
+    return jnp.stack([jnp.asarray(point[x.name] if isinstance(x, Ref) else x,
+                                  dtype=jnp.result_type(float)) for x in xs])
+
+
+def _scalar(x, point):
+    return jnp.asarray(point[x.name] if isinstance(x, Ref) else x, dtype=jnp.result_type(float))
+
+
+def make_quantity(name: str, spec: ModelSpec, s: Settings):
+    """``(quantity(**point), dims)`` for the sweep engine."""
+    if name == "spectral_abscissa":
+
+        def spectral_abscissa(**point):
+            r = equilibrium_stability(spec.build(point), _vector(s.theta_guess, point),
+                                      rtol=s.classify_rtol)
+            return {"spectral_abscissa": r.abscissa, "kind": r.kind, "theta_eq": r.theta}, \
+                r.status
+
+        return spectral_abscissa, {"theta_eq": ("component",)}
+
+    def quantity(**point):
+        model = spec.build(point)
+        th0 = _vector(s.theta0, point)
+        if s.about_equilibrium:
+            sol = solve_equilibrium(model, _vector(s.theta_guess, point))
+            th0 = jnp.where(sol.ok, sol.theta + th0, jnp.nan)  # no equilibrium: nonfinite_input
+        n = 2 if name == "final_state" else s.samples
+        ts = jnp.linspace(0.0, 1.0, n) * _scalar(s.t1, point)
+        traj = simulate(model, th0, _vector(s.Omega0, point), ts, max_steps=s.max_steps,
+                        rtol=s.rtol, atol=s.atol, throw=False)
+        if name == "final_state":
+            values = {"theta": traj.theta[-1], "Omega": traj.Omega[-1]}
+        elif name == "energy_drift":
+            E = traj.energy
+            scale = jnp.where(jnp.abs(E[0]) > 0, jnp.abs(E[0]), 1.0)
+            values = {"energy_drift": jnp.max(jnp.abs(E - E[0])) / scale}
+        else:
+            deviation = jnp.linalg.norm(traj.theta - traj.theta[:1], axis=1)
+            values = {"max_deviation": jnp.max(deviation)}
+        values["num_steps"] = traj.num_steps
+        return values, traj.status
+
+    quantity.__name__ = name
+    dims = {"theta": ("component",), "Omega": ("component",)} if name == "final_state" else {}
+    return quantity, dims

@@ -1,0 +1,258 @@
+r"""``ModelSpec``: a plain, validated description of a rigid body oscillator.
+
+One description serves every front end: ``rbo-jax simulate|stability-map|fit`` build it from
+command-line options, ``rbo-jax sweep`` from the ``[model]`` table of a TOML file,
+``rbo-jax reproduce`` and user code directly. It is data — the inertia (4.39)/(4.40), the axis
+$k$, the foundation terms (4.49)/(4.50) and the loads (4.57), (4.75), (4.84), each parameter a
+number or the name of a sweep axis — and becomes a :class:`rbo_jax.RigidBodyOscillator` with
+:meth:`ModelSpec.build`, also inside ``jax.vmap``/``jax.jit`` (the swept parameters are then
+traced values).
+
+The table form (what :meth:`ModelSpec.from_mapping` reads and :meth:`ModelSpec.to_mapping`
+writes)::
+
+    axis = [0.0, 0.0, 1.0]                                  # k (normalised)
+    inertia = { A1 = 1.0, A3 = 0.5 }                        # (4.40); or { moments = [A1, A2, A3] }
+    foundation = { type = "quadratic", c = 1.0, d = 2.0 }   # (4.50); or a list of such terms
+    loads = [{ type = "follower", M = "M" },                # (4.57), M from the sweep axis "M"
+             { type = "friction", b = 0.05 }]               # (4.84)
+
+Errors name the key (``[model.foundation] c: must be > 0, got -1.``); the requirements are the
+constructors' own (:mod:`rbo_jax._validation`), and a parameter taken from an axis is checked on
+every value of that axis before anything runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._validation import FINITE, NONNEGATIVE, POSITIVE, POSITIVE_OR_INF, Requirement
+from ..foundations import BarrierFoundation, QuadraticFoundation
+from ..inertia import principal_inertia, transversely_isotropic_inertia
+from ..loads import DeadMoment, FollowerMoment, Friction, SemiTangentialMoment
+from ..model import RigidBodyOscillator
+from ._reader import Reader, Ref, SpecError
+
+__all__ = ["ModelSpec", "Term", "Ref", "SpecError", "FOUNDATIONS", "LOADS"]
+
+Value = float | Ref
+
+
+@dataclasses.dataclass(frozen=True)
+class _Param:
+    name: str
+    requirement: Requirement
+    meaning: str
+    default: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class _Kind:
+    """One ``type`` of foundation term or load: its parameters and how to build it."""
+
+    params: tuple[_Param, ...]
+    build: Any  # (values dict, k) -> object
+    equation: str
+
+
+FOUNDATIONS = {
+    "quadratic": _Kind(
+        (_Param("c", POSITIVE, "bending stiffness"), _Param("d", POSITIVE, "torsional stiffness")),
+        lambda v, k: QuadraticFoundation(v["c"], v["d"], k), "(4.50)"),
+    "barrier": _Kind(
+        (_Param("c", POSITIVE, "bending stiffness"), _Param("d", POSITIVE, "torsional stiffness"),
+         _Param("alpha", POSITIVE_OR_INF, "bending barrier"),
+         _Param("beta", POSITIVE_OR_INF, "torsion barrier")),
+        lambda v, k: BarrierFoundation(v["c"], v["d"], v["alpha"], v["beta"], k), "(4.49)"),
+}
+LOADS = {
+    "follower": _Kind((_Param("M", FINITE, "follower moment"),),
+                      lambda v, k: FollowerMoment(v["M"], k), "(4.57)"),
+    "dead": _Kind((_Param("M", FINITE, "dead moment"),), lambda v, k: DeadMoment(v["M"], k),
+                  "(4.75)"),
+    "semi_tangential": _Kind(
+        (_Param("M", FINITE, "moment"), _Param("l1", FINITE, "dead part", 1.0),
+         _Param("l2", FINITE, "follower part", 1.0)),
+        lambda v, k: SemiTangentialMoment(v["M"], k, v["l1"], v["l2"]), "(4.75)"),
+    "friction": _Kind((_Param("b", NONNEGATIVE, "friction coefficient"),),
+                      lambda v, k: Friction(v["b"]), "(4.84)"),
+}
+_INERTIA = {
+    "transversely_isotropic": (_Param("A1", POSITIVE, "transverse moment of inertia"),
+                               _Param("A3", POSITIVE, "axial moment of inertia")),
+    "principal": (_Param("moments", POSITIVE, "principal moments of inertia"),),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Term:
+    """One piece of a model: a ``type`` and its parameters ``((name, value), ...)``; a value is
+    a number, a :class:`Ref` to a sweep axis, or (principal moments) a tuple of those."""
+
+    type: str
+    params: tuple[tuple[str, Any], ...]
+
+    def value(self, name):
+        return dict(self.params)[name]
+
+
+def _resolve(x, point: Mapping[str, Any]):
+    if isinstance(x, Ref):
+        return point[x.name]
+    if isinstance(x, tuple):
+        return jnp.stack([jnp.asarray(_resolve(v, point), dtype=jnp.result_type(float))
+                          for v in x])
+    return x
+
+
+def _plain(x):
+    if isinstance(x, Ref):
+        return x.name
+    if isinstance(x, tuple):
+        return [_plain(v) for v in x]
+    return x
+
+
+def _read_term(r: Reader, table: Mapping, kinds: Mapping[str, _Kind], where: str) -> Term:
+    if not isinstance(table, Mapping):
+        r.fail(where, f"must be a table, got {table!r}.")
+    kind = table.get("type")
+    if kind not in kinds:
+        r.fail(f"{where} type", f"must be one of {', '.join(map(repr, kinds))}; got {kind!r}.")
+    spec = kinds[kind]
+    names = [p.name for p in spec.params]
+    r.keys(table, ("type", *names), where,
+           required=[p.name for p in spec.params if p.default is None])
+    return Term(kind, tuple((p.name, r.number(table, p.name, where, default=p.default,
+                                              requirement=p.requirement))
+                            for p in spec.params))
+
+
+def _read_inertia(r: Reader, model: Mapping, where: str) -> Term:
+    table = r.table(model, "inertia", where, required=True)
+    where = f"{where[:-1]}.inertia]"
+    if "moments" in table:
+        r.keys(table, ("moments",), where)
+        return Term("principal", (("moments", r.vector(table, "moments", where,
+                                                        requirement=POSITIVE)),))
+    r.keys(table, ("A1", "A3", "moments"), where, required=("A1", "A3"))
+    return Term("transversely_isotropic",
+                tuple((p.name, r.number(table, p.name, where, requirement=p.requirement))
+                      for p in _INERTIA["transversely_isotropic"]))
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """A rigid body oscillator as data (see the module docstring): ``axis`` $k$ (three values),
+    ``inertia`` (a :class:`Term` of type ``transversely_isotropic`` (4.40) or ``principal``
+    (4.39)), ``foundation`` (one or more terms, summed) and ``loads``."""
+
+    inertia: Term
+    foundation: tuple[Term, ...]
+    loads: tuple[Term, ...] = ()
+    axis: tuple[Any, Any, Any] = (0.0, 0.0, 1.0)
+
+    @classmethod
+    def from_mapping(cls, table: Mapping, *, axes: Mapping[str, np.ndarray] | None = None,
+                     where: str = "[model]", reader: Reader | None = None) -> ModelSpec:
+        """Read and validate the table form; ``axes`` are the sweep axes parameters may name
+        (checked value by value). Raises :class:`SpecError` naming the key."""
+        r = reader if reader is not None else Reader(axes)
+        if not isinstance(table, Mapping):
+            r.fail(where, f"must be a table, got {type(table).__name__}.")
+        r.keys(table, ("axis", "inertia", "foundation", "loads"), where,
+               required=("inertia", "foundation"))
+        axis = r.vector(table, "axis", where, default=(0.0, 0.0, 1.0))
+        if all(isinstance(x, float) for x in axis) and not any(axis):
+            r.fail(f"{where} axis", "must be a nonzero vector, got [0, 0, 0].")
+        inertia = _read_inertia(r, table, where)
+        terms = table["foundation"]
+        fwhere = f"{where[:-1]}.foundation]"
+        if isinstance(terms, list):
+            if not terms:
+                r.fail(f"{where} foundation", "must be a table or a non-empty list of tables.")
+            foundation = tuple(_read_term(r, t, FOUNDATIONS, f"{fwhere}[{i}]")
+                               for i, t in enumerate(terms))
+        else:
+            foundation = (_read_term(r, terms, FOUNDATIONS, fwhere),)
+        loads = table.get("loads", [])
+        if not isinstance(loads, list):
+            r.fail(f"{where} loads",
+                   'must be a list of tables, e.g. [{ type = "follower", M = 0.5 }].')
+        loads = tuple(_read_term(r, t, LOADS, f"{where[:-1]}.loads][{i}]")
+                      for i, t in enumerate(loads))
+        return cls(inertia, foundation, loads, axis)
+
+    def to_mapping(self) -> dict:
+        """The table form (plain numbers, axis names as strings): ``from_mapping`` of it gives
+        this spec back."""
+        out = {"axis": _plain(self.axis), "inertia": {n: _plain(v) for n, v in self.inertia.params}}
+        terms = [{"type": t.type, **{n: _plain(v) for n, v in t.params}} for t in self.foundation]
+        out["foundation"] = terms[0] if len(terms) == 1 else terms
+        out["loads"] = [{"type": t.type, **{n: _plain(v) for n, v in t.params}}
+                        for t in self.loads]
+        return out
+
+    def parameters(self) -> tuple[str, ...]:
+        """The names of the sweep axes the description refers to, in order of appearance."""
+        found: list[str] = []
+
+        def visit(x):
+            if isinstance(x, Ref) and x.name not in found:
+                found.append(x.name)
+            elif isinstance(x, tuple):
+                for v in x:
+                    visit(v)
+
+        visit(self.axis)
+        for term in (self.inertia, *self.foundation, *self.loads):
+            for _, v in term.params:
+                visit(v)
+        return tuple(found)
+
+    def build(self, point: Mapping[str, Any] | None = None) -> RigidBodyOscillator:
+        """The :class:`rbo_jax.RigidBodyOscillator`, with the axis references filled from
+        ``point`` (``{axis name: value}``; traced values are fine)."""
+        point = dict(point or {})
+        missing = [n for n in self.parameters() if n not in point]
+        if missing:
+            raise KeyError(f"ModelSpec.build: no value for the parameter(s) {missing}.")
+        k = _resolve(tuple(self.axis), point)
+        v = {n: _resolve(x, point) for n, x in self.inertia.params}
+        if self.inertia.type == "principal":
+            A = principal_inertia(v["moments"], jnp.eye(3))
+        else:
+            A = transversely_isotropic_inertia(v["A1"], v["A3"], k)
+        terms = [FOUNDATIONS[t.type].build({n: _resolve(x, point) for n, x in t.params}, k)
+                 for t in self.foundation]
+        foundation = terms[0] if len(terms) == 1 else sum(terms[1:], terms[0])
+        loads = [LOADS[t.type].build({n: _resolve(x, point) for n, x in t.params}, k)
+                 for t in self.loads]
+        return RigidBodyOscillator(A, foundation, loads)
+
+    def describe(self) -> str:
+        """One line for people: inertia, axis, foundation and loads with their equations."""
+
+        def g(x):
+            if isinstance(x, tuple):
+                return ",".join(g(v) for v in x)
+            return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
+
+        def params(term):
+            return ", ".join(f"{n} = {g(x)}" for n, x in term.params)
+
+        if self.inertia.type == "principal":
+            parts = [f"A = diag({g(self.inertia.value('moments'))}) (4.39)"]
+        else:
+            parts = [f"{params(self.inertia)} (4.40)"]
+        parts.append(f"k = ({g(tuple(self.axis))})")
+        parts += [f"{t.type} foundation {FOUNDATIONS[t.type].equation} {params(t)}"
+                  for t in self.foundation]
+        loads = [f"{t.type} {LOADS[t.type].equation} {params(t)}" for t in self.loads]
+        parts.append("loads: " + ("; ".join(loads) if loads else "none"))
+        return "; ".join(parts)

@@ -1,0 +1,263 @@
+""":func:`fit` and its result :class:`FitResult`."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..model import RigidBodyOscillator
+from ._data import TrajectoryData
+from ._least_squares import run_least_squares
+from ._optax import run_optax
+from ._residuals import (
+    TRANSFORMS,
+    Spec,
+    jacobian_matrix,
+    leaf_paths,
+    residuals_and_jacobian,
+    resolve_transforms,
+    transform_derivative,
+    unpack,
+)
+
+__all__ = ["FitResult", "fit"]
+
+OPTIMIZERS = ("levenberg_marquardt", "gauss_newton", "adam", "lbfgs")
+LEAST_SQUARES = ("levenberg_marquardt", "gauss_newton")
+
+
+class FitResult(eqx.Module):
+    """Result of :func:`fit`.
+
+    ``model``: the fitted model; ``params``: fitted values of the selected parameters (tuple, in
+    the order of the selector); ``stderr``: their standard errors (same structure);
+    ``covariance``: covariance of all fitted scalars (flattened, parameters then initial states);
+    ``initial_states``: fitted or given ``(theta0, Omega0)`` per trajectory; ``loss_history``:
+    the loss ½Σr² after each iteration (every stage); ``num_steps``; ``converged``;
+    ``message``; ``residual_rms``; ``wall_time`` (seconds, compilation included).
+    """
+
+    model: RigidBodyOscillator
+    params: tuple
+    stderr: tuple
+    covariance: np.ndarray
+    initial_states: tuple
+    loss_history: np.ndarray
+    num_steps: int
+    converged: bool
+    message: str
+    residual_rms: float
+    wall_time: float
+
+    def to_xarray(self, names: Sequence[str] | None = None, **attrs):
+        """The result as an :class:`xarray.Dataset`: ``estimate`` and ``stderr`` over the
+        dimension ``parameter`` (scalar parameters, named by ``names`` or ``p0, p1, ...``),
+        ``covariance`` over (``parameter``, ``parameter_2``) of the fitted scalars,
+        ``loss_history`` over ``iteration``; attributes ``converged``, ``message``,
+        ``num_steps``, ``residual_rms``, ``wall_time`` plus ``attrs``."""
+        import xarray as xr
+
+        values = np.concatenate([np.ravel(p) for p in self.params])
+        errors = np.concatenate([np.ravel(s) for s in self.stderr])
+        names = list(names) if names is not None else [f"p{i}" for i in range(values.size)]
+        if len(names) != values.size:
+            raise ValueError(f"names has {len(names)} entries for {values.size} fitted scalars.")
+        n_cov = self.covariance.shape[0]
+        labels = names + [f"initial_state_{i}" for i in range(n_cov - values.size)]
+        ds = xr.Dataset(
+            {"estimate": ("parameter", values, {"long_name": "fitted value"}),
+             "stderr": ("parameter", errors,
+                        {"long_name": "Gauss-Newton standard error, s^2 (J^T J)^-1"}),
+             "covariance": (("parameter_all", "parameter_all_2"), self.covariance),
+             "loss_history": ("iteration", np.asarray(self.loss_history),
+                              {"long_name": "1/2 sum r^2 of the whitened residuals"})},
+            coords={"parameter": names, "parameter_all": labels, "parameter_all_2": labels},
+        )
+        ds.attrs.update(converged=int(self.converged), message=self.message,
+                        num_steps=int(self.num_steps), residual_rms=float(self.residual_rms),
+                        wall_time=float(self.wall_time), **attrs)
+        return ds
+
+
+def _as_data_list(data) -> list[TrajectoryData]:
+    if isinstance(data, TrajectoryData):
+        return [data]
+    data = list(data)
+    if not data:
+        raise ValueError("data is empty: give one or more TrajectoryData.")
+    for i, d in enumerate(data):
+        if not isinstance(d, TrajectoryData):
+            raise TypeError(f"data[{i}] must be a TrajectoryData, got {type(d).__name__}.")
+    return data
+
+
+def _check_options(optimizer, horizons, max_steps, solve_max_steps):
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {', '.join(map(repr, OPTIMIZERS))}, "
+                         f"got {optimizer!r}.")
+    horizons = tuple(float(h) for h in horizons)
+    if not horizons or any(not (0 < h <= 1) for h in horizons) or list(horizons) != sorted(
+            horizons):
+        raise ValueError(f"horizons must be increasing fractions in (0, 1], got {horizons}.")
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+    if solve_max_steps < 1:
+        raise ValueError(f"solve_max_steps must be >= 1, got {solve_max_steps}.")
+    return horizons
+
+
+def _selected(model, params) -> tuple:
+    try:
+        values = params(model)
+    except Exception as e:  # a selector that does not match the model
+        raise ValueError(f"params selector failed on the model: {e}") from e
+    values = tuple(values) if isinstance(values, (tuple, list)) else (values,)
+    if not values or not all(eqx.is_inexact_array(v) for v in values):
+        raise ValueError(
+            "params must select float array leaves of the model (e.g. m.foundation.c)."
+        )
+    return values
+
+
+def _covariance(u, model, datas, spec: Spec):
+    """Gauss–Newton covariance at the optimum, w.r.t. the natural parameters: the Jacobian in
+    the reparametrised coordinates u, times du/dx (chain rule); initial states are not
+    reparametrised. Returns (residuals, covariance, standard errors per parameter, note)."""
+    _, natural, _ = unpack(u, model, len(datas), spec)
+    r, J_tree = residuals_and_jacobian(u, model, datas, dataclasses.replace(spec, forward=True))
+    r = np.asarray(r, dtype=np.float64)
+    J = jacobian_matrix(J_tree, r.size)
+    scale = [transform_derivative(n, x).ravel() for n, x in zip(spec.transforms, natural)]
+    if spec.fit_initial_state:
+        scale.append(np.ones(J.shape[1] - sum(v.size for v in scale)))
+    J = J * np.concatenate(scale)[None, :]
+    n_res, n_par = J.shape
+    sigma_known = all(
+        (d.sigma_theta is not None or (d.theta is None and d.Q is None))
+        and (d.sigma_omega is not None or d.omega is None)
+        and (d.sigma_Omega is not None or d.Omega is None)
+        for d in datas
+    )
+    s2 = 1.0 if sigma_known else float(r @ r) / max(n_res - n_par, 1)
+    note = ""
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((n_par, n_par), np.inf)
+        note = "; J^T J is singular: the parameters are not identifiable from these data"
+    se_flat = np.sqrt(np.clip(np.diag(cov), 0.0, np.inf))
+    offsets = np.cumsum([0] + [int(np.size(x)) for x in natural])  # parameters come first in u
+    se = tuple(se_flat[offsets[i]:offsets[i + 1]].reshape(np.shape(v))
+               for i, v in enumerate(natural))
+    return r, cov, se, note
+
+
+def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, verbose):
+    """Run the optimiser on each horizon in turn; returns (u, steps, converged, message)."""
+    total = 0
+    converged, message = True, "converged"
+    for h in horizons:
+        stage = tuple(
+            d if h >= 1.0 else d.truncate(float(d.t0) + h * (float(d.ts[-1]) - float(d.t0)))
+            for d in datas
+        )
+        if optimizer in LEAST_SQUARES:
+            u, steps, converged, message = run_least_squares(
+                u, model, stage, spec, optimizer, options["tol"], options["max_steps"], history,
+                bar, verbose)
+        else:
+            u, steps, converged, message = run_optax(
+                u, model, stage, spec, optimizer, options["learning_rate"],
+                options["max_steps"], options["tol"], history, bar, verbose)
+        total += steps
+    return u, total, converged, message
+
+
+def fit(
+    model: RigidBodyOscillator,
+    data: TrajectoryData | Sequence[TrajectoryData],
+    params: Callable[[RigidBodyOscillator], object],
+    *,
+    transforms: str | Sequence[str] | None = None,
+    fit_initial_state: bool = False,
+    optimizer: str = "levenberg_marquardt",
+    max_steps: int = 100,
+    learning_rate: float = 1e-2,
+    tol: float = 1e-8,
+    horizons: Sequence[float] = (1.0,),
+    solve_rtol: float = 1e-10,
+    solve_atol: float = 1e-10,
+    solve_max_steps: int = 100_000,
+    progress: bool = False,
+    verbose: bool = False,
+) -> FitResult:
+    r"""Fit the parameters selected by ``params`` (and optionally the initial states) so that
+    simulated trajectories match ``data``.
+
+    **Arguments:**
+
+    - `model`: the model with the starting values of the parameters.
+    - `data`: a :class:`TrajectoryData` or a sequence of them (several experiments share the
+      parameters; each has its own initial state).
+    - `params`: selector of the parameters to fit, as for ``eqx.tree_at``:
+      ``lambda m: (m.foundation.c, m.foundation.d)``; any float leaves of the model (foundation,
+      loads such as ``m.loads[0].b``, ``m.inertia``).
+    - `transforms`: per parameter ``"log"``, ``"softplus"`` or ``"identity"``; default log for
+      positive starting values, identity otherwise.
+    - `fit_initial_state`: also fit (θ0, Ω0) of every trajectory (starting from the data's).
+    - `optimizer`: ``"levenberg_marquardt"`` (default) or ``"gauss_newton"`` (least squares),
+      ``"adam"`` or ``"lbfgs"`` (optax, general losses).
+    - `max_steps`: iterations per stage; `tol`: relative/absolute tolerance of the least-squares
+      solvers (and the stagnation test); `learning_rate`: for Adam.
+    - `horizons`: staged fitting on growing fractions of each record (see the package docstring).
+    - `solve_rtol`, `solve_atol`: tolerances of the ODE solves; `solve_max_steps`: their step
+      budget (a solve that exhausts it gives infinite residuals, which the optimizer rejects).
+    - `progress`: tqdm bar over iterations; `verbose`: print the loss each iteration.
+
+    Compiled programs are cached on the model's structure, the data's shapes and these options,
+    so repeated fits (bootstrap, noise studies) compile once.
+    """
+    start = time.perf_counter()
+    datas = tuple(_as_data_list(data))
+    horizons = _check_options(optimizer, horizons, max_steps, solve_max_steps)
+    values = _selected(model, params)
+    spec = Spec(paths=leaf_paths(model, values),
+                transforms=resolve_transforms(values, transforms),
+                fit_initial_state=bool(fit_initial_state), rtol=float(solve_rtol),
+                atol=float(solve_atol), forward=optimizer in LEAST_SQUARES,
+                max_solver_steps=int(solve_max_steps))
+    u = {"p": tuple(TRANSFORMS[n][0](jnp.asarray(v)) for n, v in zip(spec.transforms, values))}
+    if fit_initial_state:
+        u["x0"] = tuple((d.theta0, d.Omega0) for d in datas)
+    history: list[float] = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max_steps * len(horizons), desc="fit", unit="it")
+    try:
+        u, steps, converged, message = _stages(
+            u, model, datas, spec, horizons, optimizer,
+            {"tol": tol, "max_steps": max_steps, "learning_rate": learning_rate}, history, bar,
+            verbose)
+    finally:
+        if bar is not None:
+            bar.close()
+    r, cov, se, note = _covariance(u, model, datas, spec)
+    fitted_model, natural, states = unpack(u, model, len(datas), spec)
+    init_states = tuple(
+        (np.asarray(d.theta0 if th0 is None else th0), np.asarray(d.Omega0 if Om0 is None else Om0))
+        for d, (th0, Om0) in zip(datas, states)
+    )
+    return FitResult(
+        model=fitted_model, params=tuple(np.asarray(v) for v in natural), stderr=se,
+        covariance=cov, initial_states=init_states, loss_history=np.asarray(history),
+        num_steps=int(steps), converged=bool(converged), message=message + note,
+        residual_rms=float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
+        wall_time=time.perf_counter() - start,
+    )

@@ -1,0 +1,196 @@
+"""Residuals of a fit and the reparametrisation of its parameters; the compiled programs every
+solver of :func:`rbo_jax.fit` uses."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..kinematics import turn_tensor, turn_vector
+from ..model import RigidBodyOscillator
+from ..simulate import simulate
+from ._data import TrajectoryData
+
+__all__ = ["residuals", "Spec", "TRANSFORMS"]
+
+
+def residuals(model: RigidBodyOscillator, data: TrajectoryData, theta0=None, Omega0=None, *,
+              rtol=1e-10, atol=1e-10, adjoint=None, max_steps=100_000) -> jax.Array:
+    """The whitened residual vector of one trajectory (see the module docstring)."""
+    theta0 = data.theta0 if theta0 is None else theta0
+    Omega0 = data.Omega0 if Omega0 is None else Omega0
+    traj = simulate(model, theta0, Omega0, data.ts, t0=data.t0, rtol=rtol, atol=atol,
+                    adjoint=adjoint, max_steps=max_steps, throw=False)
+    out = []
+    if data.Q is not None or (data.theta is not None and data.theta_weight is None):
+        Q_obs = data.Q if data.Q is not None else jax.vmap(turn_tensor)(data.theta)
+        Q_mod = jax.vmap(turn_tensor)(traj.theta)
+        r = jax.vmap(lambda a, b: turn_vector(a.T @ b))(Q_obs, Q_mod)
+        out.append(r / (data.sigma_theta or 1.0))
+    elif data.theta is not None:
+        out.append(data.theta_weight * (traj.theta - data.theta) / (data.sigma_theta or 1.0))
+    if data.omega is not None:
+        w = 1.0 if data.omega_weight is None else data.omega_weight
+        out.append(w * (traj.omega - data.omega) / (data.sigma_omega or 1.0))
+    if data.Omega is not None:
+        w = 1.0 if data.Omega_weight is None else data.Omega_weight
+        out.append(w * (traj.Omega - data.Omega) / (data.sigma_Omega or 1.0))
+    return jnp.concatenate([o.ravel() for o in out])
+
+
+
+TRANSFORMS = {
+    "log": (jnp.log, jnp.exp),
+    "softplus": (lambda x: x + jnp.log(-jnp.expm1(-x)), jax.nn.softplus),
+    "identity": (lambda x: x, lambda u: u),
+}
+
+
+def resolve_transforms(values, transforms):
+    if transforms is None:
+        out = []
+        for v in values:
+            v = np.asarray(v)
+            out.append("log" if (v.size and np.all(v > 0)) else "identity")
+        return tuple(out)
+    if isinstance(transforms, str):
+        transforms = (transforms,) * len(values)
+    transforms = tuple(transforms)
+    if len(transforms) != len(values):
+        raise ValueError(f"transforms has {len(transforms)} entries for {len(values)} parameters.")
+    for t, v in zip(transforms, values):
+        if t not in TRANSFORMS:
+            raise ValueError(f"unknown transform {t!r}; choose from {sorted(TRANSFORMS)}.")
+        if t in ("log", "softplus") and not np.all(np.asarray(v) > 0):
+            raise ValueError(
+                f"a {t} transform needs a positive starting value, got {np.asarray(v)}."
+            )
+    return transforms
+
+
+@dataclasses.dataclass(frozen=True)
+class Spec:
+    """Static description of a fit (hashable: one compilation per structure, reused across
+    calls)."""
+
+    paths: tuple
+    transforms: tuple
+    fit_initial_state: bool
+    rtol: float
+    atol: float
+    forward: bool
+    max_solver_steps: int = 100_000
+
+
+def leaf_paths(model, values) -> tuple:
+    leaves = jax.tree_util.tree_flatten_with_path(model)[0]
+    paths = []
+    for v in values:
+        matches = [path for path, leaf in leaves if leaf is v]
+        if len(matches) != 1:
+            raise ValueError(
+                "params must select float array leaves of the model itself, e.g. "
+                "lambda m: (m.foundation.c, m.foundation.d)."
+            )
+        paths.append(matches[0])
+    return tuple(paths)
+
+
+def leaf_at(tree, path):
+    for key in path:
+        if isinstance(key, jax.tree_util.GetAttrKey):
+            tree = getattr(tree, key.name)
+        elif isinstance(key, jax.tree_util.SequenceKey):
+            tree = tree[key.idx]
+        elif isinstance(key, jax.tree_util.DictKey):
+            tree = tree[key.key]
+        else:
+            raise ValueError(f"cannot fit a parameter stored under {key!r}.")
+    return tree
+
+
+def with_params(model, spec: Spec, natural):
+    return eqx.tree_at(lambda m: tuple(leaf_at(m, p) for p in spec.paths), model, tuple(natural))
+
+
+def unpack(u, model, n_data, spec: Spec):
+    natural = tuple(TRANSFORMS[n][1](x) for n, x in zip(spec.transforms, u["p"]))
+    states = u["x0"] if spec.fit_initial_state else ((None, None),) * n_data
+    return with_params(model, spec, natural), natural, states
+
+
+def stack_residuals(model, datas, states, spec: Spec):
+    adjoint = diffrax.ForwardMode() if spec.forward else diffrax.RecursiveCheckpointAdjoint()
+    return jnp.concatenate([
+        residuals(model, d, th0, Om0, rtol=spec.rtol, atol=spec.atol, adjoint=adjoint,
+                  max_steps=spec.max_solver_steps)
+        for d, (th0, Om0) in zip(datas, states)
+    ])
+
+
+def residual_vector(u, model, datas, spec: Spec):
+    m, _, states = unpack(u, model, len(datas), spec)
+    return stack_residuals(m, datas, states, spec)
+
+
+@eqx.filter_jit
+def loss(u, model, datas, spec):
+    return 0.5 * jnp.sum(residual_vector(u, model, datas, spec) ** 2)
+
+
+loss_and_grad = eqx.filter_jit(jax.value_and_grad(loss))
+
+
+@eqx.filter_jit
+def residuals_and_jacobian(u, model, datas, spec):
+    """Whitened residuals at ``u`` and their forward-mode Jacobian (one JVP per fitted scalar,
+    batched). The single compiled program of a least-squares fit: iterations, trial points and
+    the covariance all reuse it."""
+
+    def f(u):
+        r = residual_vector(u, model, datas, spec)
+        return r, r
+
+    J, r = jax.jacfwd(f, has_aux=True)(u)
+    return r, J
+
+
+def flatten(tree):
+    leaves = jax.tree_util.tree_leaves(tree)
+    return np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in leaves])
+
+
+def unflatten_like(flat, tree):
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    out, i = [], 0
+    for x in leaves:
+        n = int(np.size(x))
+        out.append(jnp.asarray(flat[i:i + n].reshape(np.shape(x)), dtype=jnp.result_type(float)))
+        i += n
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def jacobian_matrix(J_tree, n_res):
+    return np.concatenate(
+        [
+            np.asarray(b, dtype=np.float64).reshape(n_res, -1)
+            for b in jax.tree_util.tree_leaves(J_tree)
+        ],
+        axis=1,
+    )
+
+
+def transform_derivative(name, x):
+    """du/dx of the reparametrisation u = forward(x) at the natural value x."""
+    x = np.asarray(x, dtype=np.float64)
+    if name == "log":
+        return 1.0 / x
+    if name == "softplus":
+        return 1.0 / -np.expm1(-x)
+    return np.ones_like(x)
+

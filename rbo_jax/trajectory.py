@@ -1,0 +1,205 @@
+r"""What every solver of the equations of motion returns: :class:`Trajectory` and
+:class:`SolveStatus`, shared by :func:`rbo_jax.simulate` (diffrax, the general path) and
+:func:`rbo_jax.fast_simulate` (the lean DOP853 ensemble integrator).
+
+A trajectory holds samples $(t_i, \theta(t_i), \Omega(t_i))$ of the right form (4.55)–(4.56)
+and derives the left angular velocity $\omega = P\cdot\Omega$, the turn-tensor $P = Q(\theta)$
+(4.3), the kinetic moment (4.44) and the energies on access. Samples after a failure are ``inf``.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from . import _enumeration
+from .kinematics import _safe_norm, turn_tensor
+from .model import RigidBodyOscillator
+
+__all__ = ["SolveStatus", "Trajectory"]
+
+
+class SolveStatus(eqx.Enumeration):
+    """Outcome of a solve; ``SolveStatus[status]`` gives the message."""
+
+    successful = ""
+    max_steps_reached = (
+        "The maximum number of solver steps was reached before the final time: increase "
+        "`max_steps`, or loosen rtol/atol."
+    )
+    step_size_collapse = (
+        "The step size collapsed below `dtmin`: the vector field became non-finite or the "
+        "solution blew up (check the parameters and the initial state)."
+    )
+    singular_point = (
+        "The turn-vector reached a singular point |theta| = 2*pi*k of the integrating tensor Z "
+        "(eq. 4.11) with theta x Omega != 0, where det Z is infinite and the equations "
+        "(4.54)/(4.56) break down."
+    )
+    domain_error = (
+        "The turn-vector left the domain of the foundation energy (e.g. a barrier of eq. 4.49 "
+        "was crossed)."
+    )
+    nonfinite_input = (
+        "The initial state (theta0, Omega0) is not finite, or a model parameter is NaN."
+    )
+    solver_error = "The differential equation solver failed (see diffrax.RESULTS)."
+
+
+class Trajectory(eqx.Module):
+    r"""Samples of a solution of the rigid body oscillator.
+
+    Fields: ``ts`` (n,), ``theta`` (n, 3) the turn-vector, ``Omega`` (n, 3) the right angular
+    velocity, ``model`` the :class:`RigidBodyOscillator`, ``status`` a :class:`SolveStatus`,
+    ``num_steps`` the number of accepted solver steps. Samples after a failure are ``inf``.
+
+    Derived (computed on access): ``omega`` = P·Ω (left angular velocity), ``turn_tensor`` P(t),
+    ``kinetic_moment`` L (4.44), ``kinetic_energy``, ``potential_energy``, ``energy`` = K + U + V.
+    """
+
+    ts: Float[Array, " n"]
+    theta: Float[Array, "n 3"]
+    Omega: Float[Array, "n 3"]
+    model: RigidBodyOscillator
+    status: SolveStatus
+    num_steps: Int[Array, ""]
+
+    @property
+    def ok(self):
+        """Whether the solve reached the final time."""
+        return self.status == SolveStatus.successful
+
+    @property
+    def message(self) -> str:
+        """The status message (for a concrete, unbatched trajectory)."""
+        return SolveStatus[self.status] or "successful"
+
+    @property
+    def status_name(self) -> str:
+        """The status as a name, e.g. ``"singular_point"`` (for a concrete, unbatched
+        trajectory; the names are the fields of :class:`SolveStatus`)."""
+        return _enumeration.name(self.status)
+
+    def _map(self, f):
+        return jax.vmap(f)(self.theta, self.Omega)
+
+    @property
+    def omega(self) -> Float[Array, "n 3"]:
+        return self._map(self.model.omega)
+
+    @property
+    def turn_tensor(self) -> Float[Array, "n 3 3"]:
+        return jax.vmap(turn_tensor)(self.theta)
+
+    @property
+    def kinetic_moment(self) -> Float[Array, "n 3"]:
+        return self._map(self.model.kinetic_moment)
+
+    @property
+    def kinetic_energy(self) -> Float[Array, " n"]:
+        return jax.vmap(self.model.kinetic_energy)(self.Omega)
+
+    @property
+    def potential_energy(self) -> Float[Array, " n"]:
+        return jax.vmap(self.model.potential_energy)(self.theta)
+
+    @property
+    def energy(self) -> Float[Array, " n"]:
+        return self._map(self.model.energy)
+
+    def to_xarray(self, **attrs):
+        """The samples as an :class:`xarray.Dataset` (for a concrete, unbatched trajectory).
+
+        Dimensions ``t`` and ``component`` (x, y, z of the reference basis); variables
+        ``theta`` (the turn-vector, rad), ``Omega`` and ``omega`` (right and left angular
+        velocities), ``energy`` (K + U + V) and ``reached`` (whether the solver reached the
+        sample). Attributes: ``status`` (a :class:`SolveStatus` name), ``message``,
+        ``num_steps``, plus ``attrs``. Units are those of the model's parameters (any
+        consistent set; the labels name SI units).
+        """
+        import xarray as xr
+
+        theta, Omega = np.asarray(self.theta), np.asarray(self.Omega)
+        reached = np.all(np.isfinite(theta), axis=1) & np.all(np.isfinite(Omega), axis=1)
+        vec = ("t", "component")
+        data = {
+            "theta": (vec, theta, {"long_name": "turn-vector theta (4.1)", "units": "rad"}),
+            "Omega": (vec, Omega, {"long_name": "right (body-frame) angular velocity Omega",
+                                   "units": "rad s-1"}),
+            "omega": (vec, np.asarray(self.omega),
+                      {"long_name": "left (world-frame) angular velocity omega = P.Omega",
+                       "units": "rad s-1"}),
+            "energy": ("t", np.asarray(self.energy),
+                       {"long_name": "mechanical energy K + U + V", "units": "J"}),
+            "reached": ("t", reached, {"long_name": "the solver reached this sample"}),
+        }
+        ds = xr.Dataset(data, coords={"t": ("t", np.asarray(self.ts), {"units": "s"}),
+                                      "component": ["x", "y", "z"]})
+        ds.attrs.update(status=self.status_name, message=self.message,
+                        num_steps=int(self.num_steps), **attrs)
+        return ds
+
+
+# ------------------------------------------------------------------------------------------
+# Helpers shared by the solvers.
+# ------------------------------------------------------------------------------------------
+
+# |θ×Ω| / (|θ||Ω|) below this counts as plane motion, which crosses the singular spheres
+# |θ| = 2πk of Z harmlessly.
+TRANSVERSE_TOL = 1e-6
+
+
+def all_finite(tree):
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def any_nan(tree):
+    leaves = [jnp.any(jnp.isnan(x)) for x in jax.tree_util.tree_leaves(tree)]
+    return jnp.any(jnp.stack(leaves)) if leaves else jnp.asarray(False)
+
+
+def transverse_fraction(theta, Omega):
+    """|θ×Ω| / (|θ||Ω|): 0 for plane motion, where the singular spheres are harmless."""
+    return _safe_norm(jnp.cross(theta, Omega)) / (_safe_norm(theta) * _safe_norm(Omega) + 1e-300)
+
+
+def check_times(ts):
+    """``ts`` as a strictly increasing, finite, non-empty 1-D float array (concrete values
+    checked now, traced ones with :func:`equinox.error_if`)."""
+    ts = jnp.asarray(ts)
+    if ts.ndim != 1 or ts.shape[0] < 1:
+        raise ValueError(f"ts must be a non-empty 1-D array of times, got shape {ts.shape}.")
+    if not jnp.issubdtype(ts.dtype, jnp.floating):
+        ts = ts.astype(jnp.result_type(float))
+    if not isinstance(ts, jax.core.Tracer):
+        ts_np = np.asarray(ts)
+        if not np.all(np.isfinite(ts_np)):
+            raise ValueError("ts must be finite.")
+        if ts_np.shape[0] > 1 and not np.all(np.diff(ts_np) > 0):
+            raise ValueError("ts must be strictly increasing.")
+    elif ts.shape[0] > 1:
+        ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "ts must be strictly increasing.")
+    return ts
+
+
+def warn_if_float32(dtype, rtol, atol):
+    """Warn when a solve in ``dtype`` is asked for tolerances below its resolution."""
+    eps = float(jnp.finfo(dtype).eps)
+    try:
+        tol = min(float(rtol), float(atol))
+    except (TypeError, jax.errors.ConcretizationTypeError):
+        return
+    if tol < 10 * eps:
+        warnings.warn(
+            f"rbo_jax: integrating in {jnp.dtype(dtype).name} with tolerance {tol:g}, below what "
+            f"its precision (eps = {eps:.1e}) can deliver. Enable float64 (import rbo_jax before "
+            "creating arrays, and do not set JAX_ENABLE_X64=0), or loosen rtol/atol.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
