@@ -60,6 +60,8 @@ from .loads import Friction as Friction  # noqa: E402
 from .loads import PotentialLoad as PotentialLoad  # noqa: E402
 from .loads import SemiTangentialMoment as SemiTangentialMoment  # noqa: E402
 from .loads import as_load as as_load  # noqa: E402
+from .maps import EquilibriumStability as EquilibriumStability  # noqa: E402
+from .maps import equilibrium_stability as equilibrium_stability  # noqa: E402
 from .model import RightForm as RightForm  # noqa: E402
 from .model import RigidBodyOscillator as RigidBodyOscillator  # noqa: E402
 from .plotting import plot_sweep as plot_sweep  # noqa: E402
@@ -75,13 +77,11 @@ from .simulate import Trajectory as Trajectory  # noqa: E402
 from .simulate import simulate as simulate  # noqa: E402
 from .simulate import solve_darboux as solve_darboux  # noqa: E402
 from .stability import EquilibriumSolution as EquilibriumSolution  # noqa: E402
-from .stability import EquilibriumStability as EquilibriumStability  # noqa: E402
 from .stability import EquilibriumStatus as EquilibriumStatus  # noqa: E402
 from .stability import SecondOrderForm as SecondOrderForm  # noqa: E402
 from .stability import StabilityKind as StabilityKind  # noqa: E402
 from .stability import classify as classify  # noqa: E402
 from .stability import equilibrium as equilibrium  # noqa: E402
-from .stability import equilibrium_stability as equilibrium_stability  # noqa: E402
 from .stability import fast_spectrum as fast_spectrum  # noqa: E402
 from .stability import linearize as linearize  # noqa: E402
 from .stability import second_order_form as second_order_form  # noqa: E402

@@ -42,6 +42,17 @@ def _float_dtype():
     return jnp.result_type(float)
 
 
+def _common_float_dtype(*xs):
+    """The widest floating dtype of ``xs`` (arrays or dtypes), by NumPy's rules — also under
+    ``jax_numpy_dtype_promotion = "strict"``, which refuses to mix float32 with float64
+    implicitly — canonicalised for the current x64 setting."""
+    dtypes = [np.dtype(getattr(x, "dtype", x)) for x in xs]
+    dtype = np.result_type(*dtypes, np.float16)
+    if not np.issubdtype(dtype, np.floating):
+        dtype = np.dtype(_float_dtype())
+    return jax.dtypes.canonicalize_dtype(dtype)
+
+
 def _is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 

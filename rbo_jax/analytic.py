@@ -6,6 +6,7 @@ These are independent of the numerical machinery (no autodiff, no ODE solver) an
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Complex
 
@@ -41,7 +42,7 @@ def nikolai_bending_stiffness(c: ScalarLike, d: ScalarLike, M: ScalarLike) -> Sc
     r"""The bending stiffness of (4.69) at the equilibrium $\theta_0 = M/d$ of (4.62):
 
     $K = c\,(g^2 + \frac{M^2}{4d^2}) - \frac{M^2}{4d} + (1 - g)\,g\,d$,
-    $g = \frac{\theta_0\sin\theta_0}{2(1-\cos\theta_0)}$ (ERRATA 4).
+    $g = \frac{\theta_0\sin\theta_0}{2(1-\cos\theta_0)}$ (reading R4, docs/readings.md).
     """
     c, d, M = jnp.asarray(c), jnp.asarray(d), jnp.asarray(M)
     g = _g(M / d)
@@ -50,9 +51,11 @@ def nikolai_bending_stiffness(c: ScalarLike, d: ScalarLike, M: ScalarLike) -> Sc
 
 def _roots_of_biquadratic(A1, K, M):
     """Roots p of (A1 p² + K)² + M²/4 = 0: A1 p² = −K ± iM/2."""
-    K = jnp.asarray(K).astype(jnp.result_type(K, 1j))
-    half = 0.5j * jnp.asarray(M)
-    p2 = jnp.stack([(-K + half) / A1, (-K - half) / A1])
+    K, M, A1 = jnp.broadcast_arrays(*(jnp.asarray(x, dtype=jnp.result_type(float))
+                                      for x in (K, M, A1)))
+    re = -K / A1
+    im = 0.5 * M / A1
+    p2 = jnp.stack([jax.lax.complex(re, im), jax.lax.complex(re, -im)])
     r = jnp.sqrt(p2)
     return jnp.concatenate([r, -r])
 
@@ -69,7 +72,7 @@ def nikolai_bending_roots(A1: ScalarLike, c: ScalarLike, d: ScalarLike, M: Scala
 
 def nikolai_bending_roots_small_load(A1: ScalarLike, c: ScalarLike, d: ScalarLike,
                                      M: ScalarLike) -> Complex[Array, "4"]:
-    r"""Roots of (4.72), the small-$|M|/d$ form of (4.69) (ERRATA 5):
+    r"""Roots of (4.72), the small-$|M|/d$ form of (4.69) (reading R5):
     $(A_1p^2 + c + \frac{(c - 2d)M^2}{12 d^2})^2 + \frac{M^2}{4} = 0$."""
     c, d, M = jnp.asarray(c), jnp.asarray(d), jnp.asarray(M)
     return _roots_of_biquadratic(A1, c + (c - 2 * d) * M**2 / (12 * d**2), M)
@@ -77,8 +80,9 @@ def nikolai_bending_roots_small_load(A1: ScalarLike, c: ScalarLike, d: ScalarLik
 
 def torsion_roots(A3: ScalarLike, d: ScalarLike) -> Complex[Array, "2"]:
     r"""Torsion roots of (4.69): $A_3p^2 + d = 0$, $p = \pm i\sqrt{d/A_3}$."""
-    w = jnp.sqrt(jnp.asarray(d) / jnp.asarray(A3))
-    return jnp.stack([1j * w, -1j * w])
+    w = jnp.sqrt(jnp.asarray(d, dtype=jnp.result_type(float)) / jnp.asarray(A3))
+    zero = jnp.zeros_like(w)
+    return jnp.stack([jax.lax.complex(zero, w), jax.lax.complex(zero, -w)])
 
 
 def nikolai_spectrum(A1, A3, c, d, M) -> Complex[Array, "6"]:

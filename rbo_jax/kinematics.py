@@ -101,7 +101,7 @@ _COSC = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n + 2)), 11)
 _SINC3 = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n + 3)), 11)
 # cos θ = Σ (−t)^n/(2n)!
 _COS = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n)), 12)
-# (1 − g)/θ², g = (θ/2)cot(θ/2) = Σ (−1)^n B_2n θ^2n/(2n)!  (ERRATA 3: → 1/12 at θ = 0)
+# (1 − g)/θ², g = (θ/2)cot(θ/2) = Σ (−1)^n B_2n θ^2n/(2n)!  (reading R3: → 1/12 at θ = 0)
 _GCOEF = _coeffs(lambda n: (-1) ** n * _B[2 * n + 2] / math.factorial(2 * n + 2), 16)
 # atan(x)/x = Σ (−x²)^n/(2n+1), used by the logarithm with x² < _X2_SWITCH
 _ATANC = _coeffs(lambda n: Fraction((-1) ** n, 2 * n + 1), 11)
@@ -297,7 +297,8 @@ def turn_vector(Q: MatrixLike) -> Vector:
 def composition_invariants(phi: VectorLike, psi: VectorLike) -> tuple[Scalar, Vector]:
     r"""The invariants of the composed turn $Q(\theta) = Q(\varphi)\cdot Q(\psi)$, eqs. (4.6)–(4.7).
 
-    Returns $(\cos\theta,\ \frac{\sin\theta}{\theta}\theta)$ with, as corrected in ERRATA 1–2,
+    Returns $(\cos\theta,\ \frac{\sin\theta}{\theta}\theta)$ with, as corrected in readings
+    R1–R2 (docs/readings.md),
 
     $1 + 2\cos\theta = \cos\varphi + \cos\psi + \cos\varphi\cos\psi
       - 2\frac{\sin\varphi\sin\psi}{\varphi\psi}\,\varphi\cdot\psi
@@ -367,7 +368,7 @@ def integrating_tensor(theta: VectorLike) -> Matrix:
     $g = \frac{\theta\sin\theta}{2(1-\cos\theta)}$, eq. (4.11).
 
     $\dot\theta = Z\cdot\omega$ (4.10), $\dot\theta = Z^T\cdot\Omega$ (4.14). Near $\theta = 0$,
-    $(1-g)/\theta^2 = 1/12 + \theta^2/720 + \dots$ (ERRATA 3). Singular at $|\theta| = 2\pi k$,
+    $(1-g)/\theta^2 = 1/12 + \theta^2/720 + \dots$ (reading R3). Singular at $|\theta| = 2\pi k$,
     $k \ge 1$ (see :func:`distance_to_singularity`), where the result is non-finite.
     """
     theta = _as_vector(theta)
@@ -391,7 +392,7 @@ def integrating_tensor_inv(theta: VectorLike) -> Matrix:
 
 
 def integrating_tensor_det(theta: VectorLike) -> Scalar:
-    r"""$\det Z(\theta) = \frac{\theta^2}{2(1-\cos\theta)}$ (after (4.11); ERRATA 3).
+    r"""$\det Z(\theta) = \frac{\theta^2}{2(1-\cos\theta)}$ (after (4.11); reading R3).
 
     Equal to 1 at $\theta = 0$ and infinite at $|\theta| = 2\pi k$, $k \ge 1$.
     """

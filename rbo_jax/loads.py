@@ -130,8 +130,8 @@ class FollowerMoment(_AbstractAxialMoment):
 
 class SemiTangentialMoment(AbstractLoad):
     r"""The moment of eq. (4.75): $M_{ex} = \gamma M\,(l_1 k + l_2 P\cdot k)$,
-    $\gamma = (l_1^2 + l_2^2 + 2 l_1 l_2\,k\cdot P\cdot k)^{-1/2}$ (ERRATA 9), so that
-    $|M_{ex}| = |M|$.
+    $\gamma = (l_1^2 + l_2^2 + 2 l_1 l_2\,k\cdot P\cdot k)^{-1/2}$ (reading R9 of
+    docs/readings.md), so that $|M_{ex}| = |M|$.
 
     $l_1 = l_2 = 1$ (the default) is the semi-tangential moment; $(1, 0)$ is dead and $(0, 1)$
     follower. Since $|P\cdot k| = 1$, $\gamma^{-2} = |l_1 k + l_2 P\cdot k|^2$, which is how it is

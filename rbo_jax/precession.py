@@ -17,7 +17,7 @@ $$\dot x = Z(x)\cdot w - \dot\psi\,k\times x,\qquad
 fixed point $(\vartheta p, \omega_0)$. Linearizing with $x = \vartheta p + \varepsilon\varphi$,
 $w = \omega_0 + \varepsilon\eta$ — exactly the perturbation (4.117) — gives the constant-coefficient
 system for $(\varphi, \eta)$, here by automatic differentiation (the printed equations after (4.118)
-are partly garbled, ERRATA 8).
+are partly garbled; reading R8 of docs/readings.md).
 """
 
 from __future__ import annotations

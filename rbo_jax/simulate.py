@@ -29,6 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._custom_types import Vector
+from ._validation import _common_float_dtype
 from .kinematics import (
     _as_vector,
     _safe_norm,
@@ -42,8 +43,9 @@ from .trajectory import (
     SolveStatus,
     Trajectory,
     all_finite,
-    any_nan,
     check_times,
+    finish,
+    prepare_inputs,
     transverse_fraction,
     warn_if_float32,
 )
@@ -51,7 +53,7 @@ from .trajectory import (
 __all__ = ["SolveStatus", "Trajectory", "simulate", "DarbouxSolution", "solve_darboux"]
 
 
-def _status_from_solution(sol, bad_input, event_names):
+def _status_from_solution(sol, event_names, bad_input=False):
     result = sol.result
     R = diffrax.RESULTS
     status = SolveStatus.successful
@@ -169,16 +171,7 @@ def simulate(
         raise TypeError(f"model must be a RigidBodyOscillator, got {type(model).__name__}.")
     if form not in ("right", "left"):
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
-    theta0 = _as_vector(theta0, "theta0")
-    Omega0 = _as_vector(Omega0, "Omega0")
-    ts = check_times(ts)
-    # The state takes the precision of the model too: float32 initial values with a float64
-    # model (the default) are integrated in float64, not in a mix diffrax cannot store.
-    params = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_inexact_array))
-    dtype = jnp.result_type(theta0, Omega0, ts, *params)
-    theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
-    warn_if_float32(dtype, rtol, atol)
-
+    theta0, Omega0, ts, dtype, bad_input = prepare_inputs(model, theta0, Omega0, ts, rtol, atol)
     t0 = ts[0] if t0 is None else jnp.asarray(t0, dtype)
     t1 = ts[-1]
     if dtmin is None:
@@ -189,13 +182,6 @@ def simulate(
         stepsize_controller = diffrax.PIDController(
             rtol=rtol, atol=atol, dtmin=dtmin, force_dtmin=False
         )
-
-    # Infinite parameters are legitimate (BarrierFoundation(alpha=inf) switches a barrier off);
-    # NaN ones never are.
-    bad_input = ~all_finite((theta0, Omega0)) | any_nan(eqx.filter(model, eqx.is_inexact_array))
-    zeros = jnp.zeros_like(theta0)
-    theta0 = jnp.where(bad_input, zeros, theta0)
-    Omega0 = jnp.where(bad_input, zeros, Omega0)
 
     if form == "right":
         y0 = (theta0, Omega0)
@@ -229,23 +215,10 @@ def simulate(
         throw=False,
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
     )
-    status = _status_from_solution(sol, bad_input, event_names)
+    status = _status_from_solution(sol, event_names)
     theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
-    failed = status != SolveStatus.successful
-    # Samples the solver never reached are inf (diffrax's convention); a non-finite input was
-    # replaced by zeros to run harmlessly, so none of its samples is a result either.
-    theta = jnp.where(bad_input, jnp.inf, theta)
-    Omega = jnp.where(bad_input, jnp.inf, Omega)
-    if throw:
-        theta = status.error_if(theta, failed)
-    return Trajectory(
-        ts=ts,
-        theta=theta,
-        Omega=Omega,
-        model=model,
-        status=status,
-        num_steps=sol.stats["num_accepted_steps"],
-    )
+    return finish(model, ts, theta, Omega, status, bad_input, sol.stats["num_accepted_steps"],
+                  throw)
 
 
 # --------------------------------------------------------------------------------------------
@@ -327,7 +300,7 @@ def solve_darboux(
     ts = check_times(ts)
     # The precision of the angular velocity counts too (as the model's in simulate): float32
     # theta0 with a float64 angular velocity is integrated in float64.
-    dtype = jnp.result_type(theta0, ts, jax.eval_shape(w, ts[0]).dtype)
+    dtype = _common_float_dtype(theta0, ts, jax.eval_shape(w, ts[0]).dtype)
     theta0, ts = theta0.astype(dtype), ts.astype(dtype)
     warn_if_float32(dtype, rtol, atol)
 
@@ -350,7 +323,7 @@ def solve_darboux(
         throw=False,
     )
     bad_input = ~all_finite(theta0)
-    status = _status_from_solution(sol, bad_input, ("singular_point", "singular_point"))
+    status = _status_from_solution(sol, ("singular_point", "singular_point"), bad_input)
     theta = sol.ys
     if throw:
         theta = status.error_if(theta, status != SolveStatus.successful)

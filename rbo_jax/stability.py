@@ -49,8 +49,6 @@ __all__ = [
     "StabilityKind",
     "classify",
     "spectral_abscissa",
-    "EquilibriumStability",
-    "equilibrium_stability",
 ]
 
 
@@ -296,62 +294,3 @@ def classify(eigenvalues, *, rtol: float = 1e-9) -> tuple[StabilityKind, Scalar]
     kind = K.where(a > tol, unstable, kind)
     kind = K.where(jnp.all(jnp.isfinite(p)), kind, K.undefined)
     return kind, a
-
-
-# --------------------------------------------------------------------------------------------
-# Equilibrium -> spectrum -> classification, in one place
-# --------------------------------------------------------------------------------------------
-
-
-class EquilibriumStability(eqx.Module):
-    r"""Result of :func:`equilibrium_stability`: the equilibrium ``theta`` (4.61), its six
-    ``eigenvalues`` (NaN where the equilibrium could not be computed), the spectral
-    ``abscissa`` max Re p, the classification ``kind`` (:class:`StabilityKind`) and the
-    equilibrium ``status`` (:class:`EquilibriumStatus`)."""
-
-    theta: Float[Array, "3"]
-    eigenvalues: Complex[Array, "6"]
-    abscissa: Float[Array, ""]
-    kind: StabilityKind
-    status: EquilibriumStatus
-
-    @property
-    def ok(self):
-        return self.status == EquilibriumStatus.successful
-
-
-def equilibrium_stability(
-    model: RigidBodyOscillator,
-    theta_guess=None,
-    *,
-    theta_eq=None,
-    rtol: float = 1e-9,
-    fast: bool = True,
-    t=0.0,
-    **equilibrium_kwargs,
-) -> EquilibriumStability:
-    r"""The stability of an equilibrium of ``model``: Lyapunov's first method in one call.
-
-    1. The equilibrium: ``theta_eq`` if given (a closed form such as (4.62), checked finite), else
-       :func:`solve_equilibrium` (Newton for the moment balance (4.61)) from ``theta_guess``
-       (default 0) with ``equilibrium_kwargs``.
-    2. Its spectrum (4.63)–(4.69): :func:`fast_spectrum` (block structure) or, with
-       ``fast=False``, :func:`spectrum`; NaN when the equilibrium failed.
-    3. :func:`classify` with tolerance ``rtol``.
-
-    Never raises for a failed equilibrium: ``status`` says why. This is what
-    :func:`rbo_jax.stability_map`, the ``spectral_abscissa`` quantity of ``rbo-jax sweep`` and
-    ``rbo-jax stability-map`` compute at every point; jit- and vmap-compatible.
-    """
-    if theta_eq is not None:
-        theta = _as_vector(theta_eq, "theta_eq")
-        status = EquilibriumStatus.where(jnp.all(jnp.isfinite(theta)),
-                                         EquilibriumStatus.successful, EquilibriumStatus.nonfinite)
-    else:
-        guess = jnp.zeros(3) if theta_guess is None else theta_guess
-        sol = solve_equilibrium(model, guess, t=t, **equilibrium_kwargs)
-        theta, status = sol.theta, sol.status
-    p = (fast_spectrum if fast else spectrum)(model, theta, t=t)
-    p = jnp.where(status == EquilibriumStatus.successful, p, jnp.nan + 0j)
-    kind, a = classify(p, rtol=rtol)
-    return EquilibriumStability(theta=theta, eigenvalues=p, abscissa=a, kind=kind, status=status)

@@ -18,7 +18,8 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from . import _enumeration
-from .kinematics import _safe_norm, turn_tensor
+from ._validation import _common_float_dtype
+from .kinematics import _as_vector, _safe_norm, turn_tensor
 from .model import RigidBodyOscillator
 
 __all__ = ["SolveStatus", "Trajectory"]
@@ -203,3 +204,39 @@ def warn_if_float32(dtype, rtol, atol):
             RuntimeWarning,
             stacklevel=3,
         )
+
+
+def prepare_inputs(model, theta0, Omega0, ts, rtol, atol):
+    """Checked initial state and sample times in the solve's precision, and the flag of a bad
+    input.
+
+    The state takes the precision of the model too: float32 initial values with a float64 model
+    (the default) are integrated in float64. Infinite parameters are legitimate
+    (``BarrierFoundation(alpha=inf)`` switches a barrier off), NaN ones never are: with a
+    non-finite initial state or a NaN parameter the state is replaced by zeros, so that the solve
+    runs harmlessly, and the result is flagged ``nonfinite_input``. Returns
+    ``(theta0, Omega0, ts, dtype, bad_input)``.
+    """
+    theta0 = _as_vector(theta0, "theta0")
+    Omega0 = _as_vector(Omega0, "Omega0")
+    ts = check_times(ts)
+    params = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_inexact_array))
+    dtype = _common_float_dtype(theta0, Omega0, ts, *params)
+    theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
+    warn_if_float32(dtype, rtol, atol)
+    bad_input = ~all_finite((theta0, Omega0)) | any_nan(eqx.filter(model, eqx.is_inexact_array))
+    zeros = jnp.zeros_like(theta0)
+    return (jnp.where(bad_input, zeros, theta0), jnp.where(bad_input, zeros, Omega0), ts, dtype,
+            bad_input)
+
+
+def finish(model, ts, theta, Omega, status, bad_input, num_steps, throw) -> Trajectory:
+    """The :class:`Trajectory` of a solve: samples of a non-finite input are ``inf`` (none of
+    them is a result), and with ``throw`` a failure raises its status message."""
+    status = SolveStatus.where(bad_input, SolveStatus.nonfinite_input, status)
+    theta = jnp.where(bad_input, jnp.inf, theta)
+    Omega = jnp.where(bad_input, jnp.inf, Omega)
+    if throw:
+        theta = status.error_if(theta, status != SolveStatus.successful)
+    return Trajectory(ts=ts, theta=theta, Omega=Omega, model=model, status=status,
+                      num_steps=num_steps)

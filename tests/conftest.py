@@ -1,4 +1,5 @@
-"""Strict test configuration (cf. diffrax ``test/conftest.py``): float64 and no rank promotion."""
+"""Strict test configuration (cf. diffrax ``test/conftest.py``): float64, no rank promotion and
+strict dtype promotion (no implicit int -> float or float32 -> float64 mixing)."""
 
 import os
 
@@ -8,6 +9,7 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 import hypothesis  # noqa: E402
 

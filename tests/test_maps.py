@@ -299,3 +299,32 @@ def test_million_point_map_bounded_memory():
         np.testing.assert_allclose(ds["theta_eq"].values[i, j], (M / 2.0) * KN, atol=1e-12)
     flutter = STABILITY_KIND_NAMES.index("flutter")
     assert np.all(ds["kind"].values == flutter)  # no M = 0 on this axis: every point flutters
+
+
+def test_equilibrium_stability_is_the_map_point_4_61_4_69():
+    """rbo_jax.equilibrium_stability, the one place of equilibrium (4.61) -> spectrum (4.69) ->
+    classification: the closed-form equilibrium (4.62) and Newton give the same point and the
+    roots of (4.69); a failed equilibrium gives NaN and its status, not an exception."""
+    M, c, d = 0.4, 1.2, 2.0
+    model = rbo.nikolai_model(M, c, d, A3=0.7)
+    closed = rbo.equilibrium_stability(model, theta_eq=rbo.nikolai_equilibrium(M, d))
+    newton = rbo.equilibrium_stability(model, jnp.zeros(3))
+    for r in (closed, newton):
+        assert bool(r.ok)
+        np.testing.assert_allclose(r.theta, [0.0, 0.0, M / d], atol=1e-12)
+        assert spectrum_match_error(r.eigenvalues, rbo.nikolai_spectrum(1.0, 0.7, c, d, M)) < 1e-10
+        assert rbo.StabilityKind[r.kind] == rbo.StabilityKind[rbo.StabilityKind.flutter]
+    bad = rbo.equilibrium_stability(model, theta_eq=jnp.array([jnp.nan, 0.0, 0.0]))
+    assert not bool(bad.ok) and bool(jnp.all(jnp.isnan(bad.eigenvalues)))
+    assert rbo.StabilityKind[bad.kind] == rbo.StabilityKind[rbo.StabilityKind.undefined]
+
+
+def test_critical_value_scans_then_bisects():
+    """rbo_jax.maps.critical_value: the first change of a monotone flag to 1e-12, inf when the
+    flag never turns, the lower end when it is already on."""
+    from rbo_jax.maps import critical_value
+
+    x = float(critical_value(lambda v: v > 0.3141592653, 0.0, 1.0, n_scan=8, n_bisect=48))
+    assert abs(x - 0.3141592653) < 1e-12
+    assert float(critical_value(lambda v: v > 2.0, 0.0, 1.0)) == np.inf
+    assert abs(float(critical_value(lambda v: v > -1.0, 0.0, 1.0, n_scan=4)) - 0.0) < 1e-12

@@ -15,8 +15,9 @@ from typing import Any
 
 import jax.numpy as jnp
 
+from ..maps import equilibrium_stability
 from ..simulate import simulate
-from ..stability import equilibrium_stability, solve_equilibrium
+from ..stability import solve_equilibrium
 from ._reader import Ref
 from .spec import ModelSpec
 

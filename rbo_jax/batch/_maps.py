@@ -12,19 +12,15 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Mapping
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _enumeration as enum
 from ..kinematics import _as_vector
+from ..maps import STABILITY_KIND_NAMES, critical_value, equilibrium_stability, is_unstable
 from ..model import RigidBodyOscillator
-from ..stability import StabilityKind, equilibrium_stability
 from ._engine import sweep
 
 __all__ = ["stability_map", "critical_load", "STABILITY_KIND_NAMES"]
-
-STABILITY_KIND_NAMES = enum.names(StabilityKind)
 
 
 def _items(kwargs: dict) -> tuple:
@@ -151,29 +147,13 @@ def stability_map(
 @functools.lru_cache(maxsize=32)
 def _critical_quantity(model_fn, theta_eq_fn, guess, rtol, eq_items, load, load_min, load_max,
                        n_scan, n_bisect):
-    unstable_kinds = (enum.code(StabilityKind.flutter), enum.code(StabilityKind.divergence))
-
-    def unstable(point, value):
-        r = _point_stability(model_fn, theta_eq_fn, guess, rtol, True, eq_items,
-                             {**point, load: value})
-        code = enum.code(r.kind)
-        return (code == unstable_kinds[0]) | (code == unstable_kinds[1])
-
     def critical(**point):
-        scan = jnp.linspace(load_min, load_max, n_scan + 1)[1:]
-        flags = jax.vmap(lambda v: unstable(point, v))(scan)
-        i = jnp.argmax(flags)
-        hi = scan[i]
-        lo = jnp.where(i > 0, scan[jnp.maximum(i - 1, 0)], load_min)
+        def unstable(value):
+            return is_unstable(_point_stability(model_fn, theta_eq_fn, guess, rtol, True,
+                                                eq_items, {**point, load: value}))
 
-        def body(_, bounds):
-            lo, hi = bounds
-            mid = 0.5 * (lo + hi)
-            u = unstable(point, mid)
-            return jnp.where(u, lo, mid), jnp.where(u, mid, hi)
-
-        lo, hi = jax.lax.fori_loop(0, n_bisect, body, (lo, hi))
-        return {"critical": jnp.where(jnp.any(flags), hi, jnp.inf)}
+        return {"critical": critical_value(unstable, load_min, load_max, n_scan=n_scan,
+                                           n_bisect=n_bisect)}
 
     return critical
 

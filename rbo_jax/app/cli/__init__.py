@@ -21,10 +21,11 @@ import sys
 import rbo_jax  # noqa: F401  (enables float64 before any array is made)
 
 from ._common import Failure
-from ._fit import add_fit
-from ._map import add_stability_map
-from ._misc import add_misc
-from ._simulate import add_simulate
+from ._fit import fit_command
+from ._map import stability_map_command
+from ._misc import demo, reproduce_command, sweep_command
+from ._options import add_command
+from ._simulate import simulate_command
 
 __all__ = ["main", "build_parser"]
 
@@ -37,10 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
         "model.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    add_misc(sub)
-    add_simulate(sub)
-    add_stability_map(sub)
-    add_fit(sub)
+    for name, func in [("demo", demo), ("reproduce", reproduce_command),
+                       ("sweep", sweep_command), ("simulate", simulate_command),
+                       ("stability-map", stability_map_command), ("fit", fit_command)]:
+        add_command(sub, name, func)
     return parser
 
 

@@ -1,20 +1,14 @@
-"""What the ``rbo-jax`` commands share: option parsing, the model options (turned into a
-:class:`~rbo_jax.app.spec.ModelSpec`), exit statuses and small printing helpers."""
+"""What the ``rbo-jax`` commands share: option types, the model options turned into a
+:class:`~rbo_jax.app.spec.ModelSpec`, exit statuses and small printing helpers. The options
+themselves are data: ``options.toml``."""
 
 from __future__ import annotations
 
 import argparse
-import textwrap
 
 from .._io import suffix
 from .._reader import SpecError
 from ..spec import ModelSpec
-
-FORMATTER = argparse.RawDescriptionHelpFormatter  # the epilogs are laid out by hand
-UNITS = ("Units: any consistent set, e.g. inertia kg m^2, stiffnesses N m/rad, moments N m, "
-         "friction N m s, time s, angles rad.")
-NEGATIVE = ("Write a value starting with a minus sign as --opt=-0.3,1,0 (with '='), so that it "
-            "is not read as an option.")
 
 
 class Failure(Exception):
@@ -24,11 +18,6 @@ class Failure(Exception):
     def __init__(self, message: str, code: int = 2):
         super().__init__(message)
         self.code = code
-
-
-def wrap(text: str) -> str:
-    """A description paragraph wrapped to 88 columns (the raw formatter keeps it as is)."""
-    return textwrap.fill(text, width=88)
 
 
 def floats(text: str) -> tuple[float, ...]:
@@ -114,49 +103,6 @@ def pyplot_or_fail(command: str):
 # ---------------------------------------------------------------------------------------------
 # The model options of simulate and fit
 # ---------------------------------------------------------------------------------------------
-
-
-def add_model_options(p: argparse.ArgumentParser, role: str) -> None:
-    """The model options of ``simulate`` and ``fit``; ``role`` says what the values are."""
-    g = p.add_argument_group("model", wrap(
-        f"The rigid body oscillator (4.55)-(4.56) with symmetry axis k; {role}"))
-    g.add_argument("--A1", type=float, default=None, metavar="A1",
-                   help="transverse principal moment of inertia A1 = A2 > 0 of the transversely "
-                   "isotropic inertia tensor A = A1 (E - k k) + A3 k k, eq. (4.40) (default 1)")
-    g.add_argument("--A3", type=float, default=None, metavar="A3",
-                   help="axial principal moment of inertia A3 > 0 about k, eq. (4.40) "
-                   "(default 0.6)")
-    g.add_argument("--principal", type=floats, default=None, metavar="A1,A2,A3",
-                   help="instead of --A1/--A3: three principal moments of inertia (all > 0) "
-                   "about the reference basis vectors e1, e2, e3, A = sum A_i e_i e_i, eq. (4.39)")
-    g.add_argument("--axis", type=floats, default=(0.0, 0.0, 1.0), metavar="X,Y,Z",
-                   help="the axis k (normalised) of the foundation, the moments and the "
-                   "inertia (4.40) (default 0,0,1)")
-    g.add_argument("--foundation", choices=("quadratic", "barrier"), default="quadratic",
-                   help="elastic foundation: 'quadratic' U = c/2 (theta^2 - (k.theta)^2) + "
-                   "d/2 (k.theta)^2, eq. (4.50); 'barrier' the energy (4.49) with barriers "
-                   "alpha, beta (default quadratic)")
-    g.add_argument("--c", type=float, default=1.0,
-                   help="bending stiffness c > 0 of (4.49)/(4.50) (default 1)")
-    g.add_argument("--d", type=float, default=2.0,
-                   help="torsional stiffness d > 0 of (4.49)/(4.50) (default 2)")
-    g.add_argument("--alpha", type=float, default=None,
-                   help="bending barrier alpha > 0 (rad) of (4.49): the domain is "
-                   "|theta - (k.theta)k| < alpha; 'inf' switches it off (required by "
-                   "--foundation barrier)")
-    g.add_argument("--beta", type=float, default=None,
-                   help="torsion barrier beta > 0 (rad) of (4.49): |k.theta| < beta; 'inf' "
-                   "switches it off (required by --foundation barrier)")
-    g = p.add_argument_group("loads", "External moments; any combination, they add up.")
-    g.add_argument("--follower", type=float, default=None, metavar="M",
-                   help="follower moment M_ex = M P.k turning with the body, eq. (4.57) (the "
-                   "Nikolai problem; non-conservative) (default: none)")
-    g.add_argument("--dead", type=float, default=None, metavar="M",
-                   help="dead moment M_ex = M k of fixed direction, eq. (4.75) with l1 = 1, "
-                   "l2 = 0 (default: none)")
-    g.add_argument("--friction", type=float, default=None, metavar="b",
-                   help="viscous friction M_ex = -b omega, b >= 0, omega the left angular "
-                   "velocity, eq. (4.84) (default: none)")
 
 
 _LOAD_OPTIONS = (("follower", "M"), ("dead", "M"), ("friction", "b"))

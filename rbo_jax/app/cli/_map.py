@@ -6,17 +6,7 @@ import argparse
 import time
 
 from .._io import DATASET_SUFFIXES, netcdf_engine, write_dataset
-from ._common import (
-    FORMATTER,
-    NEGATIVE,
-    UNITS,
-    Failure,
-    check_suffix,
-    grid,
-    model_spec,
-    pyplot_or_fail,
-    wrap,
-)
+from ._common import Failure, check_suffix, model_spec, pyplot_or_fail
 
 AXES = ("M", "c", "d", "A3")
 K = (0.0, 0.0, 1.0)
@@ -143,63 +133,3 @@ def stability_map_command(args: argparse.Namespace) -> int:
     if plt is not None:
         _figure(plt, ds, args, axes, ranged)
     return 0
-
-
-def add_stability_map(sub) -> None:
-    p = sub.add_parser(
-        "stability-map", formatter_class=FORMATTER,
-        help="Stability map of the Nikolai problem over a grid of M, c, d, A3.",
-        description=wrap(
-            "The Nikolai problem (4.57)-(4.62): a transversely isotropic body (4.40) on the "
-            "quadratic foundation (4.50) under a follower moment M k turning with the body "
-            "(4.57) has the equilibrium theta = (M/d) k (4.62). Its linearization (4.63)-(4.67) "
-            "has the roots (4.69): bending (A1 p^2 + K)^2 + M^2/4 = 0 and torsion A3 p^2 + d = "
-            "0; every M != 0 gives a root with Re p > 0 (flutter). This command evaluates the 6 "
-            "eigenvalues at every point of the grid of --M, --c, --d, --A3 (each a single value, "
-            "a list or a range start:stop:num) with rbo_jax.stability_map (a sweep of "
-            "rbo_jax.equilibrium_stability in compiled chunks), classifies them "
-            "(asymptotically_stable, marginally_stable, divergence, flutter, undefined), and "
-            "prints the counts, the range of the spectral abscissa max Re p and, without "
-            "friction, its largest deviation from the closed form (4.69). " + UNITS),
-        epilog="examples:\n"
-        "  rbo-jax stability-map --M=-0.8:0.8:41 --c 0.2:2:37 --plot map.png --out map.nc\n"
-        "  rbo-jax stability-map --M 0:1:101 --A3 0.2:2:50 --c 1 --friction 0.05\n\n"
-        "output formats (--out, by suffix): the xarray Dataset of rbo_jax.stability_map\n"
-        "(eigenvalues, spectral_abscissa, kind, equilibrium_status, theta_eq over the ranged\n"
-        "axes; fixed axes as scalar coordinates)\n"
-        "  .nc    netCDF, if netCDF4, h5netcdf or scipy is installed; eigenvalues split into\n"
-        "         eigenvalues_real / eigenvalues_imag (netCDF has no complex type)\n"
-        "  .zarr  a zarr v3 store (zarr is installed with rbo_jax on Python >= 3.11)\n\n"
-        + wrap(NEGATIVE),
-    )
-    g = p.add_argument_group("grid", wrap(
-        "Each of these is a value (0.5), a list (0.1,0.2,0.5) or an inclusive range "
-        "start:stop:num (numpy.linspace); the grid is their Cartesian product."))
-    g.add_argument("--M", type=grid, default=grid("-0.8:0.8:41"), metavar="SPEC",
-                   help="follower moment M of (4.57) (default -0.8:0.8:41)")
-    g.add_argument("--c", type=grid, default=grid("0.2:2:37"), metavar="SPEC",
-                   help="bending stiffness c > 0 of (4.50) (default 0.2:2:37)")
-    g.add_argument("--d", type=grid, default=grid("1"), metavar="SPEC",
-                   help="torsional stiffness d > 0 of (4.50) (default 1)")
-    g.add_argument("--A3", type=grid, default=grid("0.6"), metavar="SPEC",
-                   help="axial moment of inertia A3 > 0 of (4.40) (default 0.6)")
-    g = p.add_argument_group("fixed parameters and output")
-    g.add_argument("--A1", type=float, default=1.0,
-                   help="transverse moment of inertia A1 > 0 of (4.40) (default 1)")
-    g.add_argument("--friction", type=float, default=None, metavar="b",
-                   help="add viscous friction -b omega, b >= 0, eq. (4.84) (the equilibrium is "
-                   "unchanged; the closed form (4.69) does not apply then) (default: none)")
-    g.add_argument("--rtol", type=float, default=1e-9,
-                   help="classification tolerance, relative to max|p|: real parts within "
-                   "+-rtol max|p| count as zero (default 1e-9)")
-    g.add_argument("--chunk-size", type=int, default=16_384,
-                   help="grid points per compiled call; memory grows with it (default 16384)")
-    g.add_argument("--out", default=None, metavar="FILE",
-                   help="write the map: FILE.nc or FILE.zarr (formats below)")
-    g.add_argument("--plot", default=None, metavar="FILE",
-                   help="draw max Re p over the first two ranged axes (in the order M, c, d, "
-                   "A3; further ranged axes at their middle value) with the stability boundary "
-                   "into FILE.png/.pdf/.svg (needs matplotlib: pip install 'rbo_jax[plot]')")
-    g.add_argument("--progress", action="store_true",
-                   help="show a progress bar over the grid points (tqdm)")
-    p.set_defaults(func=stability_map_command)

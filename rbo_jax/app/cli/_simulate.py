@@ -6,19 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import (
-    FORMATTER,
-    NEGATIVE,
-    UNITS,
-    Failure,
-    add_model_options,
-    check_suffix,
-    check_vector,
-    floats,
-    spec_from_args,
-    table,
-    wrap,
-)
+from ._common import Failure, check_suffix, check_vector, spec_from_args, table
 
 OUT_SUFFIXES = (".nc", ".zarr", ".csv")
 
@@ -119,62 +107,3 @@ def simulate_command(args: argparse.Namespace) -> int:
         where = f" after t = {last:g} (later samples are inf)" if last is not None else ""
         raise Failure(f"the solver stopped{where}: {traj.message}", code=1)
     return 0
-
-
-def add_simulate(sub) -> None:
-    p = sub.add_parser(
-        "simulate", formatter_class=FORMATTER,
-        help="Simulate one oscillator and print t, |theta|, theta, energy K + U and its drift.",
-        description=wrap(
-            "Integrate the rigid body oscillator (right form (4.55)-(4.56), Dopri8 with adaptive "
-            "steps) from (theta0, Omega0) and print a table of the turn-vector theta, the "
-            "energy K + U (4.124) and its drift relative to E(0), then a summary line (solver "
-            "steps, status, max |energy drift|, wall time). Without friction and external "
-            "moments K + U is conserved, so the drift measures the accuracy; follower/dead "
-            "moments and friction change it physically. Exit status 1 when the solver stops "
-            "early (a singular point |theta| = 2 pi of Z (4.11), a barrier of (4.49) crossed, "
-            "the step budget, a step-size collapse), with the reason; 2 for invalid options or "
-            "parameters. " + UNITS),
-        epilog="examples:\n"
-        "  rbo-jax simulate --foundation barrier --c 1 --d 2 --alpha 2 --beta 1.5 \\\n"
-        "      --theta0 0.8,-0.3,0.5 --Omega0 0.2,1.1,-0.7 --t1 20 --out run.nc\n"
-        "  rbo-jax simulate --follower 0.4 --about-equilibrium --theta0 1e-6,0,0 --t1 60\n\n"
-        + wrap(NEGATIVE),
-    )
-    add_model_options(p, "its parameters.")
-    g = p.add_argument_group("initial state and solver")
-    g.add_argument("--theta0", type=floats, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
-                   help="initial turn-vector theta0 (rad; |theta0| is the turn angle about the "
-                   "axis theta0/|theta0|, eq. (4.3)) (default 0,0,0)")
-    g.add_argument("--Omega0", type=floats, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
-                   help="initial right (body-frame) angular velocity Omega0 (rad/s), "
-                   "omega = P.Omega (default 0,0,0)")
-    g.add_argument("--about-equilibrium", action="store_true",
-                   help="start at theta_eq + theta0, theta_eq the equilibrium (zero moment at "
-                   "rest, (4.61)) found by Newton from 0; under a follower moment with the "
-                   "quadratic foundation theta_eq = (M/d) k, eq. (4.62)")
-    g.add_argument("--t1", type=float, default=10.0,
-                   help="final time; the solve runs from t = 0 (default 10)")
-    g.add_argument("--samples", type=int, default=11,
-                   help="number of equally spaced output times in [0, t1], both ends included "
-                   "(default 11)")
-    g.add_argument("--max-rows", type=int, default=101,
-                   help="print at most this many of the samples, evenly spread (0: only the "
-                   "summary; --out always gets all) (default 101)")
-    g.add_argument("--rtol", type=float, default=1e-10,
-                   help="relative tolerance of the step-size controller (default 1e-10)")
-    g.add_argument("--atol", type=float, default=1e-10,
-                   help="absolute tolerance of the step-size controller (default 1e-10)")
-    g.add_argument("--max-steps", type=int, default=100_000,
-                   help="solver step budget; exhausting it stops the solve with exit status 1 "
-                   "(default 100000)")
-    g.add_argument("--out", default=None, metavar="FILE",
-                   help="write the whole trajectory: FILE.nc (netCDF) or FILE.zarr, the xarray "
-                   "Dataset of Trajectory.to_xarray() (variables theta, Omega, omega, energy, "
-                   "reached over t and component; attributes status, message, num_steps, "
-                   "model), or FILE.csv (columns t, theta_x..z, Omega_x..z, energy); written also "
-                   "when the solver fails (later samples are inf). FILE.nc and FILE.zarr are "
-                   "valid input of 'rbo-jax fit --data'")
-    g.add_argument("--progress", action="store_true",
-                   help="show a progress bar of the solve (tqdm)")
-    p.set_defaults(func=simulate_command)

@@ -61,7 +61,7 @@ def _write_report(out, checks, elapsed, quick, figures):
         "# rbo_jax: reproduction of the paper",
         "",
         "P. A. Zhilin, *Rigid body oscillator: a general model and some results*; equation numbers "
-        "refer to its section 4 (with the project's ERRATA).",
+        "refer to its section 4, read as docs/readings.md of the rbo_jax repository says.",
         "",
         f"{sum(c.passed for c in checks)} of {len(checks)} checks passed in {elapsed:.1f} s"
         + (" (quick mode)" if quick else "") + ".",

@@ -64,7 +64,7 @@ def kinematics(n: int) -> list[Check]:
         ("(4.13)", "Zᵀ = Q·Z = Z·Q", "0"),
         ("(4.12)", "Z(S·θ) = S·Z·Sᵀ", "0"),
         ("(4.9), (4.19)", "dQ/dt = ω×Q, ω = Z⁻¹·θ̇", "0"),
-        ("(4.6), (4.7) ERRATA 1-2", "composition invariants vs Q(φ)·Q(ψ)", "matrix product"),
+        ("(4.6), (4.7) readings R1-R2", "composition invariants vs Q(φ)·Q(ψ)", "matrix product"),
     ]
     return [
         Check(f"4.2 {eq}", f"{quantity} ({n} random points, max error)", paper, fmt(float(e)),

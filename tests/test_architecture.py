@@ -1,0 +1,134 @@
+"""The shape of the package (DESIGN.md, STYLE.md): layers whose imports point downwards only,
+modules of one concept (under ~600 lines), functions under ~80 lines, a package root that only
+re-exports, and the equinox enumeration internals read in one place only."""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+
+import pytest
+
+PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "rbo_jax"
+
+# Bottom to top. A module may import from its own layer's package folder and from lower layers.
+LAYERS = [
+    ("_custom_types",),
+    ("_precision", "_enumeration"),
+    ("_validation",),
+    ("kinematics",),
+    ("inertia", "analytic"),
+    ("foundations",),
+    ("loads",),
+    ("model",),
+    ("problems",),
+    ("trajectory",),
+    ("simulate", "ensemble"),
+    ("stability", "precession"),
+    ("maps",),
+    ("fitting", "bifurcation"),
+    ("batch",),
+    ("plotting",),
+    ("app",),
+]
+LAYER = {name: i for i, names in enumerate(LAYERS) for name in names}
+ROOT = "<rbo_jax>"  # the package root re-exports every layer: only the top layer imports it
+LAYER[ROOT] = len(LAYERS) - 2
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 80
+
+
+def _modules():
+    return sorted(p for p in PACKAGE.rglob("*.py") if p.name != "__init__.py" or
+                  p.parent != PACKAGE)
+
+
+def _top(path: pathlib.Path) -> str:
+    """The top-level unit of rbo_jax a file belongs to (module or package folder)."""
+    rel = path.relative_to(PACKAGE).parts
+    return rel[0][:-3] if rel[0].endswith(".py") else rel[0]
+
+
+def _is_unit(name: str) -> bool:
+    return (PACKAGE / f"{name}.py").exists() or (PACKAGE / name / "__init__.py").exists()
+
+
+def _imported_units(path: pathlib.Path) -> set[str]:
+    tree = ast.parse(path.read_text())
+    depth = len(path.relative_to(PACKAGE).parts) - 1  # folders below rbo_jax
+    units = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level == 0:
+                parts = (node.module or "").split(".")
+                if parts[0] == "rbo_jax" and len(parts) > 1:
+                    units.add(parts[1])
+                elif parts[0] == "rbo_jax":
+                    units.add(ROOT)
+                continue
+            if node.level <= depth:  # inside the same package folder
+                continue
+            target = (node.module or "").split(".")[0]
+            if target:
+                units.add(target)
+            else:  # `from .. import name`: a module of the package, or a re-export of the root
+                units.update(a.name if _is_unit(a.name) else ROOT for a in node.names)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                parts = a.name.split(".")
+                if parts[0] == "rbo_jax" and len(parts) > 1:
+                    units.add(parts[1])
+    return units
+
+
+def test_every_unit_has_a_layer():
+    units = {_top(p) for p in PACKAGE.rglob("*.py") if p != PACKAGE / "__init__.py"}
+    assert units <= set(LAYER), f"place {sorted(units - set(LAYER))} in LAYERS"
+    assert _top(PACKAGE / "app" / "cli" / "_fit.py") == "app"
+
+
+@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_imports_point_downwards(path):
+    me = _top(path)
+    for unit in _imported_units(path):
+        if unit == me or unit == "__version__":
+            continue
+        assert unit in LAYER, (path, unit)
+        assert LAYER[unit] < LAYER[me], (
+            f"{path.relative_to(PACKAGE)} (layer {LAYER[me]}, {me}) imports {unit} "
+            f"(layer {LAYER[unit]}): imports must point downwards")
+
+
+@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_modules_and_functions_are_small(path):
+    text = path.read_text()
+    assert len(text.splitlines()) <= MAX_MODULE_LINES, path
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            length = node.end_lineno - node.lineno + 1
+            doc = node.body[0]
+            if isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant):
+                length -= doc.end_lineno - doc.lineno + 1  # the code, not its documentation
+            assert length <= MAX_FUNCTION_LINES, f"{path.name}:{node.lineno} {node.name} is " \
+                                                 f"{length} lines"
+
+
+def test_the_package_root_only_re_exports():
+    tree = ast.parse((PACKAGE / "__init__.py").read_text())
+    for node in tree.body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            continue
+        if isinstance(node, ast.Expr) and isinstance(node.value, (ast.Constant, ast.Call)):
+            continue  # the docstring, and the call that enables float64
+        if isinstance(node, ast.Assign) and [t.id for t in node.targets] == ["__version__"]:
+            continue
+        raise AssertionError(f"rbo_jax/__init__.py line {node.lineno}: only re-exports belong here")
+
+
+def test_enumeration_internals_are_read_in_one_module():
+    for path in PACKAGE.rglob("*.py"):
+        if path.name == "_enumeration.py":
+            continue
+        text = path.read_text()
+        for internal in ("_name_to_item", "._value", "._enumeration"):
+            assert internal not in text, f"{path.relative_to(PACKAGE)} reads {internal}"
