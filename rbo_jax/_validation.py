@@ -1,8 +1,14 @@
 """Validation of user parameters, shared by foundations, loads, inertia and model descriptions.
 
-Concrete (Python/NumPy) values are checked eagerly and raise ``ValueError`` naming the parameter;
-traced values (objects built inside ``jax.vmap``/``jax.jit``/``jax.grad``) are checked with
-:func:`equinox.error_if`, which raises when the computation runs.
+Concrete (Python/NumPy) values are checked eagerly and raise ``ValueError`` naming the parameter.
+Traced values (objects built inside ``jax.vmap``/``jax.jit``/``jax.grad``) cannot be checked at
+construction; they are checked by the computations that use the model, with the same
+requirements: every parametrised class lists them (``_requirements``) and answers
+``parameter_checks()`` with ``(valid, message)`` pairs, and
+:meth:`rbo_jax.RigidBodyOscillator.parameter_status` gathers them. A solver called with
+``throw=True`` then raises the message (:func:`equinox.branched_error_if`); with ``throw=False``
+the point gets the status ``invalid_parameters`` and NaN results, and the rest of a batch
+completes.
 
 The requirements themselves (:data:`POSITIVE`, :data:`NONNEGATIVE`, ...) are named objects, so
 that the constructors and the application's model descriptions (:mod:`rbo_jax.app.spec`) check
@@ -60,11 +66,11 @@ def _is_traced(x) -> bool:
 def _check(x, valid, message: str):
     """Validate ``x`` (an array) given ``valid`` (a boolean array computed from it).
 
-    Concrete values raise ``ValueError(message)`` now; traced values are wrapped in
-    :func:`equinox.error_if`, which raises when the computation runs.
+    Concrete values raise ``ValueError(message)`` now; traced values are returned unchanged, to
+    be checked by the computations that use them (module docstring).
     """
     if _is_traced(valid):
-        return eqx.error_if(x, jnp.logical_not(jnp.all(valid)), message)
+        return x
     if not bool(np.all(np.asarray(valid))):
         raise ValueError(f"{message}, got {np.asarray(x).tolist()!r}")
     return x
@@ -101,6 +107,32 @@ def _scalar_parameter(
     detail = f" ({meaning})" if meaning else ""
     return _check(x, requirement.holds(x), f"{owner}: the parameter {name} must be "
                                            f"{requirement.text}{detail}")
+
+
+def set_parameters(module, **values) -> None:
+    """Set the scalar fields of ``module`` listed in its ``_requirements`` from ``values``,
+    coerced to float scalars and checked (concrete values now, traced ones later)."""
+    owner = type(module).__name__
+    table = {name: (requirement, meaning) for name, requirement, meaning in module._requirements}
+    for name, value in values.items():
+        requirement, meaning = table[name]
+        setattr(module, name, _scalar_parameter(value, name, owner, meaning, requirement))
+
+
+def requirement_checks(module) -> list:
+    """``(valid, message)`` for every ``(field, requirement, meaning)`` of the class attribute
+    ``_requirements`` of ``module``, and for its unit axis ``k`` if it has one."""
+    owner = type(module).__name__
+    out = []
+    for name, requirement, meaning in getattr(module, "_requirements", ()):
+        detail = f" ({meaning})" if meaning else ""
+        out.append((jnp.all(requirement.holds(getattr(module, name))),
+                    f"{owner}: the parameter {name} must be {requirement.text}{detail}"))
+    k = getattr(module, "k", None)
+    if isinstance(k, jax.Array) and k.shape == (3,):
+        out.append((jnp.all(jnp.isfinite(k)),
+                    f"{owner}: the axis k must be a nonzero finite vector"))
+    return out
 
 
 def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:

@@ -37,8 +37,9 @@ from ._validation import (
     POSITIVE,
     POSITIVE_OR_INF,
     _callable_leaf,
-    _scalar_parameter,
     _unit_axis,
+    requirement_checks,
+    set_parameters,
 )
 from .kinematics import Turn, _as_vector, dot3
 
@@ -114,6 +115,11 @@ class AbstractFoundation(eqx.Module):
             f"{type(self).__name__}. Wrap the energy as a TransverselyIsotropicFoundation(F, k)."
         )
 
+    def parameter_checks(self) -> list:
+        """``(valid, message)`` pairs of the parameters (traced values are checked by the solvers,
+        see :meth:`rbo_jax.RigidBodyOscillator.parameter_status`)."""
+        return requirement_checks(self)
+
     def symmetry_axis(self) -> Vector | None:
         """The axis $k$ about which the energy is invariant (4.24), or ``None``: for a general
         foundation, and for an isotropic one, which is symmetric about every axis (see
@@ -183,11 +189,12 @@ class QuadraticFoundation(AbstractTransverselyIsotropicFoundation):
 
     domain_description: ClassVar[str] = "nothing (it is defined everywhere)"
 
+    _requirements: ClassVar = (("c", POSITIVE, "bending stiffness"),
+                               ("d", POSITIVE, "torsional stiffness"))
+
     def __init__(self, c: ScalarLike, d: ScalarLike, k: VectorLike):
-        name = type(self).__name__
-        self.c = _scalar_parameter(c, "c", name, "bending stiffness", POSITIVE)
-        self.d = _scalar_parameter(d, "d", name, "torsional stiffness", POSITIVE)
-        self.k = _unit_axis(k, name)
+        set_parameters(self, c=c, d=d)
+        self.k = _unit_axis(k, type(self).__name__)
 
     def energy(self, theta: VectorLike) -> Scalar:
         """U of eq. (4.50)."""
@@ -238,6 +245,11 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
         "(torsion barrier), eq. (4.49)"
     )
 
+    _requirements: ClassVar = (
+        ("c", POSITIVE, "bending stiffness"), ("d", POSITIVE, "torsional stiffness"),
+        ("alpha", POSITIVE_OR_INF, "bending barrier; inf switches it off"),
+        ("beta", POSITIVE_OR_INF, "torsion barrier; inf switches it off"))
+
     def __init__(
         self,
         c: ScalarLike,
@@ -246,16 +258,8 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
         beta: ScalarLike,
         k: VectorLike,
     ):
-        name = type(self).__name__
-        self.c = _scalar_parameter(c, "c", name, "bending stiffness", POSITIVE)
-        self.d = _scalar_parameter(d, "d", name, "torsional stiffness", POSITIVE)
-        self.alpha = _scalar_parameter(
-            alpha, "alpha", name, "bending barrier; inf switches it off", POSITIVE_OR_INF
-        )
-        self.beta = _scalar_parameter(
-            beta, "beta", name, "torsion barrier; inf switches it off", POSITIVE_OR_INF
-        )
-        self.k = _unit_axis(k, name)
+        set_parameters(self, c=c, d=d, alpha=alpha, beta=beta)
+        self.k = _unit_axis(k, type(self).__name__)
 
     def _reduced(self, theta):
         """x = k·θ, θ² and the barrier factors 1 − θ_⊥²/α², 1 − x²/β²."""
@@ -415,6 +419,9 @@ class SumFoundation(AbstractFoundation):
     @property
     def isotropic(self) -> bool:
         return all(f.isotropic for f in self.terms)
+
+    def parameter_checks(self) -> list:
+        return [c for f in self.terms for c in f.parameter_checks()]
 
     def _axes(self):
         """The axes of the non-isotropic terms, or None if a term has no symmetry axis."""

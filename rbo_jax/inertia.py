@@ -3,13 +3,12 @@ r"""The inertia tensor $A$ of the body about its fixed point, eqs. (4.39)–(4.4
 $A$ is stored as a ``(3, 3)`` matrix in the reference (body) basis. The model accepts any
 symmetric positive definite $A$; these helpers build one from principal moments and axes and
 validate a given one. All are differentiable in their float inputs and accept traced values
-(validation then goes through :func:`equinox.error_if`); concrete bad input raises
+(validation is then done by the solvers that use the model); concrete bad input raises
 ``ValueError`` at once.
 """
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -23,7 +22,7 @@ from ._validation import (
     _unit_axis,
 )
 
-__all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia"]
+__all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia", "inertia_checks"]
 
 # Relative tolerances of the checks (rounding of matrices built from rotated axes is ~1e-16).
 _SYMMETRY_RTOL = 1e-10
@@ -75,38 +74,50 @@ def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
     return axes.T @ (moments[:, None] * axes)
 
 
+def _inertia_properties(A):
+    """finite, symmetric, positive definite (traced-friendly: Sylvester's criterion on the
+    symmetric part, no eigenvalue call), and the asymmetry."""
+    finite = jnp.all(jnp.isfinite(A))
+    scale = jnp.max(jnp.abs(A))
+    asymmetry = jnp.max(jnp.abs(A - A.T))
+    symmetric = asymmetry <= _SYMMETRY_RTOL * scale
+    S = 0.5 * (A + A.T)
+    minor2 = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+    det = (S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1])
+           - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
+           + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]))
+    positive = (S[0, 0] > 0) & (minor2 > 0) & (det > 0)
+    return finite, symmetric, positive, asymmetry
+
+
+def inertia_checks(A) -> list:
+    """``(valid, message)`` pairs of an inertia tensor: finite, symmetric (to a relative 1e-10),
+    positive definite (4.39). Traced values are checked by the solvers through
+    :meth:`rbo_jax.RigidBodyOscillator.parameter_status`."""
+    finite, symmetric, positive, _ = _inertia_properties(A)
+    owner = "check_inertia"
+    return [
+        (finite, f"{owner}: the inertia tensor A must be finite."),
+        (symmetric, f"{owner}: the inertia tensor A must be symmetric (|A - A^T| <= "
+                    f"{_SYMMETRY_RTOL} max|A|)."),
+        (positive, f"{owner}: the inertia tensor A must be positive definite."),
+    ]
+
+
 def check_inertia(A: MatrixLike) -> Matrix:
     r"""``A`` as a float ``(3, 3)`` array, after checking that it is an inertia tensor: finite,
     symmetric (to a relative 1e-10) and positive definite (eq. (4.39): $A_i > 0$).
 
     Concrete input raises ``ValueError`` saying which property fails (for positive
-    definiteness, with the smallest eigenvalue); traced input is checked with
-    :func:`equinox.branched_error_if`. Physical realisability (the triangle inequalities
-    $A_i \le A_j + A_k$) is not required.
+    definiteness, with the smallest eigenvalue); traced input is returned as it is and checked by
+    the solvers that use the model (:func:`inertia_checks`). Physical realisability (the
+    triangle inequalities $A_i \le A_j + A_k$) is not required.
     """
     owner = "check_inertia"
     A = _float_matrix(A, "the inertia tensor A", owner)
-    finite = jnp.all(jnp.isfinite(A))
-    scale = jnp.max(jnp.abs(A))
-    asymmetry = jnp.max(jnp.abs(A - A.T))
-    symmetric = asymmetry <= _SYMMETRY_RTOL * scale
-    # NaN-safe eigenvalues: only evaluated on a finite matrix.
-    A_safe = jnp.where(finite, A, jnp.eye(3, dtype=A.dtype))
-    smallest = jnp.linalg.eigvalsh(0.5 * (A_safe + A_safe.T))[0]
-    positive = smallest > 0
+    finite, symmetric, positive, asymmetry = _inertia_properties(A)
     if any(_is_traced(v) for v in (finite, symmetric, positive)):
-        index = jnp.where(~finite, 0, jnp.where(~symmetric, 1, 2))
-        return eqx.branched_error_if(
-            A,
-            ~(finite & symmetric & positive),
-            index,
-            [
-                f"{owner}: the inertia tensor A must be finite.",
-                f"{owner}: the inertia tensor A must be symmetric (|A - A^T| <= "
-                f"{_SYMMETRY_RTOL} max|A|).",
-                f"{owner}: the inertia tensor A must be positive definite.",
-            ],
-        )
+        return A
     if not bool(finite):
         raise ValueError(f"{owner}: the inertia tensor A must be finite, got {np.asarray(A)!r}.")
     if not bool(symmetric):
@@ -115,8 +126,9 @@ def check_inertia(A: MatrixLike) -> Matrix:
             f"{float(asymmetry):.3g} (relative tolerance {_SYMMETRY_RTOL}); got {np.asarray(A)!r}."
         )
     if not bool(positive):
+        smallest = float(np.linalg.eigvalsh(0.5 * (np.asarray(A) + np.asarray(A).T))[0])
         raise ValueError(
             f"{owner}: the inertia tensor A must be positive definite, but its smallest "
-            f"eigenvalue is {float(smallest):.6g}; got {np.asarray(A)!r}."
+            f"eigenvalue is {smallest:.6g}; got {np.asarray(A)!r}."
         )
     return A

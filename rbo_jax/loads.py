@@ -10,7 +10,7 @@ Every load is an :class:`equinox.Module` with
 
 Parameters are float array leaves (differentiable, sweepable); unit axes ``k`` are normalised
 on construction. Concrete parameters are validated eagerly (``ValueError`` naming the parameter),
-traced ones with :func:`equinox.error_if`, exactly as the foundations
+traced ones by the solvers that use them (``parameter_checks``), exactly as the foundations
 (:mod:`rbo_jax.foundations`).
 """
 
@@ -25,12 +25,14 @@ import jax.numpy as jnp
 
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
 from ._validation import (
+    FINITE,
     NONNEGATIVE,
     _callable_leaf,
     _check,
     _float_dtype,
-    _scalar_parameter,
     _unit_axis,
+    requirement_checks,
+    set_parameters,
 )
 from .foundations import AbstractFoundation, body_potential_moment, potential_moment
 from .kinematics import Turn, _as_vector, dot3
@@ -70,6 +72,11 @@ class AbstractLoad(eqx.Module):
     def potential_energy(self, theta: VectorLike) -> Scalar:
         r"""The potential $V(\theta)$ of the load, eq. (4.52); 0 for non-potential loads."""
 
+    def parameter_checks(self) -> list:
+        """``(valid, message)`` pairs of the parameters (traced values are checked by the solvers,
+        see :meth:`rbo_jax.RigidBodyOscillator.parameter_status`)."""
+        return requirement_checks(self)
+
     def body_moment(self, t: ScalarLike, theta: Vector, Omega: Vector, turn: Turn) -> Vector:
         r"""The moment in the body frame, $P^T\cdot M_{ex}$ (the right-hand side of (4.55)),
         given the right angular velocity $\Omega$ and the turn $P = Q(\theta)$ as a
@@ -89,8 +96,10 @@ class _AbstractAxialMoment(AbstractLoad):
 
     depends_on_velocity: ClassVar[bool] = False
 
+    _requirements: ClassVar = (("M", FINITE, ""),)
+
     def __init__(self, M: ScalarLike, k: VectorLike):
-        self.M = _scalar_parameter(M, "M", type(self).__name__)
+        set_parameters(self, M=M)
         self.k = _unit_axis(k, type(self).__name__)
 
     def potential_energy(self, theta) -> Scalar:
@@ -148,16 +157,22 @@ class SemiTangentialMoment(AbstractLoad):
     l1: Scalar
     l2: Scalar
 
+    _requirements: ClassVar = (("M", FINITE, ""), ("l1", FINITE, "dead part"),
+                               ("l2", FINITE, "follower part"))
+
     def __init__(self, M: ScalarLike, k: VectorLike, l1: ScalarLike = 1.0, l2: ScalarLike = 1.0):
-        name = type(self).__name__
-        self.M = _scalar_parameter(M, "M", name)
-        self.k = _unit_axis(k, name)
-        l1 = _scalar_parameter(l1, "l1", name)
-        l2 = _scalar_parameter(l2, "l2", name)
-        self.l1 = _check(
-            l1, (l1 != 0) | (l2 != 0), f"{name}: the parameters l1 and l2 must not both be zero"
-        )
-        self.l2 = l2
+        set_parameters(self, M=M, l1=l1, l2=l2)
+        self.k = _unit_axis(k, type(self).__name__)
+        self.l1 = _check(self.l1, self._weights_valid(), self._weights_message())
+
+    def _weights_valid(self):
+        return (self.l1 != 0) | (self.l2 != 0)
+
+    def _weights_message(self) -> str:
+        return f"{type(self).__name__}: the parameters l1 and l2 must not both be zero"
+
+    def parameter_checks(self) -> list:
+        return super().parameter_checks() + [(self._weights_valid(), self._weights_message())]
 
     depends_on_velocity: ClassVar[bool] = False
 
@@ -203,8 +218,10 @@ class Friction(AbstractLoad):
 
     depends_on_velocity: ClassVar[bool] = True
 
+    _requirements: ClassVar = (("b", NONNEGATIVE, "friction"),)
+
     def __init__(self, b: ScalarLike):
-        self.b = _scalar_parameter(b, "b", type(self).__name__, "friction", NONNEGATIVE)
+        set_parameters(self, b=b)
 
     def moment(self, t, theta, omega) -> Vector:
         """−b ω, eq. (4.84)."""

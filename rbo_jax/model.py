@@ -26,12 +26,13 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ._custom_types import Matrix, Scalar, Vector
 from .foundations import AbstractFoundation
-from .inertia import check_inertia
+from .inertia import check_inertia, inertia_checks
 from .kinematics import (
     Turn,
     _as_vector,
@@ -178,6 +179,27 @@ class RigidBodyOscillator(eqx.Module):
     # ---------------------------------------------------------------------------------------
     # Moments and vector fields.
     # ---------------------------------------------------------------------------------------
+
+    def parameter_checks(self) -> list:
+        """``(valid, message)`` pairs of every parameter: the inertia (:func:`inertia_checks`),
+        the foundation's and each load's, and no NaN anywhere."""
+        leaves = jax.tree_util.tree_leaves(eqx.filter(self, eqx.is_inexact_array))
+        no_nan = jnp.logical_not(jnp.any(jnp.stack([jnp.any(jnp.isnan(x)) for x in leaves])))
+        checks = [(no_nan, "RigidBodyOscillator: a model parameter is NaN.")]
+        checks += inertia_checks(self.inertia) + self.foundation.parameter_checks()
+        for load in self.loads:
+            checks += load.parameter_checks()
+        return checks
+
+    def parameter_status(self) -> tuple[Bool[Array, ""], Int[Array, ""], tuple[str, ...]]:
+        """``(ok, which, messages)``: whether every parameter is valid, the index of the first
+        failed check and the messages of all checks (static). Solvers use it to refuse a model
+        built from invalid traced values: with ``throw=True`` they raise ``messages[which]``
+        (:func:`equinox.branched_error_if`), with ``throw=False`` they return the status
+        ``invalid_parameters``. Concrete invalid values never get here: the constructors raise."""
+        checks = self.parameter_checks()
+        valid = jnp.stack([jnp.asarray(v, dtype=bool) for v, _ in checks])
+        return jnp.all(valid), jnp.argmin(valid), tuple(m for _, m in checks)
 
     def inertia_inverse(self) -> Matrix:
         """$A^{-1}$ (by cofactors)."""

@@ -171,7 +171,8 @@ def simulate(
         raise TypeError(f"model must be a RigidBodyOscillator, got {type(model).__name__}.")
     if form not in ("right", "left"):
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
-    theta0, Omega0, ts, dtype, bad_input = prepare_inputs(model, theta0, Omega0, ts, rtol, atol)
+    theta0, Omega0, ts, dtype, bad_input, invalid = prepare_inputs(model, theta0, Omega0, ts,
+                                                                   rtol, atol, throw)
     t0 = ts[0] if t0 is None else jnp.asarray(t0, dtype)
     t1 = ts[-1]
     if dtmin is None:
@@ -217,8 +218,8 @@ def simulate(
     )
     status = _status_from_solution(sol, event_names)
     theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
-    return finish(model, ts, theta, Omega, status, bad_input, sol.stats["num_accepted_steps"],
-                  throw)
+    return finish(model, ts, theta, Omega, status, bad_input, invalid,
+                  sol.stats["num_accepted_steps"], throw)
 
 
 # --------------------------------------------------------------------------------------------

@@ -71,6 +71,10 @@ class EquilibriumStatus(eqx.Enumeration):
     )
     domain_error = "The equilibrium search left the domain of the foundation energy (eq. 4.49)."
     nonfinite = "The equilibrium search produced a non-finite turn-vector or moment."
+    invalid_parameters = (
+        "A model parameter is invalid (built from traced values its constructors could not "
+        "check); RigidBodyOscillator.parameter_status() names it."
+    )
 
 
 class EquilibriumSolution(eqx.Module):
@@ -124,6 +128,9 @@ def solve_equilibrium(
     status = S.where(model.domain_margin(theta) > 0, status, S.domain_error)
     status = S.where(distance_to_singularity(theta) > singular_tol, status, S.singular_point)
     status = S.where(jnp.all(jnp.isfinite(theta)) & jnp.isfinite(residual), status, S.nonfinite)
+    ok, _, _ = model.parameter_status()
+    status = S.where(ok, status, S.invalid_parameters)
+    theta = jnp.where(ok, theta, jnp.nan)
     return EquilibriumSolution(theta, status, residual, sol.stats["num_steps"])
 
 
@@ -135,6 +142,9 @@ def equilibrium(model: RigidBodyOscillator, theta_guess, **kwargs) -> Vector:
     For the quadratic foundation (4.50) under a follower moment (4.57) this is
     $\theta_{eq} = (M/d)\,k$ (4.62).
     """
+    ok, which, messages = model.parameter_status()
+    theta_guess = eqx.branched_error_if(_as_vector(theta_guess, "theta_guess"), ~ok, which,
+                                        messages)
     sol = solve_equilibrium(model, theta_guess, **kwargs)
     return sol.status.error_if(sol.theta, ~sol.ok)
 

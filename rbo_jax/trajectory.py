@@ -47,9 +47,19 @@ class SolveStatus(eqx.Enumeration):
         "was crossed)."
     )
     nonfinite_input = (
-        "The initial state (theta0, Omega0) is not finite, or a model parameter is NaN."
+        "The initial state (theta0, Omega0) is not finite (or, in a sweep, a parameter of the "
+        "point)."
     )
     solver_error = "The differential equation solver failed (see diffrax.RESULTS)."
+    invalid_parameters = (
+        "A model parameter is invalid (e.g. a negative stiffness, a non-positive definite "
+        "inertia tensor, a NaN): the model was built from traced values that its constructors "
+        "could not check; RigidBodyOscillator.parameter_status() names the parameter."
+    )
+    nonfinite_state = (
+        "The state or the vector field became non-finite (NaN or inf) during the solve: the "
+        "solution blew up."
+    )
 
 
 class Trajectory(eqx.Module):
@@ -160,11 +170,6 @@ def all_finite(tree):
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
-def any_nan(tree):
-    leaves = [jnp.any(jnp.isnan(x)) for x in jax.tree_util.tree_leaves(tree)]
-    return jnp.any(jnp.stack(leaves)) if leaves else jnp.asarray(False)
-
-
 def transverse_fraction(theta, Omega):
     """|θ×Ω| / (|θ||Ω|): 0 for plane motion, where the singular spheres are harmless."""
     return _safe_norm(jnp.cross(theta, Omega)) / (_safe_norm(theta) * _safe_norm(Omega) + 1e-300)
@@ -206,16 +211,17 @@ def warn_if_float32(dtype, rtol, atol):
         )
 
 
-def prepare_inputs(model, theta0, Omega0, ts, rtol, atol):
-    """Checked initial state and sample times in the solve's precision, and the flag of a bad
+def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw):
+    """Checked initial state and sample times in the solve's precision, and the flags of bad
     input.
 
     The state takes the precision of the model too: float32 initial values with a float64 model
-    (the default) are integrated in float64. Infinite parameters are legitimate
-    (``BarrierFoundation(alpha=inf)`` switches a barrier off), NaN ones never are: with a
-    non-finite initial state or a NaN parameter the state is replaced by zeros, so that the solve
-    runs harmlessly, and the result is flagged ``nonfinite_input``. Returns
-    ``(theta0, Omega0, ts, dtype, bad_input)``.
+    (the default) are integrated in float64. A non-finite initial state (``bad_input``) or
+    invalid parameters (``invalid``: :meth:`RigidBodyOscillator.parameter_status`; with
+    ``throw`` they raise its message here) replace the state by zeros, so that the solve runs
+    harmlessly, and are flagged by :func:`finish`. Infinite parameters can be legitimate
+    (``BarrierFoundation(alpha=inf)`` switches a barrier off), NaN ones never are. Returns
+    ``(theta0, Omega0, ts, dtype, bad_input, invalid)``.
     """
     theta0 = _as_vector(theta0, "theta0")
     Omega0 = _as_vector(Omega0, "Omega0")
@@ -224,18 +230,25 @@ def prepare_inputs(model, theta0, Omega0, ts, rtol, atol):
     dtype = _common_float_dtype(theta0, Omega0, ts, *params)
     theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
     warn_if_float32(dtype, rtol, atol)
-    bad_input = ~all_finite((theta0, Omega0)) | any_nan(eqx.filter(model, eqx.is_inexact_array))
+    ok, which, messages = model.parameter_status()
+    if throw:
+        theta0 = eqx.branched_error_if(theta0, ~ok, which, messages)
+    bad_input = ~all_finite((theta0, Omega0))
     zeros = jnp.zeros_like(theta0)
-    return (jnp.where(bad_input, zeros, theta0), jnp.where(bad_input, zeros, Omega0), ts, dtype,
-            bad_input)
+    stop = bad_input | ~ok
+    return (jnp.where(stop, zeros, theta0), jnp.where(stop, zeros, Omega0), ts, dtype, bad_input,
+            ~ok)
 
 
-def finish(model, ts, theta, Omega, status, bad_input, num_steps, throw) -> Trajectory:
-    """The :class:`Trajectory` of a solve: samples of a non-finite input are ``inf`` (none of
-    them is a result), and with ``throw`` a failure raises its status message."""
+def finish(model, ts, theta, Omega, status, bad_input, invalid, num_steps, throw) -> Trajectory:
+    """The :class:`Trajectory` of a solve: samples of a non-finite input are ``inf`` and those of
+    invalid parameters NaN (none of them is a result); with ``throw`` a failure raises its status
+    message."""
     status = SolveStatus.where(bad_input, SolveStatus.nonfinite_input, status)
-    theta = jnp.where(bad_input, jnp.inf, theta)
-    Omega = jnp.where(bad_input, jnp.inf, Omega)
+    status = SolveStatus.where(invalid, SolveStatus.invalid_parameters, status)
+    fill = jnp.where(invalid, jnp.nan, jnp.inf)
+    theta = jnp.where(bad_input | invalid, fill, theta)
+    Omega = jnp.where(bad_input | invalid, fill, Omega)
     if throw:
         theta = status.error_if(theta, status != SolveStatus.successful)
     return Trajectory(ts=ts, theta=theta, Omega=Omega, model=model, status=status,

@@ -215,10 +215,20 @@ def test_construction_inside_transformations():
         jax.vmap(lambda ll: rbo.SemiTangentialMoment(2.0, K, ll[0], ll[1]).moment(0.0, th, om))
     )(ls)
     np.testing.assert_allclose(np.linalg.norm(out, axis=1), [2.0, 2.0, 2.0], rtol=1e-13)
-    with pytest.raises(Exception, match="l1 and l2 must not both be zero"):
-        jax.vmap(lambda ll: rbo.SemiTangentialMoment(2.0, K, ll[0], ll[1]).M)(jnp.zeros((2, 2)))
-    with pytest.raises(Exception, match="parameter b must be >= 0"):
-        jax.jit(lambda b: rbo.Friction(b).moment(0.0, th, om))(-1.0)
+    # traced bad values are named by the parameter checks (which the solvers use)
+    def failed(make):
+        return [m for v, m in make().parameter_checks() if not bool(v)]
+
+    checks = jax.jit(lambda ll: [v for v, _ in rbo.SemiTangentialMoment(
+        2.0, K, ll[0], ll[1]).parameter_checks()])(jnp.zeros(2))
+    names = [m for _, m in rbo.SemiTangentialMoment(2.0, K).parameter_checks()]
+    assert [m for m, v in zip(names, checks) if not bool(v)] == [
+        "SemiTangentialMoment: the parameters l1 and l2 must not both be zero"]
+    assert failed(lambda: rbo.Friction(0.5)) == []
+    flags = jax.jit(lambda b: [v for v, _ in rbo.Friction(b).parameter_checks()])(-1.0)
+    assert not bool(flags[0])
+    with pytest.raises(ValueError, match="parameter b must be >= 0"):
+        rbo.Friction(-1.0)
 
 
 def test_parameter_and_state_gradients_match_finite_differences():

@@ -5,12 +5,12 @@ equations (written here from the text, with hand-derived gradients), and the lef
 forms against each other. No expected value is produced by the code under test.
 """
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import rbo_jax as rbo
 from rbo_jax.foundations import BarrierFoundation, QuadraticFoundation
 from rbo_jax.inertia import principal_inertia, transversely_isotropic_inertia
 from rbo_jax.kinematics import turn_tensor
@@ -397,14 +397,25 @@ def test_inertia_not_spd_is_refused(A, match):
 
 
 def test_inertia_not_spd_is_refused_inside_jit():
-    """A traced inertia is validated when the computation runs (equinox.error_if)."""
+    """A traced inertia is checked by the solvers (RigidBodyOscillator.parameter_status): with
+    throw=True simulate raises the message, with throw=False the point is invalid_parameters with
+    NaN samples and the rest of the batch completes."""
 
-    @eqx.filter_jit
-    def rates(a3):
+    def final(a3, throw):
         A = jnp.diag(jnp.stack([jnp.ones(()), jnp.ones(()), a3]))
         model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
-        return model.vector_field(0.0, (THETA, OMEGA))[1]
+        traj = rbo.simulate(model, THETA, OMEGA, jnp.array([0.0, 0.5]), throw=throw)
+        return traj.theta[-1], traj.status
 
-    assert np.all(np.isfinite(np.asarray(rates(jnp.asarray(0.5)))))
+    good = jax.jit(lambda a: final(a, True))(jnp.asarray(0.5))
+    assert np.all(np.isfinite(np.asarray(good[0])))
     with pytest.raises(Exception, match="positive definite"):
-        jax.block_until_ready(rates(jnp.asarray(-0.5)))
+        jax.block_until_ready(jax.jit(lambda a: final(a, True))(jnp.asarray(-0.5)))
+    theta, status = jax.jit(jax.vmap(lambda a: final(a, False)))(jnp.array([0.5, -0.5]))
+    assert np.all(np.isfinite(np.asarray(theta[0]))) and np.all(np.isnan(np.asarray(theta[1])))
+    from rbo_jax._enumeration import code
+    assert list(np.asarray(code(status))) == [int(code(rbo.SolveStatus.successful)),
+                                              int(code(rbo.SolveStatus.invalid_parameters))]
+    ok, which, messages = RigidBodyOscillator(
+        jnp.diag(jnp.array([1.0, 1.0, 0.5])), QuadraticFoundation(1.0, 2.0, K)).parameter_status()
+    assert bool(ok) and any("positive definite" in m for m in messages)

@@ -395,8 +395,14 @@ def test_nonfinite_input(where):
         theta0 = theta0.at[1].set(jnp.inf)
     elif where == "Omega0":
         Omega0 = Omega0.at[0].set(jnp.nan)
-    else:  # bypasses the constructor's validation
+    else:  # bypasses the constructor's validation: the solve's parameter check catches it
         model = eqx.tree_at(lambda m: m.foundation.c, model, model.foundation.c * np.nan)
+        traj = simulate(model, theta0, Omega0, TS, throw=False, **TIGHT)
+        assert traj.status_name == "invalid_parameters"
+        assert np.all(np.isnan(np.asarray(traj.theta))) and np.all(np.isnan(np.asarray(traj.Omega)))
+        with pytest.raises(RUNTIME_ERRORS, match="a model parameter is NaN"):
+            jax.block_until_ready(simulate(model, theta0, Omega0, TS, **TIGHT).theta)
+        return
     traj = simulate(model, theta0, Omega0, TS, throw=False, **TIGHT)
     assert bool(traj.status == SolveStatus.nonfinite_input)
     assert np.all(np.isinf(np.asarray(traj.theta))) and np.all(np.isinf(np.asarray(traj.Omega)))

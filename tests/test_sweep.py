@@ -565,7 +565,8 @@ def test_cli_sweep_writes_store_and_png_and_resumes(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     ds = open_sweep(store).load()
     assert status_counts(ds) == {"successful": 12, "not_converged": 0, "singular_point": 0,
-                                 "domain_error": 0, "nonfinite": 0, "nonfinite_input": 0}
+                                 "domain_error": 0, "nonfinite": 0, "invalid_parameters": 0,
+                                 "nonfinite_input": 0}
     assert ds["theta_eq"].dims == ("M", "b", "component")
     # Newton finds θ_eq = (M/d) k (4.62); without friction the spectrum there is (4.69).
     np.testing.assert_allclose(ds["theta_eq"].values[..., 2], ds["M"].values[:, None] / 2.0
