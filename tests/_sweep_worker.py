@@ -23,7 +23,7 @@ def devices(out):
     from sweep_quantities import NIKOLAI_AXES, NIKOLAI_DIMS, nikolai_abscissa
 
     from rbo_jax.batch import sweep
-    from rbo_jax.batch._engine import Chunks
+    from rbo_jax.batch._chunks import Chunks
     from rbo_jax.batch._space import make_space
 
     n_dev = jax.local_device_count()
@@ -35,7 +35,7 @@ def devices(out):
     # Where do the shards of one chunk live? (Same shape as above: no new compilation.)
     space = make_space(NIKOLAI_AXES, None, 6)
     chunks = Chunks(nikolai_abscissa, space, tuple(jax.local_devices()), NIKOLAI_DIMS)
-    values, _ = chunks.launch(0)[3]
+    values, _ = chunks.launch(0)[4]
     report = {
         "local_devices": n_dev,
         "batch": chunks.batch,

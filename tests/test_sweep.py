@@ -42,7 +42,7 @@ from rbo_jax._enumeration import code, names
 from rbo_jax.app import cli
 from rbo_jax.app.config import QUANTITIES, ConfigError, load_config
 from rbo_jax.batch import SweepError, open_sweep, status_counts, sweep
-from rbo_jax.batch._engine import Chunks
+from rbo_jax.batch._chunks import Chunks
 from rbo_jax.batch._space import _chunk_shape, make_space
 from rbo_jax.plotting import plot_sweep
 from rbo_jax.simulate import SolveStatus
@@ -135,7 +135,7 @@ def test_status_counts_and_flags(nikolai):
     assert sum(counts.values()) == 15
     assert nikolai.attrs["status_counts"] == counts
     flags = nikolai["status"].attrs["flag_meanings"].split()
-    assert flags == list(names(SolveStatus))  # SolveStatus codes, in order
+    assert flags == [*names(SolveStatus), "error"]  # SolveStatus codes, in order, then error
     assert nikolai["status"].attrs["enumeration"] == "rbo_jax.SolveStatus"
 
 
@@ -286,7 +286,7 @@ def test_store_guards(tmp_path, nikolai):
     with pytest.raises(SweepError, match="variables"):
         sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
               progress=False)  # other dimension names: a different sweep
-    with pytest.raises(ValueError, match="needs a store"):
+    with pytest.raises(ValueError, match="need a store"):
         _nikolai(resume=True)
     (tmp_path / "junk").mkdir()
     (tmp_path / "junk" / "x.txt").write_text("x")
@@ -451,15 +451,99 @@ def _raises_for_large_c(c, M):
 
 
 @needs_zarr
-def test_an_error_inside_the_quantity_names_the_chunk_and_keeps_finished_chunks(tmp_path):
-    path = tmp_path / "err.zarr"
-    with pytest.raises(SweepError) as info:
+@pytest.mark.parametrize("chunk_size", [CHUNK, 64])
+def test_a_point_that_raises_is_flagged_and_the_rest_completes(tmp_path, chunk_size):
+    """A quantity that raises (equinox.error_if) at the points c = 2 is not fatal: its chunk is
+    re-run in halves, the raising points get the status `error` with their message and
+    coordinates, every other point is computed — whether the chunk holds 2 points or all 15."""
+    path = tmp_path / f"err{chunk_size}.zarr"
+    ds = sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=chunk_size, store=path,
+               progress=False).load()
+    flags = ds["status"].attrs["flag_meanings"].split()
+    status = np.asarray(ds["status"].values)
+    c, M = np.meshgrid(NIKOLAI_AXES["c"], NIKOLAI_AXES["M"], indexing="ij")
+    raised = (c > 1.5) & np.isfinite(M)
+    assert np.all(status[raised] == flags.index("error"))
+    assert np.all(np.isnan(ds["x"].values[raised]))
+    ok = ~raised & np.isfinite(M)
+    assert np.all(status[ok] == flags.index("successful"))
+    np.testing.assert_array_equal(ds["x"].values[ok], (c + M)[ok])
+    errors = ds.attrs["errors"]
+    assert sorted(e["point"]["M"] for e in errors) == [0.1, 0.2, 0.4, 0.5]
+    assert all(e["point"]["c"] == 2.0 and e["message"] == "c too large" for e in errors)
+    assert all(tuple(e["index"]) in {(2, 0), (2, 1), (2, 3), (2, 4)} for e in errors)
+    assert status_counts(ds)["error"] == 4
+
+
+@needs_zarr
+def test_retry_errors_recomputes_only_the_raising_points(tmp_path):
+    """resume keeps the error points; retry_errors=True recomputes them only (here with a fixed
+    quantity of the same outputs): the store then equals a fresh run's."""
+    path = tmp_path / "retry.zarr"
+    sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, progress=False)
+    kept = sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
+                 progress=False)
+    assert status_counts(kept)["error"] == 4
+
+    def fixed(c, M):
+        return {"x": c + M}
+
+    retried = sweep(fixed, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
+                    retry_errors=True, progress=False).load()
+    fresh = sweep(fixed, NIKOLAI_AXES, chunk_size=CHUNK, progress=False)
+    assert status_counts(retried)["error"] == 0 and retried.attrs["errors"] == []
+    np.testing.assert_array_equal(retried["x"].values, fresh["x"].values)
+    np.testing.assert_array_equal(retried["status"].values, fresh["status"].values)
+    open_sweep(path)  # the rewritten chunks carry valid checksums
+
+
+@needs_zarr
+def test_one_writer_per_store_and_a_dead_owner_is_taken_over(tmp_path, capsys):
+    """A live owner's lock (here: this process's parent, alive) refuses a second writer, naming
+    the store and the owner; the lock of a process that no longer exists is taken over with a
+    message; a finished sweep leaves no lock."""
+    import json
+    import os
+    import socket
+
+    path = tmp_path / "locked.zarr"
+    lock = tmp_path / "locked.zarr.lock"
+    owner = {"host": socket.gethostname(), "pid": os.getppid(), "since": "then"}
+    lock.write_text(json.dumps(owner))
+    with pytest.raises(SweepError, match=f"{path} is being written by process {os.getppid()}"):
         sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, progress=False)
-    message = str(info.value)
-    assert message.startswith("chunk 6 (2 points, the first {'c': 2.0, 'M': 0.1}) raised: c too")
-    assert "throw=False" in message and len(message) < 600
-    done = np.asarray(zarr.open_group(path, mode="r")["_sweep/chunk_done"][...])
-    assert done[:2].all() and not done[2].any()  # rows c = 0.5, 1.0 are on disk
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    lock.write_text(json.dumps({**owner, "pid": int(dead)}))
+    sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, progress=False)
+    assert "taking over the lock" in capsys.readouterr().err and not lock.exists()
+
+
+@needs_zarr
+def test_a_corrupted_chunk_is_reported_and_recomputed_on_resume(tmp_path, capsys):
+    """A flipped byte in a chunk file and a truncated one: open_sweep refuses the store naming
+    the chunks; resume recomputes exactly them and the store equals an uninterrupted run's."""
+    import shutil
+
+    path, clean = tmp_path / "bad.zarr", tmp_path / "clean.zarr"
+    sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=clean, progress=False)
+    shutil.copytree(clean, path)
+    files = sorted(p for p in (path / "x" / "c").rglob("*") if p.is_file())
+    raw = bytearray(files[0].read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    files[0].write_bytes(bytes(raw))
+    files[1].write_bytes(files[1].read_bytes()[:5])
+    with pytest.raises(SweepError, match="2 chunk\\(s\\) fail their checksum"):
+        open_sweep(path)
+    sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
+          progress=False)
+    assert capsys.readouterr().err.count("is recomputed") == 2
+    assert _store_files(path) == _store_files(clean)
+
+
+def _store_files(path):
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
+            if p.is_file()}
 
 
 @pytest.mark.parametrize(
@@ -566,7 +650,7 @@ def test_cli_sweep_writes_store_and_png_and_resumes(tmp_path, capsys):
     ds = open_sweep(store).load()
     assert status_counts(ds) == {"successful": 12, "not_converged": 0, "singular_point": 0,
                                  "domain_error": 0, "nonfinite": 0, "invalid_parameters": 0,
-                                 "nonfinite_input": 0}
+                                 "nonfinite_input": 0, "error": 0}
     assert ds["theta_eq"].dims == ("M", "b", "component")
     # Newton finds θ_eq = (M/d) k (4.62); without friction the spectrum there is (4.69).
     np.testing.assert_allclose(ds["theta_eq"].values[..., 2], ds["M"].values[:, None] / 2.0

@@ -12,11 +12,15 @@ How it runs (one private module per concern):
   (hyper-rectangular blocks of the grid), so device memory is O(``chunk_size``).
 - **Program** (``_program.py``): each chunk is one call of ``jit(shard_map(vmap(quantity)))``,
   padded to one shape, so one compilation serves the whole sweep.
-- **Loop** (:class:`Chunks`, here): one chunk is computed while the previous one is stored
-  (dispatch is asynchronous); a progress bar counts points.
+- **Loop** (``_chunks.py``): one chunk is computed while the previous one is stored
+  (dispatch is asynchronous); a progress bar counts points. A chunk that raises is re-run in
+  halves down to single points: only the points that raise on their own get the status
+  ``error`` (with their message in ``ds.attrs["errors"]``), the rest completes.
 - **Output** (``_output.py``): values and a status per point, assembled into a Dataset.
-- **Store** (``_store.py``): with ``store=PATH`` each chunk is written to a zarr store as soon as
-  it is computed; ``resume=True`` finishes an interrupted sweep.
+- **Store** (``_store.py``, ``_lock.py``): with ``store=PATH`` each chunk is written to a zarr
+  store as soon as it is computed, with a checksum; one process writes a store at a time (a
+  lock beside it); ``resume=True`` finishes an interrupted sweep and recomputes corrupted
+  chunks; ``retry_errors=True`` recomputes only the points whose evaluation raised.
 - **Hosts** (``_hosts.py``): after ``jax.distributed.initialize(...)`` every process computes its
   share of the chunks.
 
@@ -25,139 +29,31 @@ How it runs (one private module per concern):
 :class:`rbo_jax.SolveStatus` from ``simulate(..., throw=False)``, or
 :class:`rbo_jax.EquilibriumStatus`) or an integer code of :class:`rbo_jax.SolveStatus`. Points
 with a non-finite parameter are not evaluated at all (they would raise in the models'
-constructors); they get ``nonfinite_input`` and NaN values. :func:`status_counts` counts the
+constructors); they get ``nonfinite_input`` and NaN values. Points whose evaluation raises get
+``error``. :func:`status_counts` counts the
 statuses (also stored in ``ds.attrs["status_counts"]``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
-import re
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
 from . import _store
+from ._chunks import Chunks
 from ._errors import SweepError
 from ._hosts import Hosts
-from ._output import (
-    OutputSpec,
-    dataset,
-    fill_value,
-    make_output_spec,
-    summary_line,
-    to_json,
-)
-from ._program import local_devices, program
+from ._lock import StoreLock
+from ._output import OutputSpec, dataset, summary_line, to_json
+from ._program import local_devices
 from ._space import Space, make_space
-
-
-def error_text(e: Exception) -> str:
-    """The message of a runtime error raised inside compiled code, without the host traceback
-    that jax wraps around a failing callback (equinox.error_if)."""
-    text = str(e)
-    found = re.findall(r"EquinoxRuntimeError: (.+)", text)
-    if found:
-        return found[-1].strip()
-    return text if len(text) <= 600 else text[:600] + " ..."
-
-
-class Chunks:
-    """Runs chunks through the compiled program, one chunk in flight while the previous one is
-    stored (dispatch is asynchronous). ``postprocess`` (optional) maps a finished chunk's host
-    arrays ``{name: array}`` to new arrays of the same shapes and dtypes."""
-
-    def __init__(self, quantity, space: Space, devices, dims=None, postprocess=None):
-        n_dev = len(devices)
-        self.batch = -(-space.chunk_points // n_dev) * n_dev
-        self.program = program(quantity, space.names, tuple(devices), self.batch)
-        self.space = space
-        self.spec: OutputSpec = make_output_spec(self.program.structure, space, dims)
-        self.dummy = space.dummy()
-        self.postprocess = postprocess
-
-    def launch(self, cid: int):
-        slices = self.space.slices(cid)
-        pts = self.space.points(slices)
-        valid = np.all(np.isfinite(pts), axis=1)
-        future = None
-        if valid.any():
-            block = np.empty((self.batch, pts.shape[1]))
-            block[:] = self.dummy
-            block[: pts.shape[0]][valid] = pts[valid]
-            future = self.program.call(jax.device_put(block, self.program.sharding))
-        return cid, slices, valid, future
-
-    def _host_values(self, cid, m, future):
-        spec = self.spec
-        if future is None:
-            return (np.zeros(m, np.int32),
-                    {v.name: np.zeros((m,) + v.shape, v.dtype) for v in spec.variables})
-        try:
-            values, status = jax.device_get(future)
-        except Exception as e:  # an error raised inside the compiled quantity
-            raise self.error(cid, e) from e
-        status = np.asarray(status)[:m]
-        bad = (status < 0) | (status >= len(spec.status_names))
-        if bad.any():
-            raise SweepError(
-                f"the quantity returned status codes {sorted(set(status[bad].tolist()))} "
-                f"outside {spec.status_enum} (0..{len(spec.status_names) - 1})."
-            )
-        return status, {v.name: np.asarray(values[v.name])[:m] for v in spec.variables}
-
-    def finish(self, cid, slices, valid, future):
-        block_shape = tuple(sl.stop - sl.start for sl in slices)
-        status, out = self._host_values(cid, valid.size, future)
-        status = np.where(valid, status, self.spec.nonfinite_code).astype(np.int8)
-        result = {}
-        for v in self.spec.variables:
-            a = out[v.name].astype(v.dtype, copy=True)
-            a[~valid] = fill_value(v.dtype)
-            result[v.name] = a.reshape(block_shape + v.shape)
-        result["status"] = status.reshape(block_shape)
-        if self.postprocess is not None:
-            result = self.postprocess(result)
-        return cid, slices, result
-
-    def error(self, cid: int, e: Exception) -> SweepError:
-        slices = self.space.slices(cid)
-        pts = self.space.points(slices)
-        first = dict(zip(self.space.names, pts[0].tolist()))
-        return SweepError(
-            f"chunk {cid} ({pts.shape[0]} points, the first {first}) raised: {error_text(e)}\n"
-            "A sweep expects failures as statuses, not errors: call simulate with throw=False and "
-            "return (values, traj.status). Chunks already written to a store are kept."
-        )
-
-    def run(self, chunk_ids, consume, bar=None):
-        """Compute the chunks and hand each result to ``consume``; one chunk is computed while
-        the previous one is consumed."""
-        pending = None
-        for cid in chunk_ids:
-            try:
-                launched = self.launch(cid)
-            except Exception as e:  # a runtime error raised at dispatch
-                if pending is not None:
-                    self._consume(pending, consume, bar)
-                raise self.error(cid, e) from e
-            if pending is not None:
-                self._consume(pending, consume, bar)
-            pending = launched
-        if pending is not None:
-            self._consume(pending, consume, bar)
-
-    def _consume(self, pending, consume, bar):
-        cid, slices, result = self.finish(*pending)
-        consume(cid, slices, result)
-        if bar is not None:
-            bar.update(pending[2].size)
-
 
 # ---------------------------------------------------------------------------------------------
 # The sweep.
@@ -224,6 +120,71 @@ def _run_chunks(chunks: Chunks, mine, consume, bar, hosts: Hosts, path):
                          + ("resume the sweep to finish it." if path else ""))
 
 
+# The in-memory result of a grid must fit: refused beforehand above this share of the memory.
+MEMORY_SHARE = 0.5
+
+
+def _check_memory(space: Space, spec: OutputSpec):
+    """Refuse, before any work, an in-memory result larger than half the physical memory."""
+    per_point = 1 + sum(int(np.prod(v.shape, dtype=np.int64)) * np.dtype(v.dtype).itemsize
+                        for v in spec.variables)
+    need = space.n_points * per_point
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not POSIX: no guard
+        return
+    if need > MEMORY_SHARE * total:
+        raise SweepError(
+            f"the results of {space.n_points:,} points need {need / 2**30:.1f} GiB in memory, more "
+            f"than {MEMORY_SHARE:.0%} of this machine's {total / 2**30:.1f} GiB: give a store "
+            "(store=PATH, written chunk by chunk) or a smaller grid.")
+
+
+class _InMemory:
+    """Collects chunk results into arrays (one process) or keeps them (several processes)."""
+
+    def __init__(self, space: Space, spec: OutputSpec, hosts: Hosts):
+        self.arrays = {v.name: np.empty(space.shape + v.shape, v.dtype) for v in spec.variables}
+        self.arrays["status"] = np.empty(space.shape, np.int8)
+        self.kept, self.errors, self.hosts = {}, [], hosts
+
+    def __call__(self, cid, slices, result):
+        self.errors += result.get("errors", [])
+        if self.hosts.count > 1:
+            self.kept[cid] = result
+            return
+        for name, a in self.arrays.items():
+            a[slices] = result[name]
+
+
+def _retry_errors(chunks: Chunks, path: Path, spec: OutputSpec, space: Space):
+    """Recompute the points whose status is ``error`` in the store and write them back (their
+    chunks' errors and checksums too)."""
+    group = _store.open_group(path, "r+")
+    status = np.asarray(group["status"][...])
+    where = np.argwhere(status == spec.error_code)
+    if where.size == 0:
+        return
+    grid = space.grid
+    names = space.names
+    pts = (np.stack([space.values[n][where[:, i]] for i, n in enumerate(names)], axis=1) if grid
+           else np.stack([space.values[n][where[:, 0]] for n in names], axis=1))
+    new_status, values, errors = chunks.recompute(pts)
+    index = tuple(where.T)
+    for v in spec.variables:
+        group[v.name].vindex[index] = values[v.name].astype(v.dtype)
+    group["status"].vindex[index] = new_status
+    chunk_of = [int(np.ravel_multi_index(tuple(i // c for i, c in zip(w, space.chunk_shape)),
+                                         space.chunk_grid)) for w in where]
+    for cid in sorted(set(chunk_of)):
+        records = [e for e in _store.errors_of_chunk(group, space, cid)
+                   if tuple(e["index"]) not in {tuple(int(x) for x in w) for w in where}]
+        records += [{"point": dict(zip(names, pts[i].tolist())),
+                     "index": [int(x) for x in where[i]], "message": msg}
+                    for i, msg in errors.items() if chunk_of[i] == cid]
+        _store.rewrite_chunk_record(group, space, spec, cid, records)
+
+
 def sweep(
     quantity: Callable[..., Any],
     axes: Mapping[str, Any] | None = None,
@@ -239,6 +200,7 @@ def sweep(
     attrs: Mapping[str, Any] | None = None,
     desc: str = "sweep",
     postprocess: Callable[[dict], dict] | None = None,
+    retry_errors: bool = False,
 ):
     r"""Evaluate ``quantity(**point)`` at every point of a grid or a list of points.
 
@@ -274,12 +236,20 @@ def sweep(
     - `desc`: the label of the progress bar and of the summary line.
     - `postprocess`: optional host function applied to each finished chunk, ``{name: array} ->
       {name: array}`` of the same shapes and dtypes (e.g. sorting eigenvalues on the host).
+    - `retry_errors`: with ``resume``, also recompute the points of the store whose evaluation
+      raised (status ``error``), e.g. after fixing the cause.
 
     **Returns:** an :class:`xarray.Dataset` with coordinates the parameters (grid: one dimension
     per axis; points: dimension ``point``), one variable per output, and ``status`` (int8 codes,
-    names in its ``flag_meanings``; non-finite parameters give ``nonfinite_input`` and NaN values);
-    ``attrs["status_counts"]`` counts the statuses. With a store the dataset is read from it
-    (lazily). The same on every process of a multi-process run.
+    names in its ``flag_meanings``; non-finite parameters give ``nonfinite_input`` and NaN values,
+    points whose evaluation raised ``error``); ``attrs["status_counts"]`` counts the statuses,
+    ``attrs["errors"]`` lists the raised points with their coordinates and messages. With a store
+    the dataset is read from it (lazily). The same on every process of a multi-process run (an
+    in-memory multi-process sweep lists the messages of its own process only).
+
+    Without a store, a grid whose results would not fit in half the memory is refused before any
+    work. With a store, one process writes it at a time (``STORE.lock`` beside it names the
+    owner; a lock left by a dead process is taken over).
 
     Multi-process (after ``jax.distributed.initialize``): every process calls ``sweep`` with the
     same arguments; the store must be on a file system that all of them see.
@@ -287,42 +257,37 @@ def sweep(
     space = make_space(axes, points, chunk_size)
     local = local_devices(devices)
     attrs = _check_attrs(attrs)
-    if resume and store is None:
-        raise ValueError("resume=True needs a store.")
+    if (resume or retry_errors) and store is None:
+        raise ValueError("resume=True and retry_errors=True need a store.")
     path = None if store is None else Path(store)
-    if path is not None and resume and not overwrite:
+    if path is not None and (resume or retry_errors) and not overwrite:
         space = _store.resumed_layout(path, space)
     hosts = Hosts()
     chunks = Chunks(quantity, space, local, dims, postprocess)  # traced now, compiled later
     spec = chunks.spec
-    if path is not None:
-        space, missing = _open_store(path, space, spec, attrs, resume, overwrite, hosts)
-        consume, arrays, kept = _store.Writer(path, spec), None, None
-    else:
-        missing = list(range(space.n_chunks))
-        arrays = {v.name: np.empty(space.shape + v.shape, v.dtype) for v in spec.variables}
-        arrays["status"] = np.empty(space.shape, np.int8)
-        kept = {}
-
-        def consume(cid, slices, result):
-            if hosts.count == 1:
-                for name, a in result.items():
-                    arrays[name][slices] = a
-            else:
-                kept[cid] = result
-
-    mine = hosts.share(missing)
-    bar = _progress_bar(progress, space, mine, hosts, desc)
-    _run_chunks(chunks, mine, consume, bar, hosts, path)
-    if path is not None:
-        if hosts.index == 0:
-            _store.finalize(path)
-        hosts.barrier("store finalized")
-        ds = _store.open_sweep(path)
-    else:
+    if path is None:
+        _check_memory(space, spec)
+        consume = _InMemory(space, spec, hosts)
+        _run_chunks(chunks, hosts.share(list(range(space.n_chunks))), consume,
+                    _progress_bar(progress, space, hosts.share(list(range(space.n_chunks))),
+                                  hosts, desc), hosts, path)
         if hosts.count > 1:
-            hosts.gather(arrays, kept, missing, space, spec)
-        ds = dataset(space, spec, arrays, attrs)
+            hosts.gather(consume.arrays, consume.kept, list(range(space.n_chunks)), space, spec)
+        ds = dataset(space, spec, consume.arrays, {**attrs, "errors": consume.errors})
+    else:
+        lock = StoreLock(path) if hosts.index == 0 else contextlib.nullcontext()
+        with lock:
+            space, missing = _open_store(path, space, spec, attrs, resume or retry_errors,
+                                         overwrite, hosts)
+            mine = hosts.share(missing)
+            _run_chunks(chunks, mine, _store.Writer(path, spec),
+                        _progress_bar(progress, space, mine, hosts, desc), hosts, path)
+            if hosts.index == 0:
+                if retry_errors:
+                    _retry_errors(chunks, path, spec, space)
+                _store.finalize(path)
+            hosts.barrier("store finalized")
+        ds = _store.open_sweep(path)
     if progress and hosts.index == 0:
         print(f"{desc}: {summary_line(ds.attrs['status_counts'])}", file=sys.stderr)
     return ds

@@ -20,6 +20,7 @@ from ..trajectory import SolveStatus
 from ._space import POINT_DIM, Space
 
 NONFINITE = "nonfinite_input"  # status of a point whose parameters are not finite
+ERROR = "error"  # status of a point whose evaluation raised
 
 
 def to_json(x):
@@ -82,6 +83,10 @@ class OutputSpec:
     @property
     def nonfinite_code(self) -> int:
         return self.status_names.index(NONFINITE)
+
+    @property
+    def error_code(self) -> int:
+        return self.status_names.index(ERROR)
 
     def status_attrs(self) -> dict:
         return {
@@ -184,8 +189,9 @@ def make_output_spec(structure: dict, space: Space,
                                  "different outputs.")
         variables.append(Variable(name, shape, dtype, vdims, flags, enum_label))
     status_names, status_enum = structure["status"]
-    if NONFINITE not in status_names:
-        status_names = status_names + (NONFINITE,)
+    for extra in (NONFINITE, ERROR):
+        if extra not in status_names:
+            status_names = status_names + (extra,)
     return OutputSpec(tuple(variables), status_names, status_enum)
 
 
@@ -223,6 +229,7 @@ def dataset(space: Space, spec: OutputSpec, arrays: dict, attrs: dict):
         coords = {n: (POINT_DIM, space.values[n]) for n in space.names}
     attrs = dict(attrs)
     attrs["status_counts"] = counts(arrays["status"], spec.status_names)
+    attrs.setdefault("errors", [])
     return xr.Dataset(data, coords=coords, attrs=to_json(attrs))
 
 

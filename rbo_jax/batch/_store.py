@@ -2,19 +2,25 @@
 
 One array per variable on the grid dimensions, with zarr chunks equal to sweep chunks, so every
 sweep chunk is exactly one file per variable (atomic writes by zarr; no two processes ever write
-the same file). A chunk counts as done once its marker in the hidden group ``_sweep`` is set,
-after its data. The store's metadata is consolidated (at creation and when the sweep finishes),
-so ``xarray.open_zarr(PATH)`` opens it directly; :func:`open_sweep` also checks that it is
-complete. ``resume=True`` recomputes only the chunks without a marker; the store then ends byte
-for byte identical to an uninterrupted run's.
+the same file). In the hidden group ``_sweep`` every chunk has a checksum (BLAKE2b of the bytes of
+its data, written after the data) and a done marker (written last); the points of a chunk whose
+evaluation raised are listed in ``_sweep/errors/CHUNK.json``. The store's metadata is
+consolidated (at creation and when the sweep finishes), so ``xarray.open_zarr(PATH)`` opens it
+directly. :func:`open_sweep` checks that the store is complete and that every chunk matches its
+checksum (a crash mid-write, a flipped byte); ``resume=True`` recomputes the chunks without a
+marker and those that fail their checksum, and the store then ends byte for byte identical to an
+uninterrupted run's.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import re
 import shutil
+import sys
 import warnings
 from pathlib import Path
 
@@ -25,7 +31,7 @@ from ._output import OutputSpec, counts, fill_value, to_json
 from ._space import POINT_DIM, Space
 
 FORMAT = "rbo_jax.sweep"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: chunk checksums and error records (rbo_jax 0.2)
 META = "_sweep"  # hidden subgroup of the store (markers); xarray does not open subgroups
 _PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial$")
 
@@ -113,6 +119,12 @@ def _create(path: Path, space: Space, spec: OutputSpec, attrs: dict):
     meta.create_array("chunk_done", shape=space.chunk_grid, dtype="uint8",
                       chunks=(1,) * len(space.chunk_grid), fill_value=0, compressors=None,
                       config=config)
+    meta.create_array("checksum", shape=space.chunk_grid, dtype="uint64",
+                      chunks=(1,) * len(space.chunk_grid), fill_value=0, compressors=None,
+                      config=config)
+    # the error records of a chunk (JSON text; "" when none raised), one file per chunk
+    meta.create_array("errors", shape=space.chunk_grid, dtype=str,
+                      chunks=(1,) * len(space.chunk_grid), fill_value="", config=config)
     group.attrs.update(to_json({**attrs, FORMAT: descriptor(space, spec)}))
     consolidate(path)
     return group
@@ -175,45 +187,123 @@ def prepare(path: Path, space, spec, attrs, resume, overwrite) -> Space:
                 "or overwrite=True to start again."
             )
         else:
-            space = check_compatible(open_group(path, "r+"), path, space, spec, attrs)
+            group = open_group(path, "r+")
+            space = check_compatible(group, path, space, spec, attrs)
             _remove_partial_files(path)
+            bad = corrupted_chunks(group, space, spec, _done_chunks(group, space))
+            for cid, why in sorted(bad.items()):
+                print(f"rbo_jax.sweep: {path}: chunk {cid} is recomputed: {why}.",
+                      file=sys.stderr)
+            mark_missing(group, space, bad)
             return space
     _create(path, space, spec, attrs)
     return space
 
 
+def checksum(arrays) -> int:
+    """BLAKE2b (64 bits) of the bytes of a chunk's arrays, in order."""
+    h = hashlib.blake2b(digest_size=8)
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return int.from_bytes(h.digest(), "little")
+
+
+def _names(spec: OutputSpec) -> list[str]:
+    return [v.name for v in spec.variables] + ["status"]
+
+
 class Writer:
-    """Writes computed chunks into the store, the done marker last."""
+    """Writes computed chunks into the store: data, errors, checksum, the done marker last."""
 
     def __init__(self, path: Path, spec: OutputSpec):
         group = open_group(path, "r+")
-        self.arrays = {v.name: group[v.name] for v in spec.variables}
-        self.arrays["status"] = group["status"]
+        self.path = Path(path)
+        self.names = _names(spec)
+        self.arrays = {name: group[name] for name in self.names}
         self.done = group[f"{META}/chunk_done"]
+        self.sums = group[f"{META}/checksum"]
+        self.errors = group[f"{META}/errors"]
 
     def __call__(self, cid, slices, result):
-        for name, arr in self.arrays.items():
-            arr[slices] = result[name]
+        for name in self.names:
+            self.arrays[name][slices] = result[name]
+        index = np.unravel_index(cid, self.done.shape)
+        self.errors[index] = json.dumps(result["errors"]) if result.get("errors") else ""
+        self.sums[index] = np.uint64(checksum(
+            np.asarray(result[n], dtype=self.arrays[n].dtype) for n in self.names))
         # The marker last: a chunk counts as done only once all its data is on disk.
-        self.done[np.unravel_index(cid, self.done.shape)] = 1
+        self.done[index] = 1
+
+
+def errors(path: Path) -> list[dict]:
+    """The error records of every chunk (points whose evaluation raised), in chunk order."""
+    texts = np.asarray(open_group(path, "r")[f"{META}/errors"][...]).ravel()
+    return [r for text in texts if text for r in json.loads(str(text))]
+
+
+def corrupted_chunks(group, space: Space, spec: OutputSpec, chunk_ids) -> dict[int, str]:
+    """``{chunk: reason}`` of the done chunks whose data does not match its checksum or cannot
+    be read (a truncated or corrupted file)."""
+    sums = np.asarray(group[f"{META}/checksum"][...])
+    bad = {}
+    for cid in chunk_ids:
+        slices = space.slices(cid)
+        try:
+            data = [np.asarray(group[n][slices]) for n in _names(spec)]
+        except Exception as e:  # a file zarr cannot decode
+            bad[cid] = f"unreadable ({type(e).__name__}: {e})"
+            continue
+        if checksum(data) != int(sums[np.unravel_index(cid, space.chunk_grid)]):
+            bad[cid] = "its data does not match its checksum"
+    return bad
+
+
+def errors_of_chunk(group, space: Space, cid: int) -> list[dict]:
+    text = str(group[f"{META}/errors"][np.unravel_index(cid, space.chunk_grid)])
+    return json.loads(text) if text else []
+
+
+def rewrite_chunk_record(group, space: Space, spec: OutputSpec, cid: int, records: list[dict]):
+    """After points of chunk ``cid`` were rewritten: its error records and checksum."""
+    index = np.unravel_index(cid, space.chunk_grid)
+    group[f"{META}/errors"][index] = json.dumps(records) if records else ""
+    slices = space.slices(cid)
+    data = [np.asarray(group[n][slices]) for n in _names(spec)]
+    group[f"{META}/checksum"][index] = np.uint64(checksum(data))
+
+
+def mark_missing(group, space: Space, chunk_ids):
+    """Clear the done markers of ``chunk_ids`` (they will be recomputed)."""
+    done = group[f"{META}/chunk_done"]
+    for cid in chunk_ids:
+        done[np.unravel_index(cid, space.chunk_grid)] = 0
 
 
 def finalize(path: Path):
-    """Record the status counts and consolidate the metadata of a finished store."""
+    """Record the status counts and the errors, and consolidate the metadata, of a finished
+    store."""
     group = open_group(path, "r+")
     d = read_descriptor(group, path)
     status = np.asarray(group["status"][...])
-    group.attrs.update(to_json({"status_counts": counts(status, d["status_flags"])}))
+    group.attrs.update(to_json({"status_counts": counts(status, d["status_flags"]),
+                                "errors": errors(path)}))
     consolidate(path)
 
 
-def open_sweep(path, *, allow_incomplete: bool = False):
+def _done_chunks(group, space):
+    done = np.asarray(group[f"{META}/chunk_done"][...]).ravel()
+    return [int(i) for i in np.flatnonzero(done == 1)]
+
+
+def open_sweep(path, *, allow_incomplete: bool = False, verify: bool = True):
     """Open a sweep store written by :func:`rbo_jax.sweep` as a labelled
     :class:`xarray.Dataset` (lazily: values are read on access; ``.load()`` reads them all).
 
-    Raises :class:`rbo_jax.SweepError` if some chunks are missing (an interrupted sweep: finish it
-    with ``sweep(..., store=path, resume=True)``) unless ``allow_incomplete`` (missing points then
-    hold the fill values: NaN, and status -1).
+    Raises :class:`rbo_jax.SweepError` if some chunks are missing (an interrupted sweep: finish
+    it with ``sweep(..., store=path, resume=True)``) unless ``allow_incomplete`` (missing points
+    then hold the fill values: NaN, and status -1), and, with ``verify`` (default), if a chunk's
+    data does not match its checksum (``resume=True`` recomputes such chunks). The points whose
+    evaluation raised are listed in ``ds.attrs["errors"]``.
     """
     import xarray as xr
 
@@ -227,8 +317,16 @@ def open_sweep(path, *, allow_incomplete: bool = False):
     if missing and not allow_incomplete:
         raise SweepError(f"{path} is incomplete: {len(missing)} of {space.n_chunks} chunks "
                          "missing; finish it with sweep(..., store=path, resume=True).")
+    if verify:
+        bad = corrupted_chunks(group, space, OutputSpec.from_description(d),
+                               _done_chunks(group, space))
+        if bad:
+            detail = "; ".join(f"chunk {c}: {why}" for c, why in sorted(bad.items())[:5])
+            raise SweepError(f"{path}: {len(bad)} chunk(s) fail their checksum ({detail}); "
+                             "resume the sweep (resume=True, CLI --resume) to recompute them.")
     # Stores written before rbo_jax consolidated their metadata are read without it.
     consolidated = group.metadata.consolidated_metadata is not None
     ds = xr.open_zarr(str(path), consolidated=consolidated, chunks=None, zarr_format=3)
     ds.attrs.pop(FORMAT, None)  # the store's own layout, not a property of the result
+    ds.attrs.setdefault("errors", errors(path))
     return ds

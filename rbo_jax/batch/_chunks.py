@@ -1,0 +1,179 @@
+"""The chunk loop of the batch engine: every sweep, map and critical-load computation runs its
+chunks through :class:`Chunks`.
+
+One chunk is computed while the previous one is stored (dispatch is asynchronous). A chunk whose
+program raises (an :func:`equinox.error_if` inside the user's quantity, a failed host callback,
+...) is not fatal: it is re-run in halves, down to single points, with the same compiled program
+(each part padded with its own points, so no new compilation and no other point is involved);
+the points that raise on their own get the status ``error``, fill values (NaN) and their message
+in the chunk's ``errors`` (with their coordinates); every other point of the chunk is kept.
+"""
+
+from __future__ import annotations
+
+import re
+
+import jax
+import numpy as np
+
+from ._errors import SweepError
+from ._output import OutputSpec, fill_value, make_output_spec
+from ._program import program
+from ._space import Space
+
+
+def error_text(e: Exception) -> str:
+    """The message of a runtime error raised inside compiled code, without the host traceback
+    that jax wraps around a failing callback (equinox.error_if)."""
+    text = str(e)
+    found = re.findall(r"EquinoxRuntimeError: (.+)", text)
+    if found:
+        return found[-1].strip()
+    return text if len(text) <= 600 else text[:600] + " ..."
+
+
+class Chunks:
+    """Runs chunks through the compiled program. ``postprocess`` (optional) maps a finished
+    chunk's host arrays ``{name: array}`` to new arrays of the same shapes and dtypes."""
+
+    def __init__(self, quantity, space: Space, devices, dims=None, postprocess=None):
+        n_dev = len(devices)
+        self.batch = -(-space.chunk_points // n_dev) * n_dev
+        self.program = program(quantity, space.names, tuple(devices), self.batch)
+        self.space = space
+        self.spec: OutputSpec = make_output_spec(self.program.structure, space, dims)
+        self.dummy = space.dummy()
+        self.postprocess = postprocess
+
+    # -- evaluation of points --------------------------------------------------------------
+
+    def _call(self, pts: np.ndarray):
+        """Dispatch the program on ``pts`` (m ≤ batch finite points), padded with its first."""
+        block = np.empty((self.batch, pts.shape[1]))
+        block[:] = pts[0]
+        block[: pts.shape[0]] = pts
+        return self.program.call(jax.device_put(block, self.program.sharding))
+
+    def _host(self, future, m: int):
+        """(status, values) of the first ``m`` points of a finished call (raises what the
+        program raised)."""
+        spec = self.spec
+        values, status = jax.device_get(future)
+        status = np.asarray(status)[:m]
+        bad = (status < 0) | (status >= len(spec.status_names))
+        if bad.any():
+            raise SweepError(
+                f"the quantity returned status codes {sorted(set(status[bad].tolist()))} "
+                f"outside {spec.status_enum} (0..{len(spec.status_names) - 1})."
+            )
+        return status, {v.name: np.asarray(values[v.name])[:m] for v in self.spec.variables}
+
+    def _empty(self, m: int, code: int):
+        return (np.full(m, code, np.int32),
+                {v.name: np.full((m,) + v.shape, fill_value(v.dtype), v.dtype)
+                 for v in self.spec.variables})
+
+    def isolate(self, pts: np.ndarray, error: Exception | None = None):
+        """(status, values, {index: message}) of ``pts``; a part that raises is split in halves
+        down to single points, which get the status ``error``. ``error`` is what a first call on
+        all of ``pts`` raised, if it was already made."""
+        if error is None:
+            try:
+                return (*self._host(self._call(pts), len(pts)), {})
+            except SweepError:
+                raise
+            except Exception as e:  # raised inside the compiled quantity
+                error = e
+        if len(pts) == 1:
+            return (*self._empty(1, self.spec.error_code), {0: error_text(error)})
+        half = len(pts) // 2
+        s1, v1, e1 = self.isolate(pts[:half])
+        s2, v2, e2 = self.isolate(pts[half:])
+        values = {k: np.concatenate([v1[k], v2[k]]) for k in v1}
+        return np.concatenate([s1, s2]), values, e1 | {half + i: m for i, m in e2.items()}
+
+    # -- chunks ----------------------------------------------------------------------------
+
+    def launch(self, cid: int):
+        slices = self.space.slices(cid)
+        pts = self.space.points(slices)
+        valid = np.all(np.isfinite(pts), axis=1)
+        future, error = None, None
+        if valid.any():
+            try:
+                future = self._call(pts[valid])
+            except SweepError:
+                raise
+            except Exception as e:  # a runtime error raised at dispatch
+                error = e
+        return cid, slices, pts, valid, future, error
+
+    def finish(self, cid, slices, pts, valid, future, error):
+        """The chunk's result ``{name: block array, "status": ..., "errors": [...]}``."""
+        m = int(valid.sum())
+        errors: dict[int, str] = {}
+        if m == 0:
+            status, out = self._empty(0, 0)
+        elif error is None:
+            try:
+                status, out = self._host(future, m)
+            except SweepError:
+                raise
+            except Exception as e:  # raised inside the compiled quantity: find the points
+                status, out, errors = self.isolate(pts[valid], e)
+        else:
+            status, out, errors = self.isolate(pts[valid], error)
+        return self._assemble(slices, pts, valid, status, out, errors)
+
+    def _assemble(self, slices, pts, valid, status, out, errors):
+        block_shape = tuple(sl.stop - sl.start for sl in slices)
+        full_status = np.full(valid.size, self.spec.nonfinite_code, np.int8)
+        full_status[valid] = status
+        result = {}
+        for v in self.spec.variables:
+            a = np.full((valid.size,) + v.shape, fill_value(v.dtype), v.dtype)
+            a[valid] = out[v.name]
+            result[v.name] = a.reshape(block_shape + v.shape)
+        result["status"] = full_status.reshape(block_shape)
+        if self.postprocess is not None:
+            result = self.postprocess(result)
+        where = np.flatnonzero(valid)
+        result["errors"] = [
+            {"point": dict(zip(self.space.names, pts[where[i]].tolist())),
+             "index": [int(x) for x in np.unravel_index(where[i], block_shape)], "message": msg}
+            for i, msg in sorted(errors.items())
+        ]
+        for e in result["errors"]:  # the index within the whole space, not the chunk
+            e["index"] = [int(sl.start) + j for sl, j in zip(slices, e["index"])]
+        return result
+
+    def run(self, chunk_ids, consume, bar=None):
+        """Compute the chunks and hand each result to ``consume(cid, slices, result)``; one chunk
+        is computed while the previous one is consumed."""
+        pending = None
+        for cid in chunk_ids:
+            launched = self.launch(cid)
+            if pending is not None:
+                self._consume(pending, consume, bar)
+            pending = launched
+        if pending is not None:
+            self._consume(pending, consume, bar)
+
+    def _consume(self, pending, consume, bar):
+        cid, slices = pending[0], pending[1]
+        result = self.finish(*pending)
+        consume(cid, slices, result)
+        if bar is not None:
+            bar.update(pending[3].size)
+
+    def recompute(self, points: np.ndarray):
+        """(status, values, errors) of arbitrary finite points (``retry_errors``), in batches."""
+        outs = [self.isolate(points[i:i + self.batch])
+                for i in range(0, len(points), self.batch)]
+        status = np.concatenate([o[0] for o in outs]).astype(np.int8)
+        values = {k: np.concatenate([o[1][k] for o in outs]) for k in outs[0][1]}
+        errors, offset = {}, 0
+        for o in outs:
+            errors |= {offset + i: m for i, m in o[2].items()}
+            offset += len(o[0])
+        return status, values, errors
