@@ -41,7 +41,7 @@ from ._validation import (
     requirement_checks,
     set_parameters,
 )
-from .kinematics import Turn, _as_vector, dot3
+from .kinematics import Turn, _as_vector, dot3, stored
 
 __all__ = [
     "AbstractFoundation",
@@ -168,7 +168,7 @@ class AbstractTransverselyIsotropicFoundation(AbstractFoundation):
         r"""$dU/d\theta = C\theta + D k$ (4.47)."""
         theta = _as_vector(theta)
         C, D = self.coefficients(theta)
-        return C * theta + D * self.k
+        return C * theta + stored(D) * self.k
 
     def symmetry_axis(self) -> Vector:
         return self.k

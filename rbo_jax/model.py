@@ -40,6 +40,7 @@ from .kinematics import (
     dot3,
     integrating_tensor_inv,
     matvec3,
+    stored,
     turn_tensor,
 )
 from .loads import AbstractLoad, as_load
@@ -80,8 +81,8 @@ class RightForm(eqx.Module):
         M = -turn.Z(model.foundation.gradient(theta))
         for load in model.loads:
             M = M + load.body_moment(t, theta, Omega, turn)
-        Omega_dot = matvec3(self.inertia_inv, M - cross3(Omega, matvec3(model.inertia, Omega)))
-        return turn.ZT(Omega), Omega_dot
+        r = stored(M - cross3(Omega, matvec3(model.inertia, Omega)))
+        return turn.ZT(Omega), matvec3(self.inertia_inv, r)
 
 
 class LeftForm(eqx.Module):
