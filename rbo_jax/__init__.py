@@ -23,6 +23,7 @@ from .batch import open_sweep as open_sweep  # noqa: E402
 from .batch import stability_map as stability_map  # noqa: E402
 from .batch import status_counts as status_counts  # noqa: E402
 from .batch import sweep as sweep  # noqa: E402
+from .ensemble import fast_simulate as fast_simulate  # noqa: E402
 from .fitting import FitResult as FitResult  # noqa: E402
 from .fitting import TrajectoryData as TrajectoryData  # noqa: E402
 from .fitting import fit as fit  # noqa: E402

@@ -1,0 +1,140 @@
+r"""``fast_simulate``: the lean DOP853 ensemble integrator of the rigid body oscillator.
+
+The general path is :func:`rbo_jax.simulate` (diffrax: any solver, adjoints, events, the left
+form). This one is the hot path of sweeps and fits: the right form (4.55)–(4.56) of the model —
+the same vector field, :meth:`rbo_jax.RigidBodyOscillator.right_form` — integrated by DOP853 with
+SciPy's tableau, error norm, step-size controller and initial step, so that every trajectory
+takes the steps ``scipy.integrate.solve_ivp(method="DOP853")`` takes.
+
+It is written for one trajectory and batched with ``jax.vmap``, as :func:`rbo_jax.simulate`; a
+batching rule (:func:`jax.custom_batching.custom_vmap`) then runs the batch as a structure of
+arrays on up to 1000 refilled lanes (``_solve.py``, where the layout is explained and measured).
+Forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``, also under ``vmap``) differentiate the
+per-trajectory loop (:func:`jax.custom_jvp`); reverse mode is :func:`rbo_jax.simulate`'s.
+
+Modules: ``_tableau`` (the coefficients), ``_dop853`` (one step, shape-polymorphic),
+``_problem`` (the model as a function of the six state components, the per-step checks),
+``_solve`` (the per-trajectory loop and the refilled lanes).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .. import _enumeration as enum
+from ..model import RigidBodyOscillator
+from ..trajectory import SolveStatus, Trajectory, finish, prepare_inputs
+from ._problem import Problem
+from ._solve import Config, solve_lanes, solve_one
+
+__all__ = ["fast_simulate"]
+
+LANES = 1000  # measured best on CPU (benchmarks/README.md)
+
+
+def _per_trajectory(cfg: Config):
+    def one(problem, y0, ts):
+        return solve_one(problem, tuple(y0[i] for i in range(6)), ts, cfg)
+
+    return one
+
+
+@functools.lru_cache(maxsize=64)
+def _integrator(cfg: Config):
+    """``integrate(problem, y0 (6,), ts) -> (samples (n_ts, 6), status code, accepted steps)``
+    with the batching rule and the forward-mode rule (cached per configuration)."""
+    one = _per_trajectory(cfg)
+
+    @jax.custom_batching.custom_vmap
+    def batched(problem, y0, ts):
+        return one(problem, y0, ts)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, problem, y0, ts):
+        p_batched, y_batched, ts_batched = in_batched
+        if ts_batched:  # every trajectory has its own times: lockstep per-trajectory loops
+            axes = (jax.tree_util.tree_map(lambda b: 0 if b else None, p_batched),
+                    0 if y_batched else None, 0)
+            return jax.vmap(one, in_axes=axes)(problem, y0, ts), (True, True, True)
+        if not y_batched:
+            y0 = jnp.broadcast_to(y0, (axis_size, 6))
+        out = solve_lanes(problem, p_batched, tuple(y0[:, i] for i in range(6)), ts, cfg, LANES)
+        return out, (True, True, True)
+
+    integrate = jax.custom_jvp(batched)
+
+    @integrate.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(one, primals, tangents)
+
+    return integrate
+
+
+@eqx.filter_jit
+def _run(cfg: Config, problem: Problem, y0, ts):
+    """Compiled once per configuration and model structure (``cfg`` is static: Python numbers),
+    also when called outside ``jax.jit``."""
+    return _integrator(cfg)(problem, y0, ts)
+
+
+def fast_simulate(
+    model: RigidBodyOscillator,
+    theta0,
+    Omega0,
+    ts,
+    *,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    singular_tol: float = 1e-3,
+    throw: bool = True,
+) -> Trajectory:
+    r"""Integrate the right form (4.55)–(4.56) from $(\theta_0, \Omega_0)$ at ``ts[0]`` and
+    sample it at ``ts``, with DOP853 exactly as SciPy's ``solve_ivp(method="DOP853")``.
+
+    **Arguments:** as :func:`rbo_jax.simulate`: the model, the initial turn-vector and right
+    angular velocity (3,), strictly increasing sample times ``ts`` (the solve runs from ``ts[0]``
+    to ``ts[-1]``); ``rtol``, ``atol`` (Python numbers); ``max_steps``, the budget of step
+    attempts; ``singular_tol``; ``throw``.
+
+    **Samples.** ``ts[0]`` is the initial state; a sample inside a step is the method's 7th-order
+    dense output (SciPy's ``Dop853DenseOutput``: three more stages on each step that contains
+    samples); a sample at the end of a step — ``ts[-1]`` always — is the step's own state. The
+    samples do not change the steps (as ``t_eval`` in SciPy).
+
+    **Statuses** (:class:`rbo_jax.SolveStatus`), checked on every accepted step: ``successful``;
+    ``max_steps_reached``; ``step_size_collapse`` (the step fell below SciPy's minimum
+    ``10 |nextafter(t) − t|``); ``nonfinite_state`` (the error estimate or the state is NaN or
+    inf); ``singular_point`` (the turn within ``singular_tol`` of a sphere $|\theta| = 2\pi k$ of
+    $Z$ (4.11), or across one, while $\theta\times\Omega \ne 0$); ``domain_error`` (outside the
+    domain of the foundation energy, e.g. a barrier of (4.49)); ``nonfinite_input`` and
+    ``invalid_parameters`` before the solve. Samples after a failure are ``inf`` (NaN for invalid
+    parameters); ``throw=True`` raises the status message instead.
+
+    **Batches.** ``jax.jit(jax.vmap(lambda c: fast_simulate(model_of(c), ...)))(cs)`` runs the
+    batch as a structure of arrays on refilled lanes (module docstring): build the models inside
+    the vmapped function, as for :func:`rbo_jax.simulate`. Forward-mode derivatives (``jax.jvp``,
+    ``jax.jacfwd``) with respect to model parameters and the initial state work, also batched;
+    step sizes are constants for them. Reverse mode: use :func:`rbo_jax.simulate`.
+    """
+    if not isinstance(model, RigidBodyOscillator):
+        raise TypeError(f"model must be a RigidBodyOscillator, got {type(model).__name__}.")
+    try:
+        cfg = Config(float(rtol), float(atol), int(max_steps), float(singular_tol))
+    except (TypeError, jax.errors.ConcretizationTypeError):
+        raise TypeError("fast_simulate: rtol, atol, max_steps and singular_tol must be Python "
+                        "numbers (they are compiled in); use simulate for traced tolerances.")
+    if not (cfg.rtol > 0 and cfg.atol > 0 and cfg.max_steps >= 1 and cfg.singular_tol > 0):
+        raise ValueError(f"fast_simulate: need rtol, atol, singular_tol > 0 and max_steps >= 1, "
+                         f"got {cfg}.")
+    theta0, Omega0, ts, _, bad_input, invalid = prepare_inputs(model, theta0, Omega0, ts, rtol,
+                                                               atol, throw)
+    problem = Problem(model.right_form())
+    samples, code, nacc = _run(cfg, problem, jnp.concatenate([theta0, Omega0]), ts)
+    status = enum.from_code(SolveStatus, code)
+    return finish(model, ts, samples[:, :3], samples[:, 3:], status, bad_input, invalid, nacc,
+                  throw)

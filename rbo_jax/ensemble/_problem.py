@@ -1,0 +1,87 @@
+r"""What the integrator needs from a model, for one trajectory or a structure of arrays of them.
+
+:class:`Problem` wraps the model's right form (4.55)–(4.56) (:meth:`RigidBodyOscillator.right_form`,
+with $A^{-1}$ computed once) as a function of the six state components, and the per-step checks:
+the singular spheres $|\theta| = 2\pi k$ of $Z$ (4.11) and the domain of the foundation energy.
+
+For B trajectories at once the problem's leaves carry the batch on their **last** axis
+(component-major: a vector parameter is ``(3, B)``), and :func:`lanes` evaluates the per-trajectory
+code with ``jax.vmap`` over that axis: every component is then a contiguous ``(B,)`` array, and
+the vector field becomes element-wise code over the lanes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .. import _enumeration as enum
+from ..kinematics import cross3, dot3
+from ..model import RightForm
+from ..trajectory import TRANSVERSE_TOL, SolveStatus
+
+_CODE = {name: int(enum.code(getattr(SolveStatus, name))) for name in (
+    "successful", "max_steps_reached", "step_size_collapse", "singular_point", "domain_error",
+    "nonfinite_state")}
+
+
+def code(name: str) -> int:
+    """The integer code of a :class:`SolveStatus` name."""
+    return _CODE[name]
+
+
+class Problem(eqx.Module):
+    """One trajectory's equations of motion and checks, on state tuples (θ0, θ1, θ2, Ω0, Ω1, Ω2)."""
+
+    rhs: RightForm
+
+    def f(self, t, y):
+        theta_dot, Omega_dot = self.rhs(t, (jnp.stack(y[:3]), jnp.stack(y[3:])))
+        return (theta_dot[0], theta_dot[1], theta_dot[2], Omega_dot[0], Omega_dot[1], Omega_dot[2])
+
+    def failure(self, y_old, y_new, singular_tol):
+        """The status code of an accepted step that must stop the solve, else ``successful``:
+        a non-finite state, the turn within ``singular_tol`` of a sphere |θ| = 2πk (k ≥ 1) or
+        across one while θ×Ω ≠ 0 (plane motion crosses them harmlessly), or θ outside the domain
+        of the foundation energy."""
+        theta, Omega = jnp.stack(y_new[:3]), jnp.stack(y_new[3:])
+        n2 = dot3(theta, theta)
+        n = jnp.sqrt(n2)
+        two_pi = 2.0 * math.pi
+        near = jnp.abs(n - two_pi * jnp.maximum(jnp.round(n / two_pi), 1.0)) < singular_tol
+        n_old = jnp.sqrt(dot3(jnp.stack(y_old[:3]), jnp.stack(y_old[:3])))
+        crossed = ((jnp.floor(n / two_pi) != jnp.floor(n_old / two_pi))
+                   & (jnp.maximum(n, n_old) >= math.pi))
+        c = cross3(theta, Omega)
+        transverse = dot3(c, c) > TRANSVERSE_TOL**2 * n2 * dot3(Omega, Omega)
+        finite = jnp.all(jnp.isfinite(jnp.stack(y_new)))
+        outside = ~(self.rhs.model.domain_margin(theta) > 0)
+        status = jnp.where(outside, code("domain_error"), code("successful"))
+        status = jnp.where((near | crossed) & transverse, code("singular_point"), status)
+        return jnp.where(finite, status, code("nonfinite_state"))
+
+
+def to_lanes(tree, batched):
+    """Leaves with the batch axis moved last; ``batched`` (a matching tree of bools, or one bool)
+    says which leaves have a leading batch axis (the others are shared and keep their shape)."""
+    if isinstance(batched, bool):
+        batched = jax.tree_util.tree_map(lambda _: batched, tree)
+    return jax.tree_util.tree_map(lambda x, b: jnp.moveaxis(x, 0, -1) if b else x, tree, batched)
+
+
+def lane_axes(tree, batched):
+    """The ``in_axes`` of :func:`lanes` for a tree laid out by :func:`to_lanes`."""
+    if isinstance(batched, bool):
+        batched = jax.tree_util.tree_map(lambda _: batched, tree)
+    return jax.tree_util.tree_map(lambda x, b: x.ndim - 1 if b else None, tree, batched)
+
+
+def lanes(method: str, problem: Problem, axes, *args):
+    """``problem.<method>(*args)`` for every lane: a vmap over the last axis of the problem's
+    batched leaves and the leading axis of the ``(B,)`` components in ``args``."""
+    fn = getattr(Problem, method)
+    arg_axes = jax.tree_util.tree_map(lambda x: 0 if jnp.ndim(x) else None, args)
+    return jax.vmap(fn, in_axes=(axes, *arg_axes))(problem, *args)
