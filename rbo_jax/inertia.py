@@ -9,6 +9,8 @@ validate a given one. All are differentiable in their float inputs and accept tr
 
 from __future__ import annotations
 
+import warnings
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -22,7 +24,40 @@ from ._validation import (
     _unit_axis,
 )
 
-__all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia", "inertia_checks"]
+__all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia", "inertia_checks",
+           "NonPhysicalInertiaWarning"]
+
+
+class NonPhysicalInertiaWarning(UserWarning):
+    r"""The principal moments violate a triangle inequality $A_i \le A_j + A_k$: no rigid body
+    of positive mass density has this inertia tensor. Some studies use such tensors on purpose;
+    silence with ``warnings.filterwarnings("ignore", category=NonPhysicalInertiaWarning)``."""
+
+
+_WARNED: set = set()
+
+
+def _warn_if_not_physical(A):
+    """Warn (once per set of principal moments) when $A_i > A_j + A_k$ for some i."""
+    moments = np.linalg.eigvalsh(0.5 * (np.asarray(A) + np.asarray(A).T))
+    total = moments.sum()
+    for i, Ai in enumerate(moments):
+        if Ai > (total - Ai) * (1.0 + 1e-12):
+            j, k = (n for n in range(3) if n != i)
+            key = tuple(np.round(moments, 12))
+            if key in _WARNED:
+                return
+            _WARNED.add(key)
+            warnings.warn(
+                "the inertia tensor's principal moments (ascending) "
+                f"{', '.join(f'{m:.6g}' for m in moments)}"
+                f" violate the triangle inequality A_{i + 1} <= A_{j + 1} + A_{k + 1} "
+                f"({Ai:.6g} > {moments[j]:.6g} + {moments[k]:.6g}): no rigid body has this "
+                "inertia. "
+                "If this is intended, silence it with warnings.filterwarnings('ignore', "
+                "category=rbo_jax.inertia.NonPhysicalInertiaWarning).",
+                NonPhysicalInertiaWarning, stacklevel=3)
+            return
 
 # Relative tolerances of the checks (rounding of matrices built from rotated axes is ~1e-16).
 _SYMMETRY_RTOL = 1e-10
@@ -46,7 +81,10 @@ def transversely_isotropic_inertia(A1: ScalarLike, A3: ScalarLike, k: VectorLike
     A3 = _scalar_parameter(A3, "A3", owner, "principal moment of inertia", POSITIVE)
     k = _unit_axis(k, owner)
     kk = jnp.outer(k, k)
-    return A1 * (jnp.eye(3, dtype=kk.dtype) - kk) + A3 * kk
+    A = A1 * (jnp.eye(3, dtype=kk.dtype) - kk) + A3 * kk
+    if not _is_traced(A):
+        _warn_if_not_physical(A)
+    return A
 
 
 def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
@@ -71,7 +109,10 @@ def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
         f"{owner}: the principal axes (rows of axes) must be orthonormal (|D D^T - E| <= "
         f"{_ORTHONORMAL_ATOL})",
     )
-    return axes.T @ (moments[:, None] * axes)
+    A = axes.T @ (moments[:, None] * axes)
+    if not _is_traced(A):
+        _warn_if_not_physical(A)
+    return A
 
 
 def _inertia_properties(A):
@@ -111,7 +152,8 @@ def check_inertia(A: MatrixLike) -> Matrix:
     Concrete input raises ``ValueError`` saying which property fails (for positive
     definiteness, with the smallest eigenvalue); traced input is returned as it is and checked by
     the solvers that use the model (:func:`inertia_checks`). Physical realisability (the
-    triangle inequalities $A_i \le A_j + A_k$) is not required.
+    triangle inequalities $A_i \le A_j + A_k$) is not required: a concrete tensor that violates
+    one gives a :class:`NonPhysicalInertiaWarning` (once per set of moments) naming it.
     """
     owner = "check_inertia"
     A = _float_matrix(A, "the inertia tensor A", owner)
@@ -131,4 +173,5 @@ def check_inertia(A: MatrixLike) -> Matrix:
             f"{owner}: the inertia tensor A must be positive definite, but its smallest "
             f"eigenvalue is {smallest:.6g}; got {np.asarray(A)!r}."
         )
+    _warn_if_not_physical(A)
     return A

@@ -126,3 +126,23 @@ def test_inertia_differentiable_in_A1_A3():
     As = batched(jnp.array([1.0, 2.0, -2.0]))
     np.testing.assert_allclose(np.linalg.eigvalsh(As[1]), [1.0, 2.0, 2.0], rtol=1e-14)
     assert not bool(inertia_checks(As[2])[2][0]) and bool(inertia_checks(As[1])[2][0])
+
+
+def test_non_physical_inertia_warns_once_naming_the_inequality():
+    """A_3 = 2.5 > A_1 + A_2 = 2 violates a triangle inequality of the principal moments: no
+    rigid body has this tensor; a NonPhysicalInertiaWarning names it, once, and can be
+    silenced. Physical tensors (A_3 = 2 = A_1 + A_2: a flat disc) do not warn."""
+    import warnings
+
+    from rbo_jax.inertia import NonPhysicalInertiaWarning
+
+    k = jnp.array([0.0, 0.0, 1.0])
+    with pytest.warns(NonPhysicalInertiaWarning, match=r"A_3 <= A_1 \+ A_2.*filterwarnings"):
+        A = rbo.transversely_isotropic_inertia(1.0, 2.5, k)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rbo.check_inertia(A)  # the same moments: not again
+        rbo.transversely_isotropic_inertia(1.0, 2.0, k)
+        rbo.principal_inertia(jnp.array([1.0, 2.0, 3.0]), jnp.eye(3))
+    with pytest.warns(NonPhysicalInertiaWarning, match="A_3 <= A_1 \\+ A_2"):
+        rbo.principal_inertia(jnp.array([1.0, 1.5, 3.0]), jnp.eye(3))

@@ -25,7 +25,7 @@ from .._validation import POSITIVE
 from ..batch import POINT_DIM, summary_line, sweep
 from ..plotting import plot_sweep, pyplot
 from ._reader import Reader, SpecError
-from .quantities import DEFAULT_PLOT, OUTPUTS, QUANTITIES, Settings, make_quantity
+from .quantities import DEFAULT_PLOT, INTEGRATORS, OUTPUTS, QUANTITIES, Settings, make_quantity
 from .spec import ModelSpec
 
 __all__ = ["QUANTITIES", "ConfigError", "SweepConfig", "load_config", "run_config"]
@@ -130,7 +130,8 @@ def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
         r.fail("[equilibrium]", "is only used with [initial] about_equilibrium = true.")
     solver = r.table(cfg, "solver", "config", required=True)
     where = "[solver]"
-    r.keys(solver, ("t1", "rtol", "atol", "max_steps", "samples"), where, required=("t1",))
+    r.keys(solver, ("t1", "rtol", "atol", "max_steps", "samples", "integrator"), where,
+           required=("t1",))
     if "samples" in solver and name == "final_state":
         r.fail(f"{where} samples", "is not used by quantity 'final_state' (it keeps t1 only).")
     return Settings(
@@ -142,6 +143,8 @@ def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
         atol=r.number(solver, "atol", where, default=1e-8, requirement=POSITIVE, axis=False),
         max_steps=r.integer(solver, "max_steps", where, default=100_000),
         samples=r.integer(solver, "samples", where, default=101, minimum=2),
+        integrator=r.string(solver, "integrator", where, default="fast_simulate",
+                            choices=INTEGRATORS),
     )
 
 
@@ -165,7 +168,7 @@ def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
     sw = r.table(cfg, "sweep", "config", required=True)
     r.keys(sw, ("quantity", "output", "chunk_size", "plot", "png"), "[sweep]",
            required=("quantity", "output"))
-    if sw["quantity"] not in QUANTITIES:
+    if not isinstance(sw["quantity"], str) or sw["quantity"] not in QUANTITIES:
         r.fail("[sweep] quantity", f"must be one of {', '.join(QUANTITIES)}; "
                                    f"got {sw['quantity']!r}.")
     for k in ("output", "png"):
@@ -174,7 +177,7 @@ def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
     sw["chunk_size"] = r.integer(sw, "chunk_size", "[sweep]", default=4096)
     name = sw["quantity"]
     sw.setdefault("plot", DEFAULT_PLOT[name])
-    if sw["plot"] not in OUTPUTS[name]:
+    if not isinstance(sw["plot"], str) or sw["plot"] not in OUTPUTS[name]:
         r.fail("[sweep] plot", f"must be an output of {name!r}: {', '.join(OUTPUTS[name])}; "
                                f"got {sw['plot']!r}.")
     return sw
@@ -199,7 +202,8 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
     ``foundation`` ``{type = "quadratic", c, d}`` or ``{type = "barrier", c, d, alpha, beta}``
     or a list of such terms, ``loads`` a list of ``{type = "follower"|"dead", M}``,
     ``{type = "semi_tangential", M, l1, l2}``, ``{type = "friction", b}``); for simulation
-    quantities ``[solver]`` (``t1``, ``rtol``, ``atol``, ``max_steps``, ``samples``) and
+    quantities ``[solver]`` (``t1``, ``rtol``, ``atol``, ``max_steps``, ``samples``,
+    ``integrator`` = ``"fast_simulate"`` (the default) or ``"simulate"``) and
     ``[initial]`` (``theta0``, ``Omega0``, ``about_equilibrium``); ``[equilibrium]``
     (``theta_guess``, ``classify_rtol``).
 
@@ -237,16 +241,18 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
 
 def run_config(config: SweepConfig | str | os.PathLike, *, resume: bool = False,
                overwrite: bool = False, progress: bool = True, output=None, png=None,
-               plot: bool = True):
+               plot: bool = True, retry_errors: bool = False):
     """Run a configured sweep (:func:`load_config`): write the store and, on process 0, the PNG
-    of the map. ``output`` / ``png`` override the configured paths. Returns ``(dataset, png path
-    or None)``."""
+    of the map. ``output`` / ``png`` override the configured paths; ``retry_errors`` (with
+    ``resume``) computes again the points of status ``error`` (:func:`rbo_jax.sweep`). Returns
+    ``(dataset, png path or None)``."""
     cfg = config if isinstance(config, SweepConfig) else load_config(config)
     out = Path(output) if output is not None else cfg.output
     ds = sweep(
         cfg.quantity, cfg.axes, points=cfg.points, chunk_size=cfg.chunk_size, store=out,
         resume=resume, overwrite=overwrite, progress=progress, dims=cfg.dims,
-        attrs={"quantity": cfg.quantity_name, "config": cfg.canonical}, desc=cfg.quantity_name,
+        retry_errors=retry_errors, attrs={"quantity": cfg.quantity_name, "config": cfg.canonical},
+        desc=cfg.quantity_name,
     )
     png_path = None
     if plot and jax.process_index() == 0:

@@ -122,7 +122,7 @@ def _read_term(r: Reader, table: Mapping, kinds: Mapping[str, _Kind], where: str
     if not isinstance(table, Mapping):
         r.fail(where, f"must be a table, got {table!r}.")
     kind = table.get("type")
-    if kind not in kinds:
+    if not isinstance(kind, str) or kind not in kinds:
         r.fail(f"{where} type", f"must be one of {', '.join(map(repr, kinds))}; got {kind!r}.")
     spec = kinds[kind]
     names = [p.name for p in spec.params]

@@ -104,8 +104,9 @@ def sweep_command(args: argparse.Namespace) -> int:
               file=sys.stderr)
         plot = False
     try:
-        ds, png = run_config(cfg, resume=args.resume, overwrite=args.overwrite,
-                             progress=not args.quiet, output=args.output, plot=plot)
+        ds, png = run_config(cfg, resume=args.resume or args.retry_errors,
+                             overwrite=args.overwrite, progress=not args.quiet,
+                             output=args.output, plot=plot, retry_errors=args.retry_errors)
     except (FileExistsError, SweepError) as e:
         print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
         return 2
