@@ -4,6 +4,9 @@ strict dtype promotion (no implicit int -> float or float32 -> float64 mixing)."
 import os
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+# the CLI's persistent compilation cache stays off in tests (tests/test_cli.py turns it on in a
+# temporary directory where it is tested)
+os.environ.setdefault("RBO_JAX_COMPILATION_CACHE", "off")
 
 import jax  # noqa: E402
 

@@ -111,12 +111,15 @@ def test_every_subcommand_help_explains_each_option(capsys):
 
 def test_simulate_conservative_energy_and_files_match_rbo_jax_simulate(capsys, tmp_path):
     """Barrier foundation (4.49), no loads: K + U of the written dataset is constant to 1e-9
-    (4.124), and the trajectory of --out (netCDF, zarr and CSV alike) is rbo_jax.simulate's."""
+    (4.124), and the trajectory of --out (netCDF, zarr and CSV alike) is rbo_jax.fast_simulate's
+    (the default integrator), and rbo_jax.simulate's (diffrax) with --integrator simulate; the two
+    agree to the tolerance."""
     import jax.numpy as jnp
 
     from rbo_jax import (
         BarrierFoundation,
         RigidBodyOscillator,
+        fast_simulate,
         simulate,
         transversely_isotropic_inertia,
     )
@@ -136,8 +139,16 @@ def test_simulate_conservative_energy_and_files_match_rbo_jax_simulate(capsys, t
     model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 0.6, k),
                                 BarrierFoundation(1.0, 2.0, 2.0, 1.5, k))
     ts = jnp.linspace(0.0, 5.0, 11)
-    traj = simulate(model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
-                    rtol=1e-12, atol=1e-12)
+    traj = fast_simulate(model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
+                         rtol=1e-12, atol=1e-12)
+    diffrax_traj = simulate(model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
+                            rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(traj.theta, diffrax_traj.theta, rtol=0, atol=1e-9)
+    code, _, err = _run(capsys, argv + ["--integrator", "simulate", "--out",
+                                        str(tmp_path / "diffrax.nc")])
+    assert code == 0, err
+    np.testing.assert_array_equal(_open(tmp_path / "diffrax.nc")["theta"].values,
+                                  np.asarray(diffrax_traj.theta))
     np.testing.assert_allclose(ds["t"].values, np.asarray(ts), rtol=0, atol=0)
     np.testing.assert_allclose(ds["theta"].values, np.asarray(traj.theta), rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(ds["Omega"].values, np.asarray(traj.Omega), rtol=1e-12, atol=1e-14)
@@ -215,7 +226,7 @@ def test_simulate_loads_add_up_as_in_the_package(capsys, tmp_path):
         Friction,
         QuadraticFoundation,
         RigidBodyOscillator,
-        simulate,
+        fast_simulate,
         transversely_isotropic_inertia,
     )
 
@@ -231,8 +242,8 @@ def test_simulate_loads_add_up_as_in_the_package(capsys, tmp_path):
     model = RigidBodyOscillator(
         transversely_isotropic_inertia(1.0, 0.6, k), QuadraticFoundation(1.0, 2.0, k),
         [FollowerMoment(0.3, k), DeadMoment(0.1, k), Friction(0.2)])
-    traj = simulate(model, jnp.array([0.4, 0.2, 0.1]), jnp.array([0.3, -0.5, 0.2]),
-                    jnp.linspace(0.0, 8.0, 9))
+    traj = fast_simulate(model, jnp.array([0.4, 0.2, 0.1]), jnp.array([0.3, -0.5, 0.2]),
+                         jnp.linspace(0.0, 8.0, 9))
     np.testing.assert_allclose(ds["theta"].values, np.asarray(traj.theta), rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(ds["energy"].values, np.asarray(traj.energy), rtol=1e-12)
 
@@ -471,3 +482,30 @@ def test_fit_bad_data_file_exits_2_naming_the_problem(capsys, tmp_path, arrays, 
 def test_fit_invalid_options_exit_2(capsys, argv, message):
     code, _, err = _run(capsys, ["fit", "--synthetic", *argv])
     assert code == 2 and message in err
+
+
+def test_persistent_compilation_cache_is_written_and_reused(tmp_path):
+    """The command keeps its compiled programs in $RBO_JAX_COMPILATION_CACHE: the first process
+    writes entries, a second one reads them (same output) and adds none; ``off`` writes
+    nothing."""
+    import subprocess
+
+    cache = tmp_path / "cache"
+    code = "import sys; from rbo_jax.app.cli import main; sys.exit(main(sys.argv[1:]))"
+    argv = ["simulate", "--c", "1", "--d", "2", "--theta0", "0.3,0,0.1", "--t1", "2",
+            "--samples", "3"]
+
+    def run(value):
+        env = dict(os.environ, RBO_JAX_COMPILATION_CACHE=value, JAX_PLATFORMS="cpu")
+        proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True,
+                              text=True, env=env, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        return proc.stdout.split("wall time")[0]
+
+    first = run(str(cache))
+    entries = sorted(p.name for p in cache.iterdir())
+    assert entries, "no compiled program was cached"
+    assert run(str(cache)) == first
+    assert sorted(p.name for p in cache.iterdir()) == entries
+    run("off")
+    assert sorted(p.name for p in cache.iterdir()) == entries

@@ -669,6 +669,9 @@ def test_cli_sweep_writes_store_and_png_and_resumes(tmp_path, capsys):
     before = _store_files(store)
     assert cli.main(["sweep", str(cfg), "--quiet", "--resume"]) == 0
     assert _store_files(store) == before
+    # --retry-errors implies --resume; no point has status 'error': nothing is recomputed
+    assert cli.main(["sweep", str(cfg), "--quiet", "--retry-errors"]) == 0
+    assert _store_files(store) == before
     cfg.write_text(SMALL_CONFIG.replace("c = 1.0", "c = 1.5"))
     assert cli.main(["sweep", str(cfg), "--quiet", "--resume"]) == 2
     assert "attribute 'config' differs" in capsys.readouterr().err
@@ -796,3 +799,131 @@ def test_a_million_points_in_bounded_memory(tmp_path):
     assert ds["U"].shape == (1000, 1000)
     np.testing.assert_allclose(ds["U"].values[3], 0.5 * axes["M"] ** 2, rtol=1e-14, atol=1e-16)
     assert grown_mib < 400, grown_mib
+
+
+# ---------------------------------------------------------------------------------------------
+# Fuzzed configurations: any value at any key gives a ConfigError naming where, never a crash.
+# ---------------------------------------------------------------------------------------------
+
+FINAL_STATE_CONFIG = """
+[sweep]
+quantity = "final_state"
+output = "fs.zarr"
+chunk_size = 4
+
+[axes]
+M = [0.0, 0.2]
+c = { start = 0.5, stop = 1.5, num = 2 }
+
+[model]
+inertia = { A1 = 1.0, A3 = 0.5 }
+foundation = { type = "barrier", c = "c", d = 2.0, alpha = 2.0, beta = 1.5 }
+loads = [{ type = "follower", M = "M" }, { type = "semi_tangential", M = 0.1, l1 = 0.5, l2 = 0.5 }]
+
+[initial]
+theta0 = [0.1, 0.0, 0.0]
+Omega0 = [0.0, 0.2, 0.0]
+
+[solver]
+t1 = 1.0
+rtol = 1e-8
+integrator = "fast_simulate"
+"""
+
+
+def _toml_string(v: str) -> str:
+    return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+
+
+def _toml_value(v) -> str:
+    """A TOML literal of a str, bool, int, float (nan, inf too), list or dict (inline table)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return _toml_string(v)
+    if isinstance(v, float):
+        return "nan" if v != v else ("inf" if v == np.inf else "-inf" if v == -np.inf
+                                     else repr(v))
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return "{" + ", ".join(f"{_toml_string(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+
+
+def _to_toml(cfg: dict) -> str:
+    lines = []
+    for table, body in cfg.items():
+        if not isinstance(body, dict):  # a mutated top level: a plain key
+            lines.insert(0, f"{_toml_string(table)} = {_toml_value(body)}")
+            continue
+        lines.append(f"[{table}]")
+        lines += [f"{_toml_string(k)} = {_toml_value(v)}" for k, v in body.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _paths(tree, prefix=()):
+    """Every (table, key[, index or subkey]) path of the parsed config."""
+    out = []
+    for k, v in tree.items() if isinstance(tree, dict) else enumerate(tree):
+        out.append(prefix + (k,))
+        if isinstance(v, (dict, list)) and len(prefix) < 3:
+            out += _paths(v, prefix + (k,))
+    return out
+
+
+def _set(tree, path, value):
+    for k in path[:-1]:
+        tree = tree[k]
+    tree[path[-1]] = value
+
+
+def _fuzz_values():
+    from hypothesis import strategies as st
+
+    scalars = st.one_of(
+        st.booleans(), st.integers(-10**20, 10**20),
+        st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6),
+        st.sampled_from(["M", "c", "quadratic", "barrier", "follower", "simulate", ""]))
+    return st.recursive(scalars, lambda inner: st.one_of(
+        st.lists(inner, max_size=4), st.dictionaries(st.sampled_from(
+            ["type", "c", "d", "M", "b", "start", "stop", "num", "A1", "A3", "x"]), inner,
+            max_size=3)), max_leaves=6)
+
+
+def test_fuzzed_configs_fail_with_a_config_error_naming_the_key(tmp_path):
+    """Hypothesis replaces the value at one key of a valid configuration (of every table, list
+    entry and inline-table key) with a random TOML value (any type, NaN, inf, huge integers,
+    nested lists and tables): loading either succeeds or raises ConfigError whose message names
+    the table or key at fault; nothing else escapes (no TypeError, KeyError, ...)."""
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    base = tomllib.loads(FINAL_STATE_CONFIG)
+    paths = _paths(base)
+    counts = {"accepted": 0, "refused": 0}
+
+    @settings(max_examples=500)
+    @given(st.sampled_from(paths), _fuzz_values())
+    def check(path, value):
+        cfg = json.loads(json.dumps(base))
+        _set(cfg, path, value)
+        file = tmp_path / "fuzz.toml"
+        file.write_text(_to_toml(cfg))
+        try:
+            load_config(file)
+        except ConfigError as e:
+            counts["refused"] += 1
+            message = str(e)
+            named = [str(p) for p in path if isinstance(p, str)]
+            assert any(n in message for n in named) or "[axes]" in message, (path, message)
+        else:
+            counts["accepted"] += 1
+
+    check()
+    assert counts["refused"] > 0
+    print(f"fuzzed configurations: {counts}")

@@ -2,6 +2,8 @@ r"""The quantities of ``rbo-jax sweep``: functions of one parameter point, compo
 calls on a :class:`~rbo_jax.app.spec.ModelSpec`.
 
 - ``final_state``: $\theta(t_1)$, $\Omega(t_1)$ of a simulation (and the number of steps);
+  simulations use :func:`rbo_jax.fast_simulate` (DOP853, the batch on refilled lanes), or
+  :func:`rbo_jax.simulate` (diffrax Dopri8) with ``[solver] integrator = "simulate"``;
 - ``energy_drift``: $\max_t |E(t) - E(0)|/|E(0)|$ over ``samples`` times;
 - ``max_deviation``: $\max_t |\theta(t) - \theta(0)|$ over ``samples`` times;
 - ``spectral_abscissa``: :func:`rbo_jax.equilibrium_stability` of the equilibrium found by Newton
@@ -15,6 +17,7 @@ from typing import Any
 
 import jax.numpy as jnp
 
+from ..ensemble import fast_simulate
 from ..maps import equilibrium_stability
 from ..simulate import simulate
 from ..stability import solve_equilibrium
@@ -36,6 +39,7 @@ OUTPUTS = {
 DEFAULT_PLOT = {"final_state": "theta", "energy_drift": "energy_drift",
                 "max_deviation": "max_deviation", "spectral_abscissa": "spectral_abscissa"}
 SIMULATION = ("final_state", "energy_drift", "max_deviation")
+INTEGRATORS = {"fast_simulate": fast_simulate, "simulate": simulate}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +56,7 @@ class Settings:
     atol: float = 1e-8
     max_steps: int = 100_000
     samples: int = 101
+    integrator: str = "fast_simulate"
 
 
 def _vector(xs, point):
@@ -83,8 +88,9 @@ def make_quantity(name: str, spec: ModelSpec, s: Settings):
             th0 = jnp.where(sol.ok, sol.theta + th0, jnp.nan)  # no equilibrium: nonfinite_input
         n = 2 if name == "final_state" else s.samples
         ts = jnp.linspace(0.0, 1.0, n) * _scalar(s.t1, point)
-        traj = simulate(model, th0, _vector(s.Omega0, point), ts, max_steps=s.max_steps,
-                        rtol=s.rtol, atol=s.atol, throw=False)
+        traj = INTEGRATORS[s.integrator](model, th0, _vector(s.Omega0, point), ts,
+                                         max_steps=s.max_steps, rtol=s.rtol, atol=s.atol,
+                                         throw=False)
         if name == "final_state":
             values = {"theta": traj.theta[-1], "Omega": traj.Omega[-1]}
         elif name == "energy_drift":

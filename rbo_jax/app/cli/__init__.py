@@ -9,6 +9,11 @@ A3; ``rbo-jax fit`` fits foundation parameters to a recorded (or synthetic) traj
 The commands only compose library calls: a :class:`~rbo_jax.app.spec.ModelSpec` from the
 options, the library's functions, xarray Datasets written as netCDF or zarr.
 
+Compiled programs are kept in JAX's persistent compilation cache, so that a second process
+(another ``rbo-jax fit`` or ``sweep`` of the same structure) compiles nothing: the directory is
+``$RBO_JAX_COMPILATION_CACHE``, by default ``rbo_jax/jax-cache`` under the user's cache directory
+(``$XDG_CACHE_HOME`` or ``~/.cache``); ``RBO_JAX_COMPILATION_CACHE=off`` turns it off.
+
 Exit codes: 0 success; 1 the computation failed (a solver status, a fit that did not converge);
 2 invalid input (options, parameters, files), with a message naming it.
 """
@@ -16,7 +21,9 @@ Exit codes: 0 success; 1 the computation failed (a solver status, a fit that did
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from pathlib import Path
 
 import rbo_jax  # noqa: F401  (enables float64 before any array is made)
 
@@ -45,10 +52,46 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+CACHE_ENV = "RBO_JAX_COMPILATION_CACHE"
+
+
+def compilation_cache_dir() -> Path | None:
+    """The persistent compilation cache directory of the command (None: off)."""
+    value = os.environ.get(CACHE_ENV, "")
+    if value.strip().lower() in ("off", "0", "no", "false", "none"):
+        return None
+    if value:
+        return Path(value).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "rbo_jax" / "jax-cache"
+
+
+def enable_compilation_cache() -> Path | None:
+    """Point JAX's persistent compilation cache at :func:`compilation_cache_dir` (every program
+    that took more than 0.2 s to compile is kept). A directory that cannot be made turns the
+    cache off with a warning; the command still runs."""
+    import jax
+
+    path = compilation_cache_dir()
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        print(f"rbo-jax: warning: compilation cache off ({path}: {e.strerror}); set "
+              f"{CACHE_ENV}=off to silence this.", file=sys.stderr)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     args.argv = argv
+    enable_compilation_cache()
     try:
         return args.func(args)
     except Failure as e:

@@ -34,6 +34,9 @@ def _check_options(args):
         raise Failure(f"--max-steps must be >= 1, got {args.max_steps}.")
     if not (args.rtol > 0 and args.atol > 0):
         raise Failure(f"--rtol and --atol must be > 0, got {args.rtol:g}, {args.atol:g}.")
+    if args.progress and args.integrator != "simulate":
+        raise Failure("--progress needs --integrator simulate (fast_simulate has no progress "
+                      "bar).")
 
 
 def _initial_state(args, model):
@@ -78,7 +81,7 @@ def simulate_command(args: argparse.Namespace) -> int:
     """``rbo-jax simulate``: one trajectory of the model given by the options, as a table."""
     import jax.numpy as jnp
 
-    from ... import simulate
+    from ... import fast_simulate, simulate
     from .._io import write_dataset, write_trajectory_csv
 
     _check_options(args)
@@ -88,8 +91,12 @@ def simulate_command(args: argparse.Namespace) -> int:
     theta0, Omega0 = _initial_state(args, model)
     ts = jnp.linspace(0.0, args.t1, args.samples)
     start = time.perf_counter()
-    traj = simulate(model, theta0, Omega0, ts, rtol=args.rtol, atol=args.atol,
-                    max_steps=args.max_steps, throw=False, progress=args.progress)
+    if args.integrator == "simulate":
+        traj = simulate(model, theta0, Omega0, ts, rtol=args.rtol, atol=args.atol,
+                        max_steps=args.max_steps, throw=False, progress=args.progress)
+    else:
+        traj = fast_simulate(model, theta0, Omega0, ts, rtol=args.rtol, atol=args.atol,
+                             max_steps=args.max_steps, throw=False)
     ds = traj.to_xarray(model=spec.describe(), command="rbo-jax " + " ".join(args.argv))
     elapsed = time.perf_counter() - start
     drift = _print_table(ds, args.max_rows)
