@@ -1,13 +1,16 @@
-"""Trajectories per second: ``jax.vmap(simulate)`` vs a numba-compiled DOP853 and
-``scipy.integrate.solve_ivp`` (DOP853).
+"""Trajectories per second: ``jax.vmap(fast_simulate)`` and ``jax.vmap(simulate)`` vs a
+numba-compiled DOP853 and ``scipy.integrate.solve_ivp`` (DOP853).
 
 The Nikolai problem (4.57)–(4.62): transversely isotropic body (A1 = 1, A3 = 0.5), quadratic
 foundation (4.50), follower moment M; each parameter point (c, d, M) starts 1e-3 rad off its
-equilibrium θ = (M/d)k; t ∈ [0, 20], rtol = atol = 1e-8, final state only.
+equilibrium θ = (M/d)k; t ∈ [0, 20], rtol = 1e-8, atol = 1e-10, final state only.
 
 Every side uses an 8th-order Dormand–Prince method at the same tolerances:
 
-* diffrax ``Dopri8`` on the JAX side (``jax.jit(jax.vmap(...))`` over chunks, one device);
+* :func:`rbo_jax.fast_simulate` (DOP853, SciPy's steps): one ``jax.jit(jax.vmap(...))`` call
+  over all points (refilled lanes), one device;
+* diffrax ``Dopri8`` through :func:`rbo_jax.simulate` (``jax.jit(jax.vmap(...))`` over chunks,
+  one device);
 * ``_numba_reference``: a per-trajectory DOP853 compiled with numba (scipy's tableau, error
   estimator and step-size controller; scalar right-hand side), a serial loop over all points (one
   core) and a ``prange`` loop (all cores numba sees) — skipped when numba is not installed;
@@ -16,8 +19,11 @@ Every side uses an 8th-order Dormand–Prince method at the same tolerances:
 
 Final states are compared (independent checks of the vector field), numba's function-evaluation
 counts against scipy's (same algorithm: they should be equal), and the per-trajectory time ratios
-are printed. Compilation is timed separately (JAX: the first chunk; numba: a first call on one
-point) and not included in the per-trajectory times.
+are printed. Compilation is timed separately (JAX: the first call; numba: a first call on one
+point) and not included in the per-trajectory times. The one-core rows (everything but numba's
+``prange``) run with every thread of the process pinned to core 0 (``_pinning.py``, Linux).
+The error of each method against a tight reference (``simulate`` at rtol = atol = 1e-13) is
+printed for the scipy sample.
 
 Usage: ``python benchmarks/bench_simulate.py [--n 10000] [--scipy-sample 20] [--chunk 500]
 [--no-numba-parallel]``
@@ -40,18 +46,21 @@ try:
 except ImportError:  # numba is optional (the "bench" extra)
     numba_ref = None
 
+from _pinning import pinned
+
 import rbo_jax
 from rbo_jax import (
     FollowerMoment,
     QuadraticFoundation,
     RigidBodyOscillator,
+    fast_simulate,
     simulate,
     transversely_isotropic_inertia,
 )
 
 A1, A3 = 1.0, 0.5
 K = np.array([0.0, 0.0, 1.0])
-T1, RTOL = 20.0, 1e-8
+T1, RTOL, ATOL = 20.0, 1e-8, 1e-10
 PERTURBATION = np.array([1e-3, -5e-4, 2e-4])
 
 
@@ -68,7 +77,7 @@ def parameter_points(n: int, seed: int = 0) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def jax_final_state(p):
+def jax_final_state(p, solver=simulate, rtol=RTOL, atol=ATOL):
     c, d, M = p[0], p[1], p[2]
     k = jnp.asarray(K)
     model = RigidBodyOscillator(
@@ -77,10 +86,32 @@ def jax_final_state(p):
         FollowerMoment(M, k),
     )
     theta0 = (M / d) * k + jnp.asarray(PERTURBATION)
-    traj = simulate(
-        model, theta0, jnp.zeros(3), jnp.array([0.0, T1]), rtol=RTOL, atol=RTOL, throw=False
+    traj = solver(
+        model, theta0, jnp.zeros(3), jnp.array([0.0, T1]), rtol=rtol, atol=atol, throw=False
     )
     return jnp.concatenate([traj.theta[-1], traj.Omega[-1]]), traj.num_steps
+
+
+def fast_final_state(p):
+    return jax_final_state(p, solver=fast_simulate)
+
+
+def run_fast(points: np.ndarray):
+    """One jit(vmap(fast_simulate)) call over all points (first call: compilation + run)."""
+    fn = jax.jit(jax.vmap(fast_final_state))
+    x = jnp.asarray(points)
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(x))
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    y, steps = jax.block_until_ready(fn(x))
+    elapsed = time.perf_counter() - t0
+    return np.asarray(y), np.asarray(steps), elapsed, first - elapsed
+
+
+def tight_reference(points: np.ndarray) -> np.ndarray:
+    fn = jax.jit(jax.vmap(lambda p: jax_final_state(p, rtol=1e-13, atol=1e-13)[0]))
+    return np.asarray(fn(jnp.asarray(points)))
 
 
 def run_jax(points: np.ndarray, chunk: int):
@@ -113,7 +144,7 @@ def run_scipy(points: np.ndarray):
     for c, d, M in points:
         y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
         sol = solve_ivp(
-            numpy_rhs, (0.0, T1), y0, method="DOP853", rtol=RTOL, atol=RTOL,
+            numpy_rhs, (0.0, T1), y0, method="DOP853", rtol=RTOL, atol=ATOL,
             args=(c, d, M, A, A_inv, K),
         )
         assert sol.success, sol.message
@@ -131,29 +162,38 @@ def inertia():
 
 def run_numba(points: np.ndarray, parallel: bool) -> dict:
     A, A_inv = inertia()
-    return numba_ref.timed_solve(points, parallel, T1, RTOL, RTOL, PERTURBATION, A, A_inv, K)
+    return numba_ref.timed_solve(points, parallel, T1, RTOL, ATOL, PERTURBATION, A, A_inv, K)
 
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=10_000, help="parameter points (JAX, numba)")
+    parser.add_argument("--n", type=int, default=4_000, help="parameter points (JAX, numba)")
     parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
     parser.add_argument("--chunk", type=int, default=500, help="vmap chunk size")
     parser.add_argument("--no-numba-parallel", action="store_true",
                         help="skip the numba prange run (all cores)")
+
+    parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
 
     points = parameter_points(args.n)
-    y_jax, steps, t_jax, t_compile = run_jax(points, min(args.chunk, args.n))
-    nb = {}
-    if numba_ref is not None:
-        nb["serial"] = run_numba(points, parallel=False)
-        if not args.no_numba_parallel:
-            nb["prange"] = run_numba(points, parallel=True)
     ns = args.scipy_sample
     sample = points[:ns]
-    y_sp, nfev, steps_sp, t_sp = run_scipy(sample)
+    nb = {}
+    with pinned((0,)) as is_pinned:
+        y_fast, steps_fast, t_fast, compile_fast = run_fast(points)
+        y_jax, steps, t_jax, t_compile = run_jax(points, min(args.chunk, args.n))
+        if numba_ref is not None:
+            nb["serial"] = run_numba(points, parallel=False)
+        y_sp, nfev, steps_sp, t_sp = run_scipy(sample)
+    if numba_ref is not None and not args.no_numba_parallel:
+        nb["prange"] = run_numba(points, parallel=True)
     err = np.max(np.abs(y_jax[:ns] - y_sp))
+    tight = tight_reference(sample) if ns else np.zeros((0, 6))
+    acc = {name: float(np.max(np.abs(y[:ns] - tight))) if ns else float("nan")
+           for name, y in [("fast_simulate", y_fast), ("simulate", y_jax), ("scipy", y_sp)]
+           + ([("numba", nb["serial"]["y"])] if nb else [])}
+    per_fast = t_fast / args.n
     per_jax = t_jax / args.n
     per_sp = t_sp / ns
     per_nb = {k: r["seconds"] / args.n for k, r in nb.items()}
@@ -163,13 +203,15 @@ def main(argv=None) -> dict:
           f"{jax.default_backend()} device(s); "
           + (f"numba {numba_ref.NUMBA_VERSION} ({nb['prange']['threads'] if 'prange' in nb else 1}"
              " threads for prange)" if numba_ref is not None else "numba not installed, skipped"))
-    print(f"Nikolai problem, t in [0, {T1}], rtol = atol = {RTOL:g}, {args.n} points "
-          f"(scipy: {ns})")
+    print(f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points "
+          f"(scipy: {ns}); one-core rows pinned to core 0: {is_pinned}")
     header = (f"{'method':<42}{'s / trajectory':>16}{'traj / s':>12}{'steps (mean)':>14}"
               f"{'compile [s]':>13}")
     print(header)
     print("-" * len(header))
-    rows = [("jax.vmap(simulate), Dopri8, 1 device", per_jax, steps.mean(), f"{t_compile:.1f}")]
+    rows = [("jax.vmap(fast_simulate), DOP853, 1 core", per_fast, steps_fast.mean(),
+             f"{compile_fast:.1f}"),
+            ("jax.vmap(simulate), Dopri8, 1 core", per_jax, steps.mean(), f"{t_compile:.1f}")]
     labels = {"serial": "numba DOP853, serial loop (1 core)",
               "prange": "numba DOP853, prange (all cores)"}
     for key, r in nb.items():
@@ -184,9 +226,21 @@ def main(argv=None) -> dict:
     print("ratios below: time per trajectory of the other method / jax's (> 1: jax faster)")
     print(f"speed-up per trajectory: {per_sp / per_jax:.0f}x   (jax vs scipy; compile once: "
           f"{t_compile:.1f} s, not included)")
+    steps_equal = float(np.mean(steps_fast[:ns] == steps_sp)) if ns else float("nan")
+    print(f"fast_simulate: {per_sp / per_fast:.0f}x scipy, {per_jax / per_fast:.1f}x "
+          f"vmap(simulate) per trajectory; accepted steps equal to scipy's on {steps_equal:.0%} "
+          f"of the sample; compile {compile_fast:.1f} s")
+    print("max |final state - tight reference| (simulate at 1e-13) on the sample: "
+          + ", ".join(f"{k} {v:.1e}" for k, v in acc.items()))
     out = {"per_jax": per_jax, "per_scipy": per_sp, "ratio": per_sp / per_jax, "max_diff": err,
            "compile_jax": t_compile, "steps_jax": float(steps.mean()),
-           "steps_scipy": float(steps_sp.mean()), "numba": None}
+           "steps_scipy": float(steps_sp.mean()), "numba": None, "pinned": is_pinned,
+           "fast": {"per": per_fast, "compile": compile_fast, "ratio_scipy": per_sp / per_fast,
+                    "ratio_simulate": per_jax / per_fast, "steps_equal_scipy": steps_equal,
+                    "max_diff_scipy": float(np.max(np.abs(y_fast[:ns] - y_sp))) if ns
+                    else float("nan"),
+                    "steps": float(steps_fast.mean())},
+           "accuracy": acc}
     if nb:
         ser = nb["serial"]
         r_ser = per_nb["serial"] / per_jax
@@ -200,6 +254,18 @@ def main(argv=None) -> dict:
         print(f"numba serial vs scipy: {per_sp / per_nb['serial']:.0f}x per trajectory")
         d_sp = float(np.max(np.abs(ser["y"][:ns] - y_sp)))
         d_jax = float(np.max(np.abs(ser["y"] - y_jax)))
+        r_fast = per_nb["serial"] / per_fast
+        print(f"fast_simulate vs numba serial (one core each): {r_fast:.2f}x per trajectory; "
+              f"accepted steps equal on {np.mean(ser['steps'] == steps_fast):.1%} of all points, "
+              f"max |final state difference| {np.max(np.abs(ser['y'] - y_fast)):.1e}")
+        if "prange" in nb:
+            print(f"fast_simulate (1 core) vs numba prange ({nb['prange']['threads']} threads): "
+                  f"{per_nb['prange'] / per_fast:.2f}x")
+        out["fast"].update(ratio_numba_serial=r_fast,
+                           ratio_numba_prange=per_nb["prange"] / per_fast if "prange" in nb
+                           else None,
+                           steps_equal_numba=float(np.mean(ser["steps"] == steps_fast)),
+                           max_diff_numba=float(np.max(np.abs(ser["y"] - y_fast))))
         d_par = (float(np.max(np.abs(nb["prange"]["y"] - ser["y"]))) if "prange" in nb
                  else float("nan"))
         nfev_diff = int(np.max(np.abs(ser["nfev"][:ns] - nfev))) if ns else 0
@@ -224,6 +290,11 @@ def main(argv=None) -> dict:
     else:
         print("numba not installed, skipped (pip install numba, or the 'bench' extra)")
     print(f"max |final state difference| jax vs scipy on the sample: {err:.2e}")
+    if args.json:
+        import json
+
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=2, default=float)
     return out
 
 

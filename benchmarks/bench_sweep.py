@@ -3,8 +3,9 @@ local devices, and against ``scipy.integrate.solve_ivp`` on a sample, in the sam
 
 The problem is that of ``bench_simulate.py``: the Nikolai problem (4.57)–(4.62), transversely
 isotropic body (A1 = 1, A3 = 0.5), quadratic foundation (4.50), follower moment M; each point
-(c, d, M) starts 1e-3 rad off its equilibrium θ = (M/d)k; t ∈ [0, 20], rtol = atol = 1e-8,
-Dopri8 (diffrax) against DOP853 (scipy, plain NumPy right-hand side, on a sample) and against
+(c, d, M) starts 1e-3 rad off its equilibrium θ = (M/d)k; t ∈ [0, 20], rtol = 1e-8,
+atol = 1e-10, :func:`rbo_jax.fast_simulate` (DOP853; ``--integrator simulate``: diffrax Dopri8)
+against DOP853 (scipy, plain NumPy right-hand side, on a sample) and against
 the numba-compiled DOP853 of ``_numba_reference.py`` (all points; a serial loop on one core and a
 ``prange`` loop on all cores numba sees; skipped when numba is not installed); the final state is
 kept.
@@ -17,7 +18,7 @@ in its own column. The jax/jaxlib versions, the machine and its
 load average are printed with the figures: the CPU runtime's speed changes between versions.
 
 Usage: ``python benchmarks/bench_sweep.py [--n 100000] [--devices 1,2] [--chunk 4096]
-[--scipy-sample 20] [--no-numba] [--json out.json]``
+[--scipy-sample 20] [--no-numba] [--integrator fast_simulate|simulate] [--json out.json]``
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ def _parse(argv):
     parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
     parser.add_argument("--no-numba", action="store_true", help="skip the numba runs")
     parser.add_argument("--json", default=None, help="also write the figures to this file")
+    parser.add_argument("--integrator", default="fast_simulate",
+                        choices=["fast_simulate", "simulate"], help="the sweep's solver")
     args = parser.parse_args(argv)
     try:
         args.devices = [int(x) for x in args.devices.split(",")]
@@ -78,13 +81,15 @@ def main(argv=None) -> dict:
         FollowerMoment,
         QuadraticFoundation,
         RigidBodyOscillator,
+        fast_simulate,
         simulate,
         sweep,
         transversely_isotropic_inertia,
     )
     from rbo_jax.batch._space import make_space
 
-    A1, A3, T1, RTOL = 1.0, 0.5, 20.0, 1e-8
+    A1, A3, T1, RTOL, ATOL = 1.0, 0.5, 20.0, 1e-8, 1e-10
+    solver = fast_simulate if args.integrator == "fast_simulate" else simulate
     K = np.array([0.0, 0.0, 1.0])
     PERTURBATION = np.array([1e-3, -5e-4, 2e-4])
 
@@ -92,8 +97,8 @@ def main(argv=None) -> dict:
         k = jnp.asarray(K)
         model = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, k),
                                     QuadraticFoundation(c, d, k), FollowerMoment(M, k))
-        traj = simulate(model, (M / d) * k + jnp.asarray(PERTURBATION), jnp.zeros(3),
-                        jnp.array([0.0, T1]), rtol=RTOL, atol=RTOL, throw=False)
+        traj = solver(model, (M / d) * k + jnp.asarray(PERTURBATION), jnp.zeros(3),
+                      jnp.array([0.0, T1]), rtol=RTOL, atol=ATOL, throw=False)
         return {"y": jnp.concatenate([traj.theta[-1], traj.Omega[-1]]),
                 "num_steps": traj.num_steps}, traj.status
 
@@ -131,7 +136,7 @@ def main(argv=None) -> dict:
     for i in range(args.scipy_sample):
         c, d, M = points["c"][i], points["d"][i], points["M"][i]
         y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
-        sol = solve_ivp(numpy_rhs, (0.0, T1), y0, method="DOP853", rtol=RTOL, atol=RTOL,
+        sol = solve_ivp(numpy_rhs, (0.0, T1), y0, method="DOP853", rtol=RTOL, atol=ATOL,
                         args=(c, d, M, A, A_inv, K))
         assert sol.success, sol.message
         ys.append(sol.y[:, -1])
@@ -146,7 +151,7 @@ def main(argv=None) -> dict:
     if numba_ref is not None:
         pts = np.stack([points["c"], points["d"], points["M"]], axis=1)
         for key, par in [("serial", False), ("prange", True)]:
-            r = numba_ref.timed_solve(pts, par, T1, RTOL, RTOL, PERTURBATION, A, A_inv, K)
+            r = numba_ref.timed_solve(pts, par, T1, RTOL, ATOL, PERTURBATION, A, A_inv, K)
             nb[key] = {
                 "seconds": r["seconds"], "traj_per_s": args.n / r["seconds"],
                 "compile_s": r["compile_s"], "threads": r["threads"],
@@ -174,14 +179,15 @@ def main(argv=None) -> dict:
           f"{env['python']}, {env['machine']}, {env['cpu_count']} CPUs, load average "
           f"{env['load_average_1min']:.2f}, {n_local} {env['backend']} device(s); "
           + (f"numba {env['numba']}" if env["numba"] else "numba not installed, skipped"))
-    print(f"Nikolai problem, t in [0, {T1}], rtol = atol = {RTOL:g}, {args.n} points, chunks of "
-          f"{batch} (scipy: {args.scipy_sample} points)")
+    print(f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points, "
+          f"chunks of {batch} (scipy: {args.scipy_sample} points); sweep solver "
+          f"{args.integrator}")
     header = (f"{'method':<42}{'traj / s':>12}{'s / traj':>12}{'compile s':>11}"
               f"{'steps':>8}{'ok':>9}")
     print(header)
     print("-" * len(header))
     for r in results:
-        name = f"rbo_jax.sweep, shard_map over {r['devices']} device(s)"
+        name = f"sweep, shard_map over {r['devices']} device(s)"
         print(f"{name:<42}{r['traj_per_s']:>12.1f}{1 / r['traj_per_s']:>12.3e}"
               f"{r['compile_s']:>11.1f}{r['steps_mean']:>8.1f}{r['successful']:>9d}")
     labels = {"serial": "numba DOP853, serial loop (1 core)",
@@ -217,7 +223,7 @@ def main(argv=None) -> dict:
               f"= {r['nfev_diff_to_scipy']}; prange / serial {par:.2f}x")
     if len(counts) < len(args.devices):
         print(f"(skipped device counts above the {n_local} local devices)")
-    out = {"env": env, "n": args.n, "chunk": batch, "sweep": results,
+    out = {"env": env, "integrator": args.integrator, "n": args.n, "chunk": batch, "sweep": results,
            "scipy": {"sample": args.scipy_sample, "s_per_traj": per_scipy, "max_diff": diff},
            "numba": nb or None}
     if args.json:

@@ -19,7 +19,7 @@ import rbo_jax  # noqa: E402,F401  (float64 on before anything else)
 
 SMOKE_ARGS = {
     "sweep": ["--n", "60", "--chunk", "30", "--scipy-sample", "2"],
-    "simulate": ["--n", "40", "--chunk", "20", "--scipy-sample", "2"],
+    "simulate": ["--n", "40", "--chunk", "20", "--scipy-sample", "2"],  # one-core rows pinned
     "stability": ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"],
     "fitting": ["--samples", "20", "--trajectories", "1"],
 }
@@ -34,6 +34,15 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
     Ratios are the other method's time per item / rbo_jax's (> 1: rbo_jax faster)."""
     rows = []
     sim = results.get("simulate")
+    if sim and sim.get("fast"):
+        fa = sim["fast"]
+        rows.append(("simulate", "jax.vmap(fast_simulate) vs scipy DOP853 (1 core each)",
+                     _fmt(fa["ratio_scipy"], ".0f") + "x", f"jax {fa['compile']:.1f}"))
+        if fa.get("ratio_numba_serial") is not None:
+            rows.append(("simulate", "jax.vmap(fast_simulate) vs numba DOP853 serial (1 core "
+                         "each)", _fmt(fa["ratio_numba_serial"], ".2f") + "x", ""))
+            rows.append(("simulate", "jax.vmap(fast_simulate) (1 core) vs numba prange",
+                         _fmt(fa.get("ratio_numba_prange"), ".2f") + "x", ""))
     if sim:
         rows.append(("simulate", "jax.vmap(simulate) vs scipy DOP853 (1 core each)",
                      _fmt(sim["ratio"], ".0f") + "x", f"jax {sim['compile_jax']:.1f}"))

@@ -64,3 +64,19 @@ def test_stability_map_and_fit_are_accurate(smoke_output):
                      r"([0-9.e+-]+)", smoke_output)
     assert max(errors) < 1e-12  # against the closed-form roots (4.69)
     assert "converged: True" in smoke_output
+
+
+def test_fast_simulate_takes_scipys_steps(smoke_output):
+    """fast_simulate is DOP853 with SciPy's controller: on the benchmark's points it takes the
+    steps of the numba reference (which takes SciPy's), and the final states agree to rounding;
+    against a tight reference it is as accurate as SciPy."""
+    assert "=== simulate ===" in smoke_output
+    if "numba not installed" in smoke_output:
+        pytest.skip("numba (the `bench` extra) is not installed")
+    m = re.search(r"accepted steps equal on ([0-9.]+)% of all points, max \|final state "
+                  r"difference\| ([0-9.e+-]+)", smoke_output)
+    assert m, "no fast_simulate vs numba line"
+    assert float(m.group(1)) == 100.0
+    assert float(m.group(2)) < 1e-10
+    acc = _floats(r"fast_simulate ([0-9.e+-]+), simulate", smoke_output)
+    assert max(acc) < 1e-6
