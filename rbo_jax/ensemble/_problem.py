@@ -19,9 +19,9 @@ import jax
 import jax.numpy as jnp
 
 from .. import _enumeration as enum
-from ..kinematics import cross3, dot3
+from ..kinematics import distance_to_singularity, dot3
 from ..model import RightForm
-from ..trajectory import TRANSVERSE_TOL, SolveStatus
+from ..trajectory import TRANSVERSE_TOL, SolveStatus, transverse_fraction
 
 _CODE = {name: int(enum.code(getattr(SolveStatus, name))) for name in (
     "successful", "max_steps_reached", "step_size_collapse", "singular_point", "domain_error",
@@ -31,6 +31,10 @@ _CODE = {name: int(enum.code(getattr(SolveStatus, name))) for name in (
 def code(name: str) -> int:
     """The integer code of a :class:`SolveStatus` name."""
     return _CODE[name]
+
+
+def _norm(v):
+    return jnp.sqrt(dot3(v, v))
 
 
 class Problem(eqx.Module):
@@ -46,17 +50,16 @@ class Problem(eqx.Module):
         """The status code of an accepted step that must stop the solve, else ``successful``:
         a non-finite state, the turn within ``singular_tol`` of a sphere |θ| = 2πk (k ≥ 1) or
         across one while θ×Ω ≠ 0 (plane motion crosses them harmlessly), or θ outside the domain
-        of the foundation energy."""
+        of the foundation energy. The same tests as :func:`rbo_jax.simulate`'s events
+        (:func:`rbo_jax.distance_to_singularity`, ``transverse_fraction``), made once per step."""
+        y_old, y_new = jax.lax.stop_gradient((tuple(y_old), tuple(y_new)))  # a status only
         theta, Omega = jnp.stack(y_new[:3]), jnp.stack(y_new[3:])
-        n2 = dot3(theta, theta)
-        n = jnp.sqrt(n2)
+        near = distance_to_singularity(theta) < singular_tol
+        n, n_old = _norm(theta), _norm(jnp.stack(y_old[:3]))
         two_pi = 2.0 * math.pi
-        near = jnp.abs(n - two_pi * jnp.maximum(jnp.round(n / two_pi), 1.0)) < singular_tol
-        n_old = jnp.sqrt(dot3(jnp.stack(y_old[:3]), jnp.stack(y_old[:3])))
         crossed = ((jnp.floor(n / two_pi) != jnp.floor(n_old / two_pi))
                    & (jnp.maximum(n, n_old) >= math.pi))
-        c = cross3(theta, Omega)
-        transverse = dot3(c, c) > TRANSVERSE_TOL**2 * n2 * dot3(Omega, Omega)
+        transverse = transverse_fraction(theta, Omega) > TRANSVERSE_TOL
         finite = jnp.all(jnp.isfinite(jnp.stack(y_new)))
         outside = ~(self.rhs.model.domain_margin(theta) > 0)
         status = jnp.where(outside, code("domain_error"), code("successful"))
