@@ -62,7 +62,7 @@ def test_tableau_is_scipys():
     np.testing.assert_array_equal(np.asarray(_tableau.D), scipy_tableau.D)
 
 
-@pytest.mark.parametrize("tol", [1e-6, 1e-10])
+@pytest.mark.parametrize("tol", [pytest.param(1e-6, marks=pytest.mark.slow), 1e-10])
 def test_same_steps_and_states_as_scipy_dop853(tol):
     """(4.55)–(4.56) of a loaded, damped oscillator on a barrier foundation: the accepted steps
     and the samples (dense output between steps) are SciPy's."""
@@ -97,6 +97,7 @@ def test_energy_is_conserved_4_78():
     assert np.ptp(E) < 1e-8 * abs(E[0])
 
 
+@pytest.mark.slow
 def test_error_follows_the_tolerance():
     """Tolerance proportionality: the global error against a tight solve falls by more than 100
     when the tolerance falls by 1000 (rtol = atol = 1e-6 → 1e-9), and is below 1e-4 at 1e-6."""
@@ -122,7 +123,7 @@ def _model_of(p):
     return make_model(c=p[0], M=p[1])
 
 
-@pytest.mark.parametrize("lanes", [1000, 5])
+@pytest.mark.parametrize("lanes", [pytest.param(1000, marks=pytest.mark.slow), 5])
 def test_batch_equals_single_trajectories(monkeypatch, lanes):
     """vmap runs the batch on refilled lanes (5 lanes for 13 trajectories: refills); every
     trajectory gets exactly its own solve, in its own place."""
