@@ -23,6 +23,17 @@ from .batch import open_sweep as open_sweep  # noqa: E402
 from .batch import stability_map as stability_map  # noqa: E402
 from .batch import status_counts as status_counts  # noqa: E402
 from .batch import sweep as sweep  # noqa: E402
+from .bifurcation import HopfPoint as HopfPoint  # noqa: E402
+from .bifurcation import HopfStatus as HopfStatus  # noqa: E402
+from .bifurcation import OrbitStatus as OrbitStatus  # noqa: E402
+from .bifurcation import PeriodicOrbit as PeriodicOrbit  # noqa: E402
+from .bifurcation import continue_equilibria as continue_equilibria  # noqa: E402
+from .bifurcation import continue_hopf as continue_hopf  # noqa: E402
+from .bifurcation import continue_limit_cycles as continue_limit_cycles  # noqa: E402
+from .bifurcation import first_lyapunov_coefficient as first_lyapunov_coefficient  # noqa: E402
+from .bifurcation import floquet_multipliers as floquet_multipliers  # noqa: E402
+from .bifurcation import hopf_point as hopf_point  # noqa: E402
+from .bifurcation import periodic_orbit as periodic_orbit  # noqa: E402
 from .ensemble import fast_simulate as fast_simulate  # noqa: E402
 from .fitting import FitResult as FitResult  # noqa: E402
 from .fitting import TrajectoryData as TrajectoryData  # noqa: E402

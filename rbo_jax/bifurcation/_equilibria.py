@@ -1,0 +1,232 @@
+r"""Pseudo-arclength continuation of equilibria in one parameter, with fold, branch-point and
+Hopf detection.
+
+The branch $G(\theta, \alpha) = \dot\Omega(\theta, 0; \alpha) = 0$ (the moment balance (4.61)
+written with the right form (4.56)) is followed in $u = (\theta, \alpha)$ by Keller's
+pseudo-arclength method: from a point $u_k$ with unit tangent $\tau_k$ (the null vector of
+$G_u$, oriented), the predictor $u_k + s\,\tau_k$ is corrected by Newton's method on
+$G(u) = 0$, $\tau_k\cdot(u - u_k) = s$, so folds in $\alpha$ are passed. Along the branch:
+
+- **fold**: the $\alpha$-component of the tangent changes sign;
+- **branch point**: $\det\begin{pmatrix}G_u\\\tau^T\end{pmatrix}$ changes sign;
+- **Hopf point**: the number of eigenvalues (4.63)–(4.67) with $\mathrm{Re}\,p > 0$ and
+  $\mathrm{Im}\,p \ne 0$ changes; the point is then located exactly by
+  :func:`rbo_jax.hopf_point` started from the last point before the change.
+
+Folds and branch points are located by linear interpolation of their test functions between the
+two points that bracket them (their error is $O(s^2)$).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..kinematics import _as_vector
+from ..model import RigidBodyOscillator
+from ..stability import solve_equilibrium
+from ._field import flat_field
+from ._hopf import _build, _point, hopf_point
+
+__all__ = ["continue_equilibria"]
+
+
+def _G(model_fn, parameter, others, t):
+    def G(u):
+        F = flat_field(_build(model_fn, _point(others, parameter, u[3])), t)
+        return F(jnp.concatenate([u[:3], jnp.zeros(3)]))[3:]
+
+    return G
+
+
+def _tangent(Gu, tau_prev):
+    """The unit null vector of the 3×4 ``Gu``, oriented along ``tau_prev``; and the determinant
+    of the bordered matrix (the branch-point test function)."""
+    A = jnp.concatenate([Gu, tau_prev[None, :]])
+    tau = jnp.linalg.solve(A, jnp.array([0.0, 0.0, 0.0, 1.0]))
+    tau = tau / jnp.linalg.norm(tau)
+    return tau, jnp.linalg.det(jnp.concatenate([Gu, tau[None, :]]))
+
+
+@eqx.filter_jit
+def _step(model_fn, parameter, t, others, u, tau, s, tol, max_newton):
+    """Predictor, Newton corrector, new tangent and spectrum."""
+    G = _G(model_fn, parameter, others, t)
+    u_pred = u + s * tau
+
+    def cond(carry):
+        _, k, size = carry
+        return (k < max_newton) & (size > tol)
+
+    def body(carry):
+        v, k, _ = carry
+        r = jnp.concatenate([G(v), (tau @ (v - u_pred))[None]])
+        A = jnp.concatenate([jax.jacfwd(G)(v), tau[None, :]])
+        delta = jnp.linalg.solve(A, -r)
+        size = jnp.maximum(jnp.max(jnp.abs(delta)), jnp.max(jnp.abs(r)))
+        return v + delta, k + 1, jnp.where(jnp.isfinite(size), size, jnp.inf)
+
+    v, k, size = jax.lax.while_loop(cond, body, (u_pred, 0, jnp.inf))
+    converged = (size <= tol) & jnp.all(jnp.isfinite(v))
+    tau_new, bp = _tangent(jax.jacfwd(G)(v), tau)
+    model = _build(model_fn, _point(others, parameter, v[3]))
+    J = jax.jacfwd(flat_field(model, t))(jnp.concatenate([v[:3], jnp.zeros(3)]))
+    p = jnp.linalg.eigvals(J)
+    return v, converged, k, tau_new, bp, p
+
+
+def _counts(p, rtol=1e-9):
+    tol = rtol * max(float(np.max(np.abs(p))), 1e-300)
+    unstable = np.real(p) > tol
+    oscillatory = np.abs(np.imag(p)) > tol
+    return int(np.sum(unstable & oscillatory)), int(np.sum(unstable))
+
+
+def continue_equilibria(
+    model_fn: Callable[..., RigidBodyOscillator],
+    params: Mapping[str, object],
+    parameter: str,
+    start: float,
+    stop: float,
+    *,
+    theta_guess=None,
+    ds: float = 0.02,
+    ds_min: float = 1e-6,
+    ds_max: float = 0.1,
+    max_points: int = 500,
+    tol: float = 1e-10,
+    locate_hopf: bool = True,
+    t=0.0,
+    progress: bool = False,
+):
+    r"""Follow the equilibria of ``model_fn(**params, parameter=α)`` from α = ``start`` towards
+    ``stop`` by pseudo-arclength continuation (module docstring), detecting folds, branch points
+    and Hopf points.
+
+    The first equilibrium is Newton's (:func:`rbo_jax.solve_equilibrium`) from ``theta_guess``
+    (default 0). The arclength step starts at ``ds``, grows ×1.5 (up to ``ds_max``) after easy
+    corrections and halves after failed ones; the run stops when α passes ``stop``, after
+    ``max_points`` points, or when the step falls below ``ds_min``.
+
+    **Returns** an :class:`xarray.Dataset` over ``point``: ``parameter`` (α), ``theta``
+    (component), ``eigenvalues`` (mode), ``spectral_abscissa``, ``stable`` (every Re p < 0), and
+    over ``special``: ``special_type`` (``"fold"``, ``"branch_point"``, ``"hopf"``),
+    ``special_value`` (α), ``special_index`` (the point before it), and for Hopf points
+    ``special_frequency`` and ``special_first_lyapunov`` (from :func:`rbo_jax.hopf_point`;
+    NaN otherwise). ``attrs["stop_reason"]`` says why the run ended.
+    """
+    import xarray as xr
+
+    others = {str(k): jnp.asarray(v, dtype=jnp.result_type(float))
+              for k, v in params.items() if k != parameter}
+    guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
+    if not (ds > 0 and ds_min > 0 and ds_max >= ds):
+        raise ValueError(f"need 0 < ds <= ds_max and ds_min > 0, got {ds}, {ds_max}, {ds_min}.")
+    sol = solve_equilibrium(_build(model_fn, _point(others, parameter, jnp.asarray(start))),
+                            guess)
+    if not bool(sol.ok):
+        raise ValueError(f"no equilibrium found at {parameter} = {start} from theta_guess: "
+                         f"{sol.status.__class__.__name__}.{_name(sol.status)}.")
+    u = jnp.concatenate([sol.theta, jnp.asarray([start], dtype=sol.theta.dtype)])
+    direction = 1.0 if stop >= start else -1.0
+    u, _, _, tau, bp, p = _step(model_fn, parameter, t, others, u,
+                                jnp.array([0.0, 0.0, 0.0, direction]), jnp.asarray(0.0), tol,
+                                20)
+    rows, special = [(u, p)], []
+    reason = "max_points"
+    bar = _progress(progress, max_points)
+    while len(rows) < max_points:
+        v, ok, k, tau_new, bp_new, p_new = _step(model_fn, parameter, t, others, u, tau,
+                                                 jnp.asarray(ds), tol, 20)
+        if not bool(ok):
+            ds *= 0.5
+            if ds < ds_min:
+                reason = "step size below ds_min"
+                break
+            continue
+        _detect(special, len(rows) - 1, u, v, tau, tau_new, bp, bp_new, p, p_new)
+        u, tau, bp, p = v, tau_new, bp_new, p_new
+        rows.append((u, p))
+        bar.update(1)
+        ds = min(ds * 1.5, ds_max) if int(k) <= 3 else ds
+        if direction * (float(u[3]) - stop) >= 0:
+            reason = "reached stop"
+            break
+    bar.close()
+    if locate_hopf:
+        _locate_hopf(special, rows, model_fn, others, parameter)
+    return _dataset(xr, parameter, rows, special, reason)
+
+
+def _name(item):
+    from .. import _enumeration as enum
+
+    return enum.name(item)
+
+
+class _NoBar:
+    def update(self, n):
+        pass
+
+    def close(self):
+        pass
+
+
+def _progress(progress, total):
+    if not progress:
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc="equilibria", unit="point")
+
+
+def _detect(special, index, u, v, tau, tau_new, bp, bp_new, p, p_new):
+    def interpolate(f0, f1):
+        w = float(f0 / (f0 - f1))
+        return float(u[3] + w * (v[3] - u[3]))
+
+    if float(tau[3]) * float(tau_new[3]) < 0:
+        special.append(("fold", interpolate(tau[3], tau_new[3]), index))
+    if float(bp) * float(bp_new) < 0:
+        special.append(("branch_point", interpolate(bp, bp_new), index))
+    if _counts(np.asarray(p))[0] != _counts(np.asarray(p_new))[0]:
+        special.append(("hopf", float(0.5 * (u[3] + v[3])), index))
+
+
+def _locate_hopf(special, rows, model_fn, others, parameter):
+    for i, (kind, value, index) in enumerate(special):
+        if kind != "hopf":
+            continue
+        u = rows[index][0]
+        h = hopf_point(model_fn, others, parameter, u[3], theta_guess=u[:3])
+        extra = (float(h.frequency), float(h.first_lyapunov)) if bool(h.ok) else (np.nan, np.nan)
+        special[i] = (kind, float(h.value) if bool(h.ok) else value, index) + extra
+
+
+def _dataset(xr, parameter, rows, special, reason):
+    U = np.stack([np.asarray(u) for u, _ in rows])
+    P = np.stack([np.sort_complex(np.asarray(p)) for _, p in rows])
+    abscissa = np.max(P.real, axis=1)
+    scale = np.maximum(np.max(np.abs(P), axis=1), 1e-300)
+    special = [s + (np.nan, np.nan) if len(s) == 3 else s for s in special]
+    ds = xr.Dataset(
+        {
+            parameter: ("point", U[:, 3]),
+            "theta": (("point", "component"), U[:, :3]),
+            "eigenvalues": (("point", "mode"), P),
+            "spectral_abscissa": ("point", abscissa),
+            "stable": ("point", abscissa < -1e-9 * scale),
+            "special_type": ("special", np.array([s[0] for s in special], dtype=str)),
+            "special_value": ("special", np.array([s[1] for s in special], dtype=float)),
+            "special_index": ("special", np.array([s[2] for s in special], dtype=int)),
+            "special_frequency": ("special", np.array([s[3] for s in special], dtype=float)),
+            "special_first_lyapunov": ("special", np.array([s[4] for s in special], dtype=float)),
+        },
+        coords={"component": ["x", "y", "z"], "mode": np.arange(6)},
+        attrs={"parameter": parameter, "stop_reason": reason},
+    )
+    return ds
