@@ -76,6 +76,8 @@ from .maps import EquilibriumStability as EquilibriumStability  # noqa: E402
 from .maps import equilibrium_stability as equilibrium_stability  # noqa: E402
 from .model import RightForm as RightForm  # noqa: E402
 from .model import RigidBodyOscillator as RigidBodyOscillator  # noqa: E402
+from .plotting import plot_bifurcation_diagram as plot_bifurcation_diagram  # noqa: E402
+from .plotting import plot_hopf_boundary as plot_hopf_boundary  # noqa: E402
 from .plotting import plot_sweep as plot_sweep  # noqa: E402
 from .precession import RegularPrecession as RegularPrecession  # noqa: E402
 from .precession import precession_residual as precession_residual  # noqa: E402
