@@ -35,8 +35,8 @@ def _curve(model_fn, theta_eq_fn, parameter, along, t, rtol, atol, max_steps, ot
         point, u_new = _solve(model_fn, parameter, t, {**others, along: value}, u, w, rtol, atol,
                               max_steps)
         good = alive & (point.status == HopfStatus.successful)
-        v = u_new[5:11] + 1j * u_new[11:17]
-        w_new = v / jnp.vdot(v, v).real  # w^H v = 1 at the new solution
+        v = jax.lax.complex(u_new[5:11], u_new[11:17])
+        w_new = v / jnp.vdot(v, v)  # w^H v = 1 at the new solution
         status = HopfStatus.where(alive, point.status, HopfStatus.not_converged)
         point = eqx.tree_at(lambda h: h.status, point, status)
         carry = (jnp.where(good, u_new, u), jnp.where(good, w_new, w), good)

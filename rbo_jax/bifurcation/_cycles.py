@@ -79,7 +79,8 @@ def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref,
     model = _build(model_fn, _point(others, parameter, u[7]))
     ts = jnp.linspace(0.0, 1.0, N_SAMPLES) * jnp.where(u[6] > 0, u[6], 1.0)
     traj = fast_simulate(model, u[:3], u[3:6], ts, throw=False, **solver)
-    amplitude = jnp.max(jnp.linalg.norm(traj.theta - jnp.mean(traj.theta, axis=0), axis=1))
+    amplitude = jnp.max(jnp.linalg.norm(traj.theta - jnp.mean(traj.theta, axis=0, keepdims=True),
+                                        axis=1))
     converged = (res <= tol) & ok & (u[6] > 0)
     return u, converged, k - 1, _sorted(jnp.linalg.eigvals(M)), amplitude
 

@@ -13,8 +13,9 @@ $G(u) = 0$, $\tau_k\cdot(u - u_k) = s$, so folds in $\alpha$ are passed. Along t
   $\mathrm{Im}\,p \ne 0$ changes; the point is then located exactly by
   :func:`rbo_jax.hopf_point` started from the last point before the change.
 
-Folds and branch points are located by linear interpolation of their test functions between the
-two points that bracket them (their error is $O(s^2)$).
+Branch points are located by linear interpolation of their test function between the two points
+that bracket them (error $O(s^2)$), folds by the vertex of the parabola $\alpha(\sigma)$ through
+three points around them (error $O(s^3)$).
 """
 
 from __future__ import annotations
@@ -157,6 +158,7 @@ def continue_equilibria(
             reason = "reached stop"
             break
     bar.close()
+    _refine_folds(special, rows)
     if locate_hopf:
         _locate_hopf(special, rows, model_fn, others, parameter)
     return _dataset(xr, parameter, rows, special, reason)
@@ -195,6 +197,20 @@ def _detect(special, index, u, v, tau, tau_new, bp, bp_new, p, p_new):
         special.append(("branch_point", interpolate(bp, bp_new), index))
     if _counts(np.asarray(p))[0] != _counts(np.asarray(p_new))[0]:
         special.append(("hopf", float(0.5 * (u[3] + v[3])), index))
+
+
+def _refine_folds(special, rows):
+    """A fold's parameter as the vertex of the parabola alpha(sigma) through three points of
+    the branch around it (sigma the arclength along their chords): error O(s^3)."""
+    for i, (kind, value, index) in enumerate(special):
+        lo = max(index - 1, 0)
+        if kind != "fold" or lo + 3 > len(rows):
+            continue
+        U = np.stack([np.asarray(rows[j][0]) for j in range(lo, lo + 3)])
+        sigma = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(U, axis=0), axis=1))])
+        a, b, c = np.polyfit(sigma, U[:, 3], 2)
+        if a != 0 and sigma[0] <= -b / (2 * a) <= sigma[-1]:
+            special[i] = (kind, float(c - b * b / (4 * a)), index)
 
 
 def _locate_hopf(special, rows, model_fn, others, parameter):

@@ -58,4 +58,4 @@ def complex_form(real_form, *vectors):
     args = [jnp.stack([parts[j][c[j]] for c in choices]) for j in range(len(vectors))]
     values = real_form(*args)
     weights = jnp.asarray([1j ** sum(c) for c in choices])
-    return weights @ values
+    return weights @ values.astype(weights.dtype)

@@ -125,8 +125,8 @@ def first_lyapunov_coefficient(F: Callable, x0, omega, q, p) -> Float[Array, ""]
     # two batched calls of B (the second needs the first's solves) and one of C
     B_qqb, B_qq = _pairs(form, [(q, qb), (q, q)])
     h11 = jnp.linalg.solve(J, jnp.real(B_qqb))
-    h20 = jnp.linalg.solve(2j * omega * jnp.eye(n) - J, B_qq)
-    B_qh11, B_qbh20 = _pairs(form, [(q, h11 + 0j), (qb, h20)])
+    h20 = jnp.linalg.solve(jax.lax.complex(-J, 2 * omega * jnp.eye(n)), B_qq)
+    B_qh11, B_qbh20 = _pairs(form, [(q, jax.lax.complex(h11, jnp.zeros_like(h11))), (qb, h20)])
     total = (jnp.vdot(p, complex_form(form, q, q, qb)) - 2 * jnp.vdot(p, B_qh11)
              + jnp.vdot(p, B_qbh20))
     return jnp.real(total) / (2 * omega)
@@ -139,7 +139,7 @@ def _pairs(form, pairs):
     V = jnp.stack([w for _, _, vr, vi in real for w in (vr, vi, vr, vi)])
     values = form(U, V).reshape(len(pairs), 4, -1)
     # B(ur + i ui, vr + i vi) = B(ur, vr) - B(ui, vi) + i[B(ur, vi) + B(ui, vr)]
-    return [v[0] - v[3] + 1j * (v[1] + v[2]) for v in values]
+    return [jax.lax.complex(v[0] - v[3], v[1] + v[2]) for v in values]
 
 
 def _point(others: dict, parameter: str, value) -> dict:
@@ -190,7 +190,7 @@ def _residual(model_fn, parameter, t):
 def _adjoint_vector(J, omega, q):
     r"""$p$ with $J^Tp = -i\omega p$ and $\bar p^Tq = 1$."""
     mu, V = jnp.linalg.eig(J.T)
-    p = V[:, jnp.argmin(jnp.abs(mu + 1j * omega))]
+    p = V[:, jnp.argmin(jnp.abs(mu - jax.lax.complex(jnp.zeros_like(omega), -omega)))]
     return p / jnp.conj(jnp.vdot(p, q))
 
 
@@ -209,7 +209,7 @@ def _transversality(model_fn, parameter, others, alpha, theta, t, q, p):
     G_alpha = jax.jacfwd(G, argnums=1)(theta, alpha)
     dtheta = -jnp.linalg.solve(G_theta, G_alpha)
     dJ = jax.jvp(J_of, (theta, alpha), (dtheta, jnp.ones_like(alpha)))[1]
-    return jnp.real(jnp.vdot(p, dJ @ q))
+    return jnp.real(jnp.vdot(p, dJ.astype(q.dtype) @ q))
 
 
 def _solve(model_fn, parameter, t, others, u0, w, rtol, atol, max_steps):
@@ -220,10 +220,10 @@ def _solve(model_fn, parameter, t, others, u0, w, rtol, atol, max_steps):
                          max_steps=max_steps, throw=False)
     u = sol.value
     theta, alpha, omega = u[:3], u[3], u[4]
-    q = u[5:11] + 1j * u[11:17]
+    q = jax.lax.complex(u[5:11], u[11:17])
     q = jnp.where(omega < 0, jnp.conj(q), q)
     omega = jnp.abs(omega)
-    q = q / jnp.linalg.norm(q)
+    q = q / jnp.linalg.norm(q).astype(q.dtype)
     residual = jnp.max(jnp.abs(fn(u, (others, w))))
 
     point = _point(others, parameter, alpha)
@@ -254,13 +254,17 @@ def _solve(model_fn, parameter, t, others, u0, w, rtol, atol, max_steps):
     return point, u
 
 
+def _nan_unless(good, x):
+    return jnp.where(good, x, jnp.full_like(x, jnp.nan))
+
+
 def _masked(point: HopfPoint) -> HopfPoint:
     """NaN values where the status is not successful."""
     good = point.status == HopfStatus.successful
     names = ("value", "frequency", "theta", "eigenvector", "adjoint", "transversality",
              "first_lyapunov")
     return eqx.tree_at(lambda h: [getattr(h, n) for n in names], point,
-                       [jnp.where(good, getattr(point, n), jnp.nan) for n in names])
+                       [_nan_unless(good, getattr(point, n)) for n in names])
 
 
 def _initial_unknowns(model_fn, theta_eq_fn, parameter, others, alpha0, theta_guess, t):

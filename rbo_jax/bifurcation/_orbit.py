@@ -133,7 +133,7 @@ def floquet_multipliers(model: RigidBodyOscillator, theta0, Omega0, period, *, r
     M, _, ok = monodromy(model, _state(theta0, Omega0), period, rtol=rtol, atol=atol,
                          max_steps=max_steps)
     mu = _sorted(jnp.linalg.eigvals(M))
-    return jnp.where(ok, mu, jnp.nan)
+    return jnp.where(ok, mu, jnp.full_like(mu, jnp.nan))
 
 
 def shooting_system(model, F, x, T, x_ref, solver):
@@ -191,6 +191,7 @@ def periodic_orbit(model: RigidBodyOscillator, theta0, Omega0, period, *, tol=1e
     status = S.where(residual <= tol, S.successful, S.not_converged)
     status = S.where(ok, status, S.solve_failed)
     status = S.where(T > 0, status, S.nonpositive_period)
-    mu = jnp.where(ok, _sorted(jnp.linalg.eigvals(M)), jnp.nan)
+    mu = _sorted(jnp.linalg.eigvals(M))
+    mu = jnp.where(ok, mu, jnp.full_like(mu, jnp.nan))
     return PeriodicOrbit(theta0=x[:3], Omega0=x[3:], period=T, multipliers=mu,
                          residual=residual, num_steps=k - 1, status=status)

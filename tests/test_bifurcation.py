@@ -1,0 +1,309 @@
+"""Bifurcation analysis (issue 15): Hopf points of the Nikolai problem with friction (4.57),
+(4.84) against the Routh-Hurwitz relation of its bending equation, derivatives by the implicit
+function theorem against finite differences, the first Lyapunov coefficient against closed
+forms, Floquet multipliers of regular precessions (4.110)-(4.118) against the rotating-frame
+spectrum, and continuation (equilibria, limit cycles, the flutter boundary)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+import rbo_jax as rbo
+from rbo_jax.bifurcation import first_lyapunov_coefficient
+
+K_AXIS = (0.0, 0.0, 1.0)
+A1, A3, C, D = 1.0, 0.6, 1.0, 2.0
+
+
+def nikolai(M, b):
+    return rbo.nikolai_model(M, C, D, A1=A1, A3=A3, k=K_AXIS, friction=b)
+
+
+def nikolai_A3(M, b, A3):
+    return rbo.nikolai_model(M, C, D, A1=A1, A3=A3, k=K_AXIS, friction=b)
+
+
+def critical_moment(b):
+    r"""The root of $M = 2b\sqrt{K(M)/A_1}$: Routh-Hurwitz for the damped bending equation
+    $(A_1p^2 + bp + K)^2 + M^2/4 = 0$ (notebook 02), with $K$ of (4.69), by Brent's method on
+    the closed form (no autodiff, no Newton of the package)."""
+    def f(M):
+        return M - 2 * b * np.sqrt(float(rbo.nikolai_bending_stiffness(C, D, M)) / A1)
+
+    return scipy.optimize.brentq(f, 1e-9, 1.0, xtol=1e-15)
+
+
+@pytest.fixture(scope="module")
+def hopf():
+    return rbo.hopf_point(nikolai, {"b": 0.1}, "M", 0.15)
+
+
+# --------------------------------------------------------------------------------------------
+# First Lyapunov coefficient on planar systems with known normal forms
+# --------------------------------------------------------------------------------------------
+
+
+def _planar_l1(f, g, omega):
+    """l1 of x' = -omega y + f(x, y), y' = omega x + g(x, y) at 0, embedded in R^2."""
+    def F(x):
+        return jnp.stack([-omega * x[1] + f(x[0], x[1]), omega * x[0] + g(x[0], x[1])])
+
+    q = jnp.asarray(np.array([1.0, -1.0j]) / np.sqrt(2.0))  # J q = i omega q, |q| = 1
+    p = q  # J^T p = -i omega p and conj(p).q = 1
+    return float(first_lyapunov_coefficient(F, jnp.zeros(2), omega, q, p))
+
+
+def test_first_lyapunov_of_the_normal_form():
+    """x' = -w y + s x r^2, y' = w x + s y r^2 is z' = iwz + s z|z|^2 (z = x + iy): with
+    Kuznetsov's normalisation x = zq + conj(zq), |q| = 1, the coefficient is 2s/w."""
+    for s, w in [(-0.3, 2.0), (0.7, 0.5)]:
+        l1 = _planar_l1(lambda x, y, s=s: s * x * (x * x + y * y),
+                        lambda x, y, s=s: s * y * (x * x + y * y), w)
+        assert l1 == pytest.approx(2 * s / w, rel=1e-12)
+
+
+def test_first_lyapunov_against_guckenheimer_holmes():
+    """With quadratic and cubic terms, l1 = 2a/w with a of Guckenheimer & Holmes (3.4.11):
+    a = (f_xxx + f_xyy + g_xxy + g_yyy)/16
+        + (f_xy (f_xx + f_yy) - g_xy (g_xx + g_yy) - f_xx g_xx + f_yy g_yy)/(16 w)."""
+    w = 1.3
+    a1, a2, a3, b1, b2, b3, c1, c2 = 0.4, -0.7, 0.25, 0.9, -0.3, 0.5, -0.6, 0.2
+
+    def f(x, y):
+        return a1 * x * x + a2 * x * y + a3 * y * y + c1 * x**3 + c2 * x * y * y
+
+    def g(x, y):
+        return b1 * x * x + b2 * x * y + b3 * y * y - 0.4 * x * x * y + 0.8 * y**3
+
+    fxx, fxy, fyy, gxx, gxy, gyy = 2 * a1, a2, 2 * a3, 2 * b1, b2, 2 * b3
+    fxxx, fxyy, gxxy, gyyy = 6 * c1, 2 * c2, -0.8, 4.8
+    a = ((fxxx + fxyy + gxxy + gyyy) / 16
+         + (fxy * (fxx + fyy) - gxy * (gxx + gyy) - fxx * gxx + fyy * gyy) / (16 * w))
+    assert _planar_l1(f, g, w) == pytest.approx(2 * a / w, rel=1e-12)
+
+
+# --------------------------------------------------------------------------------------------
+# Hopf points
+# --------------------------------------------------------------------------------------------
+
+
+def test_hopf_point_is_the_damped_nikolai_critical_load(hopf):
+    """The Hopf point of the Nikolai problem with friction b: M_cr = 2b sqrt(K(M_cr)/A1) with
+    frequency sqrt(K/A1) (the bending roots p = ±i omega of (A1 p^2 + bp + K)^2 + M^2/4 = 0,
+    K of (4.69)), at the equilibrium (4.62)."""
+    assert bool(hopf.ok), hopf.status
+    M_cr = critical_moment(0.1)
+    assert float(hopf.value) == pytest.approx(M_cr, rel=1e-11)
+    K = float(rbo.nikolai_bending_stiffness(C, D, M_cr))
+    assert float(hopf.frequency) == pytest.approx(np.sqrt(K / A1), rel=1e-10)
+    np.testing.assert_allclose(hopf.theta, rbo.nikolai_equilibrium(M_cr, D, K_AXIS), atol=1e-12)
+    # the eigenvalue pair crosses the axis with positive speed; J q = i omega q
+    assert float(hopf.transversality) > 0
+    J = np.asarray(rbo.linearize(nikolai(hopf.value, 0.1), hopf.theta))
+    q, p = np.asarray(hopf.eigenvector), np.asarray(hopf.adjoint)
+    np.testing.assert_allclose(J @ q, 1j * float(hopf.frequency) * q, atol=1e-10)
+    np.testing.assert_allclose(J.T @ p, -1j * float(hopf.frequency) * p, atol=1e-10)
+    assert abs(np.vdot(p, q) - 1) < 1e-10
+
+
+def test_transversality_is_the_speed_of_the_critical_root(hopf):
+    """d Re(p)/dM at the Hopf point equals the finite difference of the spectral abscissa of
+    the equilibria (4.62) on both sides."""
+    def abscissa(M):
+        p = rbo.spectrum(nikolai(M, 0.1), rbo.nikolai_equilibrium(M, D, K_AXIS))
+        return float(jnp.max(jnp.real(p)))
+
+    h = 1e-5
+    fd = (abscissa(hopf.value + h) - abscissa(hopf.value - h)) / (2 * h)
+    assert float(hopf.transversality) == pytest.approx(fd, rel=1e-6)
+
+
+def test_hopf_value_gradient_matches_finite_differences(hopf):
+    """jax.grad of the critical moment with respect to b (implicit function theorem through the
+    Newton solve) against central differences and against the implicit derivative of
+    M = 2b sqrt(K(M)/A1)."""
+    def value(b):
+        return rbo.hopf_point(nikolai, {"b": b}, "M", 0.15).value
+
+    g = float(jax.grad(value)(0.1))
+    e = 1e-6
+    fd = (critical_moment(0.1 + e) - critical_moment(0.1 - e)) / (2 * e)
+    assert g == pytest.approx(fd, rel=1e-7)
+
+
+def test_hopf_point_failures_are_statuses():
+    """A guess where the equilibrium cannot be computed gives a status and NaN, not an error;
+    arguments of the wrong kind raise at the call."""
+    bad = rbo.hopf_point(nikolai, {"b": 0.1}, "M", jnp.nan)
+    assert not bool(bad.ok)
+    assert np.isnan(float(bad.value))
+    with pytest.raises(TypeError, match="parameter must be the name"):
+        rbo.hopf_point(nikolai, {"b": 0.1}, 3, 0.15)
+    with pytest.raises(ValueError, match="guess must be a scalar"):
+        rbo.hopf_point(nikolai, {"b": 0.1}, "M", [0.1, 0.2])
+
+
+def test_flutter_boundary_matches_the_stability_map_and_the_closed_form():
+    """continue_hopf over b, vmapped over A3 (which does not enter the bending roots): every
+    point satisfies M = 2b sqrt(K/A1), tends to the small-damping asymptote 2b sqrt(c/A1) with
+    an error O(b^2), and lies between the grid points of a stability map where the spectral
+    abscissa changes sign."""
+    bs = np.array([0.1, 0.05, 0.02, 0.01])
+    curve = rbo.continue_hopf(nikolai_A3, {"A3": np.array([0.6, 1.4])}, "M", 0.15, "b", bs)
+    assert curve["M"].dims == ("A3", "b")
+    assert np.all(curve["status"].values == 0)
+    expected = np.array([critical_moment(b) for b in bs])
+    np.testing.assert_allclose(curve["M"].values, np.stack([expected, expected]), rtol=1e-10)
+    error = curve["M"].values[0] / (2 * bs * np.sqrt(C / A1)) - 1
+    assert np.all(np.abs(error) < 0.2 * bs**2)
+    assert np.all(np.abs(error[1:]) < np.abs(error[:-1]))
+    Ms = np.linspace(0.0, 0.3, 61) + 1.3e-3  # no grid point on a critical value
+    smap = rbo.stability_map(lambda M, b: nikolai(M, b), {"b": bs, "M": Ms},
+                             theta_eq_fn=lambda M, b: rbo.nikolai_equilibrium(M, D, K_AXIS))
+    for i, b in enumerate(bs):
+        a = smap["spectral_abscissa"].sel(b=b).values
+        j = int(np.argmax(a > 0))
+        assert a[j - 1] < 0 < a[j]
+        assert Ms[j - 1] < float(curve["M"].values[0, i]) < Ms[j]
+
+
+# --------------------------------------------------------------------------------------------
+# Floquet multipliers and periodic orbits
+# --------------------------------------------------------------------------------------------
+
+
+def test_floquet_multipliers_of_a_regular_precession():
+    """(4.110)-(4.118): in the precessing frame the perturbations are exp(lambda t) with the
+    exponents of precession_spectrum; the frame turns by 2 pi in T = 2 pi/psi_dot, so the
+    multipliers are exp(lambda T). The double zero exponent (a Jordan block: energy and phase)
+    makes the two multipliers 1 split by O(sqrt(tolerance))."""
+    k = jnp.asarray(K_AXIS)
+    model = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1, A3, k),
+                                    rbo.QuadraticFoundation(C, D, k))
+    pr = rbo.regular_precession(model, 0.5)
+    T = 2 * np.pi / float(pr.rate)
+    mu = np.asarray(rbo.floquet_multipliers(model, pr.theta0, pr.Omega0, T))
+    lam = np.asarray(rbo.precession_spectrum(model, pr))
+    expected = np.exp(lam * T)
+    nontrivial = expected[np.abs(expected - 1) > 1e-3]
+    assert nontrivial.size == 4
+    for e in nontrivial:
+        assert np.min(np.abs(mu - e)) < 1e-7
+    near_one = mu[np.abs(mu - 1) < 1e-3]
+    assert near_one.size == 2
+    assert np.all(np.abs(near_one - 1) < 1e-4)
+    assert np.all(np.abs(mu) < 1 + 1e-4)
+
+
+@pytest.fixture(scope="module")
+def cycles(hopf):
+    return rbo.continue_limit_cycles(nikolai, {"b": 0.1}, "M", hopf, amplitude=0.02,
+                                      max_points=9)
+
+
+def test_limit_cycles_follow_the_normal_form(hopf, cycles):
+    """Near a supercritical Hopf point (l1 < 0) the cycles exist beyond it, are stable, and
+    their amplitude follows the normal form: |z|^2 = -transversality (M - M_H)/(omega l1),
+    theta - theta_H = 2 Re(z e^{i omega t} q_theta). The trivial multiplier is 1."""
+    assert float(hopf.first_lyapunov) < 0 and bool(hopf.supercritical)
+    M = cycles["M"].values[1:]
+    assert np.all(M > float(hopf.value))
+    assert np.all(cycles["stable"].values[1:])
+    assert np.all(cycles["trivial_multiplier_error"].values[1:] < 1e-8)
+    q = np.asarray(hopf.eigenvector)[:3]
+    phases = np.exp(1j * np.linspace(0, 2 * np.pi, 721))
+    shape = np.max(np.linalg.norm(np.real(phases[:, None] * q[None, :]), axis=1))
+    z2 = -float(hopf.transversality) * (M[0] - float(hopf.value)) / (
+        float(hopf.frequency) * float(hopf.first_lyapunov))
+    predicted = 2 * np.sqrt(z2) * shape
+    assert cycles["amplitude"].values[1] == pytest.approx(predicted, rel=0.02)
+    # amplitude^2 grows linearly with the distance to the Hopf point at first
+    slope = cycles["amplitude"].values[1:4] ** 2 / (M[:3] - float(hopf.value))
+    assert np.ptp(slope) < 0.05 * slope[0]
+
+
+def test_simulation_beyond_the_hopf_point_settles_on_the_continued_cycle(hopf, cycles):
+    """Long fast_simulate runs at the last parameter of the branch, started inside and outside
+    the continued cycle (its initial state pulled towards and pushed away from the equilibrium
+    (4.62)), both end on a cycle with the branch's amplitude: the cycle is stable, the flutter
+    soft."""
+    M = float(cycles["M"].values[-1])
+    assert M - float(hopf.value) > 3e-3
+    model = nikolai(M, 0.1)
+    theta_eq = rbo.nikolai_equilibrium(M, D, K_AXIS)
+    th0 = jnp.asarray(cycles["theta0"].values[-1])
+    Om0 = jnp.asarray(cycles["Omega0"].values[-1])
+    T = float(cycles["period"].values[-1])
+    ts = jnp.concatenate([jnp.zeros(1), 6000.0 + jnp.linspace(0.0, T, 64)])
+    for scale in (0.5, 1.5):
+        traj = rbo.fast_simulate(model, theta_eq + scale * (th0 - theta_eq), scale * Om0, ts,
+                                 rtol=1e-9, atol=1e-9)
+        th = np.asarray(traj.theta[1:])
+        amplitude = np.max(np.linalg.norm(th - th.mean(axis=0), axis=1))
+        assert amplitude == pytest.approx(float(cycles["amplitude"].values[-1]), rel=2e-3)
+
+
+@pytest.mark.slow
+def test_periodic_orbit_corrects_a_perturbed_limit_cycle(cycles):
+    """Shooting from a perturbed state and period returns to the continued cycle; its
+    multipliers match those of the branch. (Close to the Hopf point the radial multiplier
+    tends to 1 and shooting becomes ill-conditioned: the last, farthest cycle is used.)"""
+    j = cycles.sizes["point"] - 1
+    model = nikolai(float(cycles["M"].values[j]), 0.1)
+    th0 = cycles["theta0"].values[j]
+    Om0 = cycles["Omega0"].values[j]
+    T = float(cycles["period"].values[j])
+    orbit = rbo.periodic_orbit(model, th0 * 1.005, Om0 * 0.995, T * 1.005)
+    assert bool(orbit.ok), orbit.status
+    assert float(orbit.period) == pytest.approx(T, rel=1e-8)
+    assert abs(complex(orbit.trivial_multiplier) - 1) < 1e-8
+    np.testing.assert_allclose(np.abs(orbit.multipliers),
+                               np.abs(cycles["multipliers"].values[j]), atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# Continuation of equilibria
+# --------------------------------------------------------------------------------------------
+
+
+def test_equilibrium_branch_detects_the_hopf_point(hopf):
+    branch = rbo.continue_equilibria(nikolai, {"b": 0.1}, "M", 0.0, 0.4, ds=0.05)
+    assert list(branch["special_type"].values) == ["hopf"]
+    assert float(branch["special_value"][0]) == pytest.approx(float(hopf.value), rel=1e-10)
+    M = branch["M"].values
+    np.testing.assert_array_equal(branch["stable"].values, M < float(hopf.value))
+    np.testing.assert_allclose(branch["theta"].values[:, 2], M / D, atol=1e-10)  # (4.62)
+
+
+def softening(M):
+    """A dead moment M k (4.75) on the isotropic foundation U = F(theta^2), F(s) = s/2 - s^2/4,
+    with friction (4.84): along k the balance is (1 - theta^2) theta = M (Z^T theta = theta),
+    with a fold at theta = 1/sqrt(3), M = 2/(3 sqrt(3))."""
+    k = jnp.asarray(K_AXIS)
+    return rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1, A3, k),
+                                   rbo.IsotropicFoundation(lambda s: 0.5 * s - 0.25 * s * s),
+                                   [rbo.DeadMoment(M, k), rbo.Friction(0.05)])
+
+
+@pytest.mark.slow
+def test_equilibrium_branch_passes_a_fold():
+    branch = rbo.continue_equilibria(softening, {}, "M", 0.0, 0.5, theta_guess=(0, 0, 0.0),
+                                     ds=0.05, max_points=40)
+    types = list(branch["special_type"].values)
+    assert "fold" in types
+    fold = float(branch["special_value"].values[types.index("fold")])
+    assert fold == pytest.approx(2 / (3 * np.sqrt(3)), abs=2e-3)
+    # past the fold the branch turns back
+    M = branch["M"].values
+    i = int(np.argmax(M))
+    assert M[-1] < M[i] and i < M.size - 1
+    th = branch["theta"].values[:, 2]
+    np.testing.assert_allclose((1 - th**2) * th, M, atol=1e-9)
+    assert np.all(branch["stable"].values[:2])
+    # past the fold the torsional root is real and positive (divergence): the fold is where
+    # the torsional stiffness d((1 - theta^2) theta)/d theta = 1 - 3 theta^2 changes sign
+    p = branch["eigenvalues"].values
+    divergent = np.any((p.real > 1e-9) & (np.abs(p.imag) < 1e-9), axis=1)
+    assert np.all(divergent[th > 0.6]) and not np.any(divergent[th < 0.55])
