@@ -17,8 +17,8 @@ $x(t) \approx x_H + 2r\,\mathrm{Re}(e^{i\omega t}q)$, $\alpha - \alpha_H = O(r^2
 point with tangent $(\mathrm{Re}\,q/|\mathrm{Re}\,q|, 0, 0)$.
 
 Along the branch: the Floquet multipliers (stable if every nontrivial one has $|\mu| < 1$) and the
-**amplitude** $\max_t|\theta(t) - \bar\theta|$ over 64 samples of one period ($\bar\theta$ their
-mean).
+**amplitude** $\max_t|\theta(t) - \bar\theta|$ over 64 equally spaced samples of one period
+($\bar\theta$ their mean).
 """
 
 from __future__ import annotations
@@ -77,10 +77,10 @@ def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref,
     init = (u_k + s * tau, jnp.asarray(jnp.inf), 0, False, jnp.zeros((6, 6)), True)
     u, res, k, _, M, ok = jax.lax.while_loop(cond, body, init)
     model = _build(model_fn, _point(others, parameter, u[7]))
-    ts = jnp.linspace(0.0, 1.0, N_SAMPLES) * jnp.where(u[6] > 0, u[6], 1.0)
-    traj = fast_simulate(model, u[:3], u[3:6], ts, throw=False, **solver)
-    amplitude = jnp.max(jnp.linalg.norm(traj.theta - jnp.mean(traj.theta, axis=0, keepdims=True),
-                                        axis=1))
+    # N_SAMPLES equally spaced samples of one period (t = T, a repeat of t = 0, left out)
+    ts = jnp.linspace(0.0, 1.0, N_SAMPLES + 1) * jnp.where(u[6] > 0, u[6], 1.0)
+    theta = fast_simulate(model, u[:3], u[3:6], ts, throw=False, **solver).theta[:-1]
+    amplitude = jnp.max(jnp.linalg.norm(theta - jnp.mean(theta, axis=0, keepdims=True), axis=1))
     converged = (res <= tol) & ok & (u[6] > 0)
     return u, converged, k - 1, _sorted(jnp.linalg.eigvals(M)), amplitude
 

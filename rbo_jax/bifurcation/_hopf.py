@@ -319,9 +319,12 @@ def hopf_point(
 
     **Returns** a :class:`HopfPoint` (module docstring for the system, $\ell_1$ and the
     transversality). Never raises for a failed solve: ``status`` says why, and the values are
-    NaN. ``jax.grad``/``jax.jacfwd`` of ``value`` (and ``frequency``, ``theta``) with respect
-    to the other entries of ``params`` work by the implicit function theorem; ``jax.vmap`` over
-    them works too. Compiled once per ``model_fn`` and structure of ``params``.
+    NaN. ``jax.grad``/``jax.jacfwd`` of ``value`` (and ``frequency``, ``theta``,
+    ``eigenvector``) with respect to the other entries of ``params`` work by the implicit
+    function theorem; ``jax.vmap`` over them works too. ``first_lyapunov``, ``transversality``
+    and ``adjoint`` are computed from stopped values (their derivatives would need fourth
+    derivatives of the vector field): their derivatives come out zero, differentiate them by
+    finite differences. Compiled once per ``model_fn`` and structure of ``params``.
 
     Example: the Nikolai problem with friction (4.84), ``hopf_point(lambda M, b:
     nikolai_model(M, friction=b), {"b": 0.1}, "M", 0.1)`` gives the critical follower moment
