@@ -121,6 +121,25 @@ def test_transversality_is_the_speed_of_the_critical_root(hopf):
     assert float(hopf.transversality) == pytest.approx(fd, rel=1e-6)
 
 
+def test_first_lyapunov_coefficient_is_the_decay_at_the_hopf_point(hopf):
+    """At M = M_H exactly the normal form is z' = i omega z + c1 z|z|^2 with Re c1 = omega l1,
+    so along a simulated motion 1/|z|^2 grows by -2 omega l1 per unit time; |z| is measured
+    as |<p, x - x_H>| (the adjoint eigenvector), averaged over the first and the last period
+    of a fast_simulate run of t = 3000 from |z| = 0.05."""
+    q, p = np.asarray(hopf.eigenvector), np.asarray(hopf.adjoint)
+    x_h = np.concatenate([np.asarray(hopf.theta), np.zeros(3)])
+    x0 = x_h + 2 * 0.05 * np.real(q)
+    T, t_end = float(hopf.period), 3000.0
+    ts = np.concatenate([np.linspace(0, T, 101)[:-1], t_end + np.linspace(0, T, 101)[:-1]])
+    traj = rbo.fast_simulate(nikolai(hopf.value, 0.1), jnp.asarray(x0[:3]), jnp.asarray(x0[3:]),
+                             jnp.asarray(ts), rtol=1e-11, atol=1e-12)
+    X = np.concatenate([np.asarray(traj.theta), np.asarray(traj.Omega)], axis=1)
+    z = np.abs((X - x_h) @ np.conj(p))
+    r_first, r_last = np.mean(z[:100]), np.mean(z[100:])
+    re_c1 = (1 / r_first**2 - 1 / r_last**2) / (2 * t_end)
+    assert re_c1 == pytest.approx(float(hopf.frequency) * float(hopf.first_lyapunov), rel=1e-3)
+
+
 def test_hopf_value_gradient_matches_finite_differences(hopf):
     """jax.grad of the critical moment with respect to b (implicit function theorem through the
     Newton solve) against central differences and against the implicit derivative of
