@@ -16,6 +16,7 @@ NOTEBOOKS = [
     "02_nikolai_paradox.ipynb",
     "03_precession_and_integrability.ipynb",
     "04_fitting.ipynb",
+    "05_bifurcation.ipynb",
 ]
 KERNEL = "python3"
 
