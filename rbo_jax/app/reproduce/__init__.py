@@ -5,7 +5,7 @@ independent computation: scipy integration of the reduced equations, the Euler-a
 section 4.6.3) and passes when the error is below a stated tolerance. Figures are written next to
 the report. The exit status is non-zero if any check fails. One module per part of the paper:
 ``_kinematics`` (4.2), ``_nikolai`` (4.4–4.5), ``_dynamics`` (4.3–4.6), ``_precession`` (4.7),
-``_fitting``.
+``_fitting``, ``_bifurcation`` (Hopf points, Floquet multipliers, continuation).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import os
 import time
 from collections.abc import Callable
 
+from ._bifurcation import bifurcation
 from ._common import Check
 from ._dynamics import balance_and_energy, simplest
 from ._fitting import fitting
@@ -42,6 +43,7 @@ def run_reproduction(out: str = "out", *, quick: bool = False, figures: bool = T
         ("simplest oscillator (4.6)", lambda: simplest(out, plt)),
         ("regular precession (4.7)", lambda: precession(out, plt)),
         ("fitting", fitting),
+        ("bifurcations: Hopf points, continuation", lambda: bifurcation(out, plt, quick)),
     ]
     checks: list[Check] = []
     for i, (name, fn) in enumerate(steps, 1):
@@ -82,6 +84,10 @@ def _write_report(out, checks, elapsed, quick, figures):
             ("simplest_oscillator.png",
              "Simplest oscillator: (4.99), (4.101) and the Euler-angle equations"),
             ("precession_growth.png", "Unstable regular precession vs its rotating-frame spectrum"),
+            ("bifurcation_diagram.png",
+             "Bifurcation diagram of the Nikolai problem with friction: equilibria, Hopf point "
+             "and (full run) the limit cycles"),
+            ("hopf_boundary.png", "Flutter boundary by continue_hopf over the stability map"),
         ]:
             if os.path.exists(os.path.join(out, name)):
                 lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
