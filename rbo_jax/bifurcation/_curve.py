@@ -80,7 +80,8 @@ def continue_hopf(
     **Returns** a Dataset over the batch axes and ``along`` with the critical ``value`` (named
     ``parameter``), ``frequency``, ``first_lyapunov``, ``transversality``, ``theta``
     (component) and ``status`` (int8 codes of :class:`rbo_jax.bifurcation.HopfStatus`, names in
-    ``flag_meanings``). Differentiable with respect to the fixed parameters (``jax.grad`` of
+    ``flag_meanings``); ``attrs`` name the ``parameter``, ``along`` and the ``batch`` axes.
+    Differentiable with respect to the fixed parameters (``jax.grad`` of
     the underlying :func:`rbo_jax.hopf_point` solves).
     """
     import xarray as xr
@@ -120,6 +121,7 @@ def continue_hopf(
             "status": (dims, np.asarray(enum.code(points.status)).astype(np.int8)),
         },
         coords={**coords, "component": ["x", "y", "z"]},
+        attrs={"parameter": parameter, "along": along, "batch": " ".join(batch)},
     )
     ds["status"].attrs["flag_meanings"] = " ".join(enum.names(HopfStatus))
     ds[parameter].attrs["long_name"] = f"critical {parameter} (Hopf point)"

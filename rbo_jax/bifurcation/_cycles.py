@@ -110,7 +110,8 @@ def continue_limit_cycles(
     ``bounds``, or when the step falls below ``amplitude``/1000. ``tol``: Newton's tolerance on
     the shooting residual; ``rtol``, ``atol``: :func:`rbo_jax.fast_simulate`'s.
 
-    **Returns** an :class:`xarray.Dataset` over ``point`` (the Hopf point first, amplitude 0):
+    **Returns** an :class:`xarray.Dataset` over ``point`` (the Hopf point first: amplitude 0,
+    NaN multipliers, ``stable`` False; the cycles are ``point`` 1 onwards):
     ``parameter``, ``period``, ``amplitude`` ($\max_t|\theta - \bar\theta|$), ``theta0``,
     ``Omega0`` (component), ``multipliers`` (index; sorted by decreasing modulus),
     ``trivial_multiplier_error`` ($|\mu_{trivial} - 1|$) and ``stable``;
