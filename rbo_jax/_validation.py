@@ -17,6 +17,8 @@ and describe them the same way.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 from collections.abc import Callable
 
@@ -61,6 +63,32 @@ def _common_float_dtype(*xs):
 
 def _is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
+
+
+# While tracing a solver's vector field with throw=False: runtime checks give NaN, not a host
+# callback (JAX's persistent compilation cache keeps no program with one).
+_FAILURES_AS_NAN: contextvars.ContextVar = contextvars.ContextVar("rbo_jax_failures_as_nan",
+                                                                  default=False)
+
+
+def error_if(x, pred, message: str):
+    """:func:`equinox.error_if` for a check inside the equations of motion (a configuration
+    where they are undefined); while tracing inside :func:`failures_as_nan`, ``x`` becomes NaN
+    where ``pred`` holds instead, which a solver with ``throw=False`` reports as a non-finite
+    state."""
+    if _FAILURES_AS_NAN.get():
+        return jnp.where(pred, jnp.nan, x)
+    return eqx.error_if(x, pred, message)
+
+
+@contextlib.contextmanager
+def failures_as_nan(on: bool = True):
+    """Inside this context (at trace time), :func:`error_if` gives NaN instead of raising."""
+    token = _FAILURES_AS_NAN.set(bool(on))
+    try:
+        yield
+    finally:
+        _FAILURES_AS_NAN.reset(token)
 
 
 def _check(x, valid, message: str):

@@ -38,6 +38,7 @@ from ._validation import (
     POSITIVE_OR_INF,
     _callable_leaf,
     _unit_axis,
+    error_if,
     requirement_checks,
     set_parameters,
 )
@@ -440,7 +441,7 @@ class SumFoundation(AbstractFoundation):
         if len(axes) < 2:
             return x
         mismatch = jnp.max(jnp.stack([jnp.max(jnp.abs(a - axes[0])) for a in axes[1:]]))
-        return eqx.error_if(
+        return error_if(
             x, mismatch > 1e-12,
             "SumFoundation: the transversely isotropic terms have different axes k, so the sum "
             "is not transversely isotropic (its moment is not of the form (4.47)).")

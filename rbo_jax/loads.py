@@ -31,6 +31,7 @@ from ._validation import (
     _check,
     _float_dtype,
     _unit_axis,
+    error_if,
     requirement_checks,
     set_parameters,
 )
@@ -149,7 +150,8 @@ class SemiTangentialMoment(AbstractLoad):
     The direction is undefined where $l_1 k + l_2 P\cdot k = 0$, i.e. $|l_1| = |l_2|$ and
     $P\cdot k = -\mathrm{sign}(l_1 l_2)\,k$ (for the semi-tangential moment: the axis turned
     upside down). There :meth:`moment` raises via :func:`equinox.error_if` instead of returning
-    NaN or a meaningless direction.
+    NaN or a meaningless direction (inside a solve with ``throw=False``: NaN, which stops the
+    solve with a non-finite state).
     """
 
     M: Scalar
@@ -190,7 +192,7 @@ class SemiTangentialMoment(AbstractLoad):
         tol = 64 * jnp.finfo(n2.dtype).eps * (jnp.abs(self.l1) + jnp.abs(self.l2))
         degenerate = n2 <= tol**2
         norm = jnp.sqrt(jnp.where(degenerate, jnp.ones_like(n2), n2))
-        return eqx.error_if(
+        return error_if(
             norm,
             degenerate,
             "SemiTangentialMoment: l1 k + l2 P.k = 0 (|l1| = |l2| and the turned axis P.k is "

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._custom_types import Matrix, Scalar, Vector
+from ._validation import failures_as_nan
 from .foundations import AbstractFoundation
 from .inertia import check_inertia, inertia_checks
 from .kinematics import (
@@ -73,16 +74,18 @@ class RightForm(eqx.Module):
 
     model: RigidBodyOscillator
     inertia_inv: Float[Array, "3 3"]
+    throw: bool = eqx.field(static=True, default=True)
 
     def __call__(self, t, y, args=None) -> tuple[Vector, Vector]:
         theta, Omega = y
         model = self.model
-        turn = Turn(theta)
-        M = -turn.Z(model.foundation.gradient(theta))
-        for load in model.loads:
-            M = M + load.body_moment(t, theta, Omega, turn)
-        r = stored(M - cross3(Omega, matvec3(model.inertia, Omega)))
-        return turn.ZT(Omega), matvec3(self.inertia_inv, r)
+        with failures_as_nan(not self.throw):
+            turn = Turn(theta)
+            M = -turn.Z(model.foundation.gradient(theta))
+            for load in model.loads:
+                M = M + load.body_moment(t, theta, Omega, turn)
+            r = stored(M - cross3(Omega, matvec3(model.inertia, Omega)))
+            return turn.ZT(Omega), matvec3(self.inertia_inv, r)
 
 
 class LeftForm(eqx.Module):
@@ -92,12 +95,14 @@ class LeftForm(eqx.Module):
 
     model: RigidBodyOscillator
     inertia_inv: Float[Array, "3 3"]
+    throw: bool = eqx.field(static=True, default=True)
 
     def __call__(self, t, y, args=None) -> tuple[Vector, Vector]:
         theta, L = y
-        turn = Turn(theta)
-        omega = turn.rotate(matvec3(self.inertia_inv, turn.rotate_back(L)))
-        return turn.Z(omega), self.model.world_moment(t, theta, omega)
+        with failures_as_nan(not self.throw):
+            turn = Turn(theta)
+            omega = turn.rotate(matvec3(self.inertia_inv, turn.rotate_back(L)))
+            return turn.Z(omega), self.model.world_moment(t, theta, omega)
 
 
 class RigidBodyOscillator(eqx.Module):
@@ -215,14 +220,17 @@ class RigidBodyOscillator(eqx.Module):
             M = M + load.moment(t, theta, omega)
         return M
 
-    def right_form(self) -> RightForm:
+    def right_form(self, throw: bool = True) -> RightForm:
         """The right form (4.55)–(4.56), ready to evaluate (:class:`RightForm`; $A^{-1}$ computed
-        here, once)."""
-        return RightForm(self, self.inertia_inverse())
+        here, once). ``throw=False``: a configuration where the equations are undefined (e.g.
+        the degenerate direction of (4.75)) gives NaN instead of a runtime error (a host
+        callback), for solvers that report failures as a status."""
+        return RightForm(self, self.inertia_inverse(), throw)
 
-    def left_form(self) -> LeftForm:
-        """The left form (4.53)–(4.54), ready to evaluate (:class:`LeftForm`)."""
-        return LeftForm(self, self.inertia_inverse())
+    def left_form(self, throw: bool = True) -> LeftForm:
+        """The left form (4.53)–(4.54), ready to evaluate (:class:`LeftForm`; ``throw`` as in
+        :meth:`right_form`)."""
+        return LeftForm(self, self.inertia_inverse(), throw)
 
     def vector_field(self, t, y, args=None) -> tuple[Vector, Vector]:
         r"""Right form (4.55)–(4.56) on the state ``y = (theta, Omega)``:

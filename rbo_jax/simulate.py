@@ -171,9 +171,10 @@ def simulate(
         raise TypeError(f"model must be a RigidBodyOscillator, got {type(model).__name__}.")
     if form not in ("right", "left"):
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
-    theta0, Omega0, ts, dtype, bad_input, invalid = prepare_inputs(model, theta0, Omega0, ts,
-                                                                   rtol, atol, throw)
-    t0 = ts[0] if t0 is None else jnp.asarray(t0, dtype)
+    inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
+    theta0, Omega0, ts, dtype = inputs.theta0, inputs.Omega0, inputs.ts, inputs.dtype
+    # Bad traced times (throw=False) are replaced by zeros: then t0 = t1 = 0 too.
+    t0 = ts[0] if t0 is None else jnp.where(inputs.bad_times, ts[0], jnp.asarray(t0, dtype))
     t1 = ts[-1]
     if dtmin is None:
         dtmin = 1e-12 * jnp.maximum(t1 - t0, 1e-300)
@@ -186,11 +187,11 @@ def simulate(
 
     if form == "right":
         y0 = (theta0, Omega0)
-        vf = model.right_form()
+        vf = model.right_form(throw)
         to_theta_Omega = jax.tree_util.Partial(_right_to_theta_Omega, model)
     else:
         y0 = (theta0, model.kinetic_moment(theta0, Omega0))
-        vf = model.left_form()
+        vf = model.left_form(throw)
         to_theta_Omega = jax.tree_util.Partial(_left_to_theta_Omega, model)
 
     # Partials of module-level functions, not closures: see _singular_events.
@@ -218,8 +219,7 @@ def simulate(
     )
     status = _status_from_solution(sol, event_names)
     theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
-    return finish(model, ts, theta, Omega, status, bad_input, invalid,
-                  sol.stats["num_accepted_steps"], throw)
+    return finish(model, inputs, theta, Omega, status, sol.stats["num_accepted_steps"], throw)
 
 
 # --------------------------------------------------------------------------------------------

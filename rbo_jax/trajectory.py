@@ -10,6 +10,7 @@ and derives the left angular velocity $\omega = P\cdot\Omega$, the turn-tensor $
 from __future__ import annotations
 
 import warnings
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -59,6 +60,10 @@ class SolveStatus(eqx.Enumeration):
     nonfinite_state = (
         "The state or the vector field became non-finite (NaN or inf) during the solve: the "
         "solution blew up."
+    )
+    invalid_times = (
+        "The sample times ts are not finite or not strictly increasing (traced times with "
+        "throw=False; concrete ones raise a ValueError)."
     )
 
 
@@ -175,9 +180,11 @@ def transverse_fraction(theta, Omega):
     return _safe_norm(jnp.cross(theta, Omega)) / (_safe_norm(theta) * _safe_norm(Omega) + 1e-300)
 
 
-def check_times(ts):
-    """``ts`` as a strictly increasing, finite, non-empty 1-D float array (concrete values
-    checked now, traced ones with :func:`equinox.error_if`)."""
+def check_times(ts, throw: bool = True):
+    """``ts`` as a strictly increasing, finite, non-empty 1-D float array: concrete values are
+    checked now (``ValueError``); traced ones with :func:`equinox.error_if` when ``throw``, and
+    not here otherwise (:func:`prepare_inputs` folds them into the status
+    ``invalid_times``, so that ``throw=False`` programs hold no host callback)."""
     ts = jnp.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 1:
         raise ValueError(f"ts must be a non-empty 1-D array of times, got shape {ts.shape}.")
@@ -189,9 +196,14 @@ def check_times(ts):
             raise ValueError("ts must be finite.")
         if ts_np.shape[0] > 1 and not np.all(np.diff(ts_np) > 0):
             raise ValueError("ts must be strictly increasing.")
-    elif ts.shape[0] > 1:
-        ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "ts must be strictly increasing.")
+    elif throw:
+        ts = eqx.error_if(ts, ~times_ok(ts), "ts must be finite and strictly increasing.")
     return ts
+
+
+def times_ok(ts):
+    """Whether the (traced) times ``ts`` are finite and strictly increasing."""
+    return jnp.all(jnp.isfinite(ts)) & jnp.all(jnp.diff(ts) > 0)
 
 
 def warn_if_float32(dtype, rtol, atol):
@@ -211,21 +223,39 @@ def warn_if_float32(dtype, rtol, atol):
         )
 
 
-def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw):
+class Inputs(NamedTuple):
+    """The checked input of a solve (:func:`prepare_inputs`): ``theta0``, ``Omega0`` and ``ts``
+    to integrate (zeros in place of bad input), ``dtype``, the flags ``bad_input``,
+    ``invalid`` (parameters) and ``bad_times``, and ``ts_given``, the times as given (what the
+    :class:`Trajectory` reports)."""
+
+    theta0: Array
+    Omega0: Array
+    ts: Array
+    dtype: np.dtype
+    bad_input: Array
+    invalid: Array
+    bad_times: Array
+    ts_given: Array
+
+
+def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw) -> Inputs:
     """Checked initial state and sample times in the solve's precision, and the flags of bad
     input.
 
     The state takes the precision of the model too: float32 initial values with a float64 model
-    (the default) are integrated in float64. A non-finite initial state (``bad_input``) or
-    invalid parameters (``invalid``: :meth:`RigidBodyOscillator.parameter_status`; with
-    ``throw`` they raise its message here) replace the state by zeros, so that the solve runs
-    harmlessly, and are flagged by :func:`finish`. Infinite parameters can be legitimate
-    (``BarrierFoundation(alpha=inf)`` switches a barrier off), NaN ones never are. Returns
-    ``(theta0, Omega0, ts, dtype, bad_input, invalid)``.
+    (the default) are integrated in float64. A non-finite initial state (``bad_input``), invalid
+    parameters (``invalid``: :meth:`RigidBodyOscillator.parameter_status`) or, with traced
+    ``ts``, times that are not finite and strictly increasing (``bad_times``) replace the state
+    (and the times) by zeros, so that the solve runs harmlessly, and are flagged by
+    :func:`finish`. With ``throw`` the last two raise their message here instead; without, no
+    check is a host callback (JAX's persistent compilation cache keeps only programs without
+    them). Infinite parameters can be legitimate (``BarrierFoundation(alpha=inf)`` switches a
+    barrier off), NaN ones never are.
     """
     theta0 = _as_vector(theta0, "theta0")
     Omega0 = _as_vector(Omega0, "Omega0")
-    ts = check_times(ts)
+    ts = check_times(ts, throw)
     params = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_inexact_array))
     dtype = _common_float_dtype(theta0, Omega0, ts, *params)
     theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
@@ -233,23 +263,28 @@ def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw):
     ok, which, messages = model.parameter_status()
     if throw:
         theta0 = eqx.branched_error_if(theta0, ~ok, which, messages)
+    bad_times = (~times_ok(ts) if isinstance(ts, jax.core.Tracer) and not throw
+                 else jnp.asarray(False))
     bad_input = ~all_finite((theta0, Omega0))
     zeros = jnp.zeros_like(theta0)
-    stop = bad_input | ~ok
-    return (jnp.where(stop, zeros, theta0), jnp.where(stop, zeros, Omega0), ts, dtype, bad_input,
-            ~ok)
+    stop = bad_input | ~ok | bad_times
+    return Inputs(theta0=jnp.where(stop, zeros, theta0), Omega0=jnp.where(stop, zeros, Omega0),
+                  ts=jnp.where(bad_times, jnp.zeros_like(ts), ts), dtype=dtype,
+                  bad_input=bad_input, invalid=~ok, bad_times=bad_times, ts_given=ts)
 
 
-def finish(model, ts, theta, Omega, status, bad_input, invalid, num_steps, throw) -> Trajectory:
-    """The :class:`Trajectory` of a solve: samples of a non-finite input are ``inf`` and those of
-    invalid parameters NaN (none of them is a result); with ``throw`` a failure raises its status
-    message."""
-    status = SolveStatus.where(bad_input, SolveStatus.nonfinite_input, status)
-    status = SolveStatus.where(invalid, SolveStatus.invalid_parameters, status)
-    fill = jnp.where(invalid, jnp.nan, jnp.inf)
-    theta = jnp.where(bad_input | invalid, fill, theta)
-    Omega = jnp.where(bad_input | invalid, fill, Omega)
+def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Trajectory:
+    """The :class:`Trajectory` of a solve: samples of a non-finite input are ``inf``, those of
+    invalid parameters or times NaN (none of them is a result); with ``throw`` a failure raises
+    its status message."""
+    status = SolveStatus.where(inputs.bad_input, SolveStatus.nonfinite_input, status)
+    status = SolveStatus.where(inputs.invalid, SolveStatus.invalid_parameters, status)
+    status = SolveStatus.where(inputs.bad_times, SolveStatus.invalid_times, status)
+    nan = inputs.invalid | inputs.bad_times
+    fill = jnp.where(nan, jnp.nan, jnp.inf)
+    theta = jnp.where(inputs.bad_input | nan, fill, theta)
+    Omega = jnp.where(inputs.bad_input | nan, fill, Omega)
     if throw:
         theta = status.error_if(theta, status != SolveStatus.successful)
-    return Trajectory(ts=ts, theta=theta, Omega=Omega, model=model, status=status,
+    return Trajectory(ts=inputs.ts_given, theta=theta, Omega=Omega, model=model, status=status,
                       num_steps=num_steps)

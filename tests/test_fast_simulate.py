@@ -229,3 +229,52 @@ def test_batched_forward_derivatives():
     dcs = jax.jit(jax.vmap(jax.jacfwd(final)))(cs)
     for i in range(2):
         np.testing.assert_allclose(dcs[i], jax.jacfwd(final)(cs[i]), rtol=1e-12, atol=1e-14)
+
+
+def test_throw_false_programs_hold_no_host_callback():
+    """JAX's persistent compilation cache keeps no program with a host callback. With
+    throw=False every check of fast_simulate (traced times, parameters, initial state, the
+    solve) is in the status; with throw=True the checks raise, through callbacks."""
+
+    def run(throw):
+        return jax.jit(lambda c, ts: fast_simulate(make_model(c=c), THETA0, OMEGA0, ts,
+                                                   throw=throw).theta)
+
+    assert "callback" not in run(False).lower(1.0, TS).as_text()
+    assert "callback" in run(True).lower(1.0, TS).as_text()
+
+
+@pytest.mark.parametrize("integrator", [fast_simulate, simulate], ids=lambda f: f.__name__)
+def test_traced_bad_times_give_a_status_without_throw(integrator):
+    """Traced times that are not strictly increasing and finite: status invalid_times and NaN
+    samples with throw=False (the times are reported as given); good times solve normally."""
+    run = jax.jit(lambda ts: integrator(conservative_model(), THETA0, OMEGA0, ts, throw=False))
+    for ts in ([0.0, 2.0, 1.0], [0.0, 1.0, 1.0], [0.0, np.nan, 1.0], [0.0, 0.5, 1.0]):
+        tr = run(jnp.asarray(ts))
+        good = ts == [0.0, 0.5, 1.0]
+        assert tr.status_name == ("successful" if good else "invalid_times"), ts
+        assert bool(jnp.all(jnp.isnan(tr.theta))) != good
+        np.testing.assert_array_equal(tr.ts, np.asarray(ts))
+    if integrator is fast_simulate:
+        with pytest.raises(RUNTIME_ERRORS, match="strictly increasing"):
+            jax.block_until_ready(jax.jit(lambda ts: integrator(
+                conservative_model(), THETA0, OMEGA0, ts).theta)(jnp.array([0.0, 2.0, 1.0])))
+
+
+def test_undefined_moment_direction_is_a_status_without_throw():
+    """Started where l1 k + l2 P·k = 0 (a half turn about an axis ⊥ k, l1 = l2), the direction
+    of the semi-tangential moment (4.75) is undefined: throw=True raises its message; with
+    throw=False the vector field gives NaN instead of a host callback and the solve stops with
+    nonfinite_state."""
+    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 0.6, K),
+                                QuadraticFoundation(1.0, 2.0, K), [SemiTangentialMoment(1.0, K)])
+    half_turn = jnp.array([0.0, np.pi, 0.0])
+    ts = jnp.linspace(0.0, 1.0, 5)
+    run = jax.jit(lambda th: fast_simulate(model, th, OMEGA0 * 0, ts, throw=False))
+    assert "callback" not in run.lower(half_turn).as_text()
+    tr = run(half_turn)
+    assert tr.status_name == "nonfinite_state"
+    assert not np.any(np.isfinite(tr.theta[1:]))
+    assert run(half_turn * 0.9).status_name == "successful"
+    with pytest.raises(RUNTIME_ERRORS, match="direction of the moment"):
+        jax.block_until_ready(fast_simulate(model, half_turn, OMEGA0 * 0, ts).theta)

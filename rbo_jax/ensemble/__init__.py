@@ -111,9 +111,12 @@ def fast_simulate(
     ``10 |nextafter(t) − t|``); ``nonfinite_state`` (the error estimate or the state is NaN or
     inf); ``singular_point`` (the turn within ``singular_tol`` of a sphere $|\theta| = 2\pi k$ of
     $Z$ (4.11), or across one, while $\theta\times\Omega \ne 0$); ``domain_error`` (outside the
-    domain of the foundation energy, e.g. a barrier of (4.49)); ``nonfinite_input`` and
-    ``invalid_parameters`` before the solve. Samples after a failure are ``inf`` (NaN for invalid
-    parameters); ``throw=True`` raises the status message instead.
+    domain of the foundation energy, e.g. a barrier of (4.49)); ``nonfinite_input``,
+    ``invalid_parameters`` and (traced ``ts`` not finite and strictly increasing)
+    ``invalid_times`` before the solve. Samples after a failure are ``inf`` (NaN for invalid
+    parameters or times); ``throw=True`` raises the status message instead. With
+    ``throw=False`` the compiled program holds no host callback, so JAX's persistent
+    compilation cache can keep it.
 
     **Batches.** ``jax.jit(jax.vmap(lambda c: fast_simulate(model_of(c), ...)))(cs)`` runs the
     batch as a structure of arrays on refilled lanes (module docstring): build the models inside
@@ -131,10 +134,9 @@ def fast_simulate(
     if not (cfg.rtol > 0 and cfg.atol > 0 and cfg.max_steps >= 1 and cfg.singular_tol > 0):
         raise ValueError(f"fast_simulate: need rtol, atol, singular_tol > 0 and max_steps >= 1, "
                          f"got {cfg}.")
-    theta0, Omega0, ts, _, bad_input, invalid = prepare_inputs(model, theta0, Omega0, ts, rtol,
-                                                               atol, throw)
-    problem = Problem(model.right_form())
-    samples, code, nacc = _run(cfg, problem, jnp.concatenate([theta0, Omega0]), ts)
+    inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
+    problem = Problem(model.right_form(throw))
+    samples, code, nacc = _run(cfg, problem, jnp.concatenate([inputs.theta0, inputs.Omega0]),
+                               inputs.ts)
     status = enum.from_code(SolveStatus, code)
-    return finish(model, ts, samples[:, :3], samples[:, 3:], status, bad_input, invalid, nacc,
-                  throw)
+    return finish(model, inputs, samples[:, :3], samples[:, 3:], status, nacc, throw)
