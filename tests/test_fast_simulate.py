@@ -261,6 +261,28 @@ def test_traced_bad_times_give_a_status_without_throw(integrator):
                 conservative_model(), THETA0, OMEGA0, ts).theta)(jnp.array([0.0, 2.0, 1.0])))
 
 
+@pytest.mark.slow
+def test_forward_derivatives_in_one_loop_equal_jvp_of_the_loop():
+    """jacfwd with respect to parameters and the initial state runs all directions in one loop
+    (ensemble._tangents); with respect to the times too it is JAX's JVP of the per-trajectory
+    loop. Both give the same derivatives, a single jvp the same as jacfwd, and the primal of the
+    derivative path the primal of fast_simulate."""
+    ts = jnp.linspace(0.0, 4.0, 9)
+
+    def samples(c, y0, ts):
+        tr = fast_simulate(make_model(c=c), y0[:3], y0[3:], ts, rtol=1e-12, atol=1e-12)
+        return jnp.concatenate([tr.theta, tr.Omega], axis=1)
+
+    y0 = jnp.concatenate([THETA0, OMEGA0])
+    dc, dy = jax.jit(jax.jacfwd(samples, argnums=(0, 1)))(1.0, y0, ts)
+    dc2, dy2, _ = jax.jit(jax.jacfwd(samples, argnums=(0, 1, 2)))(1.0, y0, ts)
+    np.testing.assert_allclose(dc, dc2, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(dy, dy2, rtol=1e-12, atol=1e-13)
+    primal, tangent = jax.jvp(lambda c: samples(c, y0, ts), (1.0,), (1.0,))
+    np.testing.assert_allclose(tangent, dc, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(primal, samples(1.0, y0, ts), rtol=1e-13, atol=1e-14)
+
+
 def test_undefined_moment_direction_is_a_status_without_throw():
     """Started where l1 k + l2 P·k = 0 (a half turn about an axis ⊥ k, l1 = l2), the direction
     of the semi-tangential moment (4.75) is undefined: throw=True raises its message; with

@@ -9,12 +9,16 @@ takes the steps ``scipy.integrate.solve_ivp(method="DOP853")`` takes.
 It is written for one trajectory and batched with ``jax.vmap``, as :func:`rbo_jax.simulate`; a
 batching rule (:func:`jax.custom_batching.custom_vmap`) then runs the batch as a structure of
 arrays on up to 1000 refilled lanes (``_solve.py``, where the layout is explained and measured).
-Forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``, also under ``vmap``) differentiate the
-per-trajectory loop (:func:`jax.custom_jvp`); reverse mode is :func:`rbo_jax.simulate`'s.
+Forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``, also under ``vmap``) are a
+:func:`jax.custom_jvp` rule: with respect to model parameters and the initial state, one loop
+carries the primal and all tangent directions (``_tangents.py``: ``jax.jacfwd`` does not batch a
+differentiated loop, which cost tens of seconds of tracing and compilation); with respect to the
+sample times, JAX's JVP of the per-trajectory loop. Reverse mode is :func:`rbo_jax.simulate`'s.
 
 Modules: ``_tableau`` (the coefficients), ``_dop853`` (one step, shape-polymorphic),
 ``_problem`` (the model as a function of the six state components, the per-step checks),
-``_solve`` (the per-trajectory loop and the refilled lanes).
+``_solve`` (the per-trajectory loop and the refilled lanes), ``_tangents`` (the loop of
+forward-mode derivatives).
 """
 
 from __future__ import annotations
@@ -24,12 +28,15 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 from .. import _enumeration as enum
 from ..model import RigidBodyOscillator
 from ..trajectory import SolveStatus, Trajectory, finish, prepare_inputs
 from ._problem import Problem
 from ._solve import Config, solve_lanes, solve_one
+from ._tangents import solve_one_tangents
 
 __all__ = ["fast_simulate"]
 
@@ -67,11 +74,64 @@ def _integrator(cfg: Config):
 
     integrate = jax.custom_jvp(batched)
 
-    @integrate.defjvp
     def _jvp(primals, tangents):
-        return jax.jvp(one, primals, tangents)
+        problem, y0, ts = primals
+        dproblem, dy0, dts = tangents
+        dyn, static = eqx.partition(problem, eqx.is_inexact_array)
+        if not isinstance(dts, SymbolicZero) or jax.tree_util.tree_leaves(static):
+            # derivatives w.r.t. the times (or a problem with non-float arrays): JAX's JVP of
+            # the loop
+            return jax.jvp(one, primals, jax.tree_util.tree_map(
+                _instantiate, tangents, is_leaf=lambda t: isinstance(t, SymbolicZero)))
+        d_dyn = eqx.filter(jax.tree_util.tree_map(_instantiate, dproblem, is_leaf=lambda t:
+                                                  isinstance(t, SymbolicZero)),
+                           jax.tree_util.tree_map(eqx.is_inexact_array, problem))
+        samples, code, nacc, dsamples = _tangent_solver(cfg, static)(
+            dyn, y0, ts, d_dyn, _instantiate(dy0))
+        zero = np.zeros((), jax.dtypes.float0)
+        return (samples, code, nacc), (dsamples, zero, zero)
 
+    integrate.defjvp(_jvp, symbolic_zeros=True)
     return integrate
+
+
+def _instantiate(t):
+    """A tangent as an array (zeros for a symbolic zero)."""
+    if not isinstance(t, SymbolicZero):
+        return t
+    if t.dtype == jax.dtypes.float0:
+        return np.zeros(t.shape, jax.dtypes.float0)
+    return jnp.zeros(t.shape, t.dtype)
+
+
+def _tangent_solver(cfg: Config, static):
+    """``(dyn, y0, ts, d_dyn, dy0) -> (samples, status, steps, tangents of the samples)`` for
+    one tangent direction; batched over directions alone (``jax.jacfwd``) it runs them all in
+    one loop (:mod:`._tangents`), otherwise (a batch of trajectories) it is ``vmap`` of that."""
+
+    def one_direction(dyn, y0, ts, d_dyn, dy0):
+        d_dyn = jax.tree_util.tree_map(lambda x: x[None], d_dyn)
+        out, code, nacc, dout = solve_one_tangents(dyn, static, y0, ts, cfg, d_dyn, dy0[None])
+        return out, code, nacc, dout[0]
+
+    @jax.custom_batching.custom_vmap
+    def solver(dyn, y0, ts, d_dyn, dy0):
+        return one_direction(dyn, y0, ts, d_dyn, dy0)
+
+    @solver.def_vmap
+    def _rule(axis_size, in_batched, dyn, y0, ts, d_dyn, dy0):
+        primal_batched = any(jax.tree_util.tree_leaves(in_batched[:3]))
+        if primal_batched:
+            axes = jax.tree_util.tree_map(lambda b: 0 if b else None, tuple(in_batched))
+            return jax.vmap(one_direction, in_axes=axes)(dyn, y0, ts, d_dyn, dy0), \
+                (True, True, True, True)
+        d_dyn, dy0 = jax.tree_util.tree_map(
+            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
+            (d_dyn, dy0), tuple(in_batched[3:]))
+        return solve_one_tangents(dyn, static, y0, ts, cfg, d_dyn, dy0), \
+            (False, False, False, True)
+
+    return solver
 
 
 @eqx.filter_jit

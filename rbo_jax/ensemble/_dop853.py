@@ -141,12 +141,19 @@ def dense_coefficients(f, t, K, y_old, y_new, f_new, h, store: Store):
     for s in range(NS + 1, T.N_STAGES_EXTENDED):
         ys = store(tuple(y_old[i] + _combine(T.A[s][:s], K, i) * h for i in range(n)))
         K.append(store(f(t + T.C[s] * h, ys)))
-    f_old = K[0]
+    return interpolant(K, y_old, y_new, K[0], f_new, h)
+
+
+def interpolant(K, y_old, y_new, f_old, f_new, h, combine=_combine):
+    """The 7 coefficient tuples F of the interpolant from the 16 slopes K (``combine(coefs, K,
+    i)`` = Σ_j coefs[j] K[j][i], or the same for another layout of K): linear in (K, y_old,
+    y_new, f_old, f_new) for a given step h."""
+    n = len(y_old)
     dy = tuple(y_new[i] - y_old[i] for i in range(n))
     F = [dy, tuple(h * f_old[i] - dy[i] for i in range(n)),
          tuple(2 * dy[i] - h * (f_new[i] + f_old[i]) for i in range(n))]
     for r in range(4):
-        F.append(tuple(h * _combine(T.D[r], K, i) for i in range(n)))
+        F.append(tuple(h * combine(T.D[r], K, i) for i in range(n)))
     return F
 
 

@@ -19,9 +19,10 @@ import jax
 import jax.numpy as jnp
 
 from .. import _enumeration as enum
-from ..kinematics import distance_to_singularity, dot3
+from ..kinematics import distance_to_singularity, dot3, storing
 from ..model import RightForm
 from ..trajectory import TRANSVERSE_TOL, SolveStatus, transverse_fraction
+from ._dop853 import Store
 
 _CODE = {name: int(enum.code(getattr(SolveStatus, name))) for name in (
     "successful", "max_steps_reached", "step_size_collapse", "singular_point", "domain_error",
@@ -65,6 +66,20 @@ class Problem(eqx.Module):
         status = jnp.where(outside, code("domain_error"), code("successful"))
         status = jnp.where((near | crossed) & transverse, code("singular_point"), status)
         return jnp.where(finite, status, code("nonfinite_state"))
+
+
+@jax.jit
+def _f_once(problem: Problem, t, y, one):
+    with storing(Store(one)):
+        return problem.f(t, y)
+
+
+def traced_once(problem: Problem, store: Store):
+    """``problem.f`` for a loop body, as calls of one jitted function: JAX traces the vector
+    field once per signature (not once per stage: a DOP853 step with its dense output and
+    initial step holds ~17 of them), and differentiates and batches that one trace, cached,
+    however often it is called; XLA inlines the calls, so the compiled program is unchanged."""
+    return lambda t, y: _f_once(problem, t, y, store.one)
 
 
 def to_lanes(tree, batched):

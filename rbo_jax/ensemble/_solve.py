@@ -35,7 +35,7 @@ from jax import lax
 
 from ..kinematics import storing
 from . import _dop853 as D
-from ._problem import Problem, code, lane_axes, lanes, to_lanes
+from ._problem import Problem, code, lane_axes, lanes, to_lanes, traced_once
 
 RUNNING = -1
 
@@ -62,9 +62,10 @@ def _initial(f, failure, t0, y0, t_bound, cfg: Config):
                 nacc=jnp.zeros(shape, jnp.int32), natt=jnp.zeros(shape, jnp.int32))
 
 
-def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store):
+def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stages):
     """One step attempt for every running lane (``RungeKutta._step_impl`` unrolled by one
-    attempt). Returns the new state and what the dense output needs."""
+    attempt). Returns the new state and what the dense output needs. ``stages``: the
+    Runge–Kutta map, :func:`._dop853.stages` or one that also pushes tangents through it."""
     t, y, f0, rej, status = st["t"], st["y"], st["f"], st["rej"], st["status"]
     running = status == RUNNING
     h_min = D.min_step(t)
@@ -73,7 +74,7 @@ def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store):
     t_new = jnp.minimum(t + h_abs, t_bound)
     h = lax.stop_gradient(t_new - t)
     h_abs = jnp.abs(h)
-    y_new, K = D.stages(f, t, y, f0, h, store)
+    y_new, K = stages(f, t, y, f0, h, store)
     err = lax.stop_gradient(D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol))
     accept, h_next = D.controller(err, h_abs, rej)
     go = running & ~too_small
@@ -107,19 +108,32 @@ def _sample(F, step, ts, idx, t_new):
     return jnp.stack([jnp.where(tj == t_new, a, b) for a, b in zip(y_new, value)], axis=-1)
 
 
-def _emit(f, step, ts, idx, out, t_new, write, store):
-    """Write every sample of ts in (t_old, t_new] of the committing lanes; ``write(out, idx,
-    mask, values)`` scatters one sample per lane."""
-    commit, t_old, y_old, y_new, K, h = step
+def dense_sampler(f, step, ts, t_new, store):
+    """The ``sampler`` of :func:`_emit` for the state: the step's dense output (three more
+    stages), traced into the branch of the steps that contain samples."""
+
+    def sampler():
+        commit, t_old, y_old, y_new, K, h = step
+        F = D.dense_coefficients(f, t_old, K, y_old, y_new, K[-1], h, store)
+        return lambda idx: _sample(F, step, ts, idx, t_new)
+
+    return sampler
+
+
+def _emit(step, ts, idx, out, t_new, write, sampler):
+    """Write every sample of ts in (t_old, t_new] of the committing lanes: ``sampler()``
+    returns ``value(idx)``, the samples at ``ts[idx]`` (:func:`dense_sampler`); ``write(out,
+    idx, mask, values)`` scatters one sample per lane."""
+    commit = step[0]
 
     def with_samples(args):
         idx, out = args
-        F = D.dense_coefficients(f, t_old, K, y_old, y_new, K[-1], h, store)
+        value = sampler()
 
         def body(c):
             idx, out = c
             mask = _pending(idx, ts, commit, t_new)
-            out = write(out, idx, mask, _sample(F, step, ts, idx, t_new))
+            out = write(out, idx, mask, value(idx))
             return idx + mask.astype(jnp.int32), out
 
         return lax.while_loop(lambda c: jnp.any(_pending(c[0], ts, commit, t_new)), body,
@@ -142,7 +156,7 @@ def solve_one(problem: Problem, y0, ts, cfg: Config):
     store = D.Store(_one((problem, y0, ts)))
     t_bound = ts[-1]
     with storing(store):
-        f = problem.f
+        f = traced_once(problem, store)
         st = _initial(f, problem.failure, ts[0], tuple(y0), t_bound, cfg)
         y_first = jnp.where(st["status"] == RUNNING, jnp.stack(y0), jnp.inf)
         out = jnp.full((ts.shape[0], 6), jnp.inf, dtype=ts.dtype).at[0].set(y_first)
@@ -153,7 +167,8 @@ def solve_one(problem: Problem, y0, ts, cfg: Config):
         def body(c):
             st, idx, out = c
             st, step = attempt(f, problem.failure, st, t_bound, cfg, store)
-            idx, out = _emit(f, step, ts, idx, out, st["t"], write, store)
+            idx, out = _emit(step, ts, idx, out, st["t"], write,
+                             dense_sampler(f, step, ts, st["t"], store))
             return st, idx, out
 
         st, _, out = lax.while_loop(lambda c: c[0]["status"] == RUNNING, body,
@@ -248,8 +263,9 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
             def write(out, idx, mask, values):
                 return out.at[jnp.where(mask, tid, N), idx].set(values, mode="drop")
 
-            c["idx"], c["out"] = _emit(fns.f(c["problem"]), step, ts, c["idx"], c["out"],
-                                       st["t"], write, store)
+            c["idx"], c["out"] = _emit(step, ts, c["idx"], c["out"], st["t"], write,
+                                       dense_sampler(fns.f(c["problem"]), step, ts, st["t"],
+                                                     store))
             c["st"] = st
             n_idle = jnp.sum(st["status"] != RUNNING)
             refill = (c["next"] < N) & ((n_idle >= R) | (n_idle == B))
