@@ -310,3 +310,73 @@ def test_residuals_are_zero_on_the_generating_model():
     r = residuals(true_model, data, rtol=1e-12, atol=1e-12)
     assert r.shape == (30 * 3 * 2,)
     assert float(jnp.max(jnp.abs(r))) < 1e-9
+
+
+@pytest.mark.parametrize("t0", [None, 0.0], ids=["t0=ts[0]", "t0<ts[0]"])
+def test_fast_simulate_residuals_vanish_on_the_generating_model(t0):
+    """The fit's residuals through fast_simulate (which starts at its first time) from the state
+    at t0: both when t0 is the first sample and when it is before it."""
+    true_model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
+    th0, Om0 = INITS[0]
+    ts = jnp.linspace(0.0 if t0 is None else 0.5, 3.0, 30)
+    tr = simulate(true_model, th0, Om0, jnp.concatenate([jnp.zeros(1), ts]) if t0 is not None
+                  else ts, rtol=1e-12, atol=1e-12)
+    k = 0 if t0 is None else 1
+    data = TrajectoryData(ts, theta=tr.theta[k:], Omega=tr.Omega[k:], theta0=th0, Omega0=Om0,
+                          t0=t0)
+    r = residuals(true_model, data, rtol=1e-12, atol=1e-12, integrator="fast_simulate")
+    assert r.shape == (30 * 3 * 2,)
+    assert float(jnp.max(jnp.abs(r))) < 1e-9
+    wrong = RigidBodyOscillator(A, QuadraticFoundation(1.1, 2.0, K))
+    assert float(jnp.max(jnp.abs(residuals(wrong, data, integrator="fast_simulate")))) > 1e-3
+
+
+def test_fast_simulate_and_simulate_fits_agree():
+    """The default fit (Levenberg-Marquardt on fast_simulate's forward mode) and the fit through
+    simulate (diffrax, ForwardMode) recover the same parameters, the truth, from 30 % off."""
+    true_model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K), [Friction(0.1)])
+    (data,) = _synthetic(true_model, INITS[:1], jnp.linspace(0.0, 4.0, 41))
+    start = RigidBodyOscillator(A, QuadraticFoundation(1.3, 1.4, K), [Friction(0.13)])
+
+    def select(m):
+        return m.foundation.c, m.foundation.d, m.loads[0].b
+
+    fast = fit(start, data, select)
+    slow = fit(start, data, select, integrator="simulate")
+    for res in (fast, slow):
+        assert res.converged, res.message
+        np.testing.assert_allclose([float(v) for v in res.params], [1.0, 2.0, 0.1], rtol=1e-6)
+    np.testing.assert_allclose([float(v) for v in fast.params],
+                               [float(v) for v in slow.params], rtol=1e-7)
+
+
+def test_fit_programs_hold_no_host_callback():
+    """JAX's persistent compilation cache keeps no program with a host callback: the compiled
+    residuals and Jacobian of a fit through fast_simulate hold none (the solves' checks are in
+    their status), so a second process loads the program instead of compiling it."""
+    from rbo_jax.fitting._residuals import leaf_paths, residuals_and_jacobian
+
+    model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
+    (data,) = _synthetic(model, INITS[:1], jnp.linspace(0.0, 1.0, 5))
+    values = (model.foundation.c, model.foundation.d)
+    u = {"p": tuple(jnp.log(v) for v in values)}
+
+    def program(integrator):
+        spec = _Spec(paths=leaf_paths(model, values), transforms=("log", "log"),
+                     fit_initial_state=False, rtol=1e-10, atol=1e-10, forward=True,
+                     integrator=integrator)
+        return residuals_and_jacobian.lower(u, model, (data,), spec).as_text()
+
+
+    assert "callback" not in program("fast_simulate")
+
+
+def test_integrator_option_is_checked():
+    model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
+    data = TrajectoryData(np.linspace(0, 1, 5), theta=np.zeros((5, 3)), Omega0=np.zeros(3))
+    with pytest.raises(ValueError, match="integrator must be one of"):
+        fit(model, data, lambda m: m.foundation.c, integrator="rk4")
+    with pytest.raises(ValueError, match="reverse-mode"):
+        fit(model, data, lambda m: m.foundation.c, optimizer="adam", integrator="fast_simulate")
+    with pytest.raises(ValueError, match="forward mode only"):
+        residuals(model, data, integrator="fast_simulate", adjoint=object())

@@ -16,11 +16,14 @@ The loss is $\frac12\sum r^2$. Parameters are chosen with an equinox-style selec
 ``params=lambda m: (m.foundation.c, m.foundation.d)`` and are optimised in an unconstrained
 reparametrisation (log for positive parameters by default; softplus or identity on request), never
 by clipping. The least-squares solvers (Levenberg–Marquardt, default; damped Gauss–Newton) use
-forward-mode Jacobians through the ODE solve (``diffrax.ForwardMode``: memory independent of the
-number of steps) and iterate on the host around one compiled program (see
-:func:`_run_least_squares` for why not optimistix's solvers); the first-order optimisers (Adam,
-L-BFGS) come from optax with reverse-mode gradients (``diffrax.RecursiveCheckpointAdjoint``:
-memory logarithmic in the number of steps).
+forward-mode Jacobians through the ODE solve — by default :func:`rbo_jax.fast_simulate`'s, every
+fitted scalar a tangent direction of one loop (``integrator="simulate"``: diffrax's
+``ForwardMode``); memory independent of the number of steps either way — and iterate on the host
+around one compiled program (see :func:`_least_squares.run_least_squares` for why not
+optimistix's solvers). That program holds no host callback, so the command line's persistent
+compilation cache keeps it. The first-order optimisers (Adam, L-BFGS) come from optax with
+reverse-mode gradients through :func:`rbo_jax.simulate`
+(``diffrax.RecursiveCheckpointAdjoint``: memory logarithmic in the number of steps).
 
 Standard errors use the Gauss–Newton approximation of the Hessian at the optimum,
 $\mathrm{Cov} = s^2 (J^TJ)^{-1}$ with $J$ the Jacobian of the whitened residuals with respect to

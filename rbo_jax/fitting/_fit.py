@@ -15,6 +15,7 @@ from ._data import TrajectoryData
 from ._least_squares import run_least_squares
 from ._optax import run_optax
 from ._residuals import (
+    INTEGRATORS,
     TRANSFORMS,
     Spec,
     jacobian_matrix,
@@ -111,6 +112,21 @@ def _check_options(optimizer, horizons, max_steps, solve_max_steps):
     return horizons
 
 
+def _integrator(integrator, optimizer) -> str:
+    """The ODE integrator of a fit: by default fast_simulate (forward mode) for the
+    least-squares optimizers, simulate (reverse mode) for the optax ones."""
+    if integrator is None:
+        return "fast_simulate" if optimizer in LEAST_SQUARES else "simulate"
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {', '.join(map(repr, INTEGRATORS))}, got "
+                         f"{integrator!r}.")
+    if integrator == "fast_simulate" and optimizer not in LEAST_SQUARES:
+        raise ValueError(f"optimizer {optimizer!r} needs reverse-mode gradients, which "
+                         "fast_simulate does not have: use integrator='simulate' (the default "
+                         "for it) or a least-squares optimizer.")
+    return integrator
+
+
 def _selected(model, params) -> tuple:
     try:
         values = params(model)
@@ -193,6 +209,7 @@ def fit(
     solve_rtol: float = 1e-10,
     solve_atol: float = 1e-10,
     solve_max_steps: int = 100_000,
+    integrator: str | None = None,
     progress: bool = False,
     verbose: bool = False,
 ) -> FitResult:
@@ -217,6 +234,10 @@ def fit(
     - `horizons`: staged fitting on growing fractions of each record (see the package docstring).
     - `solve_rtol`, `solve_atol`: tolerances of the ODE solves; `solve_max_steps`: their step
       budget (a solve that exhausts it gives infinite residuals, which the optimizer rejects).
+    - `integrator`: ``"fast_simulate"`` (DOP853, :func:`rbo_jax.fast_simulate`; the default of
+      the least-squares optimizers, whose Jacobians are forward mode) or ``"simulate"`` (diffrax
+      Dopri8; the default, and the only choice, of ``"adam"`` and ``"lbfgs"``, which need
+      reverse mode). Both integrate the right form (4.55)–(4.56).
     - `progress`: tqdm bar over iterations; `verbose`: print the loss each iteration.
 
     Compiled programs are cached on the model's structure, the data's shapes and these options,
@@ -225,12 +246,13 @@ def fit(
     start = time.perf_counter()
     datas = tuple(_as_data_list(data))
     horizons = _check_options(optimizer, horizons, max_steps, solve_max_steps)
+    integrator = _integrator(integrator, optimizer)
     values = _selected(model, params)
     spec = Spec(paths=leaf_paths(model, values),
                 transforms=resolve_transforms(values, transforms),
                 fit_initial_state=bool(fit_initial_state), rtol=float(solve_rtol),
                 atol=float(solve_atol), forward=optimizer in LEAST_SQUARES,
-                max_solver_steps=int(solve_max_steps))
+                max_solver_steps=int(solve_max_steps), integrator=integrator)
     u = {"p": tuple(TRANSFORMS[n][0](jnp.asarray(v)) for n, v in zip(spec.transforms, values))}
     if fit_initial_state:
         u["x0"] = tuple((d.theta0, d.Omega0) for d in datas)

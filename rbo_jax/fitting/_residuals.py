@@ -11,21 +11,39 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..ensemble import fast_simulate
 from ..kinematics import turn_tensor, turn_vector
 from ..model import RigidBodyOscillator
 from ..simulate import simulate
+from ..trajectory import Trajectory
 from ._data import TrajectoryData
 
-__all__ = ["residuals", "Spec", "TRANSFORMS"]
+__all__ = ["residuals", "Spec", "TRANSFORMS", "INTEGRATORS"]
+
+
+INTEGRATORS = ("fast_simulate", "simulate")
 
 
 def residuals(model: RigidBodyOscillator, data: TrajectoryData, theta0=None, Omega0=None, *,
-              rtol=1e-10, atol=1e-10, adjoint=None, max_steps=100_000) -> jax.Array:
-    """The whitened residual vector of one trajectory (see the module docstring)."""
+              rtol=1e-10, atol=1e-10, adjoint=None, max_steps=100_000,
+              integrator: str = "simulate") -> jax.Array:
+    """The whitened residual vector of one trajectory (see the package docstring).
+
+    ``integrator``: ``"simulate"`` (diffrax; ``adjoint`` chooses how it is differentiated,
+    reverse mode by default) or ``"fast_simulate"`` (DOP853, forward mode only: ``jax.jvp``,
+    ``jax.jacfwd``; ``adjoint`` must be None). Both integrate the right form (4.55)–(4.56)."""
     theta0 = data.theta0 if theta0 is None else theta0
     Omega0 = data.Omega0 if Omega0 is None else Omega0
-    traj = simulate(model, theta0, Omega0, data.ts, t0=data.t0, rtol=rtol, atol=atol,
-                    adjoint=adjoint, max_steps=max_steps, throw=False)
+    if integrator == "simulate":
+        traj = simulate(model, theta0, Omega0, data.ts, t0=data.t0, rtol=rtol, atol=atol,
+                        adjoint=adjoint, max_steps=max_steps, throw=False)
+    elif integrator == "fast_simulate":
+        if adjoint is not None:
+            raise ValueError("fast_simulate is differentiated in forward mode only: adjoint "
+                             "must be None (use integrator='simulate' for an adjoint).")
+        traj = _fast_trajectory(model, theta0, Omega0, data, rtol, atol, max_steps)
+    else:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}.")
     out = []
     if data.Q is not None or (data.theta is not None and data.theta_weight is None):
         Q_obs = data.Q if data.Q is not None else jax.vmap(turn_tensor)(data.theta)
@@ -42,6 +60,25 @@ def residuals(model: RigidBodyOscillator, data: TrajectoryData, theta0=None, Ome
         out.append(w * (traj.Omega - data.Omega) / (data.sigma_Omega or 1.0))
     return jnp.concatenate([o.ravel() for o in out])
 
+
+def _fast_trajectory(model, theta0, Omega0, data: TrajectoryData, rtol, atol, max_steps):
+    """The model's trajectory at ``data.ts`` from the state at ``data.t0`` by
+    :func:`rbo_jax.fast_simulate`, which starts at its first time: it is given
+    ``[t0, ts[0], ts[1:]]``, or, when ``t0 = ts[0]`` (traced, so not known here),
+    ``[ts[0], (ts[0] + ts[1])/2, ts[1:]]`` — an extra dense-output sample, which does not change
+    the steps — and the samples at ``ts`` are picked from the result."""
+    ts, t0 = data.ts, data.t0.astype(data.ts.dtype)
+    at_start = t0 >= ts[0]  # TrajectoryData refuses t0 > ts[0]
+    between = (ts[0] + ts[1]) / 2 if ts.shape[0] > 1 else ts[0] + 1.0
+    times = jnp.concatenate([t0[None], jnp.where(at_start, between, ts[0])[None], ts[1:]])
+    traj = fast_simulate(model, theta0, Omega0, times, rtol=rtol, atol=atol,
+                         max_steps=max_steps, throw=False)
+
+    def pick(x):
+        return jnp.concatenate([jnp.where(at_start, x[0], x[1])[None], x[2:]])
+
+    return Trajectory(ts=ts, theta=pick(traj.theta), Omega=pick(traj.Omega), model=model,
+                      status=traj.status, num_steps=traj.num_steps)
 
 
 TRANSFORMS = {
@@ -85,6 +122,7 @@ class Spec:
     atol: float
     forward: bool
     max_solver_steps: int = 100_000
+    integrator: str = "simulate"
 
 
 def leaf_paths(model, values) -> tuple:
@@ -125,10 +163,13 @@ def unpack(u, model, n_data, spec: Spec):
 
 
 def stack_residuals(model, datas, states, spec: Spec):
-    adjoint = diffrax.ForwardMode() if spec.forward else diffrax.RecursiveCheckpointAdjoint()
+    if spec.integrator == "fast_simulate":
+        adjoint = None  # forward mode only (custom_jvp)
+    else:
+        adjoint = diffrax.ForwardMode() if spec.forward else diffrax.RecursiveCheckpointAdjoint()
     return jnp.concatenate([
         residuals(model, d, th0, Om0, rtol=spec.rtol, atol=spec.atol, adjoint=adjoint,
-                  max_steps=spec.max_solver_steps)
+                  max_steps=spec.max_solver_steps, integrator=spec.integrator)
         for d, (th0, Om0) in zip(datas, states)
     ])
 

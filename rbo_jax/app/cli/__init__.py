@@ -10,9 +10,10 @@ The commands only compose library calls: a :class:`~rbo_jax.app.spec.ModelSpec` 
 options, the library's functions, xarray Datasets written as netCDF or zarr.
 
 Compiled programs are kept in JAX's persistent compilation cache, so that a second process
-skips their XLA compilation (not the Python tracing); JAX does not keep programs with host
-callbacks, which equinox's runtime checks (``eqx.error_if``) are, so the fit's program is still
-compiled in every process (benchmarks/README.md). The directory is
+skips their XLA compilation (not the Python tracing). JAX does not keep programs with host
+callbacks, which equinox's runtime checks (``eqx.error_if``) are: the ``throw=False`` paths of
+``fast_simulate`` (the fit's, the sweep's) have none, diffrax's ``simulate`` still has its own
+(benchmarks/README.md). The directory is
 ``$RBO_JAX_COMPILATION_CACHE``, by default ``rbo_jax/jax-cache`` under the user's cache directory
 (``$XDG_CACHE_HOME`` or ``~/.cache``); ``RBO_JAX_COMPILATION_CACHE=off`` turns it off.
 

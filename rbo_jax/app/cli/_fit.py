@@ -172,7 +172,8 @@ def fit_command(args: argparse.Namespace) -> int:
     spec = model_spec(table, options)
     print(f"Model: {spec.describe()} (starting values)")
     print(f"Fitting {', '.join(names)} to {source}: {data.num_samples} samples of "
-          f"{', '.join(observed)}; Levenberg-Marquardt through the ODE solver")
+          f"{', '.join(observed)}; Levenberg-Marquardt through the ODE solver "
+          f"({args.integrator})")
     friction = load_index(spec, "friction") if "b" in names else None
 
     def selector(m):
@@ -183,7 +184,7 @@ def fit_command(args: argparse.Namespace) -> int:
         res = fit(spec.build(), data, selector, fit_initial_state=args.fit_initial_state,
                   max_steps=args.max_steps, tol=args.tol, solve_rtol=args.rtol,
                   solve_atol=args.atol, solve_max_steps=args.solver_max_steps,
-                  progress=args.progress, horizons=args.horizons)
+                  integrator=args.integrator, progress=args.progress, horizons=args.horizons)
     except FloatingPointError as e:
         raise Failure(f"the fit could not start: {e}", code=1) from None
     note = _report(res, names, table, truth, data, args)
