@@ -491,25 +491,29 @@ def test_fit_invalid_options_exit_2(capsys, argv, message):
 def test_persistent_compilation_cache_is_written_and_reused(tmp_path):
     """The command keeps its compiled programs in $RBO_JAX_COMPILATION_CACHE: the first process
     writes entries, a second one reads them (same output) and adds none; ``off`` writes
-    nothing."""
+    nothing. The fit's program (residuals and Jacobian through fast_simulate) has no host
+    callback, so the second ``rbo-jax fit`` loads it instead of compiling it."""
     import subprocess
 
     cache = tmp_path / "cache"
     code = "import sys; from rbo_jax.app.cli import main; sys.exit(main(sys.argv[1:]))"
-    argv = ["simulate", "--c", "1", "--d", "2", "--theta0", "0.3,0,0.1", "--t1", "2",
-            "--samples", "3"]
+    argv = ["fit", "--synthetic", "--c", "1", "--d", "2", "--t1", "2", "--samples", "11"]
 
     def run(value):
-        env = dict(os.environ, RBO_JAX_COMPILATION_CACHE=value, JAX_PLATFORMS="cpu")
+        env = dict(os.environ, RBO_JAX_COMPILATION_CACHE=value, JAX_PLATFORMS="cpu",
+                   JAX_LOG_COMPILES="1")
         proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True,
                               text=True, env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr[-2000:]
-        return proc.stdout.split("wall time")[0]
+        return proc.stdout.split("wall time")[0], proc.stderr
 
-    first = run(str(cache))
+    first, log = run(str(cache))
+    assert "cache hit for 'jit_residuals_and_jacobian'" not in log
     entries = sorted(p.name for p in cache.iterdir())
     assert entries, "no compiled program was cached"
-    assert run(str(cache)) == first
+    again, log = run(str(cache))
+    assert again == first
+    assert "Persistent compilation cache hit for 'jit_residuals_and_jacobian'" in log
     assert sorted(p.name for p in cache.iterdir()) == entries
     run("off")
     assert sorted(p.name for p in cache.iterdir()) == entries
