@@ -141,6 +141,7 @@ def test_first_lyapunov_coefficient_is_the_decay_at_the_hopf_point(hopf):
     assert re_c1 == pytest.approx(float(hopf.frequency) * float(hopf.first_lyapunov), rel=1e-3)
 
 
+@pytest.mark.slow  # notebook 05 checks the same in the default run
 def test_hopf_value_gradient_matches_finite_differences(hopf):
     """jax.grad of the critical moment with respect to b (implicit function theorem through the
     Newton solve) against central differences and against the implicit derivative of
@@ -225,6 +226,7 @@ def cycles(hopf):
                                       max_points=9)
 
 
+@pytest.mark.slow  # notebook 05 checks the same in the default run
 def test_limit_cycles_follow_the_normal_form(hopf, cycles):
     """Near a supercritical Hopf point (l1 < 0) the cycles exist beyond it, are stable, and
     their amplitude follows the normal form: |z|^2 = -transversality (M - M_H)/(omega l1),
