@@ -135,10 +135,18 @@ def _tangent_solver(cfg: Config, static):
 
 
 @eqx.filter_jit
-def _run(cfg: Config, problem: Problem, y0, ts):
-    """Compiled once per configuration and model structure (``cfg`` is static: Python numbers),
-    also when called outside ``jax.jit``."""
+def _compiled(cfg: Config, problem: Problem, y0, ts):
     return _integrator(cfg)(problem, y0, ts)
+
+
+def _run(cfg: Config, problem: Problem, y0, ts):
+    """Compiled once per configuration and model structure (``cfg`` is static: Python numbers)
+    when called outside ``jax.jit``; inside a transformation, the integrator itself, so that
+    ``jax.jvp``/``jax.jacfwd`` trace only the derivative rule, not the primal loop too (an inner
+    ``jit`` would trace both)."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((problem, y0, ts))):
+        return _integrator(cfg)(problem, y0, ts)
+    return _compiled(cfg, problem, y0, ts)
 
 
 def fast_simulate(
