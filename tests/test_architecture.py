@@ -14,7 +14,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "rbo_jax"
 # Bottom to top. A module may import from its own layer's package folder and from lower layers.
 LAYERS = [
     ("_custom_types",),
-    ("_precision", "_enumeration"),
+    ("_precision", "_enumeration", "_programs"),
     ("_validation",),
     ("kinematics",),
     ("inertia", "analytic"),

@@ -367,8 +367,37 @@ def test_fit_programs_hold_no_host_callback():
                      integrator=integrator)
         return residuals_and_jacobian.lower(u, model, (data,), spec).as_text()
 
-
     assert "callback" not in program("fast_simulate")
+
+
+def test_fit_program_is_kept_by_the_program_store(tmp_path, monkeypatch):
+    """With the command line's program store on, the fit's program is exported once and a
+    second process (here: the in-memory programs and JAX's caches cleared) loads it instead of
+    tracing it; the fit is the same to the last bit and recovers the truth."""
+    from rbo_jax import _programs
+    from rbo_jax.fitting import _residuals
+
+    traces = []
+    vector = _residuals.residual_vector
+    monkeypatch.setattr(_residuals, "residual_vector",
+                        lambda *a: traces.append(1) or vector(*a))  # called when traced
+    model = RigidBodyOscillator(A, QuadraticFoundation(1.3, 1.5, K))
+    truth = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
+    (data,) = _synthetic(truth, INITS[:1], jnp.linspace(0.0, 1.0, 6))
+    kwargs = dict(integrator="fast_simulate", max_steps=20)
+    try:
+        _programs.enable_program_store(tmp_path)
+        first = fit(model, data, lambda m: (m.foundation.c, m.foundation.d), **kwargs)
+        assert len(list(tmp_path.glob("*.jaxexport"))) == 1
+        _programs.enable_program_store(tmp_path)
+        jax.clear_caches()
+        traces.clear()
+        again = fit(model, data, lambda m: (m.foundation.c, m.foundation.d), **kwargs)
+        assert traces == [], "the stored fit program was traced again"
+    finally:
+        _programs.enable_program_store(None)
+    np.testing.assert_array_equal(np.asarray(again.params), np.asarray(first.params))
+    np.testing.assert_allclose(np.asarray(first.params), [1.0, 2.0], rtol=1e-6)
 
 
 def test_integrator_option_is_checked():

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import stored
 from ..ensemble import fast_simulate
 from ..kinematics import turn_tensor, turn_vector
 from ..model import RigidBodyOscillator
@@ -187,11 +188,13 @@ def loss(u, model, datas, spec):
 loss_and_grad = eqx.filter_jit(jax.value_and_grad(loss))
 
 
+@stored
 @eqx.filter_jit
 def residuals_and_jacobian(u, model, datas, spec):
     """Whitened residuals at ``u`` and their forward-mode Jacobian (one JVP per fitted scalar,
     batched). The single compiled program of a least-squares fit: iterations, trial points and
-    the covariance all reuse it."""
+    the covariance all reuse it. With the program store on (the command line), a second
+    process loads it traced and compiled (:mod:`rbo_jax._programs`)."""
 
     def f(u):
         r = residual_vector(u, model, datas, spec)

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import rbo_jax  # noqa: F401  (enables float64 before any array is made)
 
+from ..._programs import enable_program_store
 from ._common import Failure
 from ._fit import fit_command
 from ._map import stability_map_command
@@ -88,6 +89,7 @@ def enable_compilation_cache() -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    enable_program_store(path / "programs")
     return path
 
 
