@@ -42,8 +42,10 @@ def _rbo_jax(tree, args, env):
     code = "import sys; from rbo_jax.app.cli import main; sys.exit(main())"
     env = dict(env, PYTHONPATH=tree)
     start, cpu = time.perf_counter(), _cpu()
+    # run from the tree: ``python -c`` puts the working directory first on sys.path, ahead of
+    # PYTHONPATH, so a run started elsewhere would import that directory's rbo_jax
     proc = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True,
-                          text=True)
+                          text=True, cwd=tree)
     return time.perf_counter() - start, _cpu() - cpu, proc
 
 

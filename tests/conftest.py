@@ -2,11 +2,22 @@
 strict dtype promotion (no implicit int -> float or float32 -> float64 mixing)."""
 
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-# the CLI's persistent compilation cache stays off in tests (tests/test_cli.py turns it on in a
-# temporary directory where it is tested)
-os.environ.setdefault("RBO_JAX_COMPILATION_CACHE", "off")
+# One persistent compilation cache for the whole run: the two xdist workers, the notebook kernels
+# and the rbo-jax processes of the CLI tests compile many of the same programs (the DOP853 loop of
+# fast_simulate, the fit's program, the Hopf system), and a program compiled by one process is
+# loaded by the next. A fresh directory per run, made by the controlling process (the workers
+# and subprocesses inherit the variables) and removed at its end, so nothing is carried from one
+# run to the next. tests/test_cli.py tests the command's own cache in directories of its own.
+_TEST_CACHE = "RBO_JAX_TEST_COMPILATION_CACHE"
+_OWN_CACHE = _TEST_CACHE not in os.environ
+if _OWN_CACHE:
+    os.environ[_TEST_CACHE] = tempfile.mkdtemp(prefix="rbo-jax-test-cache-")
+os.environ.setdefault("RBO_JAX_COMPILATION_CACHE", os.environ[_TEST_CACHE])
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.environ[_TEST_CACHE])
 
 import jax  # noqa: E402
 
@@ -20,3 +31,8 @@ hypothesis.settings.register_profile(
     "rbo", max_examples=60, deadline=None, derandomize=True, print_blob=True
 )
 hypothesis.settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "rbo"))
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE:
+        shutil.rmtree(os.environ[_TEST_CACHE], ignore_errors=True)

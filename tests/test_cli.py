@@ -434,6 +434,7 @@ def test_simulate_out_then_fit_data_roundtrip(capsys, tmp_path):
     assert est["d"][0] == pytest.approx(2.0, rel=1e-6)
 
 
+@pytest.mark.slow  # 45 s; tests/test_fitting.py fits on staged horizons in the default run
 def test_fit_of_an_unstable_record_needs_staged_horizons(capsys, tmp_path):
     """The Nikolai problem (4.57)-(4.62) grows from 0.18 to 1.7 rad over t in [0, 50]: fitted over
     the whole record at once, Levenberg-Marquardt stops in a local minimum far from (c, d) = (1, 2)
@@ -500,8 +501,8 @@ def test_persistent_compilation_cache_is_written_and_reused(tmp_path):
     argv = ["fit", "--synthetic", "--c", "1", "--d", "2", "--t1", "2", "--samples", "11"]
 
     def run(value):
-        env = dict(os.environ, RBO_JAX_COMPILATION_CACHE=value, JAX_PLATFORMS="cpu",
-                   JAX_LOG_COMPILES="1")
+        env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+        env.update(RBO_JAX_COMPILATION_CACHE=value, JAX_PLATFORMS="cpu", JAX_LOG_COMPILES="1")
         proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True,
                               text=True, env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr[-2000:]
@@ -511,9 +512,11 @@ def test_persistent_compilation_cache_is_written_and_reused(tmp_path):
     assert "cache hit for 'jit_residuals_and_jacobian'" not in log
     entries = sorted(p.name for p in cache.iterdir())
     assert entries, "no compiled program was cached"
+    assert "Finished tracing residuals_and_jacobian_export" in log  # exported to the store
     again, log = run(str(cache))
     assert again == first
     assert "Persistent compilation cache hit for 'jit_residuals_and_jacobian'" in log
+    assert "Finished tracing residuals_and_jacobian_export" not in log  # loaded, not traced
     assert sorted(p.name for p in cache.iterdir()) == entries
     run("off")
     assert sorted(p.name for p in cache.iterdir()) == entries
