@@ -42,7 +42,7 @@ import jax
 __all__ = ["enable_program_store", "program_store", "stored"]
 
 _STORE: pathlib.Path | None = None
-_CALLS: dict[str, Callable] = {}
+_CALLS: dict[str, Callable | None] = {}
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 _PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax")
 
@@ -135,9 +135,8 @@ def _export(fn, leaves, treedef, static, path: pathlib.Path):
 
 
 def _program(fn, key, leaves, treedef, static) -> Callable | None:
-    call = _CALLS.get(key)
-    if call is not None:
-        return call
+    if key in _CALLS:  # None: not exportable, remembered so that it is tried once per process
+        return _CALLS[key]
     path = _STORE / f"{key}.jaxexport"
     exported = None
     if path.exists():
@@ -149,7 +148,9 @@ def _program(fn, key, leaves, treedef, static) -> Callable | None:
         try:
             exported = _export(fn, leaves, treedef, static, path)
         except Exception:  # host callbacks, outputs that cannot be serialised: trace as usual
+            _CALLS[key] = None
             return None
+
     def call(*xs):
         return exported.call(*xs)
 

@@ -108,3 +108,23 @@ def test_store_off_and_a_damaged_entry(store):
     jax.clear_caches()
     program(p, 2.0, y)
     assert len(TRACES) == 3  # off: the plain jitted function
+
+
+def test_a_program_that_cannot_be_exported_is_tried_once(store, monkeypatch):
+    """A host callback (here ``jax.debug.callback``; in the package, diffrax's checks) cannot be
+    exported: the function runs as the plain jitted one, and the export is not tried again on
+    every call (each try traces)."""
+    seen, tries = [], []
+    export = _programs._export
+    monkeypatch.setattr(_programs, "_export", lambda *a: tries.append(1) or export(*a))
+
+    @_programs.stored
+    @eqx.filter_jit
+    def with_callback(x):
+        jax.debug.callback(lambda v: seen.append(float(v)), x[0])
+        return 2.0 * x
+
+    for v in (1.0, 3.0, 5.0):
+        np.testing.assert_allclose(np.asarray(with_callback(jnp.array([v]))), [2.0 * v])
+    assert seen == [1.0, 3.0, 5.0] and tries == [1]
+    assert not store.exists() or not list(store.iterdir())

@@ -10,7 +10,9 @@ The commands only compose library calls: a :class:`~rbo_jax.app.spec.ModelSpec` 
 options, the library's functions, xarray Datasets written as netCDF or zarr.
 
 Compiled programs are kept in JAX's persistent compilation cache, so that a second process
-skips their XLA compilation (not the Python tracing). JAX does not keep programs with host
+skips their XLA compilation; the fit's program is also kept traced (``jax.export``, in the
+``programs`` folder of the cache: :mod:`rbo_jax._programs`), so a second ``rbo-jax fit`` neither
+traces nor lowers it. JAX does not keep programs with host
 callbacks, which equinox's runtime checks (``eqx.error_if``) are: the ``throw=False`` paths of
 ``fast_simulate`` (the fit's, the sweep's) have none, diffrax's ``simulate`` still has its own
 (benchmarks/README.md). The directory is
