@@ -22,8 +22,10 @@ calls trace as usual). The key of a program is a SHA-256 of everything its traci
 A static value whose ``repr`` holds a memory address (``<function f at 0x…>``: a plain callable
 foundation or load) could name different functions in different processes: such arguments are
 never stored, they trace as usual. So does a program that cannot be exported (host callbacks,
-outputs that are not plain containers); a store that cannot be read or written is skipped with a
-warning. The results are those of the traced program, bit for bit (the same StableHLO).
+outputs that are not plain containers). An entry that cannot be read is exported again; a store
+that cannot be written is skipped with a warning. Entries are written to a temporary file first
+and renamed, so that concurrent processes never read half an entry. The results are those of the
+traced program, bit for bit (the same StableHLO).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib.metadata
+import os
 import pathlib
 import re
 import warnings
@@ -125,7 +128,7 @@ def _export(fn, leaves, treedef, static, path: pathlib.Path):
     data = exported.serialize()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{id(data)}")
+        tmp = path.with_suffix(f".tmp{os.getpid()}")
         tmp.write_bytes(data)
         tmp.replace(path)
     except OSError as e:
