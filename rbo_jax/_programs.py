@@ -36,6 +36,7 @@ import importlib.metadata
 import os
 import pathlib
 import re
+import struct
 import warnings
 from collections.abc import Callable
 
@@ -145,12 +146,16 @@ def _program(fn, key, leaves, treedef, static) -> Callable | None:
     if path.exists():
         try:
             exported = jax.export.deserialize(bytearray(path.read_bytes()))
-        except Exception:  # a truncated or foreign file: export it again
-            exported = None
+        except (OSError, struct.error, ValueError, IndexError) as e:  # truncated or foreign
+            warnings.warn(f"program store: cannot read {path} ({type(e).__name__}: {e}); it is "
+                          "exported again.", RuntimeWarning, stacklevel=3)
     if exported is None:
         try:
             exported = _export(fn, leaves, treedef, static, path)
-        except Exception:  # host callbacks, outputs that cannot be serialised: trace as usual
+        except (NotImplementedError, ValueError):
+            # what jax.export refuses: host callbacks (NotImplementedError), custom calls without
+            # a compatibility guarantee and outputs of unregistered pytree types (ValueError).
+            # The program then traces as usual in every process.
             _CALLS[key] = None
             return None
 
