@@ -12,9 +12,10 @@ diffrax's forward mode. Here the loop is written once, for K directions: every s
 the K directions (``vmap`` of ``jax.jvp``: the value once, the tangents as a batch) — one copy
 of each in the program — and the dense output's three extra stages are that loop again.
 
-The arithmetic is that of :mod:`._dop853` (sums over the slopes in SciPy's order; zero
-coefficients add nothing), so the primal takes the steps :func:`._solve.solve_one` takes. The
-derivatives are those of the Runge–Kutta map along that step sequence, with step sizes and error
+The tableau, controller and checks are those of :mod:`._dop853` and :func:`._solve.attempt`,
+but the sums over the slopes are dot products here (XLA's order of summation, not SciPy's), so
+the primal can differ from :func:`._solve.solve_one`'s by rounding; it takes the same steps
+unless an error norm lies within rounding of the acceptance threshold. The derivatives are those of the Runge–Kutta map along that step sequence, with step sizes and error
 norms constant: what ``jax.jvp`` of the per-trajectory loop computes. The sample times are
 constants here; derivatives with respect to them go through ``jax.jvp`` of the loop
 (``rbo_jax.ensemble``).
