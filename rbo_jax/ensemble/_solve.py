@@ -17,12 +17,14 @@ with refill 9.9–10 µs. This package's version (the model's own vector field, 
 check) measured 28 µs against numba's 64 µs in one run of ``benchmarks/bench_simulate.py``
 (benchmarks/README.md). Stages as a
 tuple of ``(B,)`` arrays (not stacked ``(6, B)`` arrays: 4.6× slower; not a ``(13, 6, B)`` array
-with ``tensordot``: 2.3× slower), the tableau as literals, every stage value stored
+with ``tensordot``: 2.3× slower), the stages in a loop over the tableau's rows (one traced copy
+of the vector field, :func:`._dop853.stages`), every stage value stored
 (:class:`._dop853.Store`).
 
 Samples at ``ts`` come from the method's dense output (7th order), computed only on steps that
-contain a sample (three more evaluations); a sample at the end of a step is the step's own
-state. Samples after a failure stay ``inf``.
+contain a sample (three more evaluations, made by the step's stage loop when a lane has a sample
+ahead); a sample at the end of a step is the step's own state. Samples after a failure stay
+``inf``.
 """
 
 from __future__ import annotations
@@ -52,8 +54,7 @@ class Config(NamedTuple):
 def _initial(f, failure, t0, y0, t_bound, cfg: Config):
     """The solver state at t0; an initial state that fails the per-step checks (outside the
     domain, at a singular point) ends the solve at once with that status."""
-    f0 = f(t0, y0)
-    h = D.initial_step(f, t0, y0, f0, t_bound, cfg.rtol, cfg.atol)
+    f0, h = D.initial_step(f, t0, y0, t_bound, cfg.rtol, cfg.atol)
     shape = jnp.shape(y0[0])
     failed = failure(y0, y0, cfg.singular_tol)
     status = jnp.where(failed == code("successful"), RUNNING, failed).astype(jnp.int32)
@@ -62,10 +63,14 @@ def _initial(f, failure, t0, y0, t_bound, cfg: Config):
                 nacc=jnp.zeros(shape, jnp.int32), natt=jnp.zeros(shape, jnp.int32))
 
 
-def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stages):
+def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stages,
+            wants_dense=None):
     """One step attempt for every running lane (``RungeKutta._step_impl`` unrolled by one
     attempt). Returns the new state and what the dense output needs. ``stages``: the
-    Runge–Kutta map, :func:`._dop853.stages` or one that also pushes tangents through it."""
+    Runge–Kutta map, :func:`._dop853.stages` or one that also pushes tangents through it.
+    ``wants_dense(t_new)``: whether a lane has a sample in (t, t_new]; if any running lane has,
+    the stage loop also makes the dense output's three extra stages (used only if the step is
+    accepted: a rejected step with a sample wastes them, a rare case)."""
     t, y, f0, rej, status = st["t"], st["y"], st["f"], st["rej"], st["status"]
     running = status == RUNNING
     h_min = D.min_step(t)
@@ -74,7 +79,9 @@ def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stage
     t_new = jnp.minimum(t + h_abs, t_bound)
     h = lax.stop_gradient(t_new - t)
     h_abs = jnp.abs(h)
-    y_new, K = stages(f, t, y, f0, h, store)
+    dense = running if wants_dense is None else running & wants_dense(t_new)
+    last = jnp.where(jnp.any(dense), D.N_EXT, D.NS + 1)
+    y_new, K = stages(f, t, y, f0, h, store, last)
     err = lax.stop_gradient(D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol))
     accept, h_next = D.controller(err, h_abs, rej)
     go = running & ~too_small
@@ -82,7 +89,7 @@ def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stage
     natt = st["natt"] + go.astype(jnp.int32)
     new = dict(t=jnp.where(commit, t_new, t),
                y=tuple(jnp.where(commit, a, b) for a, b in zip(y_new, y)),
-               f=tuple(jnp.where(commit, a, b) for a, b in zip(K[-1], f0)),
+               f=tuple(jnp.where(commit, a, b) for a, b in zip(K[D.NS], f0)),
                h=jnp.where(go, h_next, h_abs), rej=(go & ~accept) | (~go & rej),
                nacc=st["nacc"] + commit.astype(jnp.int32), natt=natt)
     status = jnp.where(running & too_small, code("step_size_collapse"), status)
@@ -100,6 +107,12 @@ def _pending(idx, ts, commit, t_new):
     return commit & (idx < nts) & (ts[jnp.minimum(idx, nts - 1)] <= t_new)
 
 
+def sample_ahead(idx, ts):
+    """``wants_dense`` of :func:`attempt`: the lanes whose next sample ``ts[idx]`` lies in the
+    attempted step."""
+    return lambda t_new: _pending(idx, ts, True, t_new)
+
+
 def _sample(F, step, ts, idx, t_new):
     """The state at ts[idx] within the step (the new state itself at its end)."""
     commit, t_old, y_old, y_new, K, h = step
@@ -108,13 +121,14 @@ def _sample(F, step, ts, idx, t_new):
     return jnp.stack([jnp.where(tj == t_new, a, b) for a, b in zip(y_new, value)], axis=-1)
 
 
-def dense_sampler(f, step, ts, t_new, store):
-    """The ``sampler`` of :func:`_emit` for the state: the step's dense output (three more
-    stages), traced into the branch of the steps that contain samples."""
+def dense_sampler(step, ts, t_new):
+    """The ``sampler`` of :func:`_emit` for the state: the step's dense output from its 16
+    slopes (the three extra stages were made by the step's stage loop,
+    ``attempt(wants_dense=...)``)."""
 
     def sampler():
         commit, t_old, y_old, y_new, K, h = step
-        F = D.dense_coefficients(f, t_old, K, y_old, y_new, K[-1], h, store)
+        F = D.interpolant(K, y_old, y_new, K[0], K[D.NS], h)
         return lambda idx: _sample(F, step, ts, idx, t_new)
 
     return sampler
@@ -166,9 +180,10 @@ def solve_one(problem: Problem, y0, ts, cfg: Config):
 
         def body(c):
             st, idx, out = c
-            st, step = attempt(f, problem.failure, st, t_bound, cfg, store)
+            st, step = attempt(f, problem.failure, st, t_bound, cfg, store,
+                               wants_dense=sample_ahead(idx, ts))
             idx, out = _emit(step, ts, idx, out, st["t"], write,
-                             dense_sampler(f, step, ts, st["t"], store))
+                             dense_sampler(step, ts, st["t"]))
             return st, idx, out
 
         st, _, out = lax.while_loop(lambda c: c[0]["status"] == RUNNING, body,
@@ -257,15 +272,14 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
         def body(c):
             c = dict(c)
             st, step = attempt(fns.f(c["problem"]), fns.failure(c["problem"]), c["st"], ts[-1],
-                               cfg, store)
+                               cfg, store, wants_dense=sample_ahead(c["idx"], ts))
             tid = c["tid"]
 
             def write(out, idx, mask, values):
                 return out.at[jnp.where(mask, tid, N), idx].set(values, mode="drop")
 
             c["idx"], c["out"] = _emit(step, ts, c["idx"], c["out"], st["t"], write,
-                                       dense_sampler(fns.f(c["problem"]), step, ts, st["t"],
-                                                     store))
+                                       dense_sampler(step, ts, st["t"]))
             c["st"] = st
             n_idle = jnp.sum(st["status"] != RUNNING)
             refill = (c["next"] < N) & ((n_idle >= R) | (n_idle == B))

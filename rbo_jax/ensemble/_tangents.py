@@ -10,7 +10,8 @@ diffrax's forward mode. Here the loop is written once, for K directions: every s
 :func:`._solve.attempt` (the same controller, checks and statuses), its stages are a
 ``fori_loop`` over the tableau's rows that evaluates the vector field and its derivative along
 the K directions (``vmap`` of ``jax.jvp``: the value once, the tangents as a batch) — one copy
-of each in the program — and the dense output's three extra stages are that loop again.
+of each in the program — and the dense output's three extra stages are that loop again, run
+on the steps with a sample ahead (as the primal's, :func:`._solve.attempt`).
 
 The tableau, controller and checks are those of :mod:`._dop853` and :func:`._solve.attempt`,
 but the sums over the slopes are dot products here (XLA's order of summation, not SciPy's), so
@@ -33,7 +34,7 @@ from ..kinematics import storing
 from . import _dop853 as D
 from . import _tableau as T
 from ._problem import traced_once
-from ._solve import RUNNING, Config, _emit, _initial, _one, _sample, attempt
+from ._solve import RUNNING, Config, _emit, _initial, _one, _sample, attempt, sample_ahead
 
 __all__ = ["solve_one_tangents"]
 
@@ -118,16 +119,17 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
             st, idx, outs, dy, df, started = c
             y_old, kept = st["y"], {}
 
-            def stages(_, t, y, f0, h, store):
+            def stages(_, t, y, f0, h, store, last):
                 slopes = (tuple(jnp.zeros(N, ts.dtype).at[0].set(v) for v in f0),
                           tuple(jnp.zeros((nk, N), ts.dtype).at[:, 0].set(v) for v in df))
                 K, dK = kept["slopes"] = _fill(f_jvp, t, h, y, dy, slopes,
-                                               jnp.where(started, 1, 0), N)
+                                               jnp.where(started, 1, 0), last)
                 kept["dy_new"] = tuple(dy[i] + _dot(_A[T.N_STAGES], dK[i]) * h for i in range(6))
                 y_new = tuple(y[i] + _dot(_A[T.N_STAGES], K[i]) * h for i in range(6))
                 return y_new, _rows(K, T.N_STAGES + 1)
 
-            st, step = attempt(f, problem.failure, st, t_bound, cfg, store, stages)
+            st, step = attempt(f, problem.failure, st, t_bound, cfg, store, stages,
+                               sample_ahead(idx, ts))
             commit, t_old, _, y_new, Ks, h = step
             (K, dK), dy_new = kept["slopes"], kept["dy_new"]
             dK0, dK12 = (tuple(d[:, j] for d in dK) for j in (0, T.N_STAGES))
