@@ -20,6 +20,13 @@ def run_optax(u, model, datas, spec, optimizer, learning_rate, max_steps, tol, h
 
     @eqx.filter_jit
     def update(u, state, value, grad, model, datas):
+        # optax's own arithmetic mixes dtypes (optax 0.2.8: ``decay ** count`` with an int32
+        # count), which a user's ``jax_numpy_dtype_promotion = "strict"`` refuses: optax runs
+        # with standard promotion, whatever the caller's setting
+        with jax.numpy_dtype_promotion("standard"):
+            return _update(u, state, value, grad, model, datas)
+
+    def _update(u, state, value, grad, model, datas):
         if optimizer == "lbfgs":
             updates, state = opt.update(grad, state, u, value=value, grad=grad,
                                         value_fn=lambda v: loss(v, model, datas, spec))
