@@ -20,11 +20,14 @@ code serves both. It follows ``scipy/integrate/_ivp/rk.py`` (``RungeKutta._step_
 **One traced copy of the vector field per loop.** The stages of a step (and the dense output's
 three extra ones) are a ``fori_loop`` over the rows of the tableau (:func:`stages`), the two
 evaluations of the initial step a loop of two (:func:`initial_step`): a solver program holds the
-vector field twice (once per trajectory refill more on lanes), not ~17 times. Measured on the
-Nikolai problem (2-core development machine, one process, side by side with the unrolled step):
-XLA compilation of one trajectory 1.9–2.4 s → 1.1–1.4 s, of ``vmap`` over 1000 lanes 3.6 s →
-2.2 s, tracing of the latter 1.35 s → 0.55 s; run time per trajectory unchanged (21–23 µs both);
-summing all 15 columns of a row instead of its ≤ 9 non-zero ones cost ~15 % of that run time.
+vector field twice (once more on lanes, for the refill), not ~17 times. Measured on the Nikolai
+problem (2-core development machine, side by side with the unrolled step, two runs each): XLA
+compilation of one trajectory 1.6–1.7 s → 1.0–1.1 s, of ``vmap`` over 1000 lanes 2.8–2.9 s →
+1.9 s, its tracing 1.3 s → 0.55 s; the loop costs run time: 19.0–20.2 µs → 21.6–22.0 µs per
+trajectory on one pinned core (4000 trajectories, +12 %; a partial unroll of 2, 4 or 12 stages
+per iteration did not recover it, and summing all 15 columns of a row instead of its ≤ 9
+non-zero ones, or as dot products, cost another 15–30 %).
+
 Step sizes and the error norm are constants for differentiation (``lax.stop_gradient``):
 forward-mode derivatives are those of the Runge–Kutta map along the step sequence the primal
 took, which converge to the solution's sensitivities as the tolerance tightens.
@@ -65,11 +68,12 @@ class Store:
 
 
 def _combine(coefs, K, i):
-    """sum_j coefs[j] K[j][i] with the literal coefficients, zeros skipped (SciPy's order)."""
+    """Σ_j coefs[j] K[i][j] with the literal coefficients, zeros skipped (SciPy's order). ``K``:
+    the slopes, one array per state component with the slope index first (:func:`stages`)."""
     acc = None
     for j, a in enumerate(coefs):
-        if j < len(K) and a != 0.0:
-            term = K[j][i] * a
+        if a != 0.0:
+            term = K[i][j] * a
             acc = term if acc is None else acc + term
     return acc
 
@@ -105,7 +109,10 @@ def stages(f, t, y, f0, h, store: Store, last=NS + 1):
     K[j]) for s = 1 … ``last`` − 1, y_new = y + h Σ B K. Row 12 of the tableau is B and c_12 = 1,
     so stage 12 is the slope at the new point, K[12] = f(t + h, y_new) (the first stage of the
     next step); rows 13–15 (``last`` = 16) are the dense output's three extra stages. Returns
-    (y_new, K), K a list of 16 state tuples (rows from ``last`` on are zeros).
+    (y_new, K), K one ``(16, *shape)`` array per state component, the slope index first (rows
+    from ``last`` on are zeros; :func:`slope` reads one). The slopes stay in these arrays, not
+    split into rows: rows handed on separately were each copied (measured: 108 copies per step,
+    ~25 % of a batch's run time).
 
     One ``fori_loop`` over the rows of the tableau holds the program's only traced copy of the
     vector field f in a step (the unrolled step held 15: compile time grows with the copies, as
@@ -125,9 +132,13 @@ def stages(f, t, y, f0, h, store: Store, last=NS + 1):
         return tuple(K[i].at[s].set(k[i]) for i in range(n))
 
     K = lax.fori_loop(1, last, body, K0)
-    rows = [tuple(K[i][j] for i in range(n)) for j in range(N_EXT)]
-    y_new = store(tuple(y[i] + h * _combine(T.B, rows, i) for i in range(n)))
-    return y_new, rows
+    y_new = store(tuple(y[i] + h * _combine(T.B, K, i) for i in range(n)))
+    return y_new, K
+
+
+def slope(K, j):
+    """The slope K[j] of :func:`stages`' layout as a state tuple."""
+    return tuple(k[j] for k in K)
 
 
 def error_norm(K, y, y_new, h_abs, rtol, atol):
@@ -200,24 +211,24 @@ def min_step(t):
     return 10.0 * jnp.abs(jnp.nextafter(t, jnp.inf) - t)
 
 
-def dot_rows(coefs, K, i):
-    """Σ_j coefs[j] K[j][i] as one dot product over the stacked slopes (XLA's order of
-    summation: for the dense output, whose sums do not steer the steps; a handful of ops in the
-    program instead of one multiply and one add per non-zero coefficient)."""
-    k = jnp.stack([K[j][i] for j in range(len(coefs))])
-    return jnp.tensordot(jnp.asarray(coefs, k.dtype), k, axes=1)
+def dense_sums(K, i):
+    """The four sums Σ_j D[r, j] K[i][j] of the interpolant for state component i, in literal
+    order (element-wise code XLA fuses; as dot products they were 24 separate matrix calls
+    per step with samples, measured ~2 % slower on a batch)."""
+    return tuple(_combine(T.D[r], K, i) for r in range(4))
 
 
-def interpolant(K, y_old, y_new, f_old, f_new, h, combine=dot_rows):
-    """The 7 coefficient tuples F of the interpolant from the 16 slopes K (``combine(coefs, K,
-    i)`` = Σ_j coefs[j] K[j][i], or the same for another layout of K): linear in (K, y_old,
-    y_new, f_old, f_new) for a given step h."""
+def interpolant(K, y_old, y_new, f_old, f_new, h, sums=dense_sums):
+    """The 7 coefficient tuples F of the interpolant from the 16 slopes K (``sums(K, i)``: the
+    four D-row sums of component i, :func:`dense_sums`, or the same for another layout of K):
+    linear in (K, y_old, y_new, f_old, f_new) for a given step h."""
     n = len(y_old)
     dy = tuple(y_new[i] - y_old[i] for i in range(n))
     F = [dy, tuple(h * f_old[i] - dy[i] for i in range(n)),
          tuple(2 * dy[i] - h * (f_new[i] + f_old[i]) for i in range(n))]
+    DK = [sums(K, i) for i in range(n)]
     for r in range(4):
-        F.append(tuple(h * combine(T.D[r], K, i) for i in range(n)))
+        F.append(tuple(h * DK[i][r] for i in range(n)))
     return F
 
 

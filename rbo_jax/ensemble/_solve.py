@@ -89,7 +89,7 @@ def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stage
     natt = st["natt"] + go.astype(jnp.int32)
     new = dict(t=jnp.where(commit, t_new, t),
                y=tuple(jnp.where(commit, a, b) for a, b in zip(y_new, y)),
-               f=tuple(jnp.where(commit, a, b) for a, b in zip(K[D.NS], f0)),
+               f=tuple(jnp.where(commit, a, b) for a, b in zip(D.slope(K, D.NS), f0)),
                h=jnp.where(go, h_next, h_abs), rej=(go & ~accept) | (~go & rej),
                nacc=st["nacc"] + commit.astype(jnp.int32), natt=natt)
     status = jnp.where(running & too_small, code("step_size_collapse"), status)
@@ -128,7 +128,7 @@ def dense_sampler(step, ts, t_new):
 
     def sampler():
         commit, t_old, y_old, y_new, K, h = step
-        F = D.interpolant(K, y_old, y_new, K[0], K[D.NS], h)
+        F = D.interpolant(K, y_old, y_new, D.slope(K, 0), D.slope(K, D.NS), h)
         return lambda idx: _sample(F, step, ts, idx, t_new)
 
     return sampler

@@ -71,18 +71,15 @@ def _fill(f_jvp, t, h, y, dy, slopes, first, last):
     return lax.fori_loop(first, last, body, slopes)
 
 
-def _rows(K, n):
-    """The slopes as a list of n state tuples (the layout of :mod:`._dop853`)."""
-    return [tuple(k[..., j] for k in K) for j in range(n)]
-
-
 def _components(v):
     return tuple(v[..., i] for i in range(6))
 
 
-def _by_column(coefs, K, i):
-    """``combine`` of :func:`._dop853.interpolant` for slopes stored per state component."""
-    return _dot(np.asarray(coefs), K[i])
+def _by_column(K, i):
+    """``sums`` of :func:`._dop853.interpolant` for slopes with the slope index last: the four
+    D-row sums of component i as one product."""
+    d = K[i] @ np.asarray(T.D).T
+    return tuple(d[..., r] for r in range(4))
 
 
 def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
@@ -126,16 +123,17 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
                                                jnp.where(started, 1, 0), last)
                 kept["dy_new"] = tuple(dy[i] + _dot(_A[T.N_STAGES], dK[i]) * h for i in range(6))
                 y_new = tuple(y[i] + _dot(_A[T.N_STAGES], K[i]) * h for i in range(6))
-                return y_new, _rows(K, T.N_STAGES + 1)
+                return y_new, K
 
             st, step = attempt(f, problem.failure, st, t_bound, cfg, store, stages,
                                sample_ahead(idx, ts))
-            commit, t_old, _, y_new, Ks, h = step
+            commit, t_old, _, y_new, _, h = step
             (K, dK), dy_new = kept["slopes"], kept["dy_new"]
             dK0, dK12 = (tuple(d[:, j] for d in dK) for j in (0, T.N_STAGES))
 
             def sampler():
-                F = D.interpolant(K, y_old, y_new, Ks[0], Ks[-1], h, _by_column)
+                F = D.interpolant(K, y_old, y_new, D.slope(K, 0), D.slope(K, T.N_STAGES), h,
+                                  _by_column)
                 dF = D.interpolant(dK, dy, dy_new, dK0, dK12, h, _by_column)
                 dstep = (commit, t_old, dy, dy_new, None, h)
                 return lambda i: (_sample(F, step, ts, i, st["t"]),
