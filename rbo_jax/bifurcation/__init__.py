@@ -4,12 +4,12 @@ shooting and their Floquet multipliers (:mod:`._orbit`), and continuation: equil
 fold, branch-point and Hopf detection (:mod:`._equilibria`), the family of limit cycles born at
 a Hopf point (:mod:`._cycles`) and the Hopf boundary in two parameters (:mod:`._curve`)."""
 
-from ._curve import continue_hopf
-from ._cycles import continue_limit_cycles
-from ._equilibria import continue_equilibria
-from ._hopf import HopfPoint, HopfStatus, first_lyapunov_coefficient, hopf_point
-from ._orbit import OrbitStatus, PeriodicOrbit, floquet_multipliers, periodic_orbit
+from .. import _lazy
 
-__all__ = ["HopfPoint", "HopfStatus", "first_lyapunov_coefficient", "hopf_point", "OrbitStatus",
-           "PeriodicOrbit", "floquet_multipliers", "periodic_orbit", "continue_equilibria",
-           "continue_limit_cycles", "continue_hopf"]
+__getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
+    "._hopf": ("HopfPoint", "HopfStatus", "first_lyapunov_coefficient", "hopf_point"),
+    "._orbit": ("OrbitStatus", "PeriodicOrbit", "floquet_multipliers", "periodic_orbit"),
+    "._equilibria": ("continue_equilibria",),
+    "._cycles": ("continue_limit_cycles",),
+    "._curve": ("continue_hopf",),
+})

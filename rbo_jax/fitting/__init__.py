@@ -41,9 +41,10 @@ compiled programs), ``_least_squares`` (Levenberg–Marquardt, Gauss–Newton), 
 L-BFGS), ``_fit`` (:func:`fit`, :class:`FitResult`).
 """
 
-from ._data import TrajectoryData as TrajectoryData
-from ._fit import FitResult as FitResult
-from ._fit import fit as fit
-from ._residuals import residuals as residuals
+from .. import _lazy
 
-__all__ = ["TrajectoryData", "FitResult", "fit", "residuals"]
+__getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
+    "._data": ("TrajectoryData",),
+    "._fit": ("FitResult", "fit"),
+    "._residuals": ("residuals",),
+})
