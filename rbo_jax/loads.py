@@ -22,6 +22,7 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
 from ._validation import (
@@ -30,6 +31,7 @@ from ._validation import (
     _callable_leaf,
     _check,
     _float_dtype,
+    _is_traced,
     _unit_axis,
     error_if,
     requirement_checks,
@@ -165,16 +167,20 @@ class SemiTangentialMoment(AbstractLoad):
     def __init__(self, M: ScalarLike, k: VectorLike, l1: ScalarLike = 1.0, l2: ScalarLike = 1.0):
         set_parameters(self, M=M, l1=l1, l2=l2)
         self.k = _unit_axis(k, type(self).__name__)
-        self.l1 = _check(self.l1, self._weights_valid(), self._weights_message())
+        # concrete weights are compared on the host (an eager JAX comparison would compile)
+        l1, l2 = (x if _is_traced(x) else np.asarray(x) for x in (self.l1, self.l2))
+        self.l1 = _check(self.l1, self._weights_valid(l1, l2), self._weights_message())
 
-    def _weights_valid(self):
-        return (self.l1 != 0) | (self.l2 != 0)
+    @staticmethod
+    def _weights_valid(l1, l2):
+        return (l1 != 0) | (l2 != 0)
 
     def _weights_message(self) -> str:
         return f"{type(self).__name__}: the parameters l1 and l2 must not both be zero"
 
     def parameter_checks(self) -> list:
-        return super().parameter_checks() + [(self._weights_valid(), self._weights_message())]
+        return super().parameter_checks() + [(self._weights_valid(self.l1, self.l2),
+                                                self._weights_message())]
 
     depends_on_velocity: ClassVar[bool] = False
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..kinematics import turn_tensor, turn_vector
@@ -180,11 +179,12 @@ class TrajectoryData(eqx.Module):
         if float(t0) > ts[0]:
             raise ValueError(f"t0 = {t0} is after the first sample ts[0] = {ts[0]}.")
 
-        def j(x):
-            return None if x is None else jnp.asarray(x)
+        def j(x):  # a checked NumPy array to the device: a transfer (jnp.asarray would compile
+            # a small XLA program per shape, 5-30 ms each)
+            return None if x is None else jax.device_put(x)
 
         self.ts, self.theta0, self.Omega0 = j(ts), j(theta0), j(Omega0)
-        self.t0 = jnp.asarray(float(t0))
+        self.t0 = j(np.asarray(float(t0)))
         self.theta, self.Q, self.omega, self.Omega = (
             j(arrays[k]) for k in ("theta", "Q", "omega", "Omega"))
         self.theta_weight, self.omega_weight, self.Omega_weight = (
