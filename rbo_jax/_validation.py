@@ -65,6 +65,25 @@ def _is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
+def _xp(*xs):
+    """The array namespace for ``xs``: NumPy when no leaf is traced (checks of concrete values
+    run on the host, compiling nothing), else ``jax.numpy``."""
+    return jnp if any(_is_traced(x) for x in jax.tree_util.tree_leaves(xs)) else np
+
+
+def on_host(tree):
+    """``tree`` with its JAX arrays as NumPy arrays (pytrees such as models are rebuilt without
+    running their constructors): checks then run in NumPy."""
+    return jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x,
+                                  tree)
+
+
+def _device(x):
+    """A value checked on the host (NumPy) as a JAX array (a transfer, no XLA program); traced
+    values as they are."""
+    return x if _is_traced(x) else jax.device_put(np.asarray(x))
+
+
 # While tracing a solver's vector field with throw=False: runtime checks give NaN, not a host
 # callback (JAX's persistent compilation cache keeps no program with one).
 _FAILURES_AS_NAN: contextvars.ContextVar = contextvars.ContextVar("rbo_jax_failures_as_nan",
@@ -105,8 +124,11 @@ def _check(x, valid, message: str):
 
 
 def _as_float(x, shape: tuple[int, ...], what: str, owner: str):
-    """``x`` as a real float array of the given shape, or an error naming ``what``."""
-    x = jnp.asarray(x)
+    """``x`` as a real float array of the given shape, or an error naming ``what``. Concrete
+    values become NumPy arrays: the constructors check and combine them on the host, where each
+    JAX operation on a concrete value would compile a small XLA program of its own (20–50 ms
+    each, ~30 to build a model)."""
+    x = x if _is_traced(x) else np.asarray(x)
     if x.shape != shape and shape == ():
         raise ValueError(
             f"{owner}: {what} must be a scalar, got shape {x.shape}. rbo_jax objects hold a "
@@ -117,7 +139,7 @@ def _as_float(x, shape: tuple[int, ...], what: str, owner: str):
             f"{owner}: {what} must have shape {shape}, got {x.shape}. rbo_jax objects hold a "
             "single parameter set: use jax.vmap to build batches."
         )
-    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+    if np.issubdtype(x.dtype, np.complexfloating):
         raise TypeError(f"{owner}: {what} must be real, got dtype {x.dtype}.")
     return x.astype(_float_dtype())
 
@@ -130,7 +152,8 @@ def _scalar_parameter(
     requirement: Requirement = FINITE,
 ) -> Scalar:
     """``x`` as a float scalar array, checked against ``requirement`` (NaN is always refused;
-    ``meaning`` says what the parameter is, in the message)."""
+    ``meaning`` says what the parameter is, in the message): a NumPy array for a concrete
+    ``x`` (:func:`_device` makes it a JAX array), ``x`` itself if traced."""
     x = _as_float(x, (), f"the parameter {name}", owner)
     detail = f" ({meaning})" if meaning else ""
     return _check(x, requirement.holds(x), f"{owner}: the parameter {name} must be "
@@ -144,7 +167,8 @@ def set_parameters(module, **values) -> None:
     table = {name: (requirement, meaning) for name, requirement, meaning in module._requirements}
     for name, value in values.items():
         requirement, meaning = table[name]
-        setattr(module, name, _scalar_parameter(value, name, owner, meaning, requirement))
+        setattr(module, name,
+                _device(_scalar_parameter(value, name, owner, meaning, requirement)))
 
 
 def requirement_checks(module) -> list:
@@ -154,11 +178,13 @@ def requirement_checks(module) -> list:
     out = []
     for name, requirement, meaning in getattr(module, "_requirements", ()):
         detail = f" ({meaning})" if meaning else ""
-        out.append((jnp.all(requirement.holds(getattr(module, name))),
+        value = getattr(module, name)
+        out.append((_xp(value).all(requirement.holds(value)),
                     f"{owner}: the parameter {name} must be {requirement.text}{detail}"))
     k = getattr(module, "k", None)
-    if isinstance(k, jax.Array) and k.shape == (3,):
-        out.append((jnp.all(jnp.isfinite(k)),
+    if isinstance(k, (jax.Array, np.ndarray)) and k.shape == (3,):
+        xp = _xp(k)
+        out.append((xp.all(xp.isfinite(k)),
                     f"{owner}: the axis k must be a nonzero finite vector"))
     return out
 
@@ -180,10 +206,12 @@ def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
 
 
 def _unit_axis(k: VectorLike, owner: str, name: str = "k") -> Vector:
-    """The axis ``k`` normalised to unit length; a zero or non-finite axis is refused."""
+    """The axis ``k`` normalised to unit length (a JAX array); a zero or non-finite axis is
+    refused. Concrete axes are checked and normalised in NumPy."""
     k = _as_float(k, (3,), f"the axis {name}", owner)
-    k2 = jnp.dot(k, k)
+    xp = jnp if _is_traced(k) else np
+    k2 = xp.dot(k, k)
     k = _check(
-        k, (k2 > 0) & jnp.isfinite(k2), f"{owner}: the axis {name} must be a nonzero finite vector"
+        k, (k2 > 0) & xp.isfinite(k2), f"{owner}: the axis {name} must be a nonzero finite vector"
     )
-    return k / jnp.sqrt(k2)
+    return _device(k / xp.sqrt(k2))

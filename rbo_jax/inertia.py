@@ -18,6 +18,7 @@ from ._custom_types import Matrix, MatrixLike, ScalarLike, VectorLike
 from ._validation import (
     POSITIVE,
     _check,
+    _device,
     _float_dtype,
     _is_traced,
     _scalar_parameter,
@@ -65,10 +66,11 @@ _ORTHONORMAL_ATOL = 1e-10
 
 
 def _float_matrix(x, name: str, owner: str) -> Matrix:
-    x = jnp.asarray(x)
+    """A (3, 3) float matrix: NumPy for a concrete ``x`` (checked on the host), else traced."""
+    x = x if _is_traced(x) else np.asarray(x)
     if x.shape != (3, 3):
         raise ValueError(f"{owner}: {name} must have shape (3, 3), got {x.shape}.")
-    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+    if np.issubdtype(x.dtype, np.complexfloating):
         raise TypeError(f"{owner}: {name} must be real, got dtype {x.dtype}.")
     return x.astype(_float_dtype())
 
@@ -80,11 +82,13 @@ def transversely_isotropic_inertia(A1: ScalarLike, A3: ScalarLike, k: VectorLike
     A1 = _scalar_parameter(A1, "A1", owner, "principal moment of inertia", POSITIVE)
     A3 = _scalar_parameter(A3, "A3", owner, "principal moment of inertia", POSITIVE)
     k = _unit_axis(k, owner)
-    kk = jnp.outer(k, k)
-    A = A1 * (jnp.eye(3, dtype=kk.dtype) - kk) + A3 * kk
-    if not _is_traced(A):
-        _warn_if_not_physical(A)
-    return A
+    if any(_is_traced(v) for v in (A1, A3, k)):
+        kk = jnp.outer(k, k)
+        return A1 * (jnp.eye(3, dtype=kk.dtype) - kk) + A3 * kk
+    kk = np.outer(np.asarray(k), np.asarray(k))  # concrete: on the host, no XLA programs
+    A = A1 * (np.eye(3, dtype=kk.dtype) - kk) + A3 * kk
+    _warn_if_not_physical(A)
+    return _device(A)
 
 
 def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
@@ -92,7 +96,7 @@ def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
     ``moments`` $= (A_1, A_2, A_3)$, all $> 0$, and the principal axes, the **rows** of
     ``axes`` ($d_i$ = ``axes[i]``), which must be orthonormal (to 1e-10)."""
     owner = "principal_inertia"
-    moments = jnp.asarray(moments)
+    moments = moments if _is_traced(moments) else np.asarray(moments)
     if moments.shape != (3,):
         raise ValueError(f"{owner}: moments must have shape (3,), got {moments.shape}.")
     moments = moments.astype(_float_dtype())
@@ -102,7 +106,8 @@ def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
         f"{owner}: the principal moments of inertia (moments) must all be > 0 and finite",
     )
     axes = _float_matrix(axes, "axes", owner)
-    error = jnp.max(jnp.abs(axes @ axes.T - jnp.eye(3, dtype=axes.dtype)))
+    xp = jnp if _is_traced(moments) or _is_traced(axes) else np
+    error = xp.max(xp.abs(axes @ axes.T - xp.eye(3, dtype=axes.dtype)))
     axes = _check(
         axes,
         error <= _ORTHONORMAL_ATOL,
@@ -112,15 +117,17 @@ def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
     A = axes.T @ (moments[:, None] * axes)
     if not _is_traced(A):
         _warn_if_not_physical(A)
-    return A
+    return _device(A)
 
 
 def _inertia_properties(A):
     """finite, symmetric, positive definite (traced-friendly: Sylvester's criterion on the
-    symmetric part, no eigenvalue call), and the asymmetry."""
-    finite = jnp.all(jnp.isfinite(A))
-    scale = jnp.max(jnp.abs(A))
-    asymmetry = jnp.max(jnp.abs(A - A.T))
+    symmetric part, no eigenvalue call), and the asymmetry; in NumPy for a concrete ``A``."""
+    xp = jnp if _is_traced(A) else np
+    A = A if xp is jnp else np.asarray(A)
+    finite = xp.all(xp.isfinite(A))
+    scale = xp.max(xp.abs(A))
+    asymmetry = xp.max(xp.abs(A - A.T))
     symmetric = asymmetry <= _SYMMETRY_RTOL * scale
     S = 0.5 * (A + A.T)
     minor2 = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
@@ -158,7 +165,7 @@ def check_inertia(A: MatrixLike) -> Matrix:
     owner = "check_inertia"
     A = _float_matrix(A, "the inertia tensor A", owner)
     finite, symmetric, positive, asymmetry = _inertia_properties(A)
-    if any(_is_traced(v) for v in (finite, symmetric, positive)):
+    if _is_traced(A):
         return A
     if not bool(finite):
         raise ValueError(f"{owner}: the inertia tensor A must be finite, got {np.asarray(A)!r}.")
@@ -174,4 +181,4 @@ def check_inertia(A: MatrixLike) -> Matrix:
             f"eigenvalue is {smallest:.6g}; got {np.asarray(A)!r}."
         )
     _warn_if_not_physical(A)
-    return A
+    return _device(A)

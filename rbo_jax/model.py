@@ -28,10 +28,11 @@ from collections.abc import Callable, Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._custom_types import Matrix, Scalar, Vector
-from ._validation import failures_as_nan
+from ._validation import _xp, failures_as_nan, on_host
 from .foundations import AbstractFoundation
 from .inertia import check_inertia, inertia_checks
 from .kinematics import (
@@ -190,7 +191,8 @@ class RigidBodyOscillator(eqx.Module):
         """``(valid, message)`` pairs of every parameter: the inertia (:func:`inertia_checks`),
         the foundation's and each load's, and no NaN anywhere."""
         leaves = jax.tree_util.tree_leaves(eqx.filter(self, eqx.is_inexact_array))
-        no_nan = jnp.logical_not(jnp.any(jnp.stack([jnp.any(jnp.isnan(x)) for x in leaves])))
+        xp = _xp(leaves)
+        no_nan = xp.logical_not(xp.any(xp.stack([xp.any(xp.isnan(x)) for x in leaves])))
         checks = [(no_nan, "RigidBodyOscillator: a model parameter is NaN.")]
         checks += inertia_checks(self.inertia) + self.foundation.parameter_checks()
         for load in self.loads:
@@ -202,7 +204,14 @@ class RigidBodyOscillator(eqx.Module):
         failed check and the messages of all checks (static). Solvers use it to refuse a model
         built from invalid traced values: with ``throw=True`` they raise ``messages[which]``
         (:func:`equinox.branched_error_if`), with ``throw=False`` they return the status
-        ``invalid_parameters``. Concrete invalid values never get here: the constructors raise."""
+        ``invalid_parameters``. Concrete invalid values rarely get here (the constructors raise):
+        a model whose parameters are all concrete is checked in NumPy (NumPy ``ok`` and
+        ``which``), compiling nothing."""
+        leaves = jax.tree_util.tree_leaves(self)
+        if _xp(leaves) is np:
+            checks = on_host(self).parameter_checks()
+            valid = np.array([bool(np.all(v)) for v, _ in checks])
+            return np.bool_(valid.all()), np.int32(np.argmin(valid)), tuple(m for _, m in checks)
         checks = self.parameter_checks()
         valid = jnp.stack([jnp.asarray(v, dtype=bool) for v, _ in checks])
         return jnp.all(valid), jnp.argmin(valid), tuple(m for _, m in checks)

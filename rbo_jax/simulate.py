@@ -172,9 +172,23 @@ def simulate(
     if form not in ("right", "left"):
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
     inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
-    theta0, Omega0, ts, dtype = inputs.theta0, inputs.Omega0, inputs.ts, inputs.dtype
+    args = (model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype, t0,
+            solver, rtol, atol, dt0, dtmin, max_steps, adjoint, stepsize_controller, singular_tol,
+            form, throw, progress)
+    # Concrete inputs: one compiled program for everything between the checks and the result
+    # (the step-size bounds, A^-1, the statuses), not a dozen small eager ones; inside a
+    # transformation, the solve itself.
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+    theta, Omega, status, steps = (_solve if traced else _solve_compiled)(*args)
+    return finish(model, inputs, theta, Omega, status, steps, throw)
+
+
+def _solve(model, theta0, Omega0, ts, bad_times, dtype, t0, solver, rtol, atol, dt0, dtmin,
+           max_steps, adjoint, stepsize_controller, singular_tol, form, throw, progress):
+    """The diffrax solve of :func:`simulate` from checked inputs: ``(theta, Omega, status,
+    accepted steps)``."""
     # Bad traced times (throw=False) are replaced by zeros: then t0 = t1 = 0 too.
-    t0 = ts[0] if t0 is None else jnp.where(inputs.bad_times, ts[0], jnp.asarray(t0, dtype))
+    t0 = ts[0] if t0 is None else jnp.where(bad_times, ts[0], jnp.asarray(t0, dtype))
     t1 = ts[-1]
     if dtmin is None:
         dtmin = 1e-12 * jnp.maximum(t1 - t0, 1e-300)
@@ -219,7 +233,10 @@ def simulate(
     )
     status = _status_from_solution(sol, event_names)
     theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
-    return finish(model, inputs, theta, Omega, status, sol.stats["num_accepted_steps"], throw)
+    return theta, Omega, status, sol.stats["num_accepted_steps"]
+
+
+_solve_compiled = eqx.filter_jit(_solve)
 
 
 # --------------------------------------------------------------------------------------------

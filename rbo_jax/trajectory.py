@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from . import _enumeration
-from ._validation import _common_float_dtype
+from ._validation import _common_float_dtype, _is_traced, _xp
 from .kinematics import _as_vector, _safe_norm, turn_tensor
 from .model import RigidBodyOscillator
 
@@ -261,6 +261,20 @@ def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw) -> Inputs:
     theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
     warn_if_float32(dtype, rtol, atol)
     ok, which, messages = model.parameter_status()
+    if _xp(theta0, Omega0, ts, ok) is np:
+        # everything concrete: the flags in NumPy (no small eager programs); the state is
+        # replaced only when a flag is set
+        ok = bool(ok)
+        if throw and not ok:
+            theta0 = eqx.branched_error_if(theta0, jnp.asarray(True), int(which), messages)
+        bad_input = not (np.all(np.isfinite(np.asarray(theta0)))
+                         and np.all(np.isfinite(np.asarray(Omega0))))
+        if bad_input or not ok:
+            zeros = jax.device_put(np.zeros(3, dtype))
+            theta0, Omega0 = zeros, zeros
+        return Inputs(theta0=theta0, Omega0=Omega0, ts=ts, dtype=dtype,
+                      bad_input=np.bool_(bad_input), invalid=np.bool_(not ok),
+                      bad_times=np.bool_(False), ts_given=ts)
     if throw:
         theta0 = eqx.branched_error_if(theta0, ~ok, which, messages)
     bad_times = (~times_ok(ts) if isinstance(ts, jax.core.Tracer) and not throw
@@ -277,6 +291,15 @@ def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Tra
     """The :class:`Trajectory` of a solve: samples of a non-finite input are ``inf``, those of
     invalid parameters or times NaN (none of them is a result); with ``throw`` a failure raises
     its status message."""
+    flags = (inputs.bad_input, inputs.invalid, inputs.bad_times)
+    if _xp(flags) is np and not any(bool(f) for f in flags) and not _is_traced(
+            _enumeration.code(status)):
+        # concrete and nothing flagged: no replacement, and a successful solve raises nothing
+        # (no small eager programs)
+        if throw and _enumeration.name(status) != "successful":
+            theta = status.error_if(theta, status != SolveStatus.successful)
+        return Trajectory(ts=inputs.ts_given, theta=theta, Omega=Omega, model=model,
+                          status=status, num_steps=num_steps)
     status = SolveStatus.where(inputs.bad_input, SolveStatus.nonfinite_input, status)
     status = SolveStatus.where(inputs.invalid, SolveStatus.invalid_parameters, status)
     status = SolveStatus.where(inputs.bad_times, SolveStatus.invalid_times, status)

@@ -134,19 +134,26 @@ def _tangent_solver(cfg: Config, static):
     return solver
 
 
-@eqx.filter_jit
-def _compiled(cfg: Config, problem: Problem, y0, ts):
-    return _integrator(cfg)(problem, y0, ts)
+def _solve(cfg: Config, model: RigidBodyOscillator, throw: bool, theta0, Omega0, ts):
+    """``(theta samples, Omega samples, status code, accepted steps)`` of one trajectory."""
+    problem = Problem(model.right_form(throw))
+    samples, code, nacc = _integrator(cfg)(problem, jnp.concatenate([theta0, Omega0]), ts)
+    return samples[:, :3], samples[:, 3:], code, nacc
 
 
-def _run(cfg: Config, problem: Problem, y0, ts):
+_compiled = eqx.filter_jit(_solve)
+
+
+def _run(cfg: Config, model: RigidBodyOscillator, throw: bool, theta0, Omega0, ts):
     """Compiled once per configuration and model structure (``cfg`` is static: Python numbers)
-    when called outside ``jax.jit``; inside a transformation, the integrator itself, so that
+    when called outside ``jax.jit``, with $A^{-1}$ and the state's layout inside the program (no
+    small eager programs); inside a transformation, the integrator itself, so that
     ``jax.jvp``/``jax.jacfwd`` trace only the derivative rule, not the primal loop too (an inner
     ``jit`` would trace both)."""
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((problem, y0, ts))):
-        return _integrator(cfg)(problem, y0, ts)
-    return _compiled(cfg, problem, y0, ts)
+    args = (cfg, model, throw, theta0, Omega0, ts)
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args)):
+        return _solve(*args)
+    return _compiled(*args)
 
 
 def fast_simulate(
@@ -203,8 +210,6 @@ def fast_simulate(
         raise ValueError(f"fast_simulate: need rtol, atol, singular_tol > 0 and max_steps >= 1, "
                          f"got {cfg}.")
     inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
-    problem = Problem(model.right_form(throw))
-    samples, code, nacc = _run(cfg, problem, jnp.concatenate([inputs.theta0, inputs.Omega0]),
-                               inputs.ts)
+    theta, Omega, code, nacc = _run(cfg, model, throw, inputs.theta0, inputs.Omega0, inputs.ts)
     status = enum.from_code(SolveStatus, code)
-    return finish(model, inputs, samples[:, :3], samples[:, 3:], status, nacc, throw)
+    return finish(model, inputs, theta, Omega, status, nacc, throw)
