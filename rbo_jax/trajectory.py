@@ -67,6 +67,15 @@ class SolveStatus(eqx.Enumeration):
     )
 
 
+@eqx.filter_jit
+def _per_sample(f, *samples):
+    """``f`` (a function or a bound method of the model) mapped over the samples, as one
+    compiled program per quantity and model structure: run eagerly, each operation of ``f``
+    compiled a small XLA program of its own (``omega`` and ``energy`` of a first
+    ``to_xarray``: ~45 of them, 1.3 s, against 0.2 s). Inside a transformation it is inlined."""
+    return jax.vmap(f)(*samples)
+
+
 class Trajectory(eqx.Module):
     r"""Samples of a solution of the rigid body oscillator.
 
@@ -102,7 +111,7 @@ class Trajectory(eqx.Module):
         return _enumeration.name(self.status)
 
     def _map(self, f):
-        return jax.vmap(f)(self.theta, self.Omega)
+        return _per_sample(f, self.theta, self.Omega)
 
     @property
     def omega(self) -> Float[Array, "n 3"]:
@@ -110,7 +119,7 @@ class Trajectory(eqx.Module):
 
     @property
     def turn_tensor(self) -> Float[Array, "n 3 3"]:
-        return jax.vmap(turn_tensor)(self.theta)
+        return _per_sample(turn_tensor, self.theta)
 
     @property
     def kinetic_moment(self) -> Float[Array, "n 3"]:
@@ -118,11 +127,11 @@ class Trajectory(eqx.Module):
 
     @property
     def kinetic_energy(self) -> Float[Array, " n"]:
-        return jax.vmap(self.model.kinetic_energy)(self.Omega)
+        return _per_sample(self.model.kinetic_energy, self.Omega)
 
     @property
     def potential_energy(self) -> Float[Array, " n"]:
-        return jax.vmap(self.model.potential_energy)(self.theta)
+        return _per_sample(self.model.potential_energy, self.theta)
 
     @property
     def energy(self) -> Float[Array, " n"]:
@@ -185,20 +194,27 @@ def check_times(ts, throw: bool = True):
     checked now (``ValueError``); traced ones with :func:`equinox.error_if` when ``throw``, and
     not here otherwise (:func:`prepare_inputs` folds them into the status
     ``invalid_times``, so that ``throw=False`` programs hold no host callback)."""
-    ts = jnp.asarray(ts)
+    traced = any(_is_traced(t) for t in jax.tree_util.tree_leaves(ts))
+    # concrete times are checked in NumPy and then moved to the device (a transfer):
+    # jnp.asarray of a NumPy array compiles a small XLA program per shape
+    given = ts
+    ts = jnp.asarray(ts) if traced else np.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 1:
         raise ValueError(f"ts must be a non-empty 1-D array of times, got shape {ts.shape}.")
     if not jnp.issubdtype(ts.dtype, jnp.floating):
         ts = ts.astype(jnp.result_type(float))
-    if not isinstance(ts, jax.core.Tracer):
-        ts_np = np.asarray(ts)
-        if not np.all(np.isfinite(ts_np)):
-            raise ValueError("ts must be finite.")
-        if ts_np.shape[0] > 1 and not np.all(np.diff(ts_np) > 0):
-            raise ValueError("ts must be strictly increasing.")
-    elif throw:
-        ts = eqx.error_if(ts, ~times_ok(ts), "ts must be finite and strictly increasing.")
-    return ts
+    if traced:
+        if throw:
+            ts = eqx.error_if(ts, ~times_ok(ts), "ts must be finite and strictly increasing.")
+        return ts
+    ts = ts.astype(jax.dtypes.canonicalize_dtype(ts.dtype))  # checked in the solve's precision
+    if not np.all(np.isfinite(ts)):
+        raise ValueError("ts must be finite.")
+    if ts.shape[0] > 1 and not np.all(np.diff(ts) > 0):
+        raise ValueError("ts must be strictly increasing.")
+    if isinstance(given, jax.Array) and given.dtype == ts.dtype:
+        return given
+    return jax.device_put(ts)
 
 
 def times_ok(ts):

@@ -105,15 +105,16 @@ class CompileCounter:
     """Counts XLA compilations (jax.monitoring backend-compile events) inside a ``with``."""
 
     def __enter__(self):
-        self._start = _COMPILES[0]
+        self._start, self._end = _COMPILES[0], None
         return self
 
     @property
     def count(self) -> int:
-        return _COMPILES[0] - self._start
+        """Compilations between entering and leaving the ``with`` (not those of later code)."""
+        return (_COMPILES[0] if self._end is None else self._end) - self._start
 
     def __exit__(self, *exc):
-        pass
+        self._end = _COMPILES[0]
 
 
 def _all_inf_or_finite(x):
