@@ -96,8 +96,12 @@ class Trajectory(eqx.Module):
 
     @property
     def ok(self):
-        """Whether the solve reached the final time."""
-        return self.status == SolveStatus.successful
+        """Whether the solve reached the final time (for a concrete status a NumPy boolean,
+        compared on the host: no small eager program)."""
+        code = _enumeration.code(self.status)
+        if _is_traced(code):
+            return self.status == SolveStatus.successful
+        return np.asarray(code) == np.asarray(_enumeration.code(SolveStatus.successful))
 
     @property
     def message(self) -> str:

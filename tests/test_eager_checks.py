@@ -1,8 +1,8 @@
 """Concrete inputs are checked in NumPy, not by small eager JAX programs (each compiled on its
 own, 5-50 ms): building models and observed data and checking a solve's inputs compile
-nothing, and a trajectory's derived quantities compile one program each. Compilations are
-counted in a fresh interpreter (this process has compiled the small programs of other tests
-already, and JAX keeps them) with ``jax_log_compiles``."""
+nothing, a trajectory's derived quantities compile one program each and its status none.
+Compilations are counted in a fresh interpreter (this process has compiled the small programs
+of other tests already, and JAX keeps them) with ``jax_log_compiles``."""
 
 from __future__ import annotations
 
@@ -87,6 +87,7 @@ def test_derived_quantities_compile_one_program_each():
                  "potential_energy", "energy")
         for name in names:
             getattr(traj, name)
+        assert bool(traj.ok)  # compared on the host
         first = list(compiled)
         other = rbo_jax.fast_simulate(rbo_jax.nikolai_model(0.1, 1.5, 2.5), x0, x0, ts)
         jax.block_until_ready(other.theta)
