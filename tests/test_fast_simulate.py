@@ -123,6 +123,21 @@ def _model_of(p):
     return make_model(c=p[0], M=p[1])
 
 
+def test_vmap_without_jit_takes_numpy_batches():
+    """``jax.vmap`` without ``jit`` hands batched NumPy parameters to the lanes as they are
+    (they once failed with a TracerArrayConversionError): the results of ``jit(vmap)``, to
+    rounding (eager and compiled programs fuse differently)."""
+
+    def final(p):
+        return fast_simulate(_model_of(p), THETA0, OMEGA0, TS, throw=False).theta[-1]
+
+    ps = np.array([[0.8, 0.1], [1.2, 0.3], [1.6, 0.5]])
+    eager = jax.vmap(final)(ps)
+    np.testing.assert_allclose(eager, jax.jit(jax.vmap(final))(jnp.asarray(ps)), rtol=1e-12,
+                               atol=1e-14)
+    assert np.all(np.isfinite(eager))
+
+
 @pytest.mark.parametrize("lanes", [pytest.param(1000, marks=pytest.mark.slow), 5])
 def test_batch_equals_single_trajectories(monkeypatch, lanes):
     """vmap runs the batch on refilled lanes (5 lanes for 13 trajectories: refills); every

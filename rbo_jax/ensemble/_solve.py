@@ -192,8 +192,9 @@ def solve_one(problem: Problem, y0, ts, cfg: Config):
 
 
 def _gather(pool, batched, ids):
-    """The problems ``ids`` of the pool, in lane layout (batch last)."""
-    picked = jax.tree_util.tree_map(lambda x, b: x[ids] if b else x, pool, batched)
+    """The problems ``ids`` of the pool, in lane layout (batch last). Leaves may be NumPy arrays
+    (``jax.vmap`` without ``jit`` passes batched NumPy input as it is): indexed as JAX arrays."""
+    picked = jax.tree_util.tree_map(lambda x, b: jnp.asarray(x)[ids] if b else x, pool, batched)
     return jax.tree_util.tree_map(lambda x, b: jnp.moveaxis(x, 0, -1) if b else x, picked,
                                   batched)
 

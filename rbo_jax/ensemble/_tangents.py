@@ -16,8 +16,9 @@ on the steps with a sample ahead (as the primal's, :func:`._solve.attempt`).
 The tableau, controller and checks are those of :mod:`._dop853` and :func:`._solve.attempt`,
 but the sums over the slopes are dot products here (XLA's order of summation, not SciPy's), so
 the primal can differ from :func:`._solve.solve_one`'s by rounding; it takes the same steps
-unless an error norm lies within rounding of the acceptance threshold. The derivatives are those of the Runge–Kutta map along that step sequence, with step sizes and error
-norms constant: what ``jax.jvp`` of the per-trajectory loop computes. The sample times are
+unless an error norm lies within rounding of the acceptance threshold. The derivatives are those
+of the Runge–Kutta map along that step sequence, with step sizes and error norms constant: what
+``jax.jvp`` of the per-trajectory loop computes. The sample times are
 constants here; derivatives with respect to them go through ``jax.jvp`` of the loop
 (``rbo_jax.ensemble``).
 """
