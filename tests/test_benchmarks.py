@@ -8,11 +8,13 @@ numba reference takes exactly scipy's steps, the stability map matches (4.69), t
 and the summary table of ratios and compile times is printed.
 """
 
+import json
 import os
 import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -80,3 +82,56 @@ def test_fast_simulate_takes_scipys_steps(smoke_output):
     assert float(m.group(2)) < 1e-10
     acc = _floats(r"fast_simulate ([0-9.e+-]+), simulate", smoke_output)
     assert max(acc) < 1e-6
+
+
+def _latency_module(monkeypatch):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "_latency_benchmark", os.path.join(ROOT, "benchmarks", "latency.py"))
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look the module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_latency_smoke_run(tmp_path):
+    """`benchmarks/latency.py` with two cheap rows (a few seconds): every process ran (cold and
+    warm), imported this checkout's rbo_jax, and the table and JSON carry the machine and the
+    rows. SciPy's answer is the same in both processes."""
+    out = tmp_path / "latency.json"
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "latency.py"),
+                           "--rows", "import,scipy", "--json", str(out)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT,
+                          env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| `import rbo_jax` |" in proc.stdout and "anchor: SciPy" in proc.stdout
+    report = json.loads(out.read_text())
+    assert report["machine"]["cores"] >= 1 and len(report["machine"]["load_start"]) == 3
+    for key in ("import", "scipy"):
+        for which in ("cold", "warm"):
+            (run,) = report["runs"][key][which]
+            assert "error" not in run, run
+            assert 0 < run["import_s"] < run["process_s"]
+    for which in ("cold", "warm"):
+        imported = report["runs"]["import"][which][0]["rbo_jax_file"]
+        assert os.path.realpath(imported).startswith(os.path.realpath(ROOT) + os.sep)
+    y_cold, y_warm = (report["runs"]["scipy"][w][0]["result"] for w in ("cold", "warm"))
+    assert len(y_cold) == 3 and np.all(np.isfinite(y_cold)) and y_cold == y_warm
+
+
+def test_latency_refuses_unknown_rows(capsys, monkeypatch):
+    latency = _latency_module(monkeypatch)
+    with pytest.raises(SystemExit) as e:
+        latency.main(["--rows", "import,nonsense"])
+    assert e.value.code == 2
+    assert "nonsense" in capsys.readouterr().err
+
+
+def test_latency_snippets_compile(monkeypatch):
+    """Every row's program is valid Python (the heavy rows are not run by the tests)."""
+    latency = _latency_module(monkeypatch)
+    keys = [row.key for row in latency.rows()]
+    assert len(set(keys)) == len(keys)
+    for row in latency.rows():
+        compile(latency.snippet(row), f"<latency {row.key}>", "exec")
