@@ -18,6 +18,7 @@ from start to exit.
   time 0 and minimum entry size 0); the CLI rows get it as ``$RBO_JAX_COMPILATION_CACHE``; numba
   gets a fresh ``$NUMBA_CACHE_DIR``.
 * **warm**: a second process on the same cache directory.
+* ``--no-cache``: no persistent JAX cache at all (a plain notebook or script); numba keeps its.
 
 Rows (Nikolai problem (4.57)-(4.62), float64; the parameters of ``bench_simulate.py``): ``import
 rbo_jax``; ``simulate`` and ``fast_simulate`` of one trajectory with 501 samples (their defaults:
@@ -85,6 +86,8 @@ def _enable_cache():
     import os
     import jax
     path = os.environ["RBO_LATENCY_CACHE"]
+    if path == "off":  # --no-cache: a plain process
+        return "off"
     mod = __import__("sys").modules.get("rbo_jax")
     if mod is not None and hasattr(mod, "enable_compilation_cache"):
         mod.enable_compilation_cache(path)
@@ -136,6 +139,13 @@ def run_map():  # new lambdas on every call, as a notebook cell run again
     return rbo_jax.stability_map(lambda M, c: rbo_jax.nikolai_model(M, c, 2.0, A3=0.5, k=K),
                                  {"M": Ms, "c": cs},
                                  theta_eq_fn=lambda M, c: rbo_jax.nikolai_equilibrium(M, 2.0, K))
+result = np.asarray(run_map()["spectral_abscissa"])[[0, 20, 40]]
+"""
+_MAP_NEWTON = _CACHE + """\
+Ms, cs = np.linspace(-0.8, 0.8, 41), np.linspace(0.2, 2.0, 37)
+def run_map():  # equilibria by Newton (the default), new lambdas on every call
+    return rbo_jax.stability_map(lambda M, c: rbo_jax.nikolai_model(M, c, 2.0, A3=0.5),
+                                 {"M": Ms, "c": cs})
 result = np.asarray(run_map()["spectral_abscissa"])[[0, 20, 40]]
 """
 _MAP_AGAIN = """\
@@ -264,6 +274,8 @@ def rows() -> list[Row]:
             _ONE_TRAJECTORY.format(fn="fast_simulate")),
         Row("vmap", "`jax.jit(jax.vmap(fast_simulate))`, 1,000 points", _RBO, _VMAP),
         Row("stability_map", "`stability_map`, 41 x 37", _RBO, _MAP, after=_MAP_AGAIN),
+        Row("stability_map_newton", "`stability_map`, 41 x 37, equilibria by Newton", _RBO,
+            _MAP_NEWTON, after=_MAP_AGAIN),
         Row("fit", "`fit` of c, d (Levenberg-Marquardt, 61 samples)", _RBO + "import os\n", _FIT,
             needs=("fit_data",)),
         Row("hopf", "`hopf_point` (damped Nikolai)", _RBO, _HOPF),
@@ -327,14 +339,15 @@ def make_fit_data(path: str) -> str:
 
 def run_process(row: Row, tree: str, cache: str, work: str, env_extra: dict, timeout: float,
                 jax_cache: bool = True):
-    """One process of ``row`` on the cache directory ``cache`` (``jax_cache=False``: the CLI's
-    cache off): a dict with import_s, call_s, process_s (start to exit, measured here), again_s,
-    result, or error."""
+    """One process of ``row`` on the cache directory ``cache`` (``jax_cache=False``: no
+    persistent JAX cache, for the library rows and the CLI; numba's stays on): a dict with
+    import_s, call_s, process_s (start to exit, measured here), again_s, result, or error."""
     report = os.path.join(work, f"report-{row.key}-{time.monotonic_ns()}.json")
     env = {k: v for k, v in os.environ.items()
            if not k.startswith(("JAX_COMPILATION_CACHE", "RBO_LATENCY"))}
     env.update(env_extra)
-    env.update(PYTHONPATH=tree, RBO_LATENCY_REPORT=report, RBO_LATENCY_CACHE=cache,
+    env.update(PYTHONPATH=tree, RBO_LATENCY_REPORT=report,
+               RBO_LATENCY_CACHE=cache if jax_cache else "off",
                RBO_JAX_COMPILATION_CACHE=cache if jax_cache else "off",
                NUMBA_CACHE_DIR=os.path.join(cache, "numba"),
                XDG_CACHE_HOME=os.path.join(cache, "xdg"))
@@ -464,6 +477,9 @@ def main(argv=None):
     parser.add_argument("--repeat", type=int, default=1,
                         help="cold/warm pairs per row, each on a fresh cache (min-max reported)")
     parser.add_argument("--json", help="write the machine, every run and the table here")
+    parser.add_argument("--no-cache", action="store_true",
+                        help="no persistent JAX cache in any process (a plain notebook): cold "
+                        "and warm then differ only by the operating system's file cache")
     parser.add_argument("--label", help="name of the tree in the output (e.g. 'before')")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per process")
     args = parser.parse_args(argv)
@@ -480,6 +496,7 @@ def main(argv=None):
 
     info = machine(tree)
     info["label"] = args.label
+    info["jax_cache"] = not args.no_cache
     info["load_start"] = os.getloadavg()
     print(f"{args.label + ': ' if args.label else ''}tree {tree} (commit {info.get('commit')}"
           f"{', rbo_jax/ modified' if info.get('rbo_jax_modified') else ''}); "
@@ -509,7 +526,8 @@ def main(argv=None):
                 work = os.path.join(tmp, f"work-{row.key}-{rep}")
                 os.makedirs(work)
                 for which in ("cold", "warm"):
-                    run = run_process(row, tree, cache, work, extra, args.timeout)
+                    run = run_process(row, tree, cache, work, extra, args.timeout,
+                                      jax_cache=not args.no_cache)
                     run["load"] = os.getloadavg()[0]
                     results[row.key][which].append(run)
                     if "error" in run:
@@ -519,7 +537,7 @@ def main(argv=None):
                                   f" (process {run['process_s']:.2f} s)")
                         if run.get("again_s") is not None:
                             status += f", again {run['again_s']:.2f} s"
-                    print(f"[{rep + 1}/{args.repeat}] {row.key:13s} {which}: {status}; "
+                    print(f"[{rep + 1}/{args.repeat}] {row.key:20s} {which}: {status}; "
                           f"load {run['load']:.2f}", flush=True)
                 shutil.rmtree(cache, ignore_errors=True)
     info["load_end"] = os.getloadavg()
