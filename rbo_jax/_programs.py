@@ -9,23 +9,31 @@ is exported once per structure of its arguments and the exported StableHLO modul
 the store; a later process deserialises it (milliseconds) and calls it, and XLA's compilation
 of that call is a hit in the persistent compilation cache.
 
-The store is off unless :func:`enable_program_store` is called (the command line does; library
-calls trace as usual). The key of a program is a SHA-256 of everything its tracing depends on:
+The store is off unless :func:`rbo_jax.enable_compilation_cache` (or ``$RBO_JAX_COMPILATION_CACHE``
+at import, or the command line) turns it on; then the stored entry points are
+:func:`rbo_jax.fast_simulate` (its compiled solve), the chunk program of :func:`rbo_jax.sweep` and
+its presets (``batch/_program.py``, which keys the user's quantity by
+:func:`rbo_jax._callables.stable_text`) and :func:`rbo_jax.fit`. The key of a program is a SHA-256
+of everything its tracing depends on:
 
-- the function (module and qualified name);
+- the function (module and qualified name), or the caller's description of it;
 - the structure of the arguments, every node's type by module and qualified name and its static
   data by ``repr`` (equinox's static fields), the non-array leaves by ``repr`` (a Python float's
-  ``repr`` round-trips exactly), shape, dtype and weak type of every array;
-- the source of every module of ``rbo_jax`` and the versions of jax, jaxlib, equinox, diffrax,
-  optimistix and lineax; the backend and its devices.
+  ``repr`` round-trips exactly; a function by :func:`rbo_jax._callables.stable_text`), shape,
+  dtype and weak type of every array;
+- the source of every module of ``rbo_jax``, the versions of Python and of :data:`PACKAGES`,
+  the backend and its devices.
 
 A static value whose ``repr`` holds a memory address (``<function f at 0x…>``: a plain callable
-foundation or load) could name different functions in different processes: such arguments are
-never stored, they trace as usual. So does a program that cannot be exported (host callbacks,
-outputs that are not plain containers). An entry that cannot be read is exported again; a store
-that cannot be written is skipped with a warning. Entries are written to a temporary file first
-and renamed, so that concurrent processes never read half an entry. The results are those of the
-traced program, bit for bit (the same StableHLO).
+foundation or load) could name different functions in different processes: such arguments are never
+stored, they trace as usual. So does a program that cannot be exported (host callbacks, outputs that
+are not plain containers): the store remembers it (a ``KEY.unexportable`` marker), so that later
+processes do not trace it for nothing. Arguments that are being traced (the function called inside
+``jit`` or ``vmap``) are passed to the function itself. An entry that cannot be read is exported
+again; a store that cannot be written is skipped with a warning. Entries are written to a temporary
+file first and renamed, so that concurrent processes never read half an entry; each starts with a
+format line, so an entry of another format is not read. The results are those of the traced program,
+bit for bit (the same StableHLO).
 """
 
 from __future__ import annotations
@@ -37,31 +45,38 @@ import os
 import pathlib
 import re
 import struct
+import sys
+import types
 import warnings
 from collections.abc import Callable
 
 import equinox as eqx
 import jax
 
-__all__ = ["enable_program_store", "program_store", "stored"]
+from . import _cache
+from ._callables import describe_treedef, stable_text
 
-_STORE: pathlib.Path | None = None
-_CALLS: dict[str, Callable | None] = {}
+__all__ = ["PACKAGES", "enable_program_store", "load", "program_key", "program_store", "save",
+           "stored"]
+
+_CALLS: dict[tuple[pathlib.Path, str], Callable | None] = {}
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
-_PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax")
+PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "numpy", "scipy",
+            "optax", "jaxtyping")
+_MAGIC = b"rbo_jax program 2\n"  # then the length of the metadata (8 bytes), it, the program
 
 
 def enable_program_store(path: str | pathlib.Path | None) -> pathlib.Path | None:
-    """Keep the programs of :func:`stored` functions under ``path`` (``None``: off)."""
-    global _STORE
-    _STORE = None if path is None else pathlib.Path(path)
+    """Keep the programs of :func:`stored` functions under ``path`` (``None``: off); JAX's
+    persistent cache is left as it is (:func:`rbo_jax.enable_compilation_cache` sets both).
+    Programs loaded in this process are forgotten (as in a new process)."""
     _CALLS.clear()
-    return _STORE
+    return _cache.set_program_store(path)
 
 
 def program_store() -> pathlib.Path | None:
     """The directory of the program store (``None``: off)."""
-    return _STORE
+    return _cache.program_store()
 
 
 @functools.cache
@@ -72,7 +87,8 @@ def _environment() -> str:
     for path in sorted(root.rglob("*.py")):
         h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes())
-    for name in _PACKAGES:
+    h.update(sys.version.encode())
+    for name in PACKAGES:
         try:
             h.update(f"{name}={importlib.metadata.version(name)};".encode())
         except importlib.metadata.PackageNotFoundError:
@@ -81,18 +97,18 @@ def _environment() -> str:
     return h.hexdigest()
 
 
-def _describe_treedef(treedef) -> list:
-    """Every node of a tree structure: its type (module, qualified name) and static data."""
-    if treedef.num_nodes == 1 and treedef.num_leaves == 1:
-        return ["*"]
-    data = treedef.node_data()
-    if data is None:
-        return ["*"]
-    kind, aux = data
-    out = [f"{kind.__module__}.{kind.__qualname__}", repr(aux)]
-    for child in treedef.children():
-        out.append(_describe_treedef(child))
-    return out
+def program_key(text: str) -> str | None:
+    """The store's key of a program described by ``text`` (``None`` if the text holds a memory
+    address, which may name something else in another process)."""
+    if _ADDRESS.search(text):
+        return None
+    return hashlib.sha256((text + _environment()).encode()).hexdigest()
+
+
+def _static_text(v) -> tuple[str, str]:
+    if isinstance(v, (types.FunctionType, types.MethodType, functools.partial)):
+        return ("callable", stable_text(v) or repr(v))  # repr: an address, never stored
+    return (type(v).__qualname__, repr(v))
 
 
 def _key(fn: Callable, args: tuple) -> tuple[str | None, list, object, object]:
@@ -104,18 +120,67 @@ def _key(fn: Callable, args: tuple) -> tuple[str | None, list, object, object]:
     ]
     text = repr((
         f"{fn.__module__}.{fn.__qualname__}",
-        _describe_treedef(treedef),
-        _describe_treedef(static_def),
-        [(type(v).__qualname__, repr(v)) for v in static_leaves],
+        describe_treedef(treedef),
+        describe_treedef(static_def),
+        [_static_text(v) for v in static_leaves],
         avals,
-        _environment(),
     ))
-    if _ADDRESS.search(text):
-        return None, leaves, treedef, static
-    return hashlib.sha256(text.encode()).hexdigest(), leaves, treedef, static
+    return program_key(text), leaves, treedef, static
 
 
-def _export(fn, leaves, treedef, static, path: pathlib.Path):
+def _path(key: str, suffix: str = ".jaxexport") -> pathlib.Path:
+    return _cache.program_store() / f"{key}{suffix}"
+
+
+def _write(path: pathlib.Path, data: bytes) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".tmp{os.getpid()}")
+        tmp.write_bytes(data)
+        tmp.replace(path)
+    except OSError as e:
+        warnings.warn(f"program store: cannot write {path} ({e}); the program is traced in "
+                      "every process.", RuntimeWarning, stacklevel=4)
+
+
+def load(key: str) -> tuple[jax.export.Exported, str] | None:
+    """The stored program of ``key`` and its metadata, or ``None`` (not stored, or damaged: a
+    warning, and the caller exports it again)."""
+    path = _path(key)
+    if not path.exists():
+        return None
+    try:
+        data = path.read_bytes()
+        if not data.startswith(_MAGIC):
+            raise ValueError("not an entry of this store")
+        start = len(_MAGIC) + 8
+        (n,) = struct.unpack("<Q", data[len(_MAGIC):start])
+        if start + n > len(data):
+            raise ValueError("truncated")
+        meta = data[start:start + n].decode()
+        exported = jax.export.deserialize(bytearray(data[start + n:]))
+    except (OSError, struct.error, ValueError, IndexError, UnicodeDecodeError) as e:
+        warnings.warn(f"program store: cannot read {path} ({type(e).__name__}: {e}); it is "
+                      "exported again.", RuntimeWarning, stacklevel=3)
+        return None
+    return exported, meta
+
+
+def save(key: str, exported: jax.export.Exported, meta: str = "") -> None:
+    """Store ``exported`` (and a text of metadata) under ``key``."""
+    m = meta.encode()
+    _write(_path(key), _MAGIC + struct.pack("<Q", len(m)) + m + exported.serialize())
+
+
+def unexportable(key: str, mark: bool = False) -> bool:
+    """Whether the program of ``key`` is known not to export (``mark``: record that it is)."""
+    path = _path(key, ".unexportable")
+    if mark:
+        _write(path, b"")
+    return path.exists()
+
+
+def _export(fn, leaves, treedef, static):
     def flat(*xs):
         return fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, list(xs)), static))
 
@@ -125,45 +190,40 @@ def _export(fn, leaves, treedef, static, path: pathlib.Path):
         jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=bool(getattr(x, "weak_type", False)))
         for x in leaves
     ]
-    exported = jax.export.export(jax.jit(flat))(*specs)
-    data = exported.serialize()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{os.getpid()}")
-        tmp.write_bytes(data)
-        tmp.replace(path)
-    except OSError as e:
-        warnings.warn(f"program store: cannot write {path} ({e}); the program is traced in "
-                      "every process.", RuntimeWarning, stacklevel=3)
-    return exported
+    return jax.export.export(jax.jit(flat))(*specs)
 
 
-def _program(fn, key, leaves, treedef, static) -> Callable | None:
-    if key in _CALLS:  # None: not exportable, remembered so that it is tried once per process
-        return _CALLS[key]
-    path = _STORE / f"{key}.jaxexport"
-    exported = None
-    if path.exists():
-        try:
-            exported = jax.export.deserialize(bytearray(path.read_bytes()))
-        except (OSError, struct.error, ValueError, IndexError) as e:  # truncated or foreign
-            warnings.warn(f"program store: cannot read {path} ({type(e).__name__}: {e}); it is "
-                          "exported again.", RuntimeWarning, stacklevel=3)
-    if exported is None:
-        try:
-            exported = _export(fn, leaves, treedef, static, path)
-        except (NotImplementedError, ValueError):
-            # what jax.export refuses: host callbacks (NotImplementedError), custom calls without
-            # a compatibility guarantee and outputs of unregistered pytree types (ValueError).
-            # The program then traces as usual in every process.
-            _CALLS[key] = None
-            return None
+def call_of(exported: jax.export.Exported, name: str) -> Callable:
+    """The jitted call of a stored program, named ``name`` (in JAX's logs and cache)."""
 
     def call(*xs):
         return exported.call(*xs)
 
-    call.__name__ = call.__qualname__ = _name(fn)  # the compiled program keeps fn's name
-    call = _CALLS[key] = jax.jit(call)
+    call.__name__ = call.__qualname__ = name
+    return jax.jit(call)
+
+
+def _program(fn, key, leaves, treedef, static) -> Callable | None:
+    store = _cache.program_store()
+    if (store, key) in _CALLS:  # None: not exportable, remembered for this process
+        return _CALLS[store, key]
+    found = load(key)
+    exported = None if found is None else found[0]
+    if exported is None:
+        if unexportable(key):
+            _CALLS[store, key] = None
+            return None
+        try:
+            exported = _export(fn, leaves, treedef, static)
+        except (NotImplementedError, ValueError):
+            # what jax.export refuses: host callbacks (NotImplementedError), custom calls without
+            # a compatibility guarantee and outputs of unregistered pytree types (ValueError).
+            # The program then traces as usual, in this process and the next ones.
+            unexportable(key, mark=True)
+            _CALLS[store, key] = None
+            return None
+        save(key, exported)
+    call = _CALLS[store, key] = call_of(exported, _name(fn))  # the program keeps fn's name
     return call
 
 
@@ -174,14 +234,17 @@ def _name(fn) -> str:
 def stored(fn: Callable) -> Callable:
     """Decorate a jitted function (``eqx.filter_jit``) whose programs the store keeps: with the
     store on, a call looks its program up by the key of the module docstring (exporting it the
-    first time); with it off, or for arguments that cannot be keyed safely, it calls ``fn``."""
+    first time); with it off, for arguments that cannot be keyed safely, or for traced
+    arguments (inside ``jit``, ``vmap``, ...), it calls ``fn``."""
 
     @functools.wraps(fn)
     def wrapper(*args):
-        if _STORE is None:
+        if _cache.program_store() is None:
             return fn(*args)
         key, leaves, treedef, static = _key(fn, args)
-        call = None if key is None else _program(fn, key, leaves, treedef, static)
+        if key is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return fn(*args)
+        call = _program(fn, key, leaves, treedef, static)
         if call is None:
             return fn(*args)
         return call(*leaves)

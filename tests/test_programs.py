@@ -115,7 +115,7 @@ def test_store_off_and_a_damaged_entry(store):
 def test_a_program_that_cannot_be_exported_is_tried_once(store, monkeypatch):
     """A host callback (here ``jax.debug.callback``; in the package, diffrax's checks) cannot be
     exported: the function runs as the plain jitted one, and the export is not tried again on
-    every call (each try traces)."""
+    every call (each try traces), nor in the next process (a marker in the store)."""
     seen, tries = [], []
     export = _programs._export
     monkeypatch.setattr(_programs, "_export", lambda *a: tries.append(1) or export(*a))
@@ -129,4 +129,7 @@ def test_a_program_that_cannot_be_exported_is_tried_once(store, monkeypatch):
     for v in (1.0, 3.0, 5.0):
         np.testing.assert_allclose(np.asarray(with_callback(jnp.array([v]))), [2.0 * v])
     assert seen == [1.0, 3.0, 5.0] and tries == [1]
-    assert not store.exists() or not list(store.iterdir())
+    assert [p.suffix for p in store.iterdir()] == [".unexportable"]
+    _new_process()
+    np.testing.assert_allclose(np.asarray(with_callback(jnp.array([7.0]))), [14.0])
+    assert seen[-1] == 7.0 and tries == [1]

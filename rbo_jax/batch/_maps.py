@@ -9,7 +9,6 @@ first becomes positive, e.g. the critical follower load against the damping ``b`
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Mapping
 
 import jax.numpy as jnp
@@ -65,10 +64,10 @@ def _point_stability(model_fn, theta_eq_fn, guess, rtol, fast, eq_items, point):
                                  fast=fast, **dict(eq_items))
 
 
-@functools.lru_cache(maxsize=32)
 def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
-    """The per-point quantity of a map; cached, so that repeated maps with the same functions and
-    settings are the same quantity for the engine (one compiled program)."""
+    """The per-point quantity of a map. The engine caches its program on what it computes
+    (``_program.py``), so a map repeated with the same settings and equal functions (the same
+    cell run again, with new lambdas) is one compiled program."""
 
     def stability(**point):
         r = _point_stability(model_fn, theta_eq_fn, guess, rtol, fast, eq_items, point)
@@ -144,7 +143,6 @@ def stability_map(
     return ds
 
 
-@functools.lru_cache(maxsize=32)
 def _critical_quantity(model_fn, theta_eq_fn, guess, rtol, eq_items, load, load_min, load_max,
                        n_scan, n_bisect):
     def critical(**point):

@@ -32,6 +32,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from .. import _enumeration as enum
+from .._programs import stored
 from ..model import RigidBodyOscillator
 from ..trajectory import SolveStatus, Trajectory, finish, prepare_inputs
 from ._problem import Problem
@@ -141,7 +142,7 @@ def _solve(cfg: Config, model: RigidBodyOscillator, throw: bool, theta0, Omega0,
     return samples[:, :3], samples[:, 3:], code, nacc
 
 
-_compiled = eqx.filter_jit(_solve)
+_compiled = stored(eqx.filter_jit(_solve))  # kept traced by the program store, when on
 
 
 def _run(cfg: Config, model: RigidBodyOscillator, throw: bool, theta0, Omega0, ts):

@@ -10,14 +10,15 @@ The commands only compose library calls: a :class:`~rbo_jax.app.spec.ModelSpec` 
 options, the library's functions, xarray Datasets written as netCDF or zarr.
 
 Compiled programs are kept in JAX's persistent compilation cache, so that a second process
-skips their XLA compilation; the fit's program is also kept traced (``jax.export``, in the
-``programs`` folder of the cache: :mod:`rbo_jax._programs`), so a second ``rbo-jax fit`` neither
-traces nor lowers it. JAX does not keep programs with host
-callbacks, which equinox's runtime checks (``eqx.error_if``) are: the ``throw=False`` paths of
-``fast_simulate`` (the fit's, the sweep's) have none, diffrax's ``simulate`` still has its own
-(benchmarks/README.md). The directory is
-``$RBO_JAX_COMPILATION_CACHE``, by default ``rbo_jax/jax-cache`` under the user's cache directory
-(``$XDG_CACHE_HOME`` or ``~/.cache``); ``RBO_JAX_COMPILATION_CACHE=off`` turns it off.
+skips their XLA compilation; the programs of ``fit``, ``fast_simulate`` and the stability map's
+chunks are also kept traced (``jax.export``, in the ``programs`` folder of the cache:
+:mod:`rbo_jax._programs`), so a second process neither traces nor lowers them. JAX does not keep
+programs with host callbacks, which equinox's runtime checks (``eqx.error_if``) are: the
+programs of ``fast_simulate`` (the fit's, the sweep's) have none, diffrax's ``simulate`` has its
+own (checks of the sample times, even with ``throw=False``). Both stores are
+:func:`rbo_jax.enable_compilation_cache`'s; the directory is ``$RBO_JAX_COMPILATION_CACHE``, by
+default ``rbo_jax/jax-cache`` under the user's cache directory (``$XDG_CACHE_HOME`` or
+``~/.cache``); ``RBO_JAX_COMPILATION_CACHE=off`` turns it off.
 
 Exit codes: 0 success; 1 the computation failed (a solver status, a fit that did not converge);
 2 invalid input (options, parameters, files), with a message naming it.
@@ -26,13 +27,12 @@ Exit codes: 0 success; 1 the computation failed (a solver status, a fit that did
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 import rbo_jax  # noqa: F401  (enables float64 before any array is made)
 
-from ..._programs import enable_program_store
+from ... import _cache
 from ._common import Failure
 from ._fit import fit_command
 from ._map import stability_map_command
@@ -58,41 +58,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-CACHE_ENV = "RBO_JAX_COMPILATION_CACHE"
-
-
 def compilation_cache_dir() -> Path | None:
     """The persistent compilation cache directory of the command (None: off)."""
-    value = os.environ.get(CACHE_ENV, "")
-    if value.strip().lower() in ("off", "0", "no", "false", "none"):
-        return None
-    if value:
-        return Path(value).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "rbo_jax" / "jax-cache"
+    return _cache.compilation_cache_dir()
 
 
 def enable_compilation_cache() -> Path | None:
-    """Point JAX's persistent compilation cache at :func:`compilation_cache_dir`. Every
-    program is kept, also the small ones of eager operations (model and data checks: ~40 of
-    20–50 ms each in a fit, which a second process then loads instead of compiling). A directory
-    that cannot be made turns the cache off with a warning; the command still runs."""
-    import jax
-
-    path = compilation_cache_dir()
-    if path is None:
-        return None
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        print(f"rbo-jax: warning: compilation cache off ({path}: {e.strerror}); set "
-              f"{CACHE_ENV}=off to silence this.", file=sys.stderr)
-        return None
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    enable_program_store(path / "programs")
-    return path
+    """:func:`rbo_jax.enable_compilation_cache` at :func:`compilation_cache_dir`: JAX's
+    persistent cache with every program kept, also the small ones, and the program store. A
+    directory that cannot be made turns both off with a warning; the command still runs."""
+    return _cache.enable_compilation_cache()
 
 
 def main(argv: list[str] | None = None) -> int:
