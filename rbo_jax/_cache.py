@@ -41,9 +41,11 @@ _JAX_DIR: str | None = None  # the JAX cache directory this module set, if any
 def compilation_cache_dir(path: str | os.PathLike | None = None) -> pathlib.Path | None:
     """The cache directory that :func:`enable_compilation_cache` uses for ``path`` (``None``:
     off)."""
+    if path is not None and not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str, an os.PathLike or None, got {type(path).__name__}.")
     value = os.environ.get(CACHE_ENV, "") if path is None else os.fspath(path)
     if not isinstance(value, str):
-        raise TypeError(f"path must be a str or os.PathLike of str, got {type(value).__name__}.")
+        raise TypeError(f"path must name a directory as text, got {value!r}.")
     if value.strip().lower() in _OFF:
         return None
     if value.strip():

@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rbo_jax import _programs
+import rbo_jax
+from rbo_jax import _cache, _programs
 
 TRACES = []
 
@@ -133,3 +134,142 @@ def test_a_program_that_cannot_be_exported_is_tried_once(store, monkeypatch):
     _new_process()
     np.testing.assert_allclose(np.asarray(with_callback(jnp.array([7.0]))), [14.0])
     assert seen[-1] == 7.0 and tries == [1]
+
+
+def test_a_new_environment_is_a_new_program(store, monkeypatch):
+    """Entries of other sources or versions (the environment in the key) are never used."""
+    p, y = Params(jnp.array([1.0]), "k"), jnp.array([0.0])
+    program(p, 2.0, y)
+    monkeypatch.setattr(_programs, "_environment", lambda: "other sources")
+    _new_process()
+    program(p, 2.0, y)
+    assert len(TRACES) == 2 and len(list(store.iterdir())) == 2
+
+
+@pytest.fixture
+def jax_cache_settings():
+    """Restores JAX's cache settings and the store after a test that changes them."""
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+             "jax_persistent_cache_min_entry_size_bytes")
+    saved = {n: getattr(jax.config, n) for n in names}
+    saved_dir, saved_store = _cache._JAX_DIR, _cache.program_store()
+    yield
+    _cache._set_jax_dir(saved["jax_compilation_cache_dir"])
+    for n in names[1:]:
+        jax.config.update(n, saved[n])
+    _cache._JAX_DIR = saved_dir
+    _programs.enable_program_store(saved_store)
+
+
+def test_enable_compilation_cache(tmp_path, monkeypatch, jax_cache_settings):
+    path = _cache.enable_compilation_cache(tmp_path / "c")
+    assert path == tmp_path / "c" and (path / "programs").is_dir()
+    assert _programs.program_store() == path / "programs"
+    assert jax.config.jax_compilation_cache_dir == str(path)
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
+    assert jax.config.jax_persistent_cache_min_entry_size_bytes == 0
+    assert _cache.enable_compilation_cache("off") is None
+    assert _programs.program_store() is None and jax.config.jax_compilation_cache_dir is None
+    # the environment variable, then the user's cache directory
+    monkeypatch.setenv("RBO_JAX_COMPILATION_CACHE", str(tmp_path / "env"))
+    assert _cache.enable_from_environment() == tmp_path / "env"
+    monkeypatch.setenv("RBO_JAX_COMPILATION_CACHE", " False ")
+    assert _cache.enable_compilation_cache() is None and _programs.program_store() is None
+    monkeypatch.delenv("RBO_JAX_COMPILATION_CACHE")
+    assert _cache.enable_from_environment() is None and _programs.program_store() is None
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert _cache.enable_compilation_cache() == tmp_path / "xdg" / "rbo_jax" / "jax-cache"
+    # a directory that cannot be made: a warning, both off, nothing fails
+    (tmp_path / "file").write_text("")
+    with pytest.warns(RuntimeWarning, match="compilation cache off"):
+        assert _cache.enable_compilation_cache(tmp_path / "file" / "sub") is None
+    assert _programs.program_store() is None and jax.config.jax_compilation_cache_dir is None
+    with pytest.raises(TypeError, match="path must be"):
+        _cache.enable_compilation_cache(3.0)
+
+
+SECOND_PROCESS = """
+import logging, sys
+import numpy as np
+import jax
+import rbo_jax
+from rbo_jax import _cache
+
+_cache.enable_compilation_cache(sys.argv[1])
+K = np.array([0.0, 0.0, 1.0])
+model = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(1.0, 0.5, K),
+                                    rbo_jax.QuadraticFoundation(1.0, 1.5, K),
+                                    rbo_jax.FollowerMoment(0.3, K))
+traj = rbo_jax.fast_simulate(model, np.array([1e-3, -5e-4, 0.2]), np.zeros(3),
+                             np.linspace(0.0, 5.0, 11), rtol=1e-8, atol=1e-10)
+ds = rbo_jax.stability_map(lambda M, c: rbo_jax.nikolai_model(M, c, 2.0, A3=0.5, k=K),
+                           {"M": np.linspace(-0.8, 0.8, 5), "c": np.linspace(0.2, 2.0, 4)},
+                           theta_eq_fn=lambda M, c: rbo_jax.nikolai_equilibrium(M, 2.0, K),
+                           progress=False)
+for a in (traj.theta, traj.Omega, ds["eigenvalues"], ds["spectral_abscissa"]):
+    print(np.asarray(a).tobytes().hex())
+"""
+
+
+def test_a_second_process_loads_fast_simulate_and_the_map_without_tracing(tmp_path):
+    """Two real processes sharing a cache directory: the first exports fast_simulate's solve
+    and the map's chunk program, the second loads both (JAX's log shows no trace of them) and
+    gives the same bits."""
+    import os
+    import subprocess
+    import sys
+
+    def run():
+        env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+        env.update(JAX_PLATFORMS="cpu", JAX_LOG_COMPILES="1", RBO_JAX_COMPILATION_CACHE="off")
+        proc = subprocess.run([sys.executable, "-c", SECOND_PROCESS, str(tmp_path / "cache")],
+                              capture_output=True, text=True, env=env, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return proc.stdout, proc.stderr
+
+    first, log = run()
+    assert "Finished tracing _solve_export" in log and "Finished tracing point" in log
+    assert len(list((tmp_path / "cache" / "programs").glob("*.jaxexport"))) == 2
+    again, log = run()
+    assert "Finished tracing _solve_export" not in log, "fast_simulate was traced again"
+    assert "Finished tracing point" not in log, "the map's quantity was traced again"
+    assert "Persistent compilation cache hit for 'jit_chunk_program'" in log
+    assert again == first
+
+
+def test_simulate_programs_hold_host_callbacks_so_they_are_not_stored():
+    """diffrax checks the sample times with host callbacks (eqx.error_if) even with
+    throw=False: simulate's compiled program cannot be exported, so it is not wrapped with the
+    store (trying would trace it twice). Should this fail, wrap simulate._solve_compiled."""
+    import importlib
+
+    simulate = importlib.import_module("rbo_jax.simulate")
+    from rbo_jax.trajectory import prepare_inputs
+
+    model = rbo_jax.nikolai_model(0.3, 1.0, 1.5)
+    ts = np.linspace(0.0, 1.0, 3)
+    inputs = prepare_inputs(model, np.array([0.0, 0.0, 0.2]), np.zeros(3), ts, 1e-8, 1e-8, False)
+    text = simulate._solve_compiled.lower(
+        model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype, None,
+        None, 1e-8, 1e-8, None, None, 100, None, None, 1e-3, "right", False, False).as_text()
+    assert "callback" in text
+
+
+@pytest.mark.xfail(strict=True, reason="needs rbo_jax/__init__.py to call "
+                   "_cache.enable_from_environment() and export enable_compilation_cache "
+                   "(helper A's file); remove this marker with that change")
+def test_the_environment_variable_turns_the_cache_on_at_import(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys, jax, rbo_jax; from rbo_jax import _cache; "
+            "assert rbo_jax.enable_compilation_cache is _cache.enable_compilation_cache; "
+            "assert 'equinox' not in sys.modules; "
+            "print(_cache.program_store(), jax.config.jax_compilation_cache_dir)")
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env.update(JAX_PLATFORMS="cpu", RBO_JAX_COMPILATION_CACHE=str(tmp_path))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == [str(tmp_path / "programs"), str(tmp_path)]
