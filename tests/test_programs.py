@@ -273,3 +273,25 @@ def test_the_environment_variable_turns_the_cache_on_at_import(tmp_path):
                           timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.split() == [str(tmp_path / "programs"), str(tmp_path)]
+
+
+def test_a_sweep_with_a_host_callback_is_traced_as_usual(store):
+    """A quantity with a host callback cannot be exported: the sweep traces it as usual (its
+    output structure too: jit must not answer from the failed export's trace), in this process
+    and, after the marker, in the next without trying to export it again."""
+    from rbo_jax.batch import _program
+
+    def quantity(x):
+        y = jax.pure_callback(np.sin, jax.ShapeDtypeStruct((), jnp.float64), x,
+                              vmap_method="sequential")
+        return {"y": y, "z": 2.0 * x}
+
+    axes = {"x": np.array([0.0, 0.5, 1.0])}
+    for _ in range(2):  # the second time as a new process
+        _program._cached_program.cache_clear()
+        ds = rbo_jax.sweep(quantity, axes, progress=False)
+        np.testing.assert_allclose(ds["y"], np.sin(axes["x"]))
+        np.testing.assert_allclose(ds["z"], 2.0 * axes["x"])
+        assert [p.suffix for p in store.iterdir()] == [".unexportable"]
+        _new_process()
+    _program._cached_program.cache_clear()

@@ -140,6 +140,9 @@ def _compile_program(quantity, names, devices, batch) -> Program:
         found = _stored_program(key, x, sharding, record, functions, batch)
         if found is not None:
             return found
+        # new functions: jit would answer the trace of a failed export from its cache, without
+        # running the quantity, which records the output structure
+        x, sharding, record, functions = _functions(quantity, names, devices, batch)
     traced, strategy = _trace(x, record, functions, lambda f: f.trace)
     if key is not None and not _programs.unexportable(key):
         _programs.unexportable(key, mark=True)  # traced fine, but jax.export refused it
