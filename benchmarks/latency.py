@@ -19,6 +19,9 @@ from start to exit.
   gets a fresh ``$NUMBA_CACHE_DIR``.
 * **warm**: a second process on the same cache directory.
 * ``--no-cache``: no persistent JAX cache at all (a plain notebook or script); numba keeps its.
+* ``--pin 0``: every process on core 0 only. On a loaded machine XLA's multi-threaded CPU runtime
+  can make a vmapped program many times slower (the diffrax anchor: 1.2 s -> 12 s at load 2.5,
+  2.4 s pinned), so compare pinned runs when others share the machine.
 
 Rows (Nikolai problem (4.57)-(4.62), float64; the parameters of ``bench_simulate.py``): ``import
 rbo_jax``; ``simulate`` and ``fast_simulate`` of one trajectory with 501 samples (their defaults:
@@ -75,7 +78,8 @@ _mod = _sys.modules.get("rbo_jax")
 _rep = {"import_s": _t1 - _t0, "call_s": _t2 - _t1, "again_s": globals().get("_again"),
         "cache": globals().get("_cache"),
         "rbo_jax_file": getattr(_mod, "__file__", None) if _mod is not None else None,
-        "result": _np.asarray(result, dtype=float).ravel()[:8].tolist()}
+        "result": _np.asarray(result, dtype=float).ravel()[:8].tolist(),
+        "cores": len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else None}
 with open(_os.environ["RBO_LATENCY_REPORT"], "w") as _f:
     _json.dump(_rep, _f)
 """
@@ -338,10 +342,11 @@ def make_fit_data(path: str) -> str:
 
 
 def run_process(row: Row, tree: str, cache: str, work: str, env_extra: dict, timeout: float,
-                jax_cache: bool = True):
+                jax_cache: bool = True, cpus: set | None = None):
     """One process of ``row`` on the cache directory ``cache`` (``jax_cache=False``: no
     persistent JAX cache, for the library rows and the CLI; numba's stays on): a dict with
-    import_s, call_s, process_s (start to exit, measured here), again_s, result, or error."""
+    import_s, call_s, process_s (start to exit, measured here), again_s, result, or error.
+    ``cpus``: the cores the process may run on (``--pin``; None: all)."""
     report = os.path.join(work, f"report-{row.key}-{time.monotonic_ns()}.json")
     env = {k: v for k, v in os.environ.items()
            if not k.startswith(("JAX_COMPILATION_CACHE", "RBO_LATENCY"))}
@@ -356,7 +361,9 @@ def run_process(row: Row, tree: str, cache: str, work: str, env_extra: dict, tim
     start = time.perf_counter()
     try:
         proc = subprocess.run([sys.executable, "-c", snippet(row), *args], env=env, cwd=tree,
-                              capture_output=True, text=True, timeout=timeout)
+                              capture_output=True, text=True, timeout=timeout,
+                              preexec_fn=None if cpus is None
+                              else lambda: os.sched_setaffinity(0, cpus))
     except subprocess.TimeoutExpired:
         return {"error": f"timed out after {timeout:.0f} s"}
     wall = time.perf_counter() - start
@@ -480,6 +487,9 @@ def main(argv=None):
     parser.add_argument("--no-cache", action="store_true",
                         help="no persistent JAX cache in any process (a plain notebook): cold "
                         "and warm then differ only by the operating system's file cache")
+    parser.add_argument("--pin", help="run every process on these cores only, e.g. '0' or "
+                        "'0,1' (Linux): on a loaded machine XLA's multi-threaded runtime can "
+                        "slow a vmapped program many times over; one core is steadier")
     parser.add_argument("--label", help="name of the tree in the output (e.g. 'before')")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per process")
     args = parser.parse_args(argv)
@@ -489,6 +499,14 @@ def main(argv=None):
         parser.error(f"unknown rows {unknown}; choose from {', '.join(keys)}")
     if args.repeat < 1:
         parser.error("--repeat must be at least 1")
+    cpus = None
+    if args.pin:
+        try:
+            cpus = {int(c) for c in args.pin.split(",")}
+        except ValueError:
+            parser.error(f"--pin takes core numbers such as 0 or 0,1, not {args.pin!r}")
+        if not hasattr(os, "sched_setaffinity") or not cpus <= os.sched_getaffinity(0):
+            parser.error(f"--pin {args.pin}: not cores this process may use")
     tree = os.path.abspath(args.tree)
     if not os.path.isdir(os.path.join(tree, "rbo_jax")):
         parser.error(f"{tree} holds no rbo_jax package")
@@ -497,14 +515,16 @@ def main(argv=None):
     info = machine(tree)
     info["label"] = args.label
     info["jax_cache"] = not args.no_cache
+    info["pinned_to"] = sorted(cpus) if cpus else None
     info["load_start"] = os.getloadavg()
     print(f"{args.label + ': ' if args.label else ''}tree {tree} (commit {info.get('commit')}"
           f"{', rbo_jax/ modified' if info.get('rbo_jax_modified') else ''}); "
           f"{info['cpu']}, {info['cores']} cores, {info.get('memory_gib', '?')} GiB; "
           f"Python {info['python']}, "
           + ", ".join(f"{k} {v}" for k, v in info["versions"].items()), flush=True)
-    print(f"load average at start {' '.join(f'{x:.2f}' for x in info['load_start'])}",
-          flush=True)
+    print(f"load average at start {' '.join(f'{x:.2f}' for x in info['load_start'])}"
+          f"{'; processes pinned to cores ' + args.pin if cpus else ''}"
+          f"{'; no persistent JAX cache' if args.no_cache else ''}", flush=True)
     results = {r.key: {"cold": [], "warm": []} for r in selected}
     with tempfile.TemporaryDirectory(prefix="rbo-latency-") as tmp:
         extra = {}
@@ -527,7 +547,7 @@ def main(argv=None):
                 os.makedirs(work)
                 for which in ("cold", "warm"):
                     run = run_process(row, tree, cache, work, extra, args.timeout,
-                                      jax_cache=not args.no_cache)
+                                      jax_cache=not args.no_cache, cpus=cpus)
                     run["load"] = os.getloadavg()[0]
                     results[row.key][which].append(run)
                     if "error" in run:
