@@ -18,9 +18,10 @@ its trace depends on, and its compiled program should be reused.
 - ``functools.partial`` and bound methods by their parts; modules by name (across processes,
   the same covered modules only);
 - numbers, strings, ``None`` by type and ``repr`` (``1`` and ``1.0``, ``0.0`` and ``-0.0``
-  differ); tuples, lists and dicts element by element; NumPy and (concrete) JAX arrays by
-  type, dtype, shape, weak type and the SHA-256 of their bytes; pytrees (equinox Modules) by
-  their structure and leaves;
+  differ); tuples, lists and dicts element by element (a list's contents when the key is made:
+  a counter list that tracing appends to gives a new key every time); NumPy and (concrete) JAX
+  arrays by type, dtype, shape, weak type and the SHA-256 of their bytes; pytrees (equinox
+  Modules, named tuples) by their structure and leaves;
 - anything else: within a process by identity (no reuse unless it is the same object; a
   hashable value by equality), across processes not at all (:func:`stable_text` is ``None``:
   the program is traced as usual).
@@ -107,9 +108,9 @@ class _Describer:
     def __call__(self, x):
         if isinstance(x, _SCALARS):
             return (type(x).__name__, repr(x))
-        if isinstance(x, (tuple, list)):
+        if type(x) in (tuple, list):  # subclasses (named tuples, ...): as pytrees, below
             return (type(x).__name__, tuple(self(v) for v in x))
-        if isinstance(x, dict):
+        if type(x) is dict:
             return ("dict", tuple((self(k), self(v)) for k, v in x.items()))
         if isinstance(x, (np.ndarray, np.generic)) or (
                 isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer)):
@@ -217,7 +218,10 @@ def _global_names(code: types.CodeType) -> set[str]:
 def callable_key(fn) -> tuple:
     """A hashable key of ``fn`` within this process: equal for functions that trace alike (the
     module docstring); hold it only as long as ``fn`` may be reused."""
-    return _Describer(stable=False)(fn)
+    try:
+        return _Describer(stable=False)(fn)
+    except RecursionError:  # nested too deeply to describe: the object itself
+        return ("id", _Identity(fn))
 
 
 def stable_text(obj) -> str | None:

@@ -22,7 +22,7 @@ of everything its tracing depends on:
   ``repr`` round-trips exactly; a function by :func:`rbo_jax._callables.stable_text`), shape,
   dtype and weak type of every array;
 - the source of every module of ``rbo_jax``, the versions of Python and of :data:`PACKAGES`,
-  the backend and its devices.
+  the backend and its devices, JAX's settings of precision and promotion (``_FLAGS``).
 
 A static value whose ``repr`` holds a memory address (``<function f at 0x…>``: a plain callable
 foundation or load) could name different functions in different processes: such arguments are never
@@ -63,6 +63,9 @@ _CALLS: dict[tuple[pathlib.Path, str], Callable | None] = {}
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "numpy", "scipy",
             "optax", "jaxtyping")
+# JAX settings that change what a trace gives (or whether it raises)
+_FLAGS = ("jax_enable_x64", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
+          "jax_default_matmul_precision", "jax_default_prng_impl")
 _MAGIC = b"rbo_jax program 2\n"  # then the length of the metadata (8 bytes), it, the program
 
 
@@ -102,7 +105,8 @@ def program_key(text: str) -> str | None:
     address, which may name something else in another process)."""
     if _ADDRESS.search(text):
         return None
-    return hashlib.sha256((text + _environment()).encode()).hexdigest()
+    flags = repr([getattr(jax.config, name) for name in _FLAGS])  # may change at run time
+    return hashlib.sha256((text + flags + _environment()).encode()).hexdigest()
 
 
 def _static_text(v) -> tuple[str, str]:

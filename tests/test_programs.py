@@ -34,11 +34,12 @@ def program(params, scale, y):
 
 @pytest.fixture
 def store(tmp_path):
+    before = _programs.program_store()  # on for the whole run with $RBO_JAX_COMPILATION_CACHE
     _programs.enable_program_store(tmp_path / "programs")
     jax.clear_caches()
     TRACES.clear()
     yield tmp_path / "programs"
-    _programs.enable_program_store(None)
+    _programs.enable_program_store(before)
 
 
 def _new_process():
@@ -295,3 +296,12 @@ def test_a_sweep_with_a_host_callback_is_traced_as_usual(store):
         assert [p.suffix for p in store.iterdir()] == [".unexportable"]
         _new_process()
     _program._cached_program.cache_clear()
+
+
+def test_jax_settings_that_change_a_trace_are_part_of_the_key():
+    key = _programs.program_key("program")
+    other = "strict" if jax.config.jax_numpy_dtype_promotion == "standard" else "standard"
+    with jax.numpy_dtype_promotion(other):
+        assert _programs.program_key("program") != key
+    assert _programs.program_key("program") == key
+    assert _programs.program_key("<function f at 0x7f00>") is None  # an address: never stored

@@ -110,7 +110,7 @@ def _store_key(quantity, names, devices, batch) -> str | None:
     if text is None:
         return None
     return _programs.program_key(repr(("rbo_jax.batch chunk", text, names, batch,
-                                       devices[0].platform)))
+                                       str(jnp.result_type(float)), devices[0].platform)))
 
 
 def _stored_program(key, x, sharding, record, functions, batch) -> Program | None:

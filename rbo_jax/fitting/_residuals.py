@@ -193,8 +193,9 @@ loss_and_grad = eqx.filter_jit(jax.value_and_grad(loss))
 def residuals_and_jacobian(u, model, datas, spec):
     """Whitened residuals at ``u`` and their forward-mode Jacobian (one JVP per fitted scalar,
     batched). The single compiled program of a least-squares fit: iterations, trial points and
-    the covariance all reuse it. With the program store on (the command line), a second
-    process loads it traced and compiled (:mod:`rbo_jax._programs`)."""
+    the covariance all reuse it. With the program store on
+    (:func:`rbo_jax.enable_compilation_cache`, the command line), a second process loads it
+    traced and compiled (:mod:`rbo_jax._programs`)."""
 
     def f(u):
         r = residual_vector(u, model, datas, spec)
