@@ -9,12 +9,15 @@ one of their names is first used.
 import importlib.metadata
 
 from . import _lazy
+from ._cache import enable_from_environment as _enable_cache_from_environment
 from ._precision import enable_float64_by_default as _enable_float64_by_default
 
 _enable_float64_by_default()
+_enable_cache_from_environment()  # $RBO_JAX_COMPILATION_CACHE (rbo_jax.enable_compilation_cache)
 
 __getattr__, __dir__, __all__ = _lazy.attach(__name__, {
     "._precision": ("float64_enabled",),
+    "._cache": ("enable_compilation_cache",),
     ".kinematics": ("Turn", "compose", "composition_invariants", "distance_to_singularity",
                     "integrating_tensor", "integrating_tensor_det", "integrating_tensor_inv",
                     "skew", "turn_tensor", "turn_vector", "vector_invariant"),

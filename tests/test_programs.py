@@ -256,9 +256,6 @@ def test_simulate_programs_hold_host_callbacks_so_they_are_not_stored():
     assert "callback" in text
 
 
-@pytest.mark.xfail(strict=True, reason="needs rbo_jax/__init__.py to call "
-                   "_cache.enable_from_environment() and export enable_compilation_cache "
-                   "(helper A's file); remove this marker with that change")
 def test_the_environment_variable_turns_the_cache_on_at_import(tmp_path):
     import os
     import subprocess
