@@ -2,7 +2,8 @@ r"""Continuation of a Hopf point in two parameters: the flutter boundary.
 
 The Hopf system of :mod:`._hopf` (equilibrium, eigenvalue pair $\pm i\omega$, normalisation) is
 solved at successive values of a second parameter, each solve starting from the previous
-solution (natural continuation in a ``lax.scan``: one compiled program, differentiable, and
+solution (natural continuation in a ``lax.scan`` around the one Hopf program of
+:mod:`._system`: one compiled program per model structure, differentiable, and
 vmapped over any further parameters given as arrays, e.g. the critical follower moment against
 the friction coefficient $b$ for several ratios $A_3/A_1$ at once). Natural continuation cannot
 pass a turning point of the boundary in the second parameter; there the status turns to
@@ -18,32 +19,38 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _enumeration as enum
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
-from ._hopf import HopfStatus, _initial_unknowns, _masked, _solve
+from ._hopf import HopfStatus, Static, canonical, finish, solution
+
+_SUCCESSFUL = int(np.asarray(enum.code(HopfStatus.successful)))
+_NOT_CONVERGED = int(np.asarray(enum.code(HopfStatus.not_converged)))
 
 __all__ = ["continue_hopf"]
 
 
-def _curve(model_fn, theta_eq_fn, parameter, along, t, rtol, atol, max_steps, others, guess,
-           values, theta_guess):
-    u0, v0, eq_ok, has_pair = _initial_unknowns(
-        model_fn, theta_eq_fn, parameter, {**others, along: values[0]}, guess, theta_guess, t)
+def _curve(static, t, p, guess, values, theta_guess):
+    """The boundary over ``values`` of the last entry of ``static.names`` (the parameter
+    ``along``): one scan around the Hopf program (:mod:`._system`), each step started from the
+    last successful solution."""
+    dtype = p.dtype
 
     def step(carry, value):
-        u, w, alive = carry
-        point, u_new = _solve(model_fn, parameter, t, {**others, along: value}, u, w, rtol, atol,
-                              max_steps)
-        good = alive & (point.status == HopfStatus.successful)
-        v = jax.lax.complex(u_new[5:11], u_new[11:17])
-        w_new = v / jnp.vdot(v, v)  # w^H v = 1 at the new solution
-        status = HopfStatus.where(alive, point.status, HopfStatus.not_converged)
-        point = eqx.tree_at(lambda h: h.status, point, status)
-        carry = (jnp.where(good, u_new, u), jnp.where(good, w_new, w), good)
-        return carry, _masked(point)
+        u, w, alive, first = carry
+        q = jnp.concatenate([p, value[None]])
+        raw = solution(static, q, guess, theta_guess, t, u, w, ~first)
+        good = alive & (raw.status == _SUCCESSFUL)
+        v = raw.u[5:11], raw.u[11:17]
+        n2 = v[0] @ v[0] + v[1] @ v[1]
+        w_new = jnp.concatenate([v[0], v[1]]) / n2  # w^H v = 1 at the new solution
+        status = jnp.where(alive, raw.status, _NOT_CONVERGED)
+        carry = (jnp.where(good, raw.u, u), jnp.where(good, w_new, w), good,
+                 jnp.zeros((), bool))
+        return carry, finish(raw._replace(status=status.astype(raw.status.dtype)))
 
-    alive = eq_ok & has_pair
-    _, points = jax.lax.scan(step, (u0, v0, alive), values)
+    init = (jnp.zeros(17, dtype), jnp.zeros(12, dtype), jnp.ones((), bool), jnp.ones((), bool))
+    _, points = jax.lax.scan(step, init, values)
     return points
 
 
@@ -101,8 +108,14 @@ def continue_hopf(
     theta_guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
 
     def run(**point):
-        return _curve_jit(model_fn, theta_eq_fn, parameter, along, t, float(rtol), float(atol),
-                          int(max_steps), point, guess, values, theta_guess)
+        names = tuple(point) + (along,)
+        shapes = tuple(jnp.shape(v) for v in point.values()) + ((),)
+        static = Static(canonical(model_fn), canonical(theta_eq_fn), parameter, names, shapes,
+                        float(rtol), float(atol), int(max_steps))
+        parts = [jnp.ravel(v) for v in point.values()]
+        p = jnp.concatenate(parts) if parts else jnp.zeros(0, values.dtype)
+        return _curve_jit(static, jnp.asarray(t, dtype=values.dtype), p, guess, values,
+                          theta_guess)
 
     fn = run
     for name in reversed(batch):

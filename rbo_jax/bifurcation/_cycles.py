@@ -33,8 +33,9 @@ import numpy as np
 from ..ensemble import fast_simulate
 from ..model import RigidBodyOscillator
 from ._field import flat_field
-from ._hopf import HopfPoint, _build, _point
+from ._hopf import HopfPoint, _point
 from ._orbit import _lstsq, _sorted, flow, split_multipliers
+from ._system import _build
 
 __all__ = ["continue_limit_cycles"]
 

@@ -31,7 +31,8 @@ from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ..stability import solve_equilibrium
 from ._field import flat_field
-from ._hopf import _build, _point, hopf_point
+from ._hopf import _point, hopf_point
+from ._system import _build
 
 __all__ = ["continue_equilibria"]
 

@@ -1,23 +1,27 @@
 r"""The flat vector field $F(x)$, $x = [\theta, \Omega]$, of the right form (4.55)–(4.56), and its
-multilinear derivatives at a point, extended to complex arguments: what Hopf points, Lyapunov
-coefficients and shooting are written in."""
+directional derivatives up to third order: what Hopf points, Lyapunov coefficients and shooting
+are written in.
+
+Derivatives are taken along given directions only (nested ``jax.jvp``), never as whole tensors:
+one traced copy of :func:`jets` serves the Jacobian (unit directions), the Hessian-vector products
+of Newton's method on the Hopf system and Kuznetsov's multilinear forms $B(u, v) = D^2F[u, v]$,
+$C(u, v, w) = D^3F[u, v, w]$ (complex arguments by multilinearity, :mod:`._lyapunov`)."""
 
 from __future__ import annotations
-
-import itertools
 
 import jax
 import jax.numpy as jnp
 
 from ..model import RigidBodyOscillator
 
-__all__ = ["flat_field", "multilinear", "complex_form"]
+__all__ = ["flat_field", "jets"]
 
 
-def flat_field(model: RigidBodyOscillator, t=0.0):
+def flat_field(model: RigidBodyOscillator, t=0.0, *, throw: bool = True):
     r"""$x \mapsto F(x) = [\dot\theta, \dot\Omega]$ of the right form (4.55)–(4.56) at time ``t``
-    (autonomous models: any ``t``)."""
-    rhs = model.right_form()
+    (autonomous models: any ``t``). ``throw=False``: a configuration where the equations are
+    undefined gives NaN instead of a runtime error (no host callback in the program)."""
+    rhs = model.right_form(throw)
 
     def F(x):
         theta_dot, Omega_dot = rhs(t, (x[:3], x[3:]))
@@ -26,36 +30,27 @@ def flat_field(model: RigidBodyOscillator, t=0.0):
     return F
 
 
-def multilinear(F, x0):
-    r"""The real multilinear forms $D^kF(x_0)[u_1, \dots, u_k]$ by nested forward-mode
-    derivatives: ``form(u1, u2)`` is Kuznetsov's $B$, ``form(u1, u2, u3)`` his $C$. Each
-    argument may carry a leading batch axis (the same for all): the directions are then
-    evaluated in one vmapped pass, one compiled graph per order."""
+def jets(F, y, directions):
+    r"""$F(y)$ and, for every row $(t_1, t_2, t_3)$ of ``directions`` (shape ``(N, 3, m)``), the
+    directional derivatives $DF(y)[t_1]$, $D^2F(y)[t_1, t_2]$ and $D^3F(y)[t_1, t_2, t_3]$ (nested
+    forward mode, the rows in one vmapped pass: one traced copy of ``F``'s third-order
+    derivative, whatever the rows ask for). Rows with $t_3 = 0$ give zero third derivatives,
+    rows with $t_2 = t_3 = 0$ the Jacobian-vector product only.
 
-    def single(*us):
-        def nest(level):
-            if level == 0:
-                return F
-            inner = nest(level - 1)
-            return lambda x: jax.jvp(inner, (x,), (us[level - 1],))[1]
+    Returns ``(F(y), D1, D2, D3)`` with ``D1``, ``D2``, ``D3`` of shape ``(N, n)``."""
 
-        return nest(len(us))(x0)
+    def one(d):
+        t1, t2, t3 = d[0], d[1], d[2]
 
-    def form(*us):
-        if us[0].ndim == x0.ndim:
-            return single(*us)
-        return jax.vmap(single)(*us)
+        def first(z):
+            return jax.jvp(F, (z,), (t1,))
 
-    return form
+        def second(z):
+            return jax.jvp(first, (z,), (t2,))
 
+        (lower, (_, d2)), (_, (_, d3)) = jax.jvp(second, (y,), (t3,))
+        f0, d1 = lower
+        return f0, d1, d2, d3
 
-def complex_form(real_form, *vectors):
-    r"""A real multilinear form extended to complex vectors by multilinearity,
-    $B(a + ib, c + id) = B(a, c) - B(b, d) + i[B(a, d) + B(b, c)]$ and so on: the $2^k$ real
-    evaluations in one batched call of ``real_form``."""
-    parts = [(jnp.real(v), jnp.imag(v)) for v in vectors]
-    choices = list(itertools.product((0, 1), repeat=len(vectors)))
-    args = [jnp.stack([parts[j][c[j]] for c in choices]) for j in range(len(vectors))]
-    values = real_form(*args)
-    weights = jnp.asarray([1j ** sum(c) for c in choices])
-    return weights @ values.astype(weights.dtype)
+    f0, d1, d2, d3 = jax.vmap(one)(directions)
+    return f0[0], d1, d2, d3

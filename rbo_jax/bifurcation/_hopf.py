@@ -12,15 +12,17 @@ $$\dot\Omega(\theta, 0; \alpha) = 0,\quad J v_r + \omega v_i = 0,\quad J v_i - \
   \quad \mathrm{Re}(w^H q) = 1,\quad \mathrm{Im}(w^H q) = 0,$$
 
 ($w$ the eigenvector at the guess, which fixes the scale and phase of $q$), solved by Newton's
-method (optimistix). Its solution is a regular point of the system at a generic Hopf point, so
-the implicit function theorem gives the derivatives of $\alpha$ with respect to every other
-parameter: optimistix's implicit adjoint, i.e. ``jax.grad`` and ``jax.jacfwd`` work through
-:func:`hopf_point`.
+method in one compiled program with the first Lyapunov coefficient (:mod:`._system`). Its
+solution is a regular point of the system at a generic Hopf point, so the implicit function
+theorem gives the derivatives of the solution $u$ with respect to every other parameter $p$,
+$du = -(\partial_u r)^{-1}\partial_p r\,dp$, from the Jacobians of the converged system that
+the program returns: ``jax.grad`` and ``jax.jacfwd`` work through :func:`hopf_point`, and the
+gradient runs the same compiled program as the value (a ``jax.custom_jvp`` around it).
 
 **First Lyapunov coefficient** (Kuznetsov, *Elements of Applied Bifurcation Theory*, 3rd ed.,
 eq. (3.20)): with $Jq = i\omega q$, $J^Tp = -i\omega p$, $\langle q, q\rangle = 1$,
 $\langle p, q\rangle = \bar p^Tq = 1$, and the multilinear forms $B = D^2F$, $C = D^3F$ at the
-Hopf point (nested forward-mode derivatives),
+Hopf point (directional derivatives, :mod:`._lyapunov`),
 
 $$\ell_1 = \frac{1}{2\omega}\mathrm{Re}\Big[\langle p, C(q, q, \bar q)\rangle
   - 2\langle p, B(q, J^{-1}B(q, \bar q))\rangle
@@ -37,47 +39,25 @@ $x = x_H + 2\,\mathrm{Re}(z q)$ (used to start the family of limit cycles).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
+import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
-from ..kinematics import _as_vector, distance_to_singularity
+from .. import _enumeration as enum
+from .._callables import callable_key
+from .._programs import stored
+from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
-from ..stability import solve_equilibrium
-from ._field import complex_form, flat_field, multilinear
+from ._lyapunov import first_lyapunov_coefficient
+from ._system import HopfStatus, hopf_program
 
 __all__ = ["HopfStatus", "HopfPoint", "hopf_point", "first_lyapunov_coefficient"]
-
-
-class HopfStatus(eqx.Enumeration):
-    """Outcome of :func:`hopf_point`."""
-
-    successful = ""
-    equilibrium_failed = (
-        "The equilibrium at the guess could not be computed (Newton on the moment balance (4.61) "
-        "failed, or theta_eq_fn gave non-finite values): try another theta_guess."
-    )
-    no_oscillatory_pair = (
-        "At the guess the linearization (4.63)-(4.67) has no complex pair of eigenvalues to "
-        "follow to the imaginary axis."
-    )
-    not_converged = (
-        "Newton's method on the Hopf system (equilibrium, eigenvalue pair on the imaginary axis) "
-        "did not converge: start from a guess closer to the stability boundary."
-    )
-    zero_frequency = (
-        "The solve reached a zero frequency: a double zero eigenvalue (Bogdanov-Takens point) "
-        "or a real pair, not a Hopf point."
-    )
-    singular_point = "The equilibrium lies on a singular sphere |theta| = 2*pi*k of Z (4.11)."
-    invalid_parameters = (
-        "A model parameter is invalid (built from traced values its constructors could not "
-        "check); RigidBodyOscillator.parameter_status() names it."
-    )
 
 
 class HopfPoint(eqx.Module):
@@ -86,7 +66,8 @@ class HopfPoint(eqx.Module):
     the critical ``eigenvector`` $q$ ($Jq = i\omega q$, $|q| = 1$) and adjoint ``adjoint``
     ($\bar p^Tq = 1$) of the flat state $[\theta, \Omega]$, the ``transversality``
     $d\,\mathrm{Re}\lambda/d\alpha$, the ``first_lyapunov`` coefficient $\ell_1$, the Newton
-    ``residual`` (max norm) and ``num_steps``, and the ``status`` (:class:`HopfStatus`)."""
+    ``residual`` (max norm at the solution) and ``num_steps``, and the ``status``
+    (:class:`HopfStatus`)."""
 
     value: Float[Array, ""]
     frequency: Float[Array, ""]
@@ -113,179 +94,131 @@ class HopfPoint(eqx.Module):
         return 2 * jnp.pi / self.frequency
 
 
-def first_lyapunov_coefficient(F: Callable, x0, omega, q, p) -> Float[Array, ""]:
-    r"""Kuznetsov's first Lyapunov coefficient $\ell_1$ (eq. (3.20) of his book; module
-    docstring) of the vector field ``F`` at the Hopf point ``x0``, with $Jq = i\omega q$,
-    $\langle q, q\rangle = 1$ and $J^Tp = -i\omega p$, $\langle p, q\rangle = 1$. Second and
-    third derivatives of ``F`` by nested forward-mode autodiff."""
-    J = jax.jacfwd(F)(x0)
-    form = multilinear(F, x0)
-    qb = jnp.conj(q)
-    n = x0.shape[0]
-    # two batched calls of B (the second needs the first's solves) and one of C
-    B_qqb, B_qq = _pairs(form, [(q, qb), (q, q)])
-    h11 = jnp.linalg.solve(J, jnp.real(B_qqb))
-    h20 = jnp.linalg.solve(jax.lax.complex(-J, 2 * omega * jnp.eye(n)), B_qq)
-    B_qh11, B_qbh20 = _pairs(form, [(q, jax.lax.complex(h11, jnp.zeros_like(h11))), (qb, h20)])
-    total = (jnp.vdot(p, complex_form(form, q, q, qb)) - 2 * jnp.vdot(p, B_qh11)
-             + jnp.vdot(p, B_qbh20))
-    return jnp.real(total) / (2 * omega)
-
-
-def _pairs(form, pairs):
-    """Complex B(u, v) for several pairs (u, v) in one batched call of the real form."""
-    real = [(jnp.real(u), jnp.imag(u), jnp.real(v), jnp.imag(v)) for u, v in pairs]
-    U = jnp.stack([w for ur, ui, _, _ in real for w in (ur, ur, ui, ui)])
-    V = jnp.stack([w for _, _, vr, vi in real for w in (vr, vi, vr, vi)])
-    values = form(U, V).reshape(len(pairs), 4, -1)
-    # B(ur + i ui, vr + i vi) = B(ur, vr) - B(ui, vi) + i[B(ur, vi) + B(ui, vr)]
-    return [jax.lax.complex(v[0] - v[3], v[1] + v[2]) for v in values]
-
-
 def _point(others: dict, parameter: str, value) -> dict:
     return {**others, parameter: value}
 
 
-def _build(model_fn, point) -> RigidBodyOscillator:
-    model = model_fn(**point)
-    if not isinstance(model, RigidBodyOscillator):
-        raise TypeError(f"model_fn must return a RigidBodyOscillator, got {type(model).__name__}.")
-    return model
+# --------------------------------------------------------------------------------------------
+# The compiled program, its implicit derivative and the result
+# --------------------------------------------------------------------------------------------
+
+_SEEN: dict = {}
 
 
-def _start(model_fn, theta_eq_fn, parameter, others, alpha0, theta_guess, t):
-    """Equilibrium, critical eigenvalue and eigenvector at the guess."""
-    point = _point(others, parameter, alpha0)
-    model = _build(model_fn, point)
-    if theta_eq_fn is not None:
-        theta = _as_vector(theta_eq_fn(**point), "theta_eq_fn(...)")
-        eq_ok = jnp.all(jnp.isfinite(theta))
-    else:
-        sol = solve_equilibrium(model, theta_guess, t=t)
-        theta, eq_ok = sol.theta, sol.ok
-    theta = jnp.where(eq_ok, theta, 0.0)
-    J = jax.jacfwd(flat_field(model, t))(jnp.concatenate([theta, jnp.zeros(3)]))
-    lam, V = jnp.linalg.eig(J)
-    tol = 1e-8 * jnp.maximum(jnp.max(jnp.abs(lam)), 1.0)
-    score = jnp.where(jnp.imag(lam) > tol, jnp.real(lam), -jnp.inf)
-    i = jnp.argmax(score)
-    return theta, eq_ok, jnp.isfinite(score[i]), jnp.imag(lam[i]), V[:, i]
+def canonical(fn):
+    """The first function seen that computes what ``fn`` computes
+    (:func:`rbo_jax._callables.callable_key`): a new but identical lambda (a notebook cell run
+    again) is then the same static argument, and its program is not traced again."""
+    if fn is None:
+        return None
+    try:
+        return _SEEN.setdefault(callable_key(fn), fn)
+    except TypeError:  # an unhashable key: the function itself
+        return fn
 
 
-def _residual(model_fn, parameter, t):
-    def fn(u, args):
-        others, w = args
-        theta, alpha, omega, vr, vi = u[:3], u[3], u[4], u[5:11], u[11:17]
-        F = flat_field(_build(model_fn, _point(others, parameter, alpha)), t)
-        x = jnp.concatenate([theta, jnp.zeros_like(theta)])
-        Fx, Jvr = jax.jvp(F, (x,), (vr,))
-        Jvi = jax.jvp(F, (x,), (vi,))[1]
-        wr, wi = jnp.real(w), jnp.imag(w)
-        norm = jnp.stack([wr @ vr + wi @ vi - 1.0, wr @ vi - wi @ vr])
-        return jnp.concatenate([Fx[3:], Jvr + omega * vi, Jvi - omega * vr, norm])
+class Static(NamedTuple):
+    """What the program of :func:`hopf_point` is compiled for (hashable, stable reprs)."""
 
-    return fn
+    model_fn: Callable
+    theta_eq_fn: Callable | None
+    parameter: str
+    names: tuple[str, ...]
+    shapes: tuple[tuple[int, ...], ...]
+    rtol: float
+    atol: float
+    max_steps: int
 
 
-def _adjoint_vector(J, omega, q):
-    r"""$p$ with $J^Tp = -i\omega p$ and $\bar p^Tq = 1$."""
-    mu, V = jnp.linalg.eig(J.T)
-    p = V[:, jnp.argmin(jnp.abs(mu - jax.lax.complex(jnp.zeros_like(omega), -omega)))]
-    return p / jnp.conj(jnp.vdot(p, q))
+class Raw(NamedTuple):
+    u: Array
+    Ju: Array
+    Jp: Array
+    residual: Array
+    num_steps: Array
+    status: Array
+    adjoint: Array
+    first_lyapunov: Array
+    transversality: Array
 
 
-def _transversality(model_fn, parameter, others, alpha, theta, t, q, p):
-    r"""$d\,\mathrm{Re}\lambda/d\alpha$ along the branch of equilibria (module docstring)."""
-
-    def J_of(theta, alpha):
-        F = flat_field(_build(model_fn, _point(others, parameter, alpha)), t)
-        return jax.jacfwd(F)(jnp.concatenate([theta, jnp.zeros_like(theta)]))
-
-    def G(theta, alpha):
-        F = flat_field(_build(model_fn, _point(others, parameter, alpha)), t)
-        return F(jnp.concatenate([theta, jnp.zeros_like(theta)]))[3:]
-
-    G_theta = jax.jacfwd(G, argnums=0)(theta, alpha)
-    G_alpha = jax.jacfwd(G, argnums=1)(theta, alpha)
-    dtheta = -jnp.linalg.solve(G_theta, G_alpha)
-    dJ = jax.jvp(J_of, (theta, alpha), (dtheta, jnp.ones_like(alpha)))[1]
-    return jnp.real(jnp.vdot(p, dJ.astype(q.dtype) @ q))
+# One program per model structure: with the program store on (rbo_jax.enable_compilation_cache)
+# a second process loads it traced (user functions keyed by their code, _programs).
+_program = stored(eqx.filter_jit(hopf_program))
 
 
-def _solve(model_fn, parameter, t, others, u0, w, rtol, atol, max_steps):
-    """Newton on the Hopf system from the unknowns ``u0`` with normalisation vector ``w``;
-    returns the :class:`HopfPoint` (status from the solve only) and the raw solution."""
-    fn = _residual(model_fn, parameter, t)
-    sol = optx.root_find(fn, optx.Newton(rtol=rtol, atol=atol), u0, args=(others, w),
-                         max_steps=max_steps, throw=False)
-    u = sol.value
-    theta, alpha, omega = u[:3], u[3], u[4]
-    q = jax.lax.complex(u[5:11], u[11:17])
-    q = jnp.where(omega < 0, jnp.conj(q), q)
-    omega = jnp.abs(omega)
-    q = q / jnp.linalg.norm(q).astype(q.dtype)
-    residual = jnp.max(jnp.abs(fn(u, (others, w))))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def solution(static: Static, p, alpha0, theta0, t, u0, w0, warm) -> Raw:
+    """The raw solution of the Hopf program (:func:`._system.hopf_program`); differentiable with
+    respect to the flat parameters ``p`` by the implicit function theorem (module docstring),
+    not with respect to the starting values."""
+    return Raw(*_program(*static, p, alpha0, theta0, t, u0, w0, warm))
 
-    point = _point(others, parameter, alpha)
-    model = _build(model_fn, point)
-    x = jnp.concatenate([theta, jnp.zeros(3)])
-    J = jax.jacfwd(flat_field(model, t))(x)
-    # l1 and the transversality are not differentiated (their derivatives would need fourth
-    # derivatives of the vector field): computed from stopped values, documented.
-    sg = jax.lax.stop_gradient
-    p = _adjoint_vector(sg(J), sg(omega), sg(q))
-    F_sg = flat_field(_build(model_fn, sg(point)), t)
-    l1 = first_lyapunov_coefficient(F_sg, sg(x), sg(omega), sg(q), p)
-    trans = _transversality(model_fn, parameter, sg(others), sg(alpha), sg(theta), t, sg(q), p)
 
-    S = HopfStatus
-    finite = jnp.all(jnp.isfinite(u)) & jnp.isfinite(residual)
-    status = S.where(sol.result == optx.RESULTS.successful, S.successful, S.not_converged)
-    status = S.where(finite, status, S.not_converged)
-    scale = jnp.maximum(jnp.max(jnp.abs(J)), 1.0)
-    status = S.where(omega > 1e-6 * scale, status, S.zero_frequency)
-    status = S.where(distance_to_singularity(theta) > 1e-6, status, S.singular_point)
-    ok, _, _ = model.parameter_status()
-    status = S.where(ok, status, S.invalid_parameters)
-    point = HopfPoint(
-        value=alpha, frequency=omega, theta=theta, eigenvector=q, adjoint=p,
-        transversality=trans, first_lyapunov=l1, residual=residual,
-        num_steps=sol.stats["num_steps"], status=status)
-    return point, u
+@solution.defjvp
+def _solution_jvp(static, primals, tangents):
+    raw = solution(static, *primals)
+    du = _implicit_tangent(raw.Ju, raw.Jp, tangents[0])
+    zeros = jax.tree.map(_zero_tangent, raw)
+    return raw, zeros._replace(u=du)
+
+
+@jax.jit
+def _implicit_tangent(Ju, Jp, dp):
+    return -jnp.linalg.solve(Ju, Jp @ dp)
+
+
+def _zero_tangent(x):
+    if jnp.issubdtype(x.dtype, jnp.inexact):
+        return jnp.zeros_like(x)
+    return np.zeros(x.shape, dtype=jax.dtypes.float0)
 
 
 def _nan_unless(good, x):
     return jnp.where(good, x, jnp.full_like(x, jnp.nan))
 
 
-def _masked(point: HopfPoint) -> HopfPoint:
-    """NaN values where the status is not successful."""
-    good = point.status == HopfStatus.successful
-    names = ("value", "frequency", "theta", "eigenvector", "adjoint", "transversality",
-             "first_lyapunov")
-    return eqx.tree_at(lambda h: [getattr(h, n) for n in names], point,
-                       [_nan_unless(good, getattr(point, n)) for n in names])
+@jax.jit
+def finish(raw: Raw) -> HopfPoint:
+    """The :class:`HopfPoint` of a raw solution (the eigenvector normalised, conjugated where
+    Newton found $-\\omega$), NaN values where the status is not successful."""
+    u = raw.u
+    vr, vi, omega = u[5:11], u[11:17], u[4]
+    sign = jnp.where(omega < 0, -1.0, 1.0)
+    n = jnp.sqrt(vr @ vr + vi @ vi)
+    q = jax.lax.complex(vr / n, sign * vi / n)
+    status = enum.from_code(HopfStatus, raw.status)
+    good = raw.status == enum.code(HopfStatus.successful)
+    return HopfPoint(
+        value=_nan_unless(good, u[3]), frequency=_nan_unless(good, jnp.abs(omega)),
+        theta=_nan_unless(good, u[:3]), eigenvector=_nan_unless(good, q),
+        adjoint=_nan_unless(good, raw.adjoint),
+        transversality=_nan_unless(good, raw.transversality),
+        first_lyapunov=_nan_unless(good, raw.first_lyapunov), residual=raw.residual,
+        num_steps=raw.num_steps, status=status)
 
 
-def _initial_unknowns(model_fn, theta_eq_fn, parameter, others, alpha0, theta_guess, t):
-    sg = jax.lax.stop_gradient
-    alpha0 = sg(alpha0)
-    theta0, eq_ok, has_pair, omega0, v0 = sg(
-        _start(model_fn, theta_eq_fn, parameter, sg(others), alpha0, theta_guess, t))
-    u0 = jnp.concatenate([theta0, jnp.stack([alpha0, omega0]), jnp.real(v0), jnp.imag(v0)])
-    return u0, v0, eq_ok, has_pair
+def _is_traced(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
 
 
-@eqx.filter_jit
-def _hopf_point(model_fn, theta_eq_fn, parameter, others, alpha0, theta_guess, t, rtol, atol,
-                max_steps):
-    u0, v0, eq_ok, has_pair = _initial_unknowns(model_fn, theta_eq_fn, parameter, others, alpha0,
-                                                theta_guess, t)
-    point, _ = _solve(model_fn, parameter, t, others, u0, v0, rtol, atol, max_steps)
-    S = HopfStatus
-    status = S.where(has_pair, point.status, S.no_oscillatory_pair)
-    status = S.where(eq_ok, status, S.equilibrium_failed)
-    return _masked(eqx.tree_at(lambda h: h.status, point, status))
+def flat_parameters(others: dict):
+    """``(names, shapes, p)``: the parameters flattened (NumPy when concrete: no small eager
+    programs)."""
+    names = tuple(others)
+    shapes = tuple(tuple(int(d) for d in jnp.shape(v)) for v in others.values())
+    dtype = jnp.result_type(float)
+    if _is_traced(others):
+        parts = [jnp.ravel(jnp.asarray(v, dtype=dtype)) for v in others.values()]
+        p = jnp.concatenate(parts) if parts else jnp.zeros(0, dtype)
+    else:
+        parts = [np.ravel(np.asarray(v, dtype=dtype)) for v in others.values()]
+        p = np.concatenate(parts) if parts else np.zeros(0, dtype)
+    return names, shapes, p
+
+
+def _scalar(x, dtype):
+    return x if _is_traced(x) else np.asarray(x, dtype=dtype)
 
 
 def hopf_point(
@@ -312,10 +245,11 @@ def hopf_point(
     - `params`: ``{name: value}`` of every argument of ``model_fn``; the entry ``parameter`` (it
       may be absent) is the unknown, the others are fixed and differentiable.
     - `guess`: starting value of ``parameter``, near the boundary. At the guess the equilibrium
-      is ``theta_eq_fn(**params)`` if given (a closed form such as (4.62)), else Newton from
-      ``theta_guess`` (default 0); the complex eigenvalue pair with the largest real part is
-      followed.
-    - `rtol`, `atol`, `max_steps`: Newton's (optimistix) tolerances and budget.
+      is Newton's from ``theta_eq_fn(**params)`` if given (a closed form such as (4.62)), else
+      from ``theta_guess`` (default 0); the complex eigenvalue pair with the largest real part
+      is followed.
+    - `rtol`, `atol`, `max_steps`: Newton's tolerances (a step below ``atol + rtol * |u|`` in
+      every unknown ends it) and budget.
 
     **Returns** a :class:`HopfPoint` (module docstring for the system, $\ell_1$ and the
     transversality). Never raises for a failed solve: ``status`` says why, and the values are
@@ -324,7 +258,9 @@ def hopf_point(
     function theorem; ``jax.vmap`` over them works too. ``first_lyapunov``, ``transversality``
     and ``adjoint`` are computed from stopped values (their derivatives would need fourth
     derivatives of the vector field): their derivatives come out zero, differentiate them by
-    finite differences. Compiled once per ``model_fn`` and structure of ``params``.
+    finite differences. Compiled once per structure of ``model_fn`` and ``params`` (a new but
+    identical ``model_fn`` reuses the program; so does the gradient), and kept by the program
+    store when it is on (:func:`rbo_jax.enable_compilation_cache`).
 
     Example: the Nikolai problem with friction (4.84), ``hopf_point(lambda M, b:
     nikolai_model(M, friction=b), {"b": 0.1}, "M", 0.1)`` gives the critical follower moment
@@ -336,11 +272,19 @@ def hopf_point(
         raise TypeError(f"params must be a mapping {{name: value}}, got {type(params).__name__}.")
     if not isinstance(parameter, str):
         raise TypeError(f"parameter must be the name of an entry of params, got {parameter!r}.")
-    others = {str(k): jnp.asarray(v, dtype=jnp.result_type(float))
-              for k, v in params.items() if k != parameter}
-    guess = jnp.asarray(guess, dtype=jnp.result_type(float))
-    if guess.shape != ():
-        raise ValueError(f"guess must be a scalar value of {parameter!r}, got shape {guess.shape}.")
-    theta_guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
-    return _hopf_point(model_fn, theta_eq_fn, parameter, others, guess, theta_guess, t,
-                       float(rtol), float(atol), int(max_steps))
+    if theta_eq_fn is not None and not callable(theta_eq_fn):
+        raise TypeError("theta_eq_fn must be a callable theta_eq_fn(**params) -> theta.")
+    dtype = jnp.result_type(float)
+    others = {str(k): v for k, v in params.items() if k != parameter}
+    guess = _scalar(guess, dtype)
+    if jnp.shape(guess) != ():
+        raise ValueError(f"guess must be a scalar value of {parameter!r}, got shape "
+                         f"{jnp.shape(guess)}.")
+    theta_guess = (np.zeros(3, dtype) if theta_guess is None
+                   else _as_vector(theta_guess, "theta_guess"))
+    names, shapes, p = flat_parameters(others)
+    static = Static(canonical(model_fn), canonical(theta_eq_fn), parameter, names, shapes,
+                    float(rtol), float(atol), int(max_steps))
+    raw = solution(static, p, guess, theta_guess, _scalar(t, dtype), np.zeros(17, dtype),
+                   np.zeros(12, dtype), np.asarray(False))
+    return finish(raw)
