@@ -31,18 +31,26 @@ from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ..stability import solve_equilibrium
 from ._field import flat_field
-from ._hopf import _point, hopf_point
+from ._hopf import _point, canonical, hopf_point
 from ._system import _build
 
 __all__ = ["continue_equilibria"]
 
 
-def _G(model_fn, parameter, others, t):
-    def G(u):
-        F = flat_field(_build(model_fn, _point(others, parameter, u[3])), t)
-        return F(jnp.concatenate([u[:3], jnp.zeros(3)]))[3:]
+def _derivatives(model_fn, parameter, others, t):
+    r"""$u = (\theta, \alpha) \mapsto (G(u), G_u(u), J(u))$: the moment balance, its 3×4
+    Jacobian and the 6×6 linearization (4.63)–(4.67), from one forward-mode pass of the vector
+    field over $(\theta, \Omega, \alpha)$ (one traced copy of it)."""
 
-    return G
+    def F(z):
+        return flat_field(_build(model_fn, _point(others, parameter, z[6])), t)(z[:6])
+
+    def at(u):
+        z = jnp.concatenate([u[:3], jnp.zeros(3, u.dtype), u[3:]])
+        D, f = jax.jacfwd(lambda z: (F(z), F(z)), has_aux=True)(z)
+        return f[3:], jnp.concatenate([D[3:, :3], D[3:, 6:]], axis=1), D[:, :6]
+
+    return at
 
 
 def _tangent(Gu, tau_prev):
@@ -56,27 +64,28 @@ def _tangent(Gu, tau_prev):
 
 @eqx.filter_jit
 def _step(model_fn, parameter, t, others, u, tau, s, tol, max_newton):
-    """Predictor, Newton corrector, new tangent and spectrum."""
-    G = _G(model_fn, parameter, others, t)
+    """Predictor, Newton corrector, new tangent and spectrum. The loop's last evaluation (at the
+    point whose correction is below ``tol``) gives the tangent and the spectrum."""
+    at = _derivatives(model_fn, parameter, others, t)
     u_pred = u + s * tau
 
     def cond(carry):
-        _, k, size = carry
-        return (k < max_newton) & (size > tol)
+        return ~carry[2]
 
     def body(carry):
-        v, k, _ = carry
-        r = jnp.concatenate([G(v), (tau @ (v - u_pred))[None]])
-        A = jnp.concatenate([jax.jacfwd(G)(v), tau[None, :]])
-        delta = jnp.linalg.solve(A, -r)
+        v, k, _, _, _, _ = carry
+        G, Gu, J = at(v)
+        r = jnp.concatenate([G, (tau @ (v - u_pred))[None]])
+        delta = jnp.linalg.solve(jnp.concatenate([Gu, tau[None, :]]), -r)
         size = jnp.maximum(jnp.max(jnp.abs(delta)), jnp.max(jnp.abs(r)))
-        return v + delta, k + 1, jnp.where(jnp.isfinite(size), size, jnp.inf)
+        size = jnp.where(jnp.isfinite(size), size, jnp.inf)
+        done = (size <= tol) | (k + 1 >= max_newton)
+        return v + delta, k + 1, done, size, Gu, J
 
-    v, k, size = jax.lax.while_loop(cond, body, (u_pred, 0, jnp.inf))
+    init = (u_pred, 0, False, jnp.asarray(jnp.inf), jnp.zeros((3, 4)), jnp.zeros((6, 6)))
+    v, k, _, size, Gu, J = jax.lax.while_loop(cond, body, init)
     converged = (size <= tol) & jnp.all(jnp.isfinite(v))
-    tau_new, bp = _tangent(jax.jacfwd(G)(v), tau)
-    model = _build(model_fn, _point(others, parameter, v[3]))
-    J = jax.jacfwd(flat_field(model, t))(jnp.concatenate([v[:3], jnp.zeros(3)]))
+    tau_new, bp = _tangent(Gu, tau)
     p = jnp.linalg.eigvals(J)
     return v, converged, k, tau_new, bp, p
 
@@ -135,6 +144,7 @@ def continue_equilibria(
                          f"{sol.status.__class__.__name__}.{_name(sol.status)}.")
     u = jnp.concatenate([sol.theta, jnp.asarray([start], dtype=sol.theta.dtype)])
     direction = 1.0 if stop >= start else -1.0
+    model_fn = canonical(model_fn)  # a new but identical function: the same program
     u, _, _, tau, bp, p = _step(model_fn, parameter, t, others, u,
                                 jnp.array([0.0, 0.0, 0.0, direction]), jnp.asarray(0.0), tol,
                                 20)

@@ -3,7 +3,7 @@ directional derivatives up to third order: what Hopf points, Lyapunov coefficien
 are written in.
 
 Derivatives are taken along given directions only (nested ``jax.jvp``), never as whole tensors:
-one traced copy of :func:`jets` serves the Jacobian (unit directions), the Hessian-vector products
+one traced copy of :func:`jet` serves the Jacobian (unit directions), the Hessian-vector products
 of Newton's method on the Hopf system and Kuznetsov's multilinear forms $B(u, v) = D^2F[u, v]$,
 $C(u, v, w) = D^3F[u, v, w]$ (complex arguments by multilinearity, :mod:`._lyapunov`)."""
 
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 
 from ..model import RigidBodyOscillator
 
-__all__ = ["flat_field", "jets"]
+__all__ = ["flat_field", "jet", "jets"]
 
 
 def flat_field(model: RigidBodyOscillator, t=0.0, *, throw: bool = True):
@@ -30,27 +30,25 @@ def flat_field(model: RigidBodyOscillator, t=0.0, *, throw: bool = True):
     return F
 
 
+def jet(F, y, t1, t2, t3):
+    r"""$F(y)$, $DF(y)[t_1]$, $D^2F(y)[t_1, t_2]$ and $D^3F(y)[t_1, t_2, t_3]$ by nested forward
+    mode (one traced copy of ``F``'s third-order derivative, which holds every lower order).
+    $t_3 = 0$ gives a zero third derivative, $t_2 = t_3 = 0$ the Jacobian-vector product only."""
+
+    def first(z):
+        return jax.jvp(F, (z,), (t1,))
+
+    def second(z):
+        return jax.jvp(first, (z,), (t2,))
+
+    (lower, (_, d2)), (_, (_, d3)) = jax.jvp(second, (y,), (t3,))
+    f0, d1 = lower
+    return f0, d1, d2, d3
+
+
 def jets(F, y, directions):
-    r"""$F(y)$ and, for every row $(t_1, t_2, t_3)$ of ``directions`` (shape ``(N, 3, m)``), the
-    directional derivatives $DF(y)[t_1]$, $D^2F(y)[t_1, t_2]$ and $D^3F(y)[t_1, t_2, t_3]$ (nested
-    forward mode, the rows in one vmapped pass: one traced copy of ``F``'s third-order
-    derivative, whatever the rows ask for). Rows with $t_3 = 0$ give zero third derivatives,
-    rows with $t_2 = t_3 = 0$ the Jacobian-vector product only.
-
-    Returns ``(F(y), D1, D2, D3)`` with ``D1``, ``D2``, ``D3`` of shape ``(N, n)``."""
-
-    def one(d):
-        t1, t2, t3 = d[0], d[1], d[2]
-
-        def first(z):
-            return jax.jvp(F, (z,), (t1,))
-
-        def second(z):
-            return jax.jvp(first, (z,), (t2,))
-
-        (lower, (_, d2)), (_, (_, d3)) = jax.jvp(second, (y,), (t3,))
-        f0, d1 = lower
-        return f0, d1, d2, d3
-
-    f0, d1, d2, d3 = jax.vmap(one)(directions)
+    r""":func:`jet` for every row $(t_1, t_2, t_3)$ of ``directions`` (shape ``(N, 3, m)``) in
+    one vmapped pass. Returns ``(F(y), D1, D2, D3)`` with ``D1``, ``D2``, ``D3`` of shape
+    ``(N, n)``."""
+    f0, d1, d2, d3 = jax.vmap(lambda d: jet(F, y, d[0], d[1], d[2]))(directions)
     return f0[0], d1, d2, d3
