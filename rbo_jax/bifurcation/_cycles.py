@@ -33,7 +33,7 @@ import numpy as np
 from ..ensemble import fast_simulate
 from ..model import RigidBodyOscillator
 from ._field import flat_field
-from ._hopf import HopfPoint, _point
+from ._hopf import HopfPoint, _point, canonical
 from ._orbit import _lstsq, _sorted, flow, split_multipliers
 from ._system import _build
 
@@ -134,6 +134,7 @@ def continue_limit_cycles(
     x_ref, alpha_ref = x_h + s * tau[:6], hopf.value
     reason = "max_points"
     bar = _bar(progress, max_points)
+    model_fn = canonical(model_fn)  # a new but identical function: the same program
     while len(rows) < max_points:
         u, ok, k, mu, amp = _correct(model_fn, parameter, others, solver, u_k, tau,
                                      jnp.asarray(s), x_ref, alpha_ref, float(tol), 12)

@@ -25,8 +25,11 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
+from .. import _enumeration as enum
+from .._programs import stored
 from ..ensemble import fast_simulate
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
@@ -152,20 +155,9 @@ def _lstsq(A, b):
     return jnp.linalg.lstsq(A, b, rcond=1e-9)[0]
 
 
-@eqx.filter_jit
-def periodic_orbit(model: RigidBodyOscillator, theta0, Omega0, period, *, tol=1e-9,
-                   max_newton: int = 20, rtol=1e-11, atol=1e-11,
-                   max_steps=100_000) -> PeriodicOrbit:
-    r"""The periodic orbit near $(\theta_0, \Omega_0)$ with period near ``period``, by shooting
-    (module docstring): Newton's method for the initial state and the period with the phase
-    condition, ``max_newton`` iterations at most, until the shooting residual and the correction
-    are below ``tol``; ``rtol``, ``atol``, ``max_steps`` go to :func:`rbo_jax.fast_simulate`.
-    The Floquet multipliers come from the monodromy matrix at the solution.
-
-    Never raises: ``status`` says whether Newton converged. jit- and vmap-compatible.
-    """
-    x_ref = _state(theta0, Omega0)
-    F = flat_field(model)
+def _shoot(model, x_ref, period, tol, max_newton, rtol, atol, max_steps):
+    """The shooting loop of :func:`periodic_orbit`, as plain arrays (a stored program)."""
+    F = flat_field(model, throw=False)
     solver = dict(rtol=rtol, atol=atol, max_steps=max_steps)
 
     # One evaluation per iteration: the carry holds the monodromy matrix at the current state,
@@ -193,5 +185,31 @@ def periodic_orbit(model: RigidBodyOscillator, theta0, Omega0, period, *, tol=1e
     status = S.where(T > 0, status, S.nonpositive_period)
     mu = _sorted(jnp.linalg.eigvals(M))
     mu = jnp.where(ok, mu, jnp.full_like(mu, jnp.nan))
+    return x, T, mu, residual, k - 1, enum.code(status)
+
+
+# With the program store on (rbo_jax.enable_compilation_cache) a second process loads it traced;
+# models holding a plain callable (no stable name across processes) are traced as usual.
+_shoot_program = stored(eqx.filter_jit(_shoot))
+
+
+def periodic_orbit(model: RigidBodyOscillator, theta0, Omega0, period, *, tol=1e-9,
+                   max_newton: int = 20, rtol=1e-11, atol=1e-11,
+                   max_steps=100_000) -> PeriodicOrbit:
+    r"""The periodic orbit near $(\theta_0, \Omega_0)$ with period near ``period``, by shooting
+    (module docstring): Newton's method for the initial state and the period with the phase
+    condition, ``max_newton`` iterations at most, until the shooting residual and the correction
+    are below ``tol``; ``rtol``, ``atol``, ``max_steps`` go to :func:`rbo_jax.fast_simulate`.
+    The Floquet multipliers come from the monodromy matrix at the solution.
+
+    Never raises: ``status`` says whether Newton converged. jit- and vmap-compatible; one
+    compiled program per model structure, kept by the program store when it is on
+    (:func:`rbo_jax.enable_compilation_cache`).
+    """
+    x_ref = _state(theta0, Omega0)
+    period = period if isinstance(period, jax.core.Tracer) else np.asarray(period, x_ref.dtype)
+    x, T, mu, residual, k, code = _shoot_program(model, x_ref, period, tol, max_newton, rtol,
+                                                 atol, max_steps)
     return PeriodicOrbit(theta0=x[:3], Omega0=x[3:], period=T, multipliers=mu,
-                         residual=residual, num_steps=k - 1, status=status)
+                         residual=residual, num_steps=k,
+                         status=enum.from_code(OrbitStatus, code))
