@@ -141,11 +141,10 @@ def test_first_lyapunov_coefficient_is_the_decay_at_the_hopf_point(hopf):
     assert re_c1 == pytest.approx(float(hopf.frequency) * float(hopf.first_lyapunov), rel=1e-3)
 
 
-@pytest.mark.slow  # notebook 05 checks the same in the default run
 def test_hopf_value_gradient_matches_finite_differences(hopf):
-    """jax.grad of the critical moment with respect to b (implicit function theorem through the
-    Newton solve) against central differences and against the implicit derivative of
-    M = 2b sqrt(K(M)/A1)."""
+    """jax.grad and jax.jacfwd of the critical moment with respect to b (implicit function
+    theorem at the converged Hopf system) against central differences of the closed form
+    M = 2b sqrt(K(M)/A1) (Brent's method, no autodiff), also under jit."""
     def value(b):
         return rbo.hopf_point(nikolai, {"b": b}, "M", 0.15).value
 
@@ -153,6 +152,59 @@ def test_hopf_value_gradient_matches_finite_differences(hopf):
     e = 1e-6
     fd = (critical_moment(0.1 + e) - critical_moment(0.1 - e)) / (2 * e)
     assert g == pytest.approx(fd, rel=1e-7)
+    assert float(jax.jacfwd(value)(0.1)) == pytest.approx(g, rel=1e-12)
+    assert float(jax.jit(jax.grad(value))(0.1)) == pytest.approx(g, rel=1e-12)
+
+
+class TraceCounter:
+    """Counts JAX's traces of functions named ``name`` inside a ``with`` (jax.monitoring)."""
+
+    def __init__(self, *names):
+        self.names, self.count = names, 0
+
+    def _listen(self, event, duration, **kwargs):
+        if event == "/jax/core/compile/jaxpr_trace_duration" and \
+                kwargs.get("fun_name") in self.names:
+            self.count += 1
+
+    def __enter__(self):
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+        return self
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self._listen)
+
+
+def test_hopf_programs_are_traced_once_per_model_structure(hopf):
+    """A new but identical model function (a notebook cell run again), other parameter values
+    and the gradient reuse the compiled Hopf program: no trace. A model function that computes
+    something else is a new program."""
+    def cell():  # the same source run again: a new function object with the same code
+        return lambda M, b: nikolai(M, b)
+
+    with TraceCounter("hopf_program") as first:
+        rbo.hopf_point(cell(), {"b": 0.1}, "M", 0.15)
+    with TraceCounter("hopf_program") as again:
+        h = rbo.hopf_point(cell(), {"b": 0.12}, "M", 0.15)
+    with TraceCounter("hopf_program") as gradient:
+        jax.grad(lambda b: rbo.hopf_point(cell(), {"b": b}, "M", 0.15).value)(0.08)
+    assert (first.count, again.count, gradient.count) == (1, 0, 0)
+    assert float(h.value) == pytest.approx(critical_moment(0.12), rel=1e-11)
+    with TraceCounter("hopf_program") as other:
+        rbo.hopf_point(lambda M, b: nikolai(M, 2 * b), {"b": 0.05}, "M", 0.15)
+    assert other.count == 1
+
+
+def test_equilibrium_continuation_is_traced_once_per_model_structure():
+    def run():  # a new but identical lambda each time
+        return rbo.continue_equilibria(lambda M, b: nikolai(M, b), {"b": 0.1}, "M", 0.0, 0.1,
+                                       ds=0.05, locate_hopf=False)
+
+    run()
+    with TraceCounter("_step") as again:
+        branch = run()
+    assert again.count == 0
+    np.testing.assert_allclose(branch["theta"].values[:, 2], branch["M"].values / D, atol=1e-10)
 
 
 def test_hopf_point_failures_are_statuses():
