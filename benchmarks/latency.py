@@ -303,7 +303,9 @@ def rows() -> list[Row]:
 def snippet(row: Row) -> str:
     """The program one process of ``row`` runs (``python -c``)."""
     if row.cli is not None:
-        return _HEAD + _CLI + _TAIL + "sys.exit(_rc)\n"
+        # as the console script ends (rbo_jax.app.cli.run: exit_process, where the tree has it)
+        return (_HEAD + _CLI + _TAIL + "import rbo_jax.app.cli as _cli\n"
+                "getattr(_cli, 'exit_process', sys.exit)(_rc)\n")
     return (_HEAD + row.imports + "_t1 = time.perf_counter()\n" + row.call
             + "_t2 = time.perf_counter()\n" + row.after + _TAIL)
 

@@ -81,9 +81,10 @@ def _set_jax_dir(path: str | None) -> None:
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path | None:
     r"""Keep the programs of this process on disk for the next ones: JAX's persistent
     compilation cache (every program, however small or quick to compile) and rbo_jax's program
-    store of traced programs (``PATH/programs``: :func:`rbo_jax.fast_simulate`, the chunk
-    program of :func:`rbo_jax.sweep` and :func:`rbo_jax.stability_map`, :func:`rbo_jax.fit`),
-    so that a second process neither traces nor compiles them.
+    store of traced programs (``PATH/programs``: :func:`rbo_jax.simulate`,
+    :func:`rbo_jax.fast_simulate`, the chunk program of :func:`rbo_jax.sweep` and
+    :func:`rbo_jax.stability_map`, :func:`rbo_jax.fit`, :func:`rbo_jax.hopf_point`,
+    :func:`rbo_jax.periodic_orbit`), so that a second process neither traces nor compiles them.
 
     **Arguments:** ``path``, the directory (made if missing); default
     ``$RBO_JAX_COMPILATION_CACHE``, else ``~/.cache/rbo_jax/jax-cache`` (``$XDG_CACHE_HOME``

@@ -11,10 +11,12 @@ of that call is a hit in the persistent compilation cache.
 
 The store is off unless :func:`rbo_jax.enable_compilation_cache` (or ``$RBO_JAX_COMPILATION_CACHE``
 at import, or the command line) turns it on; then the stored entry points are
-:func:`rbo_jax.fast_simulate` (its compiled solve), the chunk program of :func:`rbo_jax.sweep` and
-its presets (``batch/_program.py``, which keys the user's quantity by
-:func:`rbo_jax._callables.stable_text`) and :func:`rbo_jax.fit`. The key of a program is a SHA-256
-of everything its tracing depends on:
+:func:`rbo_jax.simulate` and :func:`rbo_jax.fast_simulate` (their compiled solves), the chunk
+program of :func:`rbo_jax.sweep` and its presets (``batch/_program.py``, which keys the user's
+quantity by :func:`rbo_jax._callables.stable_text`), :func:`rbo_jax.fit`,
+:func:`rbo_jax.hopf_point` and :func:`rbo_jax.periodic_orbit`. Small programs (Newton loops, the
+fit) are compiled with :func:`small_program_options`. The key of a program is a SHA-256 of
+everything its tracing depends on:
 
 - the function (module and qualified name), or the caller's description of it;
 - the structure of the arguments, every node's type by module and qualified name and its static
@@ -52,12 +54,13 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import numpy as np
 
 from . import _cache
 from ._callables import describe_treedef, stable_text
 
-__all__ = ["PACKAGES", "enable_program_store", "load", "program_key", "program_store", "save",
-           "stored"]
+__all__ = ["PACKAGES", "enable_program_store", "jit", "load", "program", "program_key",
+           "program_store", "save", "small_program_options", "stored"]
 
 _CALLS: dict[tuple[pathlib.Path, str], Callable | None] = {}
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
@@ -197,17 +200,18 @@ def _export(fn, leaves, treedef, static):
     return jax.export.export(jax.jit(flat))(*specs)
 
 
-def call_of(exported: jax.export.Exported, name: str) -> Callable:
-    """The jitted call of a stored program, named ``name`` (in JAX's logs and cache)."""
+def call_of(exported: jax.export.Exported, name: str, options: dict | None = None) -> Callable:
+    """The jitted call of a stored program, named ``name`` (in JAX's logs and cache), compiled
+    with XLA's ``options``."""
 
     def call(*xs):
         return exported.call(*xs)
 
     call.__name__ = call.__qualname__ = name
-    return jax.jit(call)
+    return jax.jit(call, compiler_options=options)
 
 
-def _program(fn, key, leaves, treedef, static) -> Callable | None:
+def _program(fn, key, leaves, treedef, static, options=None) -> Callable | None:
     store = _cache.program_store()
     if (store, key) in _CALLS:  # None: not exportable, remembered for this process
         return _CALLS[store, key]
@@ -227,7 +231,7 @@ def _program(fn, key, leaves, treedef, static) -> Callable | None:
             _CALLS[store, key] = None
             return None
         save(key, exported)
-    call = _CALLS[store, key] = call_of(exported, _name(fn))  # the program keeps fn's name
+    call = _CALLS[store, key] = call_of(exported, _name(fn), options)  # it keeps fn's name
     return call
 
 
@@ -235,11 +239,12 @@ def _name(fn) -> str:
     return getattr(fn, "__name__", None) or getattr(fn, "__qualname__", "program")
 
 
-def stored(fn: Callable) -> Callable:
+def stored(fn: Callable, options: Callable[[], dict | None] = lambda: None) -> Callable:
     """Decorate a jitted function (``eqx.filter_jit``) whose programs the store keeps: with the
     store on, a call looks its program up by the key of the module docstring (exporting it the
     first time); with it off, for arguments that cannot be keyed safely, or for traced
-    arguments (inside ``jit``, ``vmap``, ...), it calls ``fn``."""
+    arguments (inside ``jit``, ``vmap``, ...), it calls ``fn``. ``options()``: XLA's options
+    for the compilation of a stored program (those ``fn`` is compiled with)."""
 
     @functools.wraps(fn)
     def wrapper(*args):
@@ -248,12 +253,88 @@ def stored(fn: Callable) -> Callable:
         key, leaves, treedef, static = _key(fn, args)
         if key is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
             return fn(*args)
-        call = _program(fn, key, leaves, treedef, static)
+        call = _program(fn, key, leaves, treedef, static, options())
         if call is None:
             return fn(*args)
-        return call(*leaves)
+        try:
+            return call(*leaves)
+        except ValueError as e:  # called inside a jit trace with concrete arguments
+            if not _nested_options(e):
+                raise
+            return fn(*args)
 
     wrapper.__wrapped__ = fn
     if hasattr(fn, "lower"):
         wrapper.lower = fn.lower  # the traced program, as for the jitted function itself
     return wrapper
+
+
+# XLA's options for small programs (small_program_options), known to this XLA or not
+_SMALL = {"xla_cpu_use_fusion_emitters": False}
+
+
+@functools.cache
+def small_program_options() -> dict | None:
+    """XLA's options for programs whose compilation outweighs their run time: a Newton loop
+    (:func:`rbo_jax.hopf_point`, :func:`rbo_jax.periodic_orbit`, continuations), a fit's
+    residuals and Jacobian (milliseconds per call, seconds to compile).
+
+    On CPU, XLA's element-wise emitters instead of its newer MLIR fusion emitters
+    (``xla_cpu_use_fusion_emitters=False``), which build an MLIR context and pipeline per
+    fusion. Measured (benchmarks/README.md, 2-core machine): the fit's program 3.9-4.2 s ->
+    2.4-3.2 s to compile, the Hopf program 4.1-4.3 s -> 2.8-3.2 s; the same emitters make the
+    vmapped DOP853 of :func:`rbo_jax.fast_simulate` ~25 % slower per trajectory, which is why
+    the sweep and simulation programs keep XLA's defaults. ``None`` (the defaults) on other
+    backends and where this XLA does not know the option (checked once, by compiling a tiny
+    program)."""
+    if jax.default_backend() != "cpu":
+        return None
+    try:
+        jax.jit(lambda x: x + 1.0).lower(np.float32(0.0)).compile(dict(_SMALL))
+    except jax.errors.JaxRuntimeError:
+        return None
+    return dict(_SMALL)
+
+
+def _nested_options(e: ValueError) -> bool:
+    """Whether ``e`` is JAX's refusal of compiler options on a jit inside another trace."""
+    return "compiler_options" in str(e) and "top-level" in str(e)
+
+
+def jit(fn: Callable, *, small: bool = False) -> Callable:
+    """``eqx.filter_jit(fn)``, with ``small``: compiled with :func:`small_program_options` when
+    called at the top level (JAX refuses compiler options on a jit inside another trace: there
+    it is the plain ``eqx.filter_jit``, inlined in the caller's program). The jitted functions
+    are made on first use (the options need JAX's backend, which ``import rbo_jax`` does not
+    start)."""
+    made: dict = {}
+
+    def jitted(options):
+        if options not in made:
+            made[options] = eqx.filter_jit(
+                fn, compiler_options=small_program_options() if options else None)
+        return made[options]
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if small and small_program_options() is not None and not any(
+                isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))):
+            try:
+                return jitted(True)(*args, **kwargs)
+            except ValueError as e:  # inside a jit trace, with concrete arguments
+                if not _nested_options(e):
+                    raise
+        return jitted(False)(*args, **kwargs)
+
+    def lower(*args, **kwargs):
+        return jitted(small and small_program_options() is not None).lower(*args, **kwargs)
+
+    call.lower = lower
+    return call
+
+
+def program(fn: Callable, *, small: bool = False) -> Callable:
+    """The compiled entry point of ``fn``: :func:`jit` of it, kept by the program store
+    (:func:`stored`; positional arguments only)."""
+    return stored(jit(fn, small=small),
+                  small_program_options if small else lambda: None)

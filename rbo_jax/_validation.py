@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
+import sys
 from collections.abc import Callable
 
 import equinox as eqx
@@ -94,10 +95,61 @@ def error_if(x, pred, message: str):
     """:func:`equinox.error_if` for a check inside the equations of motion (a configuration
     where they are undefined); while tracing inside :func:`failures_as_nan`, ``x`` becomes NaN
     where ``pred`` holds instead, which a solver with ``throw=False`` reports as a non-finite
-    state."""
+    state. Inside :func:`checked_inputs_trusted` it keeps equinox's setting from before."""
     if _FAILURES_AS_NAN.get():
         return jnp.where(pred, jnp.nan, x)
-    return eqx.error_if(x, pred, message)
+    on_error = _ON_ERROR.get()
+    if on_error == "default":
+        return eqx.error_if(x, pred, message)
+    return eqx.error_if(x, pred, message, on_error=on_error)
+
+
+# equinox's setting for error_if outside checked_inputs_trusted ("default": equinox decides)
+_ON_ERROR: contextvars.ContextVar = contextvars.ContextVar("rbo_jax_on_error", default="default")
+
+
+@contextlib.contextmanager
+def checked_inputs_trusted(on: bool = True):
+    """While tracing a diffrax solve whose inputs rbo_jax has checked on the host, turn off the
+    runtime checks that diffrax makes of them again (``SaveAt.ts`` increasing and within
+    ``[t0, t1]``, the sign of ``dt0``): they are host callbacks (:func:`equinox.error_if`), and
+    JAX's persistent compilation cache and ``jax.export`` keep no program that holds one, so
+    :func:`rbo_jax.simulate` would trace and compile in every process.
+
+    equinox reads the default of ``error_if`` from a module variable of ``equinox._errors``
+    (set from ``$EQX_ON_ERROR``) when the check is traced; this context sets it to ``"off"``
+    and gives :func:`error_if` (rbo_jax's checks inside the equations of motion) the value from
+    before. Only for callers that have checked those inputs and trace no user code that may
+    call ``equinox.error_if`` (:func:`library_code_only`). With another equinox (no such
+    variable) it does nothing: the program then holds the callbacks, and is compiled in every
+    process, as before."""
+    errors = sys.modules.get("equinox._errors")
+    if not on or errors is None or not isinstance(getattr(errors, "EQX_ON_ERROR", None), str):
+        yield
+        return
+    before = errors.EQX_ON_ERROR
+    token = _ON_ERROR.set(before)
+    errors.EQX_ON_ERROR = "off"
+    try:
+        yield
+    finally:
+        errors.EQX_ON_ERROR = before
+        _ON_ERROR.reset(token)
+
+
+def library_code_only(tree) -> bool:
+    """Whether ``tree`` (a model) is made of rbo_jax's own classes, arrays and plain values only:
+    no user function (a callable foundation or load), no user subclass, whose code could call
+    :func:`equinox.error_if` (:func:`checked_inputs_trusted` would turn that off)."""
+    if tree is None or isinstance(tree, (bool, int, float, complex, str, np.ndarray, np.generic,
+                                         jax.Array, np.dtype)):
+        return True
+    if isinstance(tree, (tuple, list)):
+        return all(library_code_only(x) for x in tree)
+    if isinstance(tree, eqx.Module) and type(tree).__module__.split(".")[0] == "rbo_jax":
+        return all(library_code_only(getattr(tree, f.name, None))
+                   for f in dataclasses.fields(tree))
+    return False
 
 
 @contextlib.contextmanager

@@ -26,10 +26,13 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from . import _enumeration as enum
 from ._custom_types import Vector
-from ._validation import _common_float_dtype
+from ._programs import stored
+from ._validation import _common_float_dtype, checked_inputs_trusted, library_code_only
 from .kinematics import (
     _as_vector,
     _safe_norm,
@@ -172,21 +175,56 @@ def simulate(
     if form not in ("right", "left"):
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
     inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
+    _check_start(t0, dt0, inputs.ts)
     args = (model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype, t0,
             solver, rtol, atol, dt0, dtmin, max_steps, adjoint, stepsize_controller, singular_tol,
             form, throw, progress)
     # Concrete inputs: one compiled program for everything between the checks and the result
-    # (the step-size bounds, A^-1, the statuses), not a dozen small eager ones; inside a
+    # (the step-size bounds, A^-1, the statuses), not a dozen small eager ones, without diffrax's
+    # host callbacks where that is safe (kept by JAX's cache and the program store); inside a
     # transformation, the solve itself.
-    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
-    theta, Omega, status, steps = (_solve if traced else _solve_compiled)(*args)
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args)):
+        theta, Omega, code, steps = _solve(*args)
+    else:
+        with checked_inputs_trusted(_trusted(model, solver, adjoint, stepsize_controller)):
+            theta, Omega, code, steps = _solve_compiled(*args)
+    status = enum.from_code(SolveStatus, code)
     return finish(model, inputs, theta, Omega, status, steps, throw)
+
+
+def _check_start(t0, dt0, ts):
+    """Concrete ``t0`` and ``dt0`` checked on the host (diffrax's own checks of them, and of the
+    sample times, are host callbacks, which the compiled solve leaves out:
+    :func:`rbo_jax._validation.checked_inputs_trusted`)."""
+    if t0 is not None and not isinstance(t0, jax.core.Tracer):
+        t0 = np.asarray(t0)
+        if t0.shape != () or not np.isfinite(t0):
+            raise ValueError(f"t0 must be a finite scalar, got {t0.tolist()!r}.")
+        if not isinstance(ts, jax.core.Tracer) and t0 > np.asarray(ts)[0]:
+            raise ValueError(f"t0 must not be after the first sample time ts[0] = "
+                             f"{float(np.asarray(ts)[0])!r}, got {float(t0)!r}.")
+    if dt0 is not None and not isinstance(dt0, jax.core.Tracer):
+        dt0 = np.asarray(dt0)
+        if dt0.shape != () or not (np.isfinite(dt0) and dt0 > 0):
+            raise ValueError(f"dt0 must be a finite number > 0 (the solve runs forward in "
+                             f"time), got {dt0.tolist()!r}.")
+
+
+def _trusted(model, *diffrax_objects) -> bool:
+    """Whether the compiled solve may leave out diffrax's checks of the inputs (checked on the
+    host): the model is rbo_jax's own code (no user function that may call ``eqx.error_if``)
+    and the solver, adjoint and controller are diffrax's, not ``StepTo`` (whose own checks of
+    its times would go too)."""
+    return library_code_only(model) and all(
+        x is None or (type(x).__module__.split(".")[0] == "diffrax"
+                      and not isinstance(x, diffrax.StepTo))
+        for x in diffrax_objects)
 
 
 def _solve(model, theta0, Omega0, ts, bad_times, dtype, t0, solver, rtol, atol, dt0, dtmin,
            max_steps, adjoint, stepsize_controller, singular_tol, form, throw, progress):
-    """The diffrax solve of :func:`simulate` from checked inputs: ``(theta, Omega, status,
-    accepted steps)``."""
+    """The diffrax solve of :func:`simulate` from checked inputs: ``(theta, Omega, status code,
+    accepted steps)``, plain arrays (a program the store can keep)."""
     # Bad traced times (throw=False) are replaced by zeros: then t0 = t1 = 0 too.
     t0 = ts[0] if t0 is None else jnp.where(bad_times, ts[0], jnp.asarray(t0, dtype))
     t1 = ts[-1]
@@ -233,10 +271,13 @@ def _solve(model, theta0, Omega0, ts, bad_times, dtype, t0, solver, rtol, atol, 
     )
     status = _status_from_solution(sol, event_names)
     theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
-    return theta, Omega, status, sol.stats["num_accepted_steps"]
+    return theta, Omega, enum.code(status), sol.stats["num_accepted_steps"]
 
 
-_solve_compiled = eqx.filter_jit(_solve)
+# With the program store on (rbo_jax.enable_compilation_cache) a second process loads it traced;
+# a program with host callbacks (a user function in the model, progress=True, throw=True with a
+# check in the equations of motion) is marked unexportable and traced as usual.
+_solve_compiled = stored(eqx.filter_jit(_solve))
 
 
 # --------------------------------------------------------------------------------------------

@@ -21,6 +21,8 @@ solves $\det(p^2 E - pB - C_\theta) = 0$, $B = Z^TJ_\Omega Z^{-T}$, $C_\theta = 
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -28,6 +30,7 @@ import optimistix as optx
 from jaxtyping import Array, Complex, Float, Int
 
 from ._custom_types import Matrix, Scalar, Vector
+from ._programs import jit
 from .kinematics import (
     _as_vector,
     distance_to_singularity,
@@ -98,7 +101,7 @@ def _static_moment(model: RigidBodyOscillator, t):
     return fn
 
 
-@eqx.filter_jit
+@functools.partial(jit, small=True)
 def solve_equilibrium(
     model: RigidBodyOscillator,
     theta_guess,

@@ -203,19 +203,23 @@ model = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(1.0, 
                                     rbo_jax.FollowerMoment(0.3, K))
 traj = rbo_jax.fast_simulate(model, np.array([1e-3, -5e-4, 0.2]), np.zeros(3),
                              np.linspace(0.0, 5.0, 11), rtol=1e-8, atol=1e-10)
+diffrax_traj = rbo_jax.simulate(model, np.array([1e-3, -5e-4, 0.2]), np.zeros(3),
+                                np.linspace(0.0, 5.0, 11), rtol=1e-8, atol=1e-10)
 ds = rbo_jax.stability_map(lambda M, c: rbo_jax.nikolai_model(M, c, 2.0, A3=0.5, k=K),
                            {"M": np.linspace(-0.8, 0.8, 5), "c": np.linspace(0.2, 2.0, 4)},
                            theta_eq_fn=lambda M, c: rbo_jax.nikolai_equilibrium(M, 2.0, K),
                            progress=False)
-for a in (traj.theta, traj.Omega, ds["eigenvalues"], ds["spectral_abscissa"]):
+for a in (traj.theta, traj.Omega, diffrax_traj.theta, diffrax_traj.Omega, ds["eigenvalues"],
+          ds["spectral_abscissa"]):
     print(np.asarray(a).tobytes().hex())
 """
 
 
-def test_a_second_process_loads_fast_simulate_and_the_map_without_tracing(tmp_path):
-    """Two real processes sharing a cache directory: the first exports fast_simulate's solve
-    and the map's chunk program, the second loads both (JAX's log shows no trace of them) and
-    gives the same bits."""
+def test_a_second_process_loads_the_solves_and_the_map_without_tracing(tmp_path):
+    """Two real processes sharing a cache directory: the first exports the solves of
+    fast_simulate and simulate (diffrax, default throw=True) and the map's chunk program, the
+    second loads all three (JAX's log shows no trace of them, and a cache hit for simulate's
+    compiled program) and gives the same bits."""
     import os
     import subprocess
     import sys
@@ -229,31 +233,67 @@ def test_a_second_process_loads_fast_simulate_and_the_map_without_tracing(tmp_pa
         return proc.stdout, proc.stderr
 
     first, log = run()
-    assert "Finished tracing _solve_export" in log and "Finished tracing point" in log
-    assert len(list((tmp_path / "cache" / "programs").glob("*.jaxexport"))) == 2
+    assert log.count("Finished tracing _solve_export") == 2 and "Finished tracing point" in log
+    assert len(list((tmp_path / "cache" / "programs").glob("*.jaxexport"))) == 3
     again, log = run()
-    assert "Finished tracing _solve_export" not in log, "fast_simulate was traced again"
+    assert "Finished tracing _solve_export" not in log, "a solve was traced again"
     assert "Finished tracing point" not in log, "the map's quantity was traced again"
     assert "Persistent compilation cache hit for 'jit_chunk_program'" in log
+    assert log.count("Persistent compilation cache hit for 'jit__solve'") == 2
     assert again == first
 
 
-def test_simulate_programs_hold_host_callbacks_so_they_are_not_stored():
-    """diffrax checks the sample times with host callbacks (eqx.error_if) even with
-    throw=False: simulate's compiled program cannot be exported, so it is not wrapped with the
-    store (trying would trace it twice). Should this fail, wrap simulate._solve_compiled."""
+def _simulate_program_text(model, throw=False, **options):
+    """The StableHLO of simulate's compiled solve, traced as simulate traces it (or, with
+    ``trusted=False``, without leaving out diffrax's checks)."""
     import importlib
 
     simulate = importlib.import_module("rbo_jax.simulate")
+    from rbo_jax._validation import checked_inputs_trusted
     from rbo_jax.trajectory import prepare_inputs
 
-    model = rbo_jax.nikolai_model(0.3, 1.0, 1.5)
+    trusted = options.pop("trusted", True)
     ts = np.linspace(0.0, 1.0, 3)
-    inputs = prepare_inputs(model, np.array([0.0, 0.0, 0.2]), np.zeros(3), ts, 1e-8, 1e-8, False)
-    text = simulate._solve_compiled.lower(
-        model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype, None,
-        None, 1e-8, 1e-8, None, None, 100, None, None, 1e-3, "right", False, False).as_text()
-    assert "callback" in text
+    inputs = prepare_inputs(model, np.array([0.0, 0.0, 0.2]), np.zeros(3), ts, 1e-8, 1e-8, throw)
+    args = dict(t0=None, solver=None, rtol=1e-8, atol=1e-8, dt0=None, dtmin=None,
+                max_steps=100, adjoint=None, stepsize_controller=None, singular_tol=1e-3,
+                form="right", throw=throw, progress=False)
+    args.update(options)
+    jax.clear_caches()  # trace again (the context is read at trace time)
+    with checked_inputs_trusted(trusted and simulate._trusted(
+            model, args["solver"], args["adjoint"], args["stepsize_controller"])):
+        return simulate._solve_compiled.lower(
+            model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype,
+            *args.values()).as_text()
+
+
+def test_simulate_programs_hold_no_host_callback_where_the_inputs_are_checked():
+    """diffrax checks the sample times (and dt0) again with host callbacks (eqx.error_if), which
+    keep a program out of JAX's persistent cache and the program store: simulate, having
+    checked them on the host, traces its solve without them. A check inside the equations of
+    motion (throw=True, SemiTangentialMoment), a user function in the model and StepTo keep
+    their callbacks."""
+    import diffrax
+
+    model = rbo_jax.nikolai_model(0.3, 1.0, 1.5)
+    assert "callback" in _simulate_program_text(model, trusted=False)  # diffrax's checks
+    for throw in (False, True):
+        assert "callback" not in _simulate_program_text(model, throw=throw)
+    assert "callback" not in _simulate_program_text(model, dt0=0.01, solver=diffrax.Tsit5(),
+                                                    stepsize_controller=diffrax.ConstantStepSize())
+    K = np.array([0.0, 0.0, 1.0])
+    semi = rbo_jax.RigidBodyOscillator(np.eye(3), rbo_jax.QuadraticFoundation(1.0, 1.0, K),
+                                       [rbo_jax.SemiTangentialMoment(0.1, K)])
+    assert "callback" not in _simulate_program_text(semi, throw=False)  # NaN, not a raise
+    assert "callback" in _simulate_program_text(semi, throw=True)  # (4.75)'s check is kept
+
+    def F(s):
+        return 0.5 * eqx.error_if(s, s > 100.0, "user check")
+
+    user = rbo_jax.RigidBodyOscillator(np.eye(3), rbo_jax.IsotropicFoundation(F))
+    assert "callback" in _simulate_program_text(user)  # the user's check is kept
+    step_to = diffrax.StepTo(ts=np.linspace(0.0, 1.0, 11))
+    assert "callback" in _simulate_program_text(model, stepsize_controller=step_to)
 
 
 def test_the_environment_variable_turns_the_cache_on_at_import(tmp_path):
@@ -302,3 +342,45 @@ def test_jax_settings_that_change_a_trace_are_part_of_the_key():
         assert _programs.program_key("program") != key
     assert _programs.program_key("program") == key
     assert _programs.program_key("<function f at 0x7f00>") is None  # an address: never stored
+
+
+def test_small_programs_take_xla_options_at_the_top_level_only(monkeypatch):
+    """``_programs.jit(fn, small=True)`` compiles with XLA's options for small programs where it
+    is called at the top level; JAX refuses compiler options on a jit inside another trace, so
+    there (traced arguments, or concrete ones inside a jit, vmap or export) it is the plain
+    jitted function. Same values everywhere. Where XLA does not know the option, no options."""
+    assert _programs.small_program_options() == {"xla_cpu_use_fusion_emitters": False}
+
+    def f(x, scale):
+        return jnp.sin(x) * scale
+
+    x = jnp.linspace(0.0, 1.0, 5)
+    expected = np.sin(np.linspace(0.0, 1.0, 5)) * 2.0
+
+    def check(small, program):
+        np.testing.assert_allclose(jax.jit(small)(x, 2.0), expected, rtol=1e-15)
+        np.testing.assert_allclose(jax.jit(lambda: small(x, 2.0))(), expected, rtol=1e-15)
+        np.testing.assert_allclose(jax.vmap(small, (0, None))(x[:, None], 2.0)[:, 0], expected,
+                                   rtol=1e-15)
+        exported = jax.export.export(jax.jit(lambda y: small(y, 2.0)))(
+            jax.ShapeDtypeStruct(x.shape, x.dtype))
+        np.testing.assert_allclose(exported.call(x), expected, rtol=1e-15)
+        np.testing.assert_allclose(jax.jit(lambda: program(x, 2.0))(), expected, rtol=1e-15)
+
+    np.testing.assert_allclose(_programs.jit(f, small=True)(x, 2.0), expected, rtol=1e-15)
+    check(_programs.jit(f, small=True), _programs.program(f, small=True))
+    # the options reach XLA at the top level only: one it does not know is refused there
+    monkeypatch.setattr(_programs, "small_program_options", lambda: {"xla_no_such_option": True})
+    with pytest.raises(jax.errors.JaxRuntimeError, match="No such compile option"):
+        _programs.jit(f, small=True)(x, 2.0)
+    check(_programs.jit(f, small=True), _programs.program(f, small=True))
+    monkeypatch.undo()
+    # an XLA that does not know the option: the probe says so, and programs are plain
+    monkeypatch.setattr(_programs, "_SMALL", {"xla_no_such_option": True})
+    _programs.small_program_options.cache_clear()
+    try:
+        assert _programs.small_program_options() is None
+        np.testing.assert_allclose(_programs.jit(f, small=True)(x, 2.0), expected, rtol=1e-15)
+    finally:
+        monkeypatch.undo()
+        _programs.small_program_options.cache_clear()

@@ -25,7 +25,7 @@ import scipy.linalg
 import scipy.stats
 from jaxtyping import Array
 
-from rbo_jax.foundations import BarrierFoundation
+from rbo_jax.foundations import BarrierFoundation, QuadraticFoundation
 from rbo_jax.inertia import transversely_isotropic_inertia
 from rbo_jax.loads import CallableLoad, Friction, SemiTangentialMoment
 from rbo_jax.model import RigidBodyOscillator
@@ -508,6 +508,33 @@ def test_bad_arguments_are_refused():
         simulate(make_model().foundation, THETA0, OMEGA0, TS)
     with pytest.raises(ValueError, match="theta0"):
         simulate(make_model(), jnp.zeros(2), OMEGA0, TS)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(t0=0.5), "t0 must not be after"), (dict(t0=np.nan), "t0 must be a finite"),
+    (dict(t0=np.zeros(2)), "t0 must be a finite scalar"), (dict(dt0=-0.1), "dt0 must be"),
+    (dict(dt0=0.0), "dt0 must be"), (dict(dt0=np.inf), "dt0 must be")])
+def test_bad_start_time_and_first_step_are_refused_on_the_host(kwargs, match):
+    """diffrax's own checks of t0, dt0 and the sample times are host callbacks, which the
+    compiled solve leaves out (so that JAX's cache and the program store keep it): simulate
+    refuses a bad concrete t0 or dt0 itself, with a ValueError naming it."""
+    with pytest.raises(ValueError, match=match):
+        simulate(make_model(), THETA0, OMEGA0, TS + 0.25, **kwargs)
+
+
+def test_undefined_moment_direction_still_raises_in_the_compiled_solve():
+    """The compiled solve leaves out diffrax's checks of the inputs, not rbo_jax's checks in the
+    equations of motion: started where the direction of the semi-tangential moment (4.75) is
+    undefined (a half turn about an axis ⊥ k, l1 = l2), throw=True raises its message, and
+    throw=False stops with a status."""
+    k = np.array([0.0, 0.0, 1.0])
+    model = RigidBodyOscillator(np.eye(3), QuadraticFoundation(1.0, 2.0, k),
+                                [SemiTangentialMoment(1.0, k)])
+    half_turn = np.array([0.0, np.pi, 0.0])
+    with pytest.raises(Exception, match="direction of the moment"):
+        jax.block_until_ready(simulate(model, half_turn, np.zeros(3), TS).theta)
+    traj = simulate(model, half_turn, np.zeros(3), TS, throw=False)
+    assert traj.status_name != "successful"
 
 
 def test_integer_and_float32_inputs_give_float64_results(right_trajectory):

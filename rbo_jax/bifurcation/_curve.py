@@ -14,12 +14,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .. import _enumeration as enum
+from .._programs import jit
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._hopf import HopfStatus, Static, canonical, finish, solution
@@ -54,7 +54,7 @@ def _curve(static, t, p, guess, values, theta_guess):
     return points
 
 
-_curve_jit = eqx.filter_jit(_curve)
+_curve_jit = jit(_curve, small=True)
 
 
 def _batched(others: dict) -> list[str]:

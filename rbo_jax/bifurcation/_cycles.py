@@ -23,13 +23,14 @@ Along the branch: the Floquet multipliers (stable if every nontrivial one has $|
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import jit
 from ..ensemble import fast_simulate
 from ..model import RigidBodyOscillator
 from ._field import flat_field
@@ -58,7 +59,7 @@ def _system(model_fn, parameter, others, solver, u, g, x_ref, tau, u_k, s):
     return r, A, D[:, :6], ok
 
 
-@eqx.filter_jit
+@functools.partial(jit, small=True)
 def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref, tol,
              max_newton):
     g = flat_field(_build(model_fn, _point(others, parameter, alpha_ref)))(x_ref)

@@ -20,13 +20,14 @@ three points around them (error $O(s^3)$).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import jit
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ..stability import solve_equilibrium
@@ -62,7 +63,7 @@ def _tangent(Gu, tau_prev):
     return tau, jnp.linalg.det(jnp.concatenate([Gu, tau[None, :]]))
 
 
-@eqx.filter_jit
+@functools.partial(jit, small=True)
 def _step(model_fn, parameter, t, others, u, tau, s, tol, max_newton):
     """Predictor, Newton corrector, new tangent and spectrum. The loop's last evaluation (at the
     point whose correction is below ``tol``) gives the tangent and the spectrum."""

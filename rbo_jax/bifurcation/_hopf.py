@@ -51,7 +51,7 @@ from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
 from .._callables import callable_key
-from .._programs import stored
+from .._programs import program
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._lyapunov import first_lyapunov_coefficient
@@ -144,7 +144,7 @@ class Raw(NamedTuple):
 
 # One program per model structure: with the program store on (rbo_jax.enable_compilation_cache)
 # a second process loads it traced (user functions keyed by their code, _programs).
-_program = stored(eqx.filter_jit(hopf_program))
+_program = program(hopf_program, small=True)  # XLA's options for small programs
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))

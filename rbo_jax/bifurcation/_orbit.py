@@ -22,6 +22,8 @@ second multiplier equals 1) give the minimum-norm correction instead of a singul
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,7 +31,7 @@ import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
-from .._programs import stored
+from .._programs import jit, program
 from ..ensemble import fast_simulate
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
@@ -123,7 +125,7 @@ def _state(theta0, Omega0):
     return jnp.concatenate([_as_vector(theta0, "theta0"), _as_vector(Omega0, "Omega0")])
 
 
-@eqx.filter_jit
+@functools.partial(jit, small=True)
 def floquet_multipliers(model: RigidBodyOscillator, theta0, Omega0, period, *, rtol=1e-10,
                         atol=1e-10, max_steps=100_000) -> Complex[Array, "6"]:
     r"""The six Floquet multipliers of the periodic orbit through $(\theta_0, \Omega_0)$ with
@@ -190,7 +192,7 @@ def _shoot(model, x_ref, period, tol, max_newton, rtol, atol, max_steps):
 
 # With the program store on (rbo_jax.enable_compilation_cache) a second process loads it traced;
 # models holding a plain callable (no stable name across processes) are traced as usual.
-_shoot_program = stored(eqx.filter_jit(_shoot))
+_shoot_program = program(_shoot, small=True)  # XLA's options for small programs
 
 
 def periodic_orbit(model: RigidBodyOscillator, theta0, Omega0, period, *, tol=1e-9,

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import stored
+from .._programs import program
 from ..ensemble import fast_simulate
 from ..kinematics import turn_tensor, turn_vector
 from ..model import RigidBodyOscillator
@@ -188,8 +188,6 @@ def loss(u, model, datas, spec):
 loss_and_grad = eqx.filter_jit(jax.value_and_grad(loss))
 
 
-@stored
-@eqx.filter_jit
 def residuals_and_jacobian(u, model, datas, spec):
     """Whitened residuals at ``u`` and their forward-mode Jacobian (one JVP per fitted scalar,
     batched). The single compiled program of a least-squares fit: iterations, trial points and
@@ -203,6 +201,10 @@ def residuals_and_jacobian(u, model, datas, spec):
 
     J, r = jax.jacfwd(f, has_aux=True)(u)
     return r, J
+
+
+# XLA's options for small programs: an iteration takes milliseconds, the compilation seconds
+residuals_and_jacobian = program(residuals_and_jacobian, small=True)
 
 
 def flatten(tree):
