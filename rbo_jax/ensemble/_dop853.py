@@ -104,7 +104,7 @@ def _row_sum(cols, coefs, k):
     return acc
 
 
-def stages(f, t, y, f0, h, store: Store, last=NS + 1):
+def stages(f, t, y, f0, h, store: Store, last=NS + 1, first=1):
     """``rk_step`` with the stages in one loop: K[0] = f0, K[s] = f(t + c_s h, y + h Σ_j A[s, j]
     K[j]) for s = 1 … ``last`` − 1, y_new = y + h Σ B K. Row 12 of the tableau is B and c_12 = 1,
     so stage 12 is the slope at the new point, K[12] = f(t + h, y_new) (the first stage of the
@@ -118,7 +118,9 @@ def stages(f, t, y, f0, h, store: Store, last=NS + 1):
     vector field f in a step (the unrolled step held 15: compile time grows with the copies, as
     diffrax measured when it moved its stages into a loop). Each row is applied through its
     non-zero coefficients only (:func:`_sparse_rows`: summing all 15 columns cost ~15 % of the
-    run time of a batch)."""
+    run time of a batch). ``first = 0`` (traced or not) makes the first slope again, K[0] =
+    f(t, y) (row 0 of the tableau is zero), in place of ``f0``: after the state was changed
+    between steps (a lattice's re-centred turn-vectors)."""
     n = len(y)
     dtype = jnp.result_type(*y)
     cols, coefs = jnp.asarray(_COLS), jnp.asarray(_COEFS, dtype)
@@ -131,7 +133,7 @@ def stages(f, t, y, f0, h, store: Store, last=NS + 1):
         k = store(f(t + C[s] * h, ys))
         return tuple(K[i].at[s].set(k[i]) for i in range(n))
 
-    K = lax.fori_loop(1, last, body, K0)
+    K = lax.fori_loop(first, last, body, K0)
     y_new = store(tuple(y[i] + h * _combine(T.B, K, i) for i in range(n)))
     return y_new, K
 
@@ -141,8 +143,14 @@ def slope(K, j):
     return tuple(k[j] for k in K)
 
 
-def error_norm(K, y, y_new, h_abs, rtol, atol):
-    """``DOP853._estimate_error_norm`` (RMS over the n components)."""
+def _identity(x):
+    return x
+
+
+def error_norm(K, y, y_new, h_abs, rtol, atol, total=_identity, size=1):
+    """``DOP853._estimate_error_norm`` (RMS over the n components). Each component is one lane's
+    scalar (``total`` the identity), or an array of ``size`` scalars of one system (a lattice's
+    bodies) that ``total`` sums: the norm is then over all ``n × size`` scalars, as SciPy's."""
     n = len(y)
     s5 = s3 = None
     for i in range(n):
@@ -152,10 +160,10 @@ def error_norm(K, y, y_new, h_abs, rtol, atol):
         s5 = a * a if s5 is None else s5 + a * a
         s3 = b * b if s3 is None else s3 + b * b
     # SciPy squares np.linalg.norm: the square of the square root, rounded alike
-    e5, e3 = jnp.sqrt(s5) ** 2, jnp.sqrt(s3) ** 2
+    e5, e3 = jnp.sqrt(total(s5)) ** 2, jnp.sqrt(total(s3)) ** 2
     zero = (e5 == 0.0) & (e3 == 0.0)
     denom = jnp.where(zero, 1.0, e5 + 0.01 * e3)
-    return jnp.where(zero, 0.0, h_abs * e5 / jnp.sqrt(denom * n))
+    return jnp.where(zero, 0.0, h_abs * e5 / jnp.sqrt(denom * (n * size)))
 
 
 def controller(err, h_abs, rejected):
@@ -169,20 +177,25 @@ def controller(err, h_abs, rejected):
     return accept, h_abs * jnp.where(accept, grow, shrink)
 
 
-def _rms(v):
+def _rms_of(v, total=_identity, size=1):
     s = None
     for x in v:
         s = x * x if s is None else s + x * x
-    return jnp.sqrt(s / len(v))
+    return jnp.sqrt(total(s) / (len(v) * size))
 
 
-def initial_step(f, t0, y0, t_bound, rtol, atol):
+def initial_step(f, t0, y0, t_bound, rtol, atol, total=_identity, size=1):
     """The first slope f0 = f(t0, y0) and ``common.select_initial_step`` (no maximal step,
     forward direction): ``(f0, h)``. Its two evaluations, f(t0, y0) and f(t0 + h0, y0 + h0 f0),
     are one loop of two iterations (one traced copy of f; the first runs at h0 = 0 from zero
-    slopes, i.e. at (t0, y0) exactly)."""
+    slopes, i.e. at (t0, y0) exactly). ``total``, ``size``: as :func:`error_norm` (the RMS
+    norms over one system's ``n × size`` scalars)."""
     interval = jnp.abs(t_bound - t0)
     scale = [atol + jnp.abs(y) * rtol for y in y0]
+
+    def _rms(v):
+        return _rms_of(v, total, size)
+
     d0 = _rms([y / s for y, s in zip(y0, scale)])
 
     def first_guess(f0):

@@ -259,18 +259,32 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
     fns = _Lanes(batched)
     store = D.Store(_one((pool, y0, ts)))
     with storing(store):
-        problem = _gather(pool, batched, jnp.arange(B))
-        st = _initial(fns.f(problem), fns.failure(problem), ts[0], tuple(v[:B] for v in y0),
-                      ts[-1], cfg)
+        # Every lane starts idle, holding no trajectory (tid N): the loop's refill gives them
+        # their first ones, so the program holds the initial step once (a separate start on B
+        # lanes was a second copy of the vector field: 336 -> 291 fusions, XLA's compilation of
+        # the 1000-lane program 3.2-3.3 -> 2.5-2.6 s, measured side by side)
+        problem = _gather(pool, batched, jnp.zeros(B, jnp.int32))
+        zero = jnp.zeros(B, ts.dtype)
+        st = dict(t=jnp.full(B, ts[0]), y=(zero,) * 6, f=(zero,) * 6, h=zero,
+                  rej=jnp.zeros(B, bool), status=jnp.full(B, code("successful"), jnp.int32),
+                  nacc=jnp.zeros(B, jnp.int32), natt=jnp.zeros(B, jnp.int32))
         first_ok = fns.failure(to_lanes(pool, batched))(y0, y0, cfg.singular_tol) == code(
             "successful")
         y_first = jnp.where(first_ok[:, None], jnp.stack(y0, -1), jnp.inf)
         out = jnp.full((N, nts, 6), jnp.inf, dtype=ts.dtype).at[:, 0].set(y_first)
-        c = dict(st=st, problem=problem, tid=jnp.arange(B, dtype=jnp.int32),
-                 idx=jnp.ones(B, jnp.int32), out=out, next=jnp.asarray(B, jnp.int32),
+        c = dict(st=st, problem=problem, tid=jnp.full(B, N, jnp.int32),
+                 idx=jnp.ones(B, jnp.int32), out=out, next=jnp.asarray(0, jnp.int32),
                  status_out=jnp.zeros(N, jnp.int32), nacc_out=jnp.zeros(N, jnp.int32))
 
+        def wants_refill(c):
+            n_idle = jnp.sum(c["st"]["status"] != RUNNING)
+            return (c["next"] < N) & ((n_idle >= R) | (n_idle == B))
+
         def body(c):
+            # first the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
+            # in the first iteration)
+            c = lax.while_loop(wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg,
+                                                               fns, R, store), c)
             c = dict(c)
             st, step = attempt(fns.f(c["problem"]), fns.failure(c["problem"]), c["st"], ts[-1],
                                cfg, store, wants_dense=sample_ahead(c["idx"], ts))
@@ -282,12 +296,10 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
             c["idx"], c["out"] = _emit(step, ts, c["idx"], c["out"], st["t"], write,
                                        dense_sampler(step, ts, st["t"]))
             c["st"] = st
-            n_idle = jnp.sum(st["status"] != RUNNING)
-            refill = (c["next"] < N) & ((n_idle >= R) | (n_idle == B))
-            return lax.cond(refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R,
-                                                      store), lambda c: c, c)
+            return c
 
-        c = lax.while_loop(lambda c: jnp.any(c["st"]["status"] == RUNNING), body, c)
-    status = c["status_out"].at[c["tid"]].set(c["st"]["status"])
-    nacc = c["nacc_out"].at[c["tid"]].set(c["st"]["nacc"])
+        c = lax.while_loop(lambda c: jnp.any(c["st"]["status"] == RUNNING) | (c["next"] < N),
+                           body, c)
+    status = c["status_out"].at[c["tid"]].set(c["st"]["status"], mode="drop")
+    nacc = c["nacc_out"].at[c["tid"]].set(c["st"]["nacc"], mode="drop")
     return c["out"], status, nacc
