@@ -34,6 +34,7 @@ import jax.numpy as jnp
 
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
 from ._validation import (
+    NONNEGATIVE,
     POSITIVE,
     POSITIVE_OR_INF,
     _callable_leaf,
@@ -42,13 +43,15 @@ from ._validation import (
     requirement_checks,
     set_parameters,
 )
-from .kinematics import Turn, _as_vector, dot3, stored
+from .kinematics import Turn, _as_vector, _cosc, _sinc, dot3, stored
 
 __all__ = [
     "AbstractFoundation",
     "QuadraticFoundation",
     "BarrierFoundation",
     "IsotropicFoundation",
+    "CosineFoundation",
+    "ZeroFoundation",
     "TransverselyIsotropicFoundation",
     "SumFoundation",
     "AbstractTransverselyIsotropicFoundation",
@@ -336,6 +339,82 @@ class IsotropicFoundation(AbstractFoundation):
         r"""$dU/d\theta = 2F'(\theta^2)\,\theta$."""
         theta = _as_vector(theta)
         return self.coefficients(theta)[0] * theta
+
+
+class CosineFoundation(AbstractFoundation):
+    r"""The isotropic foundation $U = c\,(1 - \cos\theta)
+    = \tfrac c2\,(3 - \mathrm{tr}\,Q(\theta))$, $\theta = |\theta|$ (section 4.2.3,
+    $F(\theta^2) = c(1 - \cos\sqrt{\theta^2})$): the
+    pendulum among foundations. Its energy depends on the turn only through the turn-tensor
+    (4.3), so $\theta$ and $\theta - 2\pi\theta/|\theta|$ have the same energy; near rest it is
+    the quadratic foundation with $c = d$. Its moment is $M_e = -c\,\frac{\sin\theta}{\theta}
+    \,\theta$ ($C = c\sin\theta/\theta$, $D = 0$ in (4.47)). Plane rotations $\theta = \varphi
+    k$ of a chain of such bodies, coupled by a quadratic foundation of the relative turn, are
+    the discrete sine-Gordon (Frenkel–Kontorova) chain (:mod:`rbo_jax.lattice`). Energy, moment
+    and their derivatives are exact at $\theta = 0$ ($1 - \cos\theta = \theta^2\,(1 - \cos
+    \theta)/\theta^2$ by a series there). Defined everywhere; ``c >= 0``.
+    """
+
+    c: Scalar
+
+    domain_description: ClassVar[str] = "nothing (it is defined everywhere)"
+
+    _requirements: ClassVar = (("c", NONNEGATIVE, "stiffness"),)
+
+    def __init__(self, c: ScalarLike):
+        set_parameters(self, c=c)
+
+    def energy(self, theta: VectorLike) -> Scalar:
+        r"""$U = c\,(1 - \cos\theta) = c\,\theta^2\,\frac{1 - \cos\theta}{\theta^2}$."""
+        theta = _as_vector(theta)
+        t = dot3(theta, theta)
+        return self.c * t * _cosc(t)
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return jnp.full((), jnp.inf, dtype=theta.dtype)
+
+    @property
+    def isotropic(self) -> bool:
+        return True
+
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        r"""$C = c\sin\theta/\theta$, $D = 0$ (4.48)."""
+        theta = _as_vector(theta)
+        C = self.c * _sinc(dot3(theta, theta))
+        return C, jnp.zeros_like(C)
+
+    def gradient(self, theta: VectorLike) -> Vector:
+        r"""$dU/d\theta = c\,\frac{\sin\theta}{\theta}\,\theta$."""
+        theta = _as_vector(theta)
+        return self.coefficients(theta)[0] * theta
+
+
+class ZeroFoundation(AbstractFoundation):
+    r"""No foundation, $U = 0$: a free body (Kelvin's medium, where the bodies of a lattice are
+    held by their couplings alone, :mod:`rbo_jax.lattice`)."""
+
+    domain_description: ClassVar[str] = "nothing (it is defined everywhere)"
+
+    def energy(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return jnp.zeros((), dtype=theta.dtype)
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        theta = _as_vector(theta)
+        return jnp.full((), jnp.inf, dtype=theta.dtype)
+
+    @property
+    def isotropic(self) -> bool:
+        return True
+
+    def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
+        theta = _as_vector(theta)
+        zero = jnp.zeros((), dtype=theta.dtype)
+        return zero, zero
+
+    def gradient(self, theta: VectorLike) -> Vector:
+        return jnp.zeros_like(_as_vector(theta))
 
 
 class TransverselyIsotropicFoundation(AbstractTransverselyIsotropicFoundation):

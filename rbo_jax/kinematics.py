@@ -270,8 +270,9 @@ def turn_tensor(theta: VectorLike) -> Matrix:
 
 def _quaternion(theta):
     """Unit quaternion (w, v) = (cos(θ/2), sin(θ/2)/θ · θ) of the turn-vector θ (half-angle form
-    of (4.3))."""
-    t = jnp.dot(theta, theta)
+    of (4.3)). Component by component (:func:`dot3`), as all of the quaternion helpers: under
+    ``vmap`` elementwise code, not batched ``dot_general`` calls."""
+    t = dot3(theta, theta)
     return _cos(0.25 * t), 0.5 * _sinc(0.25 * t) * theta
 
 
@@ -286,7 +287,7 @@ def _log_quaternion(w, v):
     sign = jnp.where(w < 0, -jnp.ones_like(w), jnp.ones_like(w))
     w = sign * w
     v = sign * v
-    s2 = jnp.dot(v, v)
+    s2 = dot3(v, v)
     small = s2 < _X2_SWITCH * w * w
     w_safe = jnp.where(small, w, jnp.ones_like(w))
     x2 = jnp.where(small, s2, jnp.zeros_like(s2)) / (w_safe * w_safe)
@@ -384,11 +385,14 @@ def compose(phi: VectorLike, psi: VectorLike) -> Vector:
     """
     phi = _as_vector(phi, "phi")
     psi = _as_vector(psi, "psi")
-    w1, v1 = _quaternion(phi)
-    w2, v2 = _quaternion(psi)
-    w = w1 * w2 - jnp.dot(v1, v2)
-    v = w1 * v2 + w2 * v1 + jnp.cross(v1, v2)
-    return _log_quaternion(w, v)
+    return _log_quaternion(*_quaternion_product(_quaternion(phi), _quaternion(psi)))
+
+
+def _quaternion_product(p, q):
+    r"""The product of unit quaternions ``p = (w1, v1)``, ``q = (w2, v2)``: the quaternion of
+    $Q(\varphi)\cdot Q(\psi)$ (Euler–Rodrigues), component by component."""
+    (w1, v1), (w2, v2) = p, q
+    return w1 * w2 - dot3(v1, v2), w1 * v2 + w2 * v1 + cross3(v1, v2)
 
 
 # --------------------------------------------------------------------------------------------

@@ -79,10 +79,20 @@ class RightForm(eqx.Module):
 
     def __call__(self, t, y, args=None) -> tuple[Vector, Vector]:
         theta, Omega = y
+        with failures_as_nan(not self.throw):
+            return self.rates(t, theta, Omega, self.model.foundation.gradient(theta))
+
+    def rates(self, t, theta, Omega, gradient, moment=None) -> tuple[Vector, Vector]:
+        r"""$(\dot\theta, \dot\Omega)$ of (4.55)–(4.56) with ``gradient`` in place of
+        $d(U+V)/d\theta$ (the foundation's own in :meth:`__call__`) and ``moment``, a further
+        body-frame moment $P^T\cdot M$ (the couplings to other bodies of a lattice,
+        :mod:`rbo_jax.lattice`)."""
         model = self.model
         with failures_as_nan(not self.throw):
             turn = Turn(theta)
-            M = -turn.Z(model.foundation.gradient(theta))
+            M = -turn.Z(gradient)
+            if moment is not None:
+                M = M + moment
             for load in model.loads:
                 M = M + load.body_moment(t, theta, Omega, turn)
             r = stored(M - cross3(Omega, matvec3(model.inertia, Omega)))

@@ -28,6 +28,7 @@ LAYERS = [
     ("stability", "precession"),
     ("maps",),
     ("fitting", "bifurcation"),
+    ("lattice",),
     ("batch",),
     ("plotting",),
     ("app",),

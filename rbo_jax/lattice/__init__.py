@@ -1,0 +1,22 @@
+r"""Lattices of rigid body oscillators: chains and grids of coupled bodies (media whose every
+point is a rigid body: Cosserat continua, liquid crystals, Kelvin's medium).
+
+Bodies on the sites, each a :class:`rbo_jax.RigidBodyOscillator`, neighbours coupled by an
+energy of their relative turn (:mod:`._lattice`); every body obeys the right form
+(4.55)–(4.56) with the gradient of the total energy (:mod:`._field`). Simulation on the lattice
+DOP853 (:mod:`._integrate`), diffrax, or a symplectic Lie-group splitting (:mod:`._splitting`,
+:mod:`._simulate`); linear waves by the Bloch matrix (:mod:`._dispersion`); nonlinear waves
+(:mod:`._waves`); fits of stiffnesses to fields and dispersion curves (:mod:`._fit`).
+"""
+
+from .. import _lazy
+
+__getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
+    "._lattice": ("Lattice", "chain", "grid"),
+    "._field": ("body_moments", "coupling_energy", "coupling_moments", "energy_gradient",
+                "kinetic_moment", "relative_turns", "total_energy"),
+    "._simulate": ("simulate",),
+    "._trajectory": ("LatticeTrajectory",),
+    "._dispersion": ("bloch_blocks", "bloch_matrix", "dispersion", "group_velocity",
+                     "uniform_equilibrium"),
+})

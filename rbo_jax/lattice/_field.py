@@ -1,0 +1,223 @@
+r"""Energies, forces and the equations of motion of a lattice, on component-major arrays.
+
+Every function here takes the turn-vectors and angular velocities of all bodies as ``(3, N)``
+arrays (component first: each component a contiguous ``(N,)`` array, so that per-body code
+``jax.vmap``-ed over the last axis is element-wise code over the bodies).
+
+The coupling energy is evaluated through unit quaternions: $q_i$ of every body once, the
+relative turn of an edge $\varphi_{ij}$ from $\bar q_i q_j$ (the quaternion of
+$Q^T(\theta_i)\cdot Q(\theta_j)$) by the principal logarithm of
+:func:`rbo_jax.kinematics.compose` — exact, with finite derivatives, at $\varphi = 0$. Its
+gradient with respect to every $\theta_i$ is reverse-mode automatic differentiation of the sum:
+on a grid the neighbours are ``jnp.roll``s (their transposes are rolls back), on an edge list
+gathers (their transposes are segment sums).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from ..kinematics import (
+    Turn,
+    _log_quaternion,
+    _quaternion,
+    _quaternion_product,
+    matvec3,
+    stored,
+)
+from ..model import RightForm
+from ..trajectory import TRANSVERSE_TOL, transverse_fraction
+from ._lattice import Lattice
+
+__all__ = ["body_moments", "coupling_energy", "coupling_moments", "energy_gradient",
+           "kinetic_moment", "rates", "recentre",
+           "right_forms", "site_energy", "total_energy", "relative_turns", "transverse"]
+
+TWO_PI = 2.0 * math.pi
+
+
+def _per_body(fn, *args, in_axes=None):
+    """``fn`` over the bodies: ``jax.vmap`` over the last axis of each ``(3, N)`` argument (or
+    the leading axis, per ``in_axes``)."""
+    axes = tuple(jnp.ndim(a) - 1 for a in args) if in_axes is None else in_axes
+    return jax.vmap(fn, in_axes=axes, out_axes=-1)(*args)
+
+
+def _quaternions(theta):
+    """``(w (N,), v (3, N))``: the unit quaternion of every body's turn (kept, not recomputed
+    in every consumer: :func:`rbo_jax.kinematics.stored`)."""
+    w, v = _per_body(_quaternion, theta)
+    return stored(w), stored(v)
+
+
+def _relative(qi, qj):
+    """The principal relative turn-vectors ``(3, E)`` of pairs of quaternions (i to j, in i's
+    frame): log of conj(q_i)·q_j."""
+    (wi, vi), (wj, vj) = qi, qj
+
+    def one(wi, vi, wj, vj):
+        return _log_quaternion(*_quaternion_product((wi, -vi), (wj, vj)))
+
+    return stored(jax.vmap(one, in_axes=(0, 1, 0, 1), out_axes=1)(wi, vi, wj, vj))
+
+
+def _pairs(lattice: Lattice, theta):
+    """The relative turns of every coupled pair and their weights (1, or 0 for the pairs that a
+    free end leaves out of a grid's stencil): ``[(phi (3, M), weight (M,) or None), ...]``, one
+    entry per axis of a grid, one for an edge list."""
+    w, v = _quaternions(theta)
+    if not lattice.is_grid:
+        i, j = lattice.edges[:, 0], lattice.edges[:, 1]
+        return [(_relative((w[i], v[:, i]), (w[j], v[:, j])), None)]
+    shape = lattice.shape
+    wg, vg = jnp.reshape(w, shape), jnp.reshape(v, (3,) + shape)
+    out = []
+    for axis, periodic in enumerate(lattice.periodic):
+        wn = jnp.roll(wg, -1, axis=axis)
+        vn = jnp.roll(vg, -1, axis=axis + 1)
+        phi = _relative((jnp.ravel(wg), jnp.reshape(vg, (3, -1))),
+                        (jnp.ravel(wn), jnp.reshape(vn, (3, -1))))
+        weight = None
+        if not periodic:  # the pair (last, first) along this axis is not coupled
+            idx = jnp.arange(shape[axis]).reshape((-1,) + (1,) * (len(shape) - axis - 1))
+            weight = jnp.ravel(jnp.broadcast_to(idx < shape[axis] - 1, shape)).astype(phi.dtype)
+        out.append((phi, weight))
+    return out
+
+
+def relative_turns(lattice: Lattice, theta):
+    r"""The relative turn-vectors $\varphi_{ij}$ of the coupled pairs: for a grid a list with one
+    ``(3, N)`` array per axis (site $i$ to its next neighbour along the axis; the wrapped pair of
+    a free end included, with weight 0 in the energy), for an edge list one ``(3, E)`` array."""
+    return [phi for phi, _ in _pairs(lattice, theta)]
+
+
+def coupling_energy(lattice: Lattice, theta):
+    r"""$\sum_{(i,j)} W(\varphi_{ij})$, every coupled pair once."""
+    total = jnp.zeros((), theta.dtype)
+    for phi, weight in _pairs(lattice, theta):
+        Wk = _per_body(lattice.coupling.energy, phi)
+        total = total + jnp.sum(Wk if weight is None else Wk * weight)
+    return total
+
+
+def _sites(lattice: Lattice, fn, *args):
+    """``fn(body, *args_i)`` for every site (per-site bodies or one body): ``(..., N)``."""
+    axes = (lattice.body_axes(),) + tuple(jnp.ndim(a) - 1 for a in args)
+    return jax.vmap(fn, in_axes=axes, out_axes=-1)(lattice.site_bodies(), *args)
+
+
+def site_energy(lattice: Lattice, theta):
+    r"""$\sum_i U_i(\theta_i) + V_i(\theta_i)$: the foundations and potential loads (4.52)."""
+    return jnp.sum(_sites(lattice, lambda b, th: b.potential_energy(th), theta))
+
+
+def total_energy(lattice: Lattice, theta, Omega):
+    r"""$\sum_i \tfrac12\Omega_i\cdot A_i\cdot\Omega_i + U$: conserved without friction and
+    non-potential loads ((4.78) summed over the bodies)."""
+    kinetic = jnp.sum(_sites(lattice, lambda b, Om: b.kinetic_energy(Om), Omega))
+    return kinetic + site_energy(lattice, theta) + coupling_energy(lattice, theta)
+
+
+def coupling_moments(lattice: Lattice, theta):
+    r"""The body-frame moments of the couplings on every body, ``(3, N)``: the potential moment
+    (4.23) of the relative turn. Body $j$ turned by $\varphi_{ij}$ from body $i$ is a body on a
+    foundation of energy $W$ fixed to body $i$: the moment on it is $-Z^T(\varphi)\cdot
+    dW/d\varphi$ in body $i$'s frame (4.46), that is $-Z(\varphi)\cdot dW/d\varphi$ in its own
+    ($Q^T(\varphi)\cdot Z^T(\varphi) = Z(\varphi)$, (4.13)); body $i$ takes the opposite moment,
+    $Z^T(\varphi)\cdot dW/d\varphi$ in its frame (a couple that depends on the relative turn
+    only is internal: the total kinetic moment is kept). The same moments as
+    $-Z(\theta_i)\cdot\partial U_W/\partial\theta_i$ of the coupling energy (tested), without
+    differentiating the quaternion logarithm."""
+    def per_pair(phi):
+        turn = Turn(phi)
+        g = lattice.coupling.gradient(phi)
+        return turn.ZT(g), -turn.Z(g)  # on i, on j (each in its own frame)
+
+    total = jnp.zeros_like(theta)
+    pairs = _pairs(lattice, theta)
+    if not lattice.is_grid:
+        on_i, on_j = _per_body(per_pair, pairs[0][0])
+        i, j = lattice.edges[:, 0], lattice.edges[:, 1]
+        n = theta.shape[1]
+        seg = jax.vmap(lambda x, idx: jax.ops.segment_sum(x, idx, num_segments=n),
+                       in_axes=(0, None))
+        return seg(on_i, i) + seg(on_j, j)
+    shape = lattice.shape
+    for axis, (phi, weight) in enumerate(pairs):
+        on_i, on_j = _per_body(per_pair, phi)
+        if weight is not None:
+            on_i, on_j = on_i * weight[None, :], on_j * weight[None, :]
+        # the pair (site, next along the axis): on_j acts on the next site
+        on_j = jnp.roll(jnp.reshape(on_j, (3,) + shape), 1, axis=axis + 1)
+        total = total + on_i + jnp.reshape(on_j, (3, -1))
+    return total
+
+
+def energy_gradient(lattice: Lattice, theta):
+    r"""$\partial U/\partial\theta_i$ for every body, ``(3, N)``: each foundation's own gradient
+    (closed forms where it has them) plus the reverse-mode gradient of the coupling energy."""
+    own = _sites(lattice, lambda b, th: b.foundation.gradient(th), theta)
+    return own + jax.grad(coupling_energy, argnums=1)(lattice, theta)
+
+
+def right_forms(lattice: Lattice, throw: bool = False) -> RightForm:
+    """Every body's :class:`rbo_jax.RightForm` ($A^{-1}$ computed once): per-site leaves with a
+    leading axis N, or one for all."""
+    if not lattice.per_site:
+        return lattice.body.right_form(throw)
+    return jax.vmap(lambda b: b.right_form(throw), in_axes=(lattice.body_axes(),))(
+        lattice.site_bodies())
+
+
+def rates(lattice: Lattice, forms: RightForm, t, theta, Omega):
+    r"""$(\dot\theta, \dot\Omega)$ of every body, ``(3, N)`` each: (4.55)–(4.56) with each
+    foundation's gradient and the couplings' moments (:func:`coupling_moments`), which together
+    are $-Z(\theta_i)\cdot\partial U/\partial\theta_i$ of the total energy."""
+    moments = coupling_moments(lattice, theta)
+    axes = jax.tree_util.tree_map(lambda x: 0 if lattice.per_site and eqx.is_array(x) else None,
+                                  forms)
+
+    def one(f, th, Om, m):
+        return f.rates(t, th, Om, f.model.foundation.gradient(th), m)
+
+    return jax.vmap(one, in_axes=(axes, 1, 1, 1), out_axes=(1, 1))(forms, theta, Omega, moments)
+
+
+def body_moments(lattice: Lattice, theta):
+    r"""The body-frame moments of the foundations and couplings on every body, ``(3, N)``:
+    $-Z(\theta_i)\cdot dU_i/d\theta_i$ plus :func:`coupling_moments` (no loads)."""
+    own = _sites(lattice, lambda b, th: -Turn(th).Z(b.foundation.gradient(th)), theta)
+    return own + coupling_moments(lattice, theta)
+
+
+def kinetic_moment(lattice: Lattice, theta, Omega):
+    r"""The total kinetic moment $\sum_i Q(\theta_i)\cdot A_i\cdot\Omega_i$ (4.44), conserved
+    when no foundation and no load acts (Kelvin's medium: the couplings are internal)."""
+    def one(b, th, Om):
+        return Turn(th).rotate(matvec3(b.inertia, Om))
+
+    return jnp.sum(_sites(lattice, one, theta, Omega), axis=-1)
+
+
+def transverse(theta, Omega):
+    """Per body: whether its motion is off the plane (θ×Ω ≠ 0, beyond the tolerance of
+    :func:`rbo_jax.simulate`)."""
+    return _per_body(transverse_fraction, theta, Omega) > TRANSVERSE_TOL
+
+
+def recentre(theta, Omega, margin):
+    r"""The bodies off the plane within ``margin`` of a singular sphere $|\theta| = 2\pi k$ of
+    $Z$ (4.11) re-centred, $\theta \to \theta\,(1 - 2\pi k/|\theta|)$: the same turn-tensor,
+    a turn-vector far from the sphere. Returns ``(theta, k per body (0: not moved))``."""
+    n = lax.stop_gradient(jnp.sqrt(theta[0] ** 2 + theta[1] ** 2 + theta[2] ** 2))
+    k = jnp.maximum(jnp.round(n / TWO_PI), 1.0)
+    near = jnp.abs(n - TWO_PI * k) < margin
+    move = near & (n >= math.pi) & lax.stop_gradient(transverse(theta, Omega))
+    scale = jnp.where(move, 1.0 - TWO_PI * k / jnp.where(move, n, 1.0), 1.0)
+    return theta * scale[None, :], jnp.where(move, k, 0.0).astype(jnp.int32)

@@ -1,0 +1,251 @@
+r"""``lattice.simulate``: the motion of a lattice, by three integrators.
+
+- ``method="dop853"`` (default): the whole lattice as one system of $6N$ equations, DOP853 with
+  SciPy's steps, error norm and dense output (:mod:`._integrate`): the fast path for large N,
+  with re-centred turn-vectors off the plane near the singular spheres.
+- ``method="diffrax"``: :func:`diffrax.diffeqsolve` with any solver (default ``Dopri8``) and
+  adjoint (reverse-mode gradients); stops with ``singular_point`` where a body nears a singular
+  sphere off the plane.
+- ``method="splitting"``: the Lie-group splitting of :mod:`._splitting` with fixed steps of at
+  most ``dt``, for lattices without loads: symplectic, its energy error bounded over any number
+  of steps.
+"""
+
+from __future__ import annotations
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _enumeration as enum
+from .._programs import program
+from .._validation import (
+    _common_float_dtype,
+    _is_traced,
+    checked_inputs_trusted,
+    library_code_only,
+)
+from ..kinematics import distance_to_singularity
+from ..simulate import _status_from_solution
+from ..trajectory import SolveStatus, check_times, warn_if_float32
+from ._field import rates, right_forms, transverse
+from ._integrate import Config, Problem, solve
+from ._lattice import Lattice
+from ._splitting import split
+from ._trajectory import LatticeTrajectory
+
+__all__ = ["simulate"]
+
+METHODS = ("dop853", "diffrax", "splitting")
+
+
+def _state(x, lattice: Lattice, name: str, dtype):
+    """``x`` (``(N, 3)`` or ``(*shape, 3)``) as a component-major ``(3, N)`` array."""
+    traced = _is_traced(x)
+    a = x if traced else np.asarray(x)
+    n = lattice.size
+    if tuple(a.shape) not in ((n, 3), tuple(lattice.shape) + (3,)):
+        raise ValueError(f"lattice.simulate: {name} must have shape ({n}, 3) or "
+                         f"{tuple(lattice.shape) + (3,)} (one vector per body), got "
+                         f"{tuple(a.shape)}.")
+    if not traced:
+        if np.iscomplexobj(a):
+            raise TypeError(f"lattice.simulate: {name} must be real.")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"lattice.simulate: {name} must be finite.")
+        return jax.device_put(np.ascontiguousarray(a.reshape(n, 3).T.astype(dtype)))
+    return jnp.reshape(a, (n, 3)).T.astype(dtype)
+
+
+def _cast(lattice: Lattice, dtype):
+    """The lattice with its float leaves in ``dtype`` (integers, the edges, kept)."""
+    return jax.tree_util.tree_map(
+        lambda x: x.astype(dtype) if eqx.is_inexact_array(x) and x.dtype != dtype else x,
+        lattice)
+
+
+def _parameters_ok(lattice: Lattice):
+    """Whether every parameter is valid (bodies and coupling): a NumPy bool for concrete ones
+    (the constructors checked them), else a traced bool (:meth:`parameter_status`)."""
+    leaves = jax.tree_util.tree_leaves(lattice)
+    if not any(_is_traced(x) for x in leaves):
+        return np.bool_(True)
+    if lattice.per_site:
+        ok = jax.vmap(lambda b: b.parameter_status()[0], in_axes=(lattice.body_axes(),))(
+            lattice.site_bodies())
+        ok = jnp.all(ok)
+    else:
+        ok = lattice.body.parameter_status()[0]
+    for valid, _ in lattice.coupling.parameter_checks():
+        ok = ok & jnp.all(jnp.asarray(valid))
+    return ok
+
+
+def _dop853(lattice, theta0, Omega0, ts, cfg: Config):
+    out = solve(Problem.of(lattice), tuple(theta0) + tuple(Omega0), ts, cfg)
+    return out["samples"], out["turns"], out["status"], out["num_steps"], out["num_recentred"]
+
+
+def _near_singular(lattice, singular_tol, t, y, args, **kwargs):
+    theta, Omega = y
+    near = jax.vmap(distance_to_singularity, in_axes=1)(theta) < singular_tol
+    return jnp.any(near & transverse(theta, Omega))
+
+
+def _diffrax(lattice, theta0, Omega0, ts, solver, rtol, atol, max_steps, singular_tol, adjoint):
+    forms = right_forms(lattice)
+
+    def field(t, y, args):
+        return rates(lattice, forms, t, *y)
+
+    cond = jax.tree_util.Partial(_near_singular, lattice, jnp.asarray(singular_tol, ts.dtype))
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(field), diffrax.Dopri8() if solver is None else solver,
+        t0=ts[0], t1=ts[-1], dt0=None, y0=(theta0, Omega0), saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        event=diffrax.Event(cond_fn=[cond]), max_steps=max_steps, throw=False)
+    status = _status_from_solution(sol, ("singular_point",))
+    theta, Omega = sol.ys
+    samples = jnp.concatenate([theta, Omega], axis=1).transpose(0, 2, 1)
+    samples = jnp.where(jnp.isfinite(samples), samples, jnp.inf)
+    turns = jnp.zeros((ts.shape[0], theta0.shape[1]), jnp.int32)
+    return (samples, turns, enum.code(status), sol.stats["num_accepted_steps"],
+            jnp.asarray(0, jnp.int32))
+
+
+def _splitting(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin):
+    samples, turns, steps = split(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin)
+    finite = jnp.all(jnp.isfinite(samples))
+    status = jnp.where(finite, enum.code(SolveStatus.successful),
+                       enum.code(SolveStatus.nonfinite_state))
+    return samples, turns, status.astype(jnp.int32), steps, jnp.sum(turns[-1] > 0)
+
+
+_PROGRAMS = {"dop853": program(_dop853), "diffrax": program(_diffrax),
+             "splitting": program(_splitting)}
+_TRACED = {"dop853": _dop853, "diffrax": _diffrax, "splitting": _splitting}
+
+
+def _config(lattice, method, rtol, atol, max_steps, singular_tol, recenter, recenter_margin,
+            dt) -> Config:
+    """The checked settings of :func:`simulate` (a clear error naming the bad one)."""
+    if not isinstance(lattice, Lattice):
+        raise TypeError(f"lattice.simulate: lattice must be a rbo_jax.lattice.Lattice, got "
+                        f"{type(lattice).__name__}.")
+    if method not in METHODS:
+        raise ValueError(f"lattice.simulate: method must be one of {METHODS}, got {method!r}.")
+    try:
+        cfg = Config(float(rtol), float(atol), int(max_steps), float(singular_tol),
+                     bool(recenter), float(recenter_margin))
+    except (TypeError, jax.errors.ConcretizationTypeError):
+        raise TypeError("lattice.simulate: rtol, atol, max_steps, singular_tol and "
+                        "recenter_margin must be Python numbers (they are compiled in).") from None
+    if not (cfg.rtol > 0 and cfg.atol > 0 and cfg.max_steps >= 1 and cfg.singular_tol > 0
+            and 0 < cfg.recenter_margin < math.pi):
+        raise ValueError(f"lattice.simulate: need rtol, atol, singular_tol > 0, max_steps >= 1 "
+                         f"and 0 < recenter_margin < pi, got {cfg}.")
+    if method == "splitting":
+        if dt is None or _is_traced(dt) or not (float(dt) > 0 and math.isfinite(float(dt))):
+            raise ValueError(f"lattice.simulate: method='splitting' needs a step dt > 0 (a "
+                             f"number), got {dt!r}.")
+        if lattice.body.loads:
+            raise ValueError("lattice.simulate: method='splitting' integrates conservative "
+                             "lattices (no loads: its kicks are the gradient of the foundations "
+                             "and couplings); use method='dop853' or 'diffrax' with loads.")
+    return cfg
+
+
+def simulate(
+    lattice: Lattice,
+    theta0,
+    Omega0,
+    ts,
+    *,
+    method: str = "dop853",
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    singular_tol: float = 1e-3,
+    recenter: bool = True,
+    recenter_margin: float = 0.5,
+    solver: diffrax.AbstractSolver | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    dt: float | None = None,
+    dtype=None,
+    throw: bool = True,
+) -> LatticeTrajectory:
+    r"""Integrate a lattice (every body's (4.55)–(4.56) with the gradient of the total energy)
+    from ``(theta0, Omega0)`` at ``ts[0]`` and sample it at ``ts``.
+
+    **Arguments:**
+
+    - `lattice`: a :class:`rbo_jax.lattice.Lattice` (:func:`rbo_jax.lattice.chain`, ...).
+    - `theta0`, `Omega0`: the turn-vectors and right angular velocities of the bodies,
+      ``(N, 3)`` or ``(*shape, 3)``.
+    - `ts`: strictly increasing sample times.
+    - `method`: ``"dop853"`` (default; SciPy's DOP853 on the whole lattice, re-centring),
+      ``"diffrax"`` (any ``solver``, default ``Dopri8``, and ``adjoint``: reverse-mode
+      gradients), or ``"splitting"`` (symplectic Lie-group splitting with steps of at most
+      ``dt``; lattices without loads only). See :mod:`rbo_jax.lattice._simulate`.
+    - `rtol`, `atol` (default 1e-8, 1e-10), `max_steps` (step attempts), `singular_tol`: the
+      adaptive methods' settings (Python numbers, compiled in).
+    - `recenter`, `recenter_margin`: re-centre the turn-vector of a body that comes within
+      ``recenter_margin`` rad of a singular sphere $|\theta| = 2\pi k$ off the plane (DOP853
+      and splitting); with ``recenter=False`` the solve stops there with ``singular_point``.
+    - `dtype`: ``jnp.float32`` runs the solve in single precision (for GPUs: see
+      ``benchmarks/README.md`` for its accuracy); default: the inputs' and parameters' precision
+      (float64 with rbo_jax's default).
+    - `throw`: raise on failure (default) or return the status.
+
+    **Returns** a :class:`rbo_jax.lattice.LatticeTrajectory`: ``theta``, ``Omega`` (T, N, 3),
+    ``turns`` (T, N), ``energy`` (T,), ``status``. jit-, vmap- (ensembles of lattices) and
+    forward-mode differentiable (all methods; ``"diffrax"`` also reverse mode).
+    """
+    cfg = _config(lattice, method, rtol, atol, max_steps, singular_tol, recenter,
+                  recenter_margin, dt)
+    ts = check_times(ts, throw)
+    params = jax.tree_util.tree_leaves(eqx.filter(lattice, eqx.is_inexact_array))
+    if dtype is None:
+        dtype = _common_float_dtype(ts, *params, *(x for x in (theta0, Omega0)
+                                                   if hasattr(x, "dtype")))
+    dtype = jax.dtypes.canonicalize_dtype(dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"lattice.simulate: dtype must be a float type, got {dtype}.")
+    lattice = _cast(lattice, dtype)
+    theta0 = _state(theta0, lattice, "theta0", dtype)
+    Omega0 = _state(Omega0, lattice, "Omega0", dtype)
+    ts = ts.astype(dtype)
+    warn_if_float32(dtype, rtol, atol)
+    ok = _parameters_ok(lattice)
+
+    if method == "dop853":
+        args = (lattice, theta0, Omega0, ts, cfg)
+    elif method == "diffrax":
+        args = (lattice, theta0, Omega0, ts, solver, cfg.rtol, cfg.atol, cfg.max_steps,
+                cfg.singular_tol, adjoint)
+    else:
+        # dt traced: one program for every step size
+        args = (lattice, theta0, Omega0, ts, jnp.asarray(dt, dtype), cfg.recenter,
+                cfg.recenter_margin)
+    if any(_is_traced(x) for x in jax.tree_util.tree_leaves(args)):
+        out = _TRACED[method](*args)
+    else:
+        trusted = library_code_only(lattice) and method == "diffrax" and all(
+            x is None or type(x).__module__.split(".")[0] == "diffrax" for x in (solver, adjoint))
+        with checked_inputs_trusted(trusted):
+            out = _PROGRAMS[method](*args)
+    samples, turns, code, num_steps, num_recentred = out
+    status = enum.from_code(SolveStatus, code)
+    if not (isinstance(ok, np.bool_) and ok):
+        status = SolveStatus.where(ok, status, SolveStatus.invalid_parameters)
+        samples = jnp.where(ok, samples, jnp.nan)
+    theta, Omega = samples[..., :3], samples[..., 3:]
+    if throw and (_is_traced(enum.code(status)) or enum.name(status) != "successful"):
+        theta = status.error_if(theta, status != SolveStatus.successful)
+    return LatticeTrajectory(ts=ts, theta=theta, Omega=Omega, turns=turns, lattice=lattice,
+                             status=status, num_steps=num_steps, num_recentred=num_recentred)
