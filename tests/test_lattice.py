@@ -414,3 +414,33 @@ def test_coupling_moments_are_the_potential_moments_of_the_total_energy():
 
         got, expected = both(lat, theta)
         np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(got).max())
+
+
+def test_fits_recover_the_stiffnesses_from_a_dispersion_curve_and_a_field():
+    """Least squares by gradients: the foundation's and the coupling's stiffnesses from the
+    closed-form branches (the torsion branch measured at every other wavenumber, NaN
+    elsewhere), and the coupling's from a recorded space-time field of a simulated chain."""
+    def lattice(c, kb, kt):
+        return L.chain(8, body(c=c), coupling(kb, kt))
+
+    qs = np.linspace(0.0, np.pi, 9)
+    wb = np.sqrt((C + 4 * KB * np.sin(qs / 2) ** 2) / A1)
+    wt = np.sqrt((D + 4 * KT * np.sin(qs / 2) ** 2) / A3)
+    omega = np.stack([wb, np.where(np.arange(9) % 2 == 0, wt, np.nan)], 1)
+    fit = L.fit_dispersion(lattice, {"c": 1.5, "kb": 0.3, "kt": 1.0}, qs, omega,
+                           branches=[0, 2])
+    assert fit.converged and float(fit.rms) < 1e-12
+    np.testing.assert_allclose([fit.params[k] for k in ("c", "kb", "kt")], [C, KB, KT],
+                               rtol=1e-10)
+
+    rng = np.random.default_rng(9)
+    th0, Om0 = rng.normal(size=(8, 3)) * 0.3, rng.normal(size=(8, 3)) * 0.5
+    ts = np.linspace(0.0, 3.0, 7)
+    field = np.asarray(L.simulate(lattice(C, KB, KT), th0, Om0, ts, rtol=1e-11,
+                                  atol=1e-12).theta)
+    fit = L.fit_field(lambda kb, kt: lattice(C, kb, kt), {"kb": 0.5, "kt": 0.5}, ts, field,
+                      th0, Om0, rtol=1e-11, atol=1e-12)
+    assert fit.converged
+    np.testing.assert_allclose([fit.params["kb"], fit.params["kt"]], [KB, KT], rtol=1e-8)
+    with pytest.raises(ValueError, match="starting values must be finite numbers > 0"):
+        L.fit_dispersion(lattice, {"c": -1.0, "kb": 0.3, "kt": 1.0}, qs, omega)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Sequence
 
@@ -173,6 +174,11 @@ def _covariance(u, model, datas, spec: Spec):
     return r, cov, se, note
 
 
+def _evaluate(u, model, datas, spec):
+    """The residuals and Jacobian of one fit at ``u`` (the compiled program of a fit)."""
+    return residuals_and_jacobian(u, model, datas, spec)
+
+
 def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, verbose):
     """Run the optimiser on each horizon in turn; returns (u, steps, converged, message)."""
     total = 0
@@ -184,8 +190,8 @@ def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, v
         )
         if optimizer in LEAST_SQUARES:
             u, steps, converged, message = run_least_squares(
-                u, model, stage, spec, optimizer, options["tol"], options["max_steps"], history,
-                bar, verbose)
+                functools.partial(_evaluate, model=model, datas=stage, spec=spec), u, optimizer,
+                options["tol"], options["max_steps"], history, bar, verbose)
         else:
             u, steps, converged, message = run_optax(
                 u, model, stage, spec, optimizer, options["learning_rate"],

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._residuals import flatten, jacobian_matrix, residuals_and_jacobian, unflatten_like
+from ._residuals import flatten, jacobian_matrix, unflatten_like
 
 _PATIENCE = 6
 
@@ -20,18 +20,21 @@ def log(history, loss, bar, verbose):
         print(f"iteration {len(history)}: loss = {float(loss):.6e}")
 
 
-def run_least_squares(u, model, datas, spec, optimizer, tol, max_steps, history, bar, verbose):
+def run_least_squares(evaluate, u, optimizer, tol, max_steps, history, bar=None,
+                      verbose=False):
     r"""Levenberg–Marquardt (Madsen, Nielsen & Tingleff 2004, Alg. 3.16, with Marquardt's
-    diagonal scaling) or damped Gauss–Newton (step halving), iterated on the host around the
-    compiled :func:`residuals_and_jacobian`.
+    diagonal scaling) or damped Gauss–Newton (step halving), iterated on the host around one
+    compiled program ``evaluate(u) -> (residuals, Jacobian as a tree like u)`` (for a fit,
+    :func:`residuals_and_jacobian`; also the lattice fits of :mod:`rbo_jax.lattice`).
 
     Why not ``optimistix.LevenbergMarquardt``: its init, step, termination and our loss and
     covariance evaluations are separate compiled programs, each one containing the ODE solve and
     its forward-mode derivative (~4 compilations of tens of seconds per fit structure); here one
-    program serves everything, and the p×p linear algebra runs in NumPy.
+    program serves everything, and the p×p linear algebra runs in NumPy. Returns ``(u, steps,
+    converged, message)``.
     """
     x = flatten(u)
-    r, J_tree = residuals_and_jacobian(u, model, datas, spec)
+    r, J_tree = evaluate(u)
     r = np.asarray(r, dtype=np.float64)
     J = jacobian_matrix(J_tree, r.size)
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
@@ -62,7 +65,7 @@ def run_least_squares(u, model, datas, spec, optimizer, tol, max_steps, history,
         accepted = False
         for _ in range(12 if gauss_newton else 1):
             x_new = x + factor * h
-            r_new, J_new = residuals_and_jacobian(unflatten_like(x_new, u), model, datas, spec)
+            r_new, J_new = evaluate(unflatten_like(x_new, u))
             r_new = np.asarray(r_new, dtype=np.float64)
             F_new = 0.5 * float(r_new @ r_new) if np.all(np.isfinite(r_new)) else np.inf
             predicted = 0.5 * float((factor * h) @ (mu * D @ (factor * h) - g))

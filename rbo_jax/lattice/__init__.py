@@ -19,4 +19,6 @@ __getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
     "._trajectory": ("LatticeTrajectory",),
     "._dispersion": ("bloch_blocks", "bloch_matrix", "dispersion", "group_velocity",
                      "uniform_equilibrium"),
+    "._waves": ("breather", "kink", "twist"),
+    "._fit": ("LatticeFit", "fit_dispersion", "fit_field"),
 })

@@ -56,10 +56,22 @@ def _require_grid(lattice: Lattice, what: str):
 
 def uniform_equilibrium(lattice: Lattice, theta_guess=None):
     r"""$\theta_{eq}$ of one body (Newton, :func:`rbo_jax.solve_equilibrium`, from
-    ``theta_guess``, default 0): with every body there, the lattice is at rest."""
+    ``theta_guess``, default 0): with every body there, the lattice is at rest.
+
+    Differentiable with respect to the parameters by the implicit function theorem, written
+    as one Newton step from the converged (constant) point, $\theta^* - J^{-1}M(\theta^*)$:
+    its value is $\theta^*$ ($M(\theta^*) = 0$), its derivative $-J^{-1}\partial M/\partial p$
+    (no solver is differentiated: this also works inside other solvers' derivatives, e.g. a
+    fit's Levenberg–Marquardt)."""
     _require_grid(lattice, "uniform_equilibrium")
+    body = lattice.body
     guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
-    return solve_equilibrium(lattice.body, guess).theta
+    theta = lax.stop_gradient(solve_equilibrium(body, guess).theta)
+
+    def moment(th):
+        return body.world_moment(0.0, th, jnp.zeros_like(th))
+
+    return theta - jnp.linalg.solve(jax.jacfwd(moment)(theta), moment(theta))
 
 
 def _cell(lattice: Lattice) -> Lattice:
