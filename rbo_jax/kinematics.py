@@ -31,6 +31,7 @@ from fractions import Fraction
 import jax.numpy as jnp
 
 from ._custom_types import Matrix, MatrixLike, Scalar, Vector, VectorLike
+from ._elementary import _atan2_nonnegative, _cot, _horner, _sincos
 
 __all__ = [
     "skew",
@@ -112,13 +113,6 @@ _ATANC = _coeffs(lambda n: Fraction((-1) ** n, 2 * n + 1), 11)
 _X2_SWITCH = 1e-2
 
 
-def _horner(coeffs: tuple[float, ...], t):
-    out = jnp.full_like(t, coeffs[-1])
-    for c in reversed(coeffs[:-1]):
-        out = out * t + c
-    return out
-
-
 def _series_or_closed_form(t, coeffs, closed_form, switch=_T_SWITCH):
     """Taylor polynomial for ``t < switch``, ``closed_form(t)`` otherwise (double where).
 
@@ -164,58 +158,6 @@ def _sinc3(t):
 def _cos(t):
     """cos θ as a function of t = θ² (smooth at θ = 0, unlike cos(sqrt(t)))."""
     return _series_or_closed_form(t, _COS, lambda t: _sincos(jnp.sqrt(t))[1])
-
-
-# cot(h) by the polynomial kernels of fdlibm (k_sin.c, k_cos.c, on |r| <= pi/4) after a 3-part
-# Cody-Waite reduction by pi/2: XLA's float64 sin and cos are scalar calls on CPU (~10 ns per
-# element, and duplicated into every fusion that uses them), these polynomials vectorise. Over
-# h in [0.5, 3.12] the result is within 61 ulp of mpmath, like libm's cos/sin quotient; the
-# reduction is exact for h < 1e6 (|theta| < 2e6 rad).
-_KSIN = (-1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04,
-         2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10)
-_KCOS = (4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05,
-         -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11)
-_INVPIO2 = 6.36619772367581382433e-01
-_PIO2 = (1.57079632673412561417e+00, 6.07710050630396597660e-11, 2.02226624871116645580e-21)
-
-
-def _reduce(h):
-    """n = round(h/(pi/2)) and r = h - n pi/2 (3-part Cody-Waite, exact for h < 1e6)."""
-    n = jnp.round(h * _INVPIO2)
-    return n, ((h - n * _PIO2[0]) - n * _PIO2[1]) - n * _PIO2[2]
-
-
-def _kernels(r):
-    """fdlibm's __kernel_sin and __kernel_cos on |r| <= pi/4: (sin r, cos r)."""
-    z = r * r
-    s = r + (z * r) * _horner(_KSIN, z)
-    w = z * z
-    cr = z * (_KCOS[0] + z * (_KCOS[1] + z * _KCOS[2])) + w * w * (
-        _KCOS[3] + z * (_KCOS[4] + z * _KCOS[5]))
-    hz = 0.5 * z
-    w1 = 1.0 - hz
-    return s, w1 + (((1.0 - w1) - hz) + z * cr)
-
-
-def _sincos(h):
-    """(sin h, cos h) for 0 <= h < 1e6 by the kernels above (see _cot): elementwise code that
-    vectorises, where XLA calls libm per element; within 1 ulp or so of libm there (tested
-    against mpmath through the coefficient functions)."""
-    n, r = _reduce(h)
-    s, c = _kernels(r)
-    q = jnp.remainder(n, 4.0)
-    sin = jnp.where(q == 0.0, s, jnp.where(q == 1.0, c, jnp.where(q == 2.0, -s, -c)))
-    cos = jnp.where(q == 0.0, c, jnp.where(q == 1.0, -s, jnp.where(q == 2.0, -c, s)))
-    return sin, cos
-
-
-def _cot(h):
-    """cot(h) for 0 <= h < 1e6 (see above): n = round(h/(pi/2)), r = h - n pi/2;
-    cot h = cos r / sin r for even n, -sin r / cos r for odd n."""
-    n, r = _reduce(h)
-    s, c = _kernels(r)
-    odd = jnp.remainder(n, 2.0) == 1.0
-    return jnp.where(odd, -s / c, c / s)
 
 
 def _gcoef(t):
@@ -317,40 +259,6 @@ def _log_quaternion(w, v):
     s_safe = jnp.sqrt(jnp.where(small, jnp.ones_like(s2), s2))
     closed = _atan2_nonnegative(s_safe, w) / s_safe
     return 2.0 * jnp.where(small, series, closed) * v
-
-
-# atan by fdlibm's s_atan.c on [0, 1] (its first three reductions), for _atan2_nonnegative
-_ATAN_HI = (4.63647609000806093515e-01, 7.85398163397448278999e-01, 1.57079632679489655800e+00)
-_ATAN_LO = (2.26987774529616870924e-17, 3.06161699786838301793e-17, 6.12323399573676603587e-17)
-_AT_ODD = (3.33333333333329318027e-01, 1.42857142725034663711e-01, 9.09088713343650656196e-02,
-           6.66107313738753120669e-02, 4.97687799461593236017e-02, 1.62858201153657823623e-02)
-_AT_EVEN = (-1.99999999998764832476e-01, -1.11111104054623557880e-01,
-            -7.69187620504482999495e-02, -5.83357013379057348645e-02,
-            -3.65315727442169155270e-02)
-
-
-def _atan01(x):
-    """atan(x) for 0 <= x <= 1 (fdlibm: reduced about 0.5 and 1, then its polynomial)."""
-    mid = x >= 0.4375
-    high = x >= 0.6875
-    xr = jnp.where(high, (x - 1.0) / (x + 1.0), jnp.where(mid, (2.0 * x - 1.0) / (2.0 + x), x))
-    z = xr * xr
-    w = z * z
-    s1 = z * _horner(_AT_ODD, w)
-    s2 = w * _horner(_AT_EVEN, w)
-    hi = jnp.where(high, _ATAN_HI[1], _ATAN_HI[0])
-    lo = jnp.where(high, _ATAN_LO[1], _ATAN_LO[0])
-    reduced = hi - ((xr * (s1 + s2) - lo) - xr)
-    return jnp.where(mid, reduced, xr - xr * (s1 + s2))
-
-
-def _atan2_nonnegative(s, w):
-    """atan2(s, w) for s, w >= 0, not both 0: atan(s/w) or pi/2 - atan(w/s), the ratio in
-    [0, 1] (vectorising code, as _sincos; finite derivatives everywhere)."""
-    swap = s > w
-    x = jnp.where(swap, w, s) / jnp.where(swap, s, w)
-    a = _atan01(x)
-    return jnp.where(swap, (_ATAN_HI[2] - a) + _ATAN_LO[2], a)
 
 
 def turn_vector(Q: MatrixLike) -> Vector:
