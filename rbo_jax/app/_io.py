@@ -2,7 +2,8 @@
 and observed trajectories read back for fitting.
 
 netCDF has no complex type and only strings, numbers and arrays as attributes, so complex
-variables are written as ``NAME_real``/``NAME_imag`` and mapping attributes as JSON text; zarr
+variables are written as ``NAME_real``/``NAME_imag``, mapping and list attributes (e.g. a
+lattice's ``shape``) as JSON text and boolean attributes as 0 or 1; zarr
 format 3 specifies variable-length strings only, so string coordinates (``component = x, y, z``)
 are written as such. Zarr stores are written with consolidated metadata, so
 ``xarray.open_zarr`` opens them directly.
@@ -34,17 +35,24 @@ def suffix(path) -> str:
     return os.path.splitext(str(path).rstrip("/"))[1].lower()
 
 
+def _netcdf_attr(v, containers=(dict, list)):
+    """An attribute netCDF can store: mappings and lists as JSON text, booleans as 0 or 1."""
+    if isinstance(v, containers):
+        return json.dumps(v)
+    if isinstance(v, (bool, np.bool_)):
+        return int(v)
+    return v
+
+
 def _for_netcdf(ds):
     ds = ds.copy()
     for name in list(ds.data_vars):
         if np.iscomplexobj(ds[name].values):
             v = ds[name]
             ds = ds.drop_vars(name).assign({f"{name}_real": v.real, f"{name}_imag": v.imag})
-    ds.attrs = {k: json.dumps(v) if isinstance(v, (dict, list)) else v
-                for k, v in ds.attrs.items()}
+    ds.attrs = {k: _netcdf_attr(v) for k, v in ds.attrs.items()}
     for name in ds.variables:
-        ds[name].attrs = {k: json.dumps(v) if isinstance(v, dict) else v
-                          for k, v in ds[name].attrs.items()}
+        ds[name].attrs = {k: _netcdf_attr(v, dict) for k, v in ds[name].attrs.items()}
     return ds
 
 

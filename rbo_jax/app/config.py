@@ -1,8 +1,9 @@
 r"""Declarative sweeps: the TOML configuration of ``rbo-jax sweep CONFIG.toml``.
 
 :func:`load_config` validates a configuration — model, axes or points, quantity, chunk size,
-output — with messages naming the file and the key at fault, describes the model as a
-:class:`~rbo_jax.app.spec.ModelSpec` and builds the quantity (:mod:`rbo_jax.app.quantities`);
+output, and for the Bloch quantities a lattice — with messages naming the file and the key at
+fault, describes the model as a :class:`~rbo_jax.app.spec.ModelSpec` (and the lattice as a
+:class:`~rbo_jax.app.spec.LatticeSpec`) and builds the quantity (:mod:`rbo_jax.app.quantities`);
 :func:`run_config` runs it with :func:`rbo_jax.sweep` and draws the map with
 :func:`rbo_jax.plot_sweep`. Examples: ``examples/*.toml``.
 """
@@ -25,12 +26,21 @@ from .._validation import POSITIVE
 from ..batch import POINT_DIM, summary_line, sweep
 from ..plotting import plot_sweep, pyplot
 from ._reader import Reader, SpecError
-from .quantities import DEFAULT_PLOT, INTEGRATORS, OUTPUTS, QUANTITIES, Settings, make_quantity
-from .spec import ModelSpec
+from .quantities import (
+    DEFAULT_PLOT,
+    INTEGRATORS,
+    LATTICE,
+    OUTPUTS,
+    QUANTITIES,
+    Settings,
+    make_quantity,
+)
+from .spec import LatticeSpec, ModelSpec
 
 __all__ = ["QUANTITIES", "ConfigError", "SweepConfig", "load_config", "run_config"]
 
-_TABLES = ("sweep", "axes", "points", "model", "initial", "solver", "equilibrium")
+_TABLES = ("sweep", "axes", "points", "model", "lattice", "initial", "solver", "equilibrium")
+_EQUILIBRIUM_ONLY = ("spectral_abscissa", *LATTICE)  # no simulation: no [initial], [solver]
 
 
 class ConfigError(ValueError):
@@ -46,7 +56,8 @@ class SweepConfig:
     ``png`` (the figure, or None), ``plot`` (the variable drawn), ``dims`` (per-point dimension
     names), ``canonical`` (the parsed configuration as canonical JSON, stored with the results
     so that ``--resume`` refuses a changed configuration), ``model`` (the
-    :class:`~rbo_jax.app.spec.ModelSpec`).
+    :class:`~rbo_jax.app.spec.ModelSpec`), ``lattice`` (the
+    :class:`~rbo_jax.app.spec.LatticeSpec` of the Bloch quantities, else None).
     """
 
     source: Path
@@ -61,6 +72,7 @@ class SweepConfig:
     dims: dict
     canonical: str
     model: ModelSpec | None = None
+    lattice: LatticeSpec | None = None
 
 
 def _axis_values(r: Reader, spec, where: str, grid: bool) -> np.ndarray:
@@ -114,10 +126,15 @@ def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
     eq = r.table(cfg, "equilibrium", "config", required=False)
     r.keys(eq, ("theta_guess", "classify_rtol"), "[equilibrium]")
     guess = r.vector(eq, "theta_guess", "[equilibrium]", default=(0.0, 0.0, 0.0))
-    if name == "spectral_abscissa":
+    if name in _EQUILIBRIUM_ONLY:
         for section in ("initial", "solver"):
             if section in cfg:
-                r.fail(f"[{section}]", "is not used by quantity 'spectral_abscissa'; remove it.")
+                r.fail(f"[{section}]", f"is not used by quantity {name!r}; remove it.")
+        if name != "spectral_abscissa":
+            if "classify_rtol" in eq:
+                r.fail("[equilibrium] classify_rtol",
+                       "is only used by quantity 'spectral_abscissa'.")
+            return Settings(theta_guess=guess)
         crtol = r.number(eq, "classify_rtol", "[equilibrium]", default=1e-9, requirement=POSITIVE,
                          axis=False)
         return Settings(theta_guess=guess, classify_rtol=crtol)
@@ -183,6 +200,18 @@ def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
     return sw
 
 
+def _read_lattice(r: Reader, cfg: Mapping, name: str) -> LatticeSpec | None:
+    if name not in LATTICE:
+        if "lattice" in cfg:
+            r.fail("[lattice]", f"is only used by the quantities {', '.join(LATTICE)}; "
+                                f"quantity {name!r} is of one body.")
+        return None
+    if "lattice" not in cfg:
+        r.fail("config", f"missing required key 'lattice': quantity {name!r} needs a [lattice] "
+                         "table (kind, n or shape, periodic, kappa_b, kappa_t, q).")
+    return LatticeSpec.from_mapping(cfg["lattice"], reader=r)
+
+
 def _check_table_names(cfg: Mapping):
     for k in cfg:
         if k not in _TABLES:
@@ -220,6 +249,7 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
         sw = _read_sweep_table(r, cfg)
         name = sw["quantity"]
         model = ModelSpec.from_mapping(r.table(cfg, "model", "config", required=True), reader=r)
+        lattice = _read_lattice(r, cfg, name)
         settings = _read_settings(r, cfg, name)
         unused = [n for n in values if n not in r.used]
         if unused:
@@ -228,14 +258,14 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
                                            "[model.foundation].")
     except SpecError as e:
         raise ConfigError(f"{path}: {e}") from None
-    quantity, dims = make_quantity(name, model, settings)
+    quantity, dims = make_quantity(name, model, settings, lattice)
     output = path.parent / sw["output"]
     png = path.parent / sw["png"] if "png" in sw else output.with_suffix(".png")
     return SweepConfig(
         source=path, quantity_name=name, quantity=quantity,
         axes=values if key == "axes" else None, points=values if key == "points" else None,
         chunk_size=sw["chunk_size"], output=output, png=png, plot=sw["plot"], dims=dims,
-        canonical=json.dumps(cfg, sort_keys=True), model=model,
+        canonical=json.dumps(cfg, sort_keys=True), model=model, lattice=lattice,
     )
 
 

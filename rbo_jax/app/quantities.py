@@ -7,7 +7,19 @@ calls on a :class:`~rbo_jax.app.spec.ModelSpec`.
 - ``energy_drift``: $\max_t |E(t) - E(0)|/|E(0)|$ over ``samples`` times;
 - ``max_deviation``: $\max_t |\theta(t) - \theta(0)|$ over ``samples`` times;
 - ``spectral_abscissa``: :func:`rbo_jax.equilibrium_stability` of the equilibrium found by Newton
-  (max Re p, the classification and $\theta_{eq}$).
+  (max Re p, the classification and $\theta_{eq}$);
+- ``bloch_growth``: the largest growth rate $\max\mathrm{Re}\,\lambda(q)$ of the Bloch waves of
+  wavenumber $q$ of a lattice of the model's bodies (the ``[lattice]`` table,
+  :class:`~rbo_jax.app.spec.LatticeSpec`) about the uniform equilibrium found by Newton
+  (:func:`rbo_jax.lattice.dispersion`): positive where waves of that length grow (a flutter
+  band over $q$ and the load);
+- ``bloch_frequencies``: the three non-negative frequencies $\mathrm{Im}\,\lambda(q)$ of the
+  branches (the three largest, in increasing order; at rest $\omega_k(q) \ge 0$), with
+  ``bloch_growth``.
+
+Every quantity returns its values and a status: the solver's
+(:class:`rbo_jax.SolveStatus`) for the simulations, the equilibrium's
+(:class:`rbo_jax.EquilibriumStatus`) for the others (values NaN where Newton failed).
 """
 
 from __future__ import annotations
@@ -20,25 +32,33 @@ import jax.numpy as jnp
 from ..ensemble import fast_simulate
 from ..maps import equilibrium_stability
 from ..simulate import simulate
-from ..stability import solve_equilibrium
+from ..stability import EquilibriumStatus, solve_equilibrium
 from ._reader import Ref
-from .spec import ModelSpec
+from .spec import LatticeSpec, ModelSpec
 
 QUANTITIES = {
     "final_state": "theta(t1) and Omega(t1) of simulate (and the number of steps)",
     "energy_drift": "max_t |E(t) - E(0)| / |E(0)| over `samples` times of simulate",
     "max_deviation": "max_t |theta(t) - theta(0)| over `samples` times of simulate",
     "spectral_abscissa": "max Re p of the spectrum at the equilibrium (Newton from theta_guess)",
+    "bloch_growth": "max Re lambda(q) of the Bloch waves of the [lattice] at its uniform "
+                    "equilibrium",
+    "bloch_frequencies": "the three non-negative frequencies Im lambda(q) of the Bloch waves of "
+                         "the [lattice] (and bloch_growth)",
 }
 OUTPUTS = {
     "final_state": ("theta", "Omega", "num_steps"),
     "energy_drift": ("energy_drift", "num_steps"),
     "max_deviation": ("max_deviation", "num_steps"),
     "spectral_abscissa": ("spectral_abscissa", "kind", "theta_eq"),
+    "bloch_growth": ("bloch_growth", "theta_eq"),
+    "bloch_frequencies": ("bloch_frequencies", "bloch_growth", "theta_eq"),
 }
 DEFAULT_PLOT = {"final_state": "theta", "energy_drift": "energy_drift",
-                "max_deviation": "max_deviation", "spectral_abscissa": "spectral_abscissa"}
+                "max_deviation": "max_deviation", "spectral_abscissa": "spectral_abscissa",
+                "bloch_growth": "bloch_growth", "bloch_frequencies": "bloch_frequencies"}
 SIMULATION = ("final_state", "energy_drift", "max_deviation")
+LATTICE = ("bloch_growth", "bloch_frequencies")
 INTEGRATORS = {"fast_simulate": fast_simulate, "simulate": simulate}
 
 
@@ -68,8 +88,32 @@ def _scalar(x, point):
     return jnp.asarray(point[x.name] if isinstance(x, Ref) else x, dtype=jnp.result_type(float))
 
 
-def make_quantity(name: str, spec: ModelSpec, s: Settings):
-    """``(quantity(**point), dims)`` for the sweep engine."""
+def _bloch_quantity(name: str, spec: ModelSpec, lattice: LatticeSpec, s: Settings):
+    from ..lattice import dispersion
+
+    def bloch(**point):
+        lat = lattice.build(spec, point)
+        sol = solve_equilibrium(lat.body, _vector(s.theta_guess, point))
+        ok = sol.status == EquilibriumStatus.successful
+        theta_eq = jnp.where(ok, sol.theta, 0.0)
+        lam = dispersion(lat, lattice.wavenumber(point), theta_eq=theta_eq)
+        lam = jnp.where(ok, lam, jnp.nan + 0j)  # sorted by Im lambda: the branches' last
+        values = {"bloch_growth": jnp.max(jnp.real(lam)), "theta_eq": sol.theta}
+        if name == "bloch_frequencies":
+            values = {"bloch_frequencies": jnp.imag(lam[3:])} | values
+        return values, sol.status
+
+    bloch.__name__ = name
+    dims = {"theta_eq": ("component",)}
+    return bloch, dims | ({"bloch_frequencies": ("branch",)} if name == "bloch_frequencies"
+                          else {})
+
+
+def make_quantity(name: str, spec: ModelSpec, s: Settings, lattice: LatticeSpec | None = None):
+    """``(quantity(**point), dims)`` for the sweep engine; ``lattice`` for the Bloch
+    quantities."""
+    if name in LATTICE:
+        return _bloch_quantity(name, spec, lattice, s)
     if name == "spectral_abscissa":
 
         def spectral_abscissa(**point):

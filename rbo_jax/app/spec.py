@@ -17,6 +17,24 @@ writes)::
     loads = [{ type = "follower", M = "M" },                # (4.57), M from the sweep axis "M"
              { type = "friction", b = 0.05 }]               # (4.84)
 
+Foundation types: ``quadratic`` (4.50), ``barrier`` (4.49), ``cosine``
+(:class:`rbo_jax.CosineFoundation`, $U = c(1 - \cos|\theta|)$, section 4.2.3: the pendulum
+among foundations, whose chains are sine-Gordon chains) and ``none``
+(:class:`rbo_jax.ZeroFoundation`, a free body: Kelvin's medium in a lattice).
+
+``LatticeSpec``: a chain or grid of copies of that body (:mod:`rbo_jax.lattice`), neighbours
+coupled by the quadratic foundation (4.50) of their relative turn with the bending and torsional
+stiffnesses ``kappa_b``, ``kappa_t`` about the model's axis $k$, and a wavenumber ``q`` for the
+Bloch waves (:func:`rbo_jax.lattice.dispersion`); ``rbo-jax simulate --lattice chain:64`` and
+the ``[lattice]`` table of a sweep describe one::
+
+    kind = "chain"          # or "grid" with shape = [16, 16] (or three sizes)
+    n = 32                  # bodies of the chain (>= 2)
+    periodic = true         # the last body coupled to the first (false: free ends)
+    kappa_b = 0.8           # bending stiffness of the coupling (a number or an axis name)
+    kappa_t = "kt"          # torsional stiffness
+    q = "q"                 # wavenumber (rad per site; a grid: one per axis)
+
 Errors name the key (``[model.foundation] c: must be > 0, got -1.``); the requirements are the
 constructors' own (:mod:`rbo_jax._validation`), and a parameter taken from an axis is checked on
 every value of that axis before anything runs.
@@ -25,6 +43,7 @@ every value of that axis before anything runs.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -32,13 +51,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._validation import FINITE, NONNEGATIVE, POSITIVE, POSITIVE_OR_INF, Requirement
-from ..foundations import BarrierFoundation, QuadraticFoundation
+from ..foundations import (
+    BarrierFoundation,
+    CosineFoundation,
+    QuadraticFoundation,
+    ZeroFoundation,
+)
 from ..inertia import principal_inertia, transversely_isotropic_inertia
 from ..loads import DeadMoment, FollowerMoment, Friction, SemiTangentialMoment
 from ..model import RigidBodyOscillator
 from ._reader import Reader, Ref, SpecError
 
-__all__ = ["ModelSpec", "Term", "Ref", "SpecError", "FOUNDATIONS", "LOADS"]
+__all__ = ["ModelSpec", "LatticeSpec", "Term", "Ref", "SpecError", "FOUNDATIONS", "LOADS",
+           "LATTICES"]
 
 Value = float | Ref
 
@@ -69,6 +94,9 @@ FOUNDATIONS = {
          _Param("alpha", POSITIVE_OR_INF, "bending barrier"),
          _Param("beta", POSITIVE_OR_INF, "torsion barrier")),
         lambda v, k: BarrierFoundation(v["c"], v["d"], v["alpha"], v["beta"], k), "(4.49)"),
+    "cosine": _Kind((_Param("c", NONNEGATIVE, "stiffness"),),
+                    lambda v, k: CosineFoundation(v["c"]), "(section 4.2.3)"),
+    "none": _Kind((), lambda v, k: ZeroFoundation(), "(U = 0)"),
 }
 LOADS = {
     "follower": _Kind((_Param("M", FINITE, "follower moment"),),
@@ -251,8 +279,144 @@ class ModelSpec:
         else:
             parts = [f"{params(self.inertia)} (4.40)"]
         parts.append(f"k = ({g(tuple(self.axis))})")
-        parts += [f"{t.type} foundation {FOUNDATIONS[t.type].equation} {params(t)}"
+        parts += [f"{t.type} foundation {FOUNDATIONS[t.type].equation} {params(t)}".rstrip()
                   for t in self.foundation]
         loads = [f"{t.type} {LOADS[t.type].equation} {params(t)}" for t in self.loads]
         parts.append("loads: " + ("; ".join(loads) if loads else "none"))
         return "; ".join(parts)
+
+
+LATTICES = ("chain", "grid")
+_SPEC_FORM = ("expected chain:N, grid:NxM or grid:NxMxK, optionally followed by :free (free "
+              "ends instead of periodic), e.g. chain:64 or grid:16x16:free")
+
+
+def _sizes(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.lower().split("x")]
+    except ValueError:
+        raise ValueError(_SPEC_FORM) from None
+
+
+@dataclasses.dataclass(frozen=True)
+class LatticeSpec:
+    r"""A chain or grid of copies of a :class:`ModelSpec`'s body (see the module docstring):
+    ``kind`` (``"chain"`` or ``"grid"``), ``shape`` (the sites along each axis), ``periodic``
+    (or free ends), the coupling stiffnesses ``kappa_b``, ``kappa_t`` of
+    :class:`rbo_jax.QuadraticFoundation` (4.50) of the relative turn about the model's axis,
+    and the wavenumber ``q`` of the Bloch quantities (one value per axis); each parameter a
+    number or a :class:`Ref` to a sweep axis."""
+
+    kind: str
+    shape: tuple[int, ...]
+    periodic: bool = True
+    kappa_b: Any = 1.0
+    kappa_t: Any = 1.0
+    q: tuple[Any, ...] = (0.0,)
+
+    @staticmethod
+    def table_from_text(text: str) -> dict:
+        """``chain:N``, ``grid:NxM`` or ``grid:NxMxK``, optionally ``:free`` (the form of
+        ``rbo-jax simulate --lattice``) as the table form (``kind``, ``n`` or ``shape``,
+        ``periodic``); the sizes are checked by :meth:`from_mapping`. Raises ``ValueError``."""
+        parts = text.strip().split(":")
+        if parts[0] not in LATTICES or len(parts) not in (2, 3) or parts[-1] == "" or (
+                len(parts) == 3 and parts[2] != "free"):
+            raise ValueError(_SPEC_FORM)
+        sizes = _sizes(parts[1])
+        if (parts[0] == "chain") != (len(sizes) == 1) or len(sizes) > 3:
+            raise ValueError(_SPEC_FORM)
+        table = {"kind": parts[0], "periodic": len(parts) == 2}
+        table |= {"n": sizes[0]} if parts[0] == "chain" else {"shape": sizes}
+        return table
+
+    @classmethod
+    def from_mapping(cls, table: Mapping, *, axes: Mapping[str, np.ndarray] | None = None,
+                     where: str = "[lattice]", reader: Reader | None = None) -> LatticeSpec:
+        """Read and validate the table form (module docstring); ``axes`` as in
+        :meth:`ModelSpec.from_mapping`. Raises :class:`SpecError` naming the key."""
+        r = reader if reader is not None else Reader(axes)
+        if not isinstance(table, Mapping):
+            r.fail(where, f"must be a table, got {type(table).__name__}.")
+        r.keys(table, ("kind", "n", "shape", "periodic", "kappa_b", "kappa_t", "q"), where,
+               required=("kind",))
+        kind = r.string(table, "kind", where, choices=LATTICES)
+        wrong, right = ("shape", "n") if kind == "chain" else ("n", "shape")
+        if wrong in table:
+            r.fail(f"{where} {wrong}", f"is not a key of kind = {kind!r}; give {right}.")
+        if kind == "chain":
+            if "n" not in table:
+                r.fail(where, "missing required key 'n' (the number of bodies of the chain).")
+            shape = (r.integer(table, "n", where, default=None, minimum=2),)
+        else:
+            v = table.get("shape")
+            if not (isinstance(v, list) and len(v) in (2, 3) and all(
+                    isinstance(x, int) and not isinstance(x, bool) and x >= 2 for x in v)):
+                r.fail(f"{where} shape", f"must be a list of 2 or 3 integers >= 2 (the sites "
+                                         f"along each axis of the grid), got {v!r}.")
+            shape = tuple(v)
+        periodic = r.boolean(table, "periodic", where, default=True)
+        kappa = [r.number(table, key, where, default=1.0, requirement=POSITIVE)
+                 for key in ("kappa_b", "kappa_t")]
+        if kind == "chain":
+            q = (r.number(table, "q", where, default=0.0),)
+        elif "q" in table:
+            v = table["q"]
+            if not isinstance(v, list) or len(v) != len(shape):
+                r.fail(f"{where} q", f"a grid needs one wavenumber per axis: a list of "
+                                     f"{len(shape)} numbers or axis names, got {v!r}.")
+            q = tuple(r.number({"q": x}, "q", where) for x in v)
+        else:
+            q = (0.0,) * len(shape)
+        return cls(kind, shape, periodic, kappa[0], kappa[1], q)
+
+    def to_mapping(self) -> dict:
+        """The table form: ``from_mapping`` of it gives this spec back."""
+        size = {"n": self.shape[0]} if self.kind == "chain" else {"shape": list(self.shape)}
+        q = _plain(self.q[0]) if self.kind == "chain" else [_plain(x) for x in self.q]
+        return {"kind": self.kind, **size, "periodic": self.periodic,
+                "kappa_b": _plain(self.kappa_b), "kappa_t": _plain(self.kappa_t), "q": q}
+
+    def parameters(self) -> tuple[str, ...]:
+        """The names of the sweep axes the lattice refers to (not the body's)."""
+        found: list[str] = []
+        for x in (self.kappa_b, self.kappa_t, *self.q):
+            if isinstance(x, Ref) and x.name not in found:
+                found.append(x.name)
+        return tuple(found)
+
+    def build(self, model: ModelSpec, point: Mapping[str, Any] | None = None):
+        """The :class:`rbo_jax.lattice.Lattice` of copies of ``model``'s body, the axis
+        references of both filled from ``point`` (traced values are fine)."""
+        from ..lattice import chain, grid
+
+        point = dict(point or {})
+        missing = [n for n in self.parameters() if n not in point]
+        if missing:
+            raise KeyError(f"LatticeSpec.build: no value for the parameter(s) {missing}.")
+        k = _resolve(tuple(model.axis), point)
+        coupling = QuadraticFoundation(_resolve(self.kappa_b, point),
+                                       _resolve(self.kappa_t, point), k)
+        body = model.build(point)
+        if self.kind == "chain":
+            return chain(self.shape[0], body, coupling, periodic=self.periodic)
+        return grid(self.shape, body, coupling, periodic=self.periodic)
+
+    def wavenumber(self, point: Mapping[str, Any] | None = None):
+        """``q`` with the axis references filled: a number for a chain, one per axis for a
+        grid (as :func:`rbo_jax.lattice.dispersion` takes it)."""
+        point = dict(point or {})
+        q = _resolve(tuple(self.q), point)
+        return q[0] if self.kind == "chain" else q
+
+    def describe(self) -> str:
+        """One line for people: topology, ends and coupling."""
+
+        def g(x):
+            return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
+
+        where = (f"chain of {self.shape[0]} bodies" if self.kind == "chain" else
+                 f"{'x'.join(map(str, self.shape))} grid of {math.prod(self.shape)} bodies")
+        ends = "periodic" if self.periodic else "free ends"
+        return (f"{where} ({ends}); coupling: quadratic foundation (4.50) of the relative turn, "
+                f"kappa_b = {g(self.kappa_b)}, kappa_t = {g(self.kappa_t)}")

@@ -2,7 +2,9 @@
 
 ``rbo-jax reproduce`` (run by ``make demo``) reproduces the paper into ``out/report.md``;
 ``rbo-jax demo`` prints two short simulations; ``rbo-jax sweep CONFIG.toml`` runs a declarative
-parameter sweep; ``rbo-jax simulate`` integrates one oscillator given on the command line;
+parameter sweep (of one body, or the Bloch waves of a ``[lattice]`` of bodies);
+``rbo-jax simulate`` integrates one oscillator given on the command line (with
+``--lattice chain:N`` or ``grid:NxM``: a chain or grid of copies of it, :mod:`rbo_jax.lattice`);
 ``rbo-jax stability-map`` draws the Nikolai map (4.57)–(4.62), (4.69) over a grid of M, c, d,
 A3; ``rbo-jax fit`` fits foundation parameters to a recorded (or synthetic) trajectory.
 

@@ -117,8 +117,8 @@ def model_table(args: argparse.Namespace) -> tuple[dict, dict]:
         raise Failure("--foundation barrier needs --alpha and --beta (the barriers of (4.49); "
                       "'inf' switches one off).")
     if args.foundation != "barrier" and (args.alpha is not None or args.beta is not None):
-        raise Failure("--alpha and --beta belong to --foundation barrier (4.49); the quadratic "
-                      "foundation (4.50) has no barriers.")
+        raise Failure(f"--alpha and --beta belong to --foundation barrier (4.49); the "
+                      f"{args.foundation} foundation has no barriers.")
     options = {"[model] axis": "--axis", "[model.inertia] A1": "--A1",
                "[model.inertia] A3": "--A3", "[model.inertia] moments": "--principal"}
     if args.principal is not None:
@@ -126,7 +126,9 @@ def model_table(args: argparse.Namespace) -> tuple[dict, dict]:
     else:
         inertia = {"A1": 1.0 if args.A1 is None else args.A1,
                    "A3": 0.6 if args.A3 is None else args.A3}
-    foundation = {"type": args.foundation, "c": args.c, "d": args.d}
+    foundation = {"type": args.foundation}
+    foundation |= {"quadratic": {"c": args.c, "d": args.d}, "barrier": {"c": args.c, "d": args.d},
+                   "cosine": {"c": args.c}}.get(args.foundation, {})
     if args.foundation == "barrier":
         foundation |= {"alpha": args.alpha, "beta": args.beta}
     options |= {f"[model.foundation] {n}": f"--{n}" for n in ("c", "d", "alpha", "beta")}

@@ -58,6 +58,9 @@ def _check_options(args, names, table):
             raise Failure(f"--params {name} needs --foundation barrier (4.49).")
         if name == "b" and args.friction is None:
             raise Failure("--params b needs --friction (its starting value).")
+        if name in ("c", "d") and name not in table["foundation"]:
+            raise Failure(f"--params {name}: --foundation {args.foundation} has no parameter "
+                          f"{name}.")
         v = args.friction if name == "b" else table["foundation"][name]
         if not (v > 0 and v < float("inf")):
             raise Failure(f"--params {name}: the starting value must be finite and > 0 (the fit "

@@ -1,5 +1,5 @@
 """``rbo-jax simulate``: one trajectory of the model given by the options, as a table and a
-dataset."""
+dataset; with ``--lattice SPEC`` a chain or grid of copies of that body (:mod:`._lattice`)."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def _check_options(args):
         raise Failure(f"--max-steps must be >= 1, got {args.max_steps}.")
     if not (args.rtol > 0 and args.atol > 0):
         raise Failure(f"--rtol and --atol must be > 0, got {args.rtol:g}, {args.atol:g}.")
-    if args.progress and args.integrator != "simulate":
+    if args.progress and args.integrator != "simulate" and args.lattice is None:
         raise Failure("--progress needs --integrator simulate (fast_simulate has no progress "
                       "bar).")
 
@@ -78,14 +78,20 @@ def _print_table(ds, max_rows):
 
 
 def simulate_command(args: argparse.Namespace) -> int:
-    """``rbo-jax simulate``: one trajectory of the model given by the options, as a table."""
+    """``rbo-jax simulate``: one trajectory of the model given by the options, as a table (with
+    ``--lattice``: :func:`._lattice.simulate_lattice`)."""
     import jax.numpy as jnp
 
     from ... import fast_simulate, simulate
     from .._io import write_dataset, write_trajectory_csv
+    from ._lattice import refuse_lattice_options, simulate_lattice
 
+    if args.lattice is None:
+        refuse_lattice_options(args)
     _check_options(args)
     spec = spec_from_args(args)
+    if args.lattice is not None:
+        return simulate_lattice(args, spec)
     model = spec.build()
     print(f"Rigid body oscillator, right form (4.55)-(4.56): {spec.describe()}")
     theta0, Omega0 = _initial_state(args, model)
