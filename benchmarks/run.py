@@ -22,6 +22,7 @@ SMOKE_ARGS = {
     "simulate": ["--n", "40", "--chunk", "20", "--scipy-sample", "2"],  # one-core rows pinned
     "stability": ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"],
     "fitting": ["--samples", "20", "--trajectories", "1"],
+    "lattice": ["--smoke"],
 }
 
 
@@ -90,6 +91,14 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                      f"~{fi['compile_estimate']:.1f}"))
         rows.append(("fitting", "second fit, compiled program reused [s]", f"{fi['second']:.1f}",
                      ""))
+    la = results.get("lattice")
+    if la:
+        for r in la["rows"]:
+            nb = r.get("numba")
+            rows.append(("lattice", f"lattice.simulate (DOP853, N = {r['n']}) vs numba DOP853 "
+                         "stencil (1 core each)",
+                         _fmt(r.get("ratio"), ".2f") + "x" if nb else "numba not installed",
+                         f"jax {r['compile_jax']:.1f}"))
     return rows
 
 
@@ -115,7 +124,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, for tests")
     parser.add_argument("--only", nargs="*", default=None,
-                        help="subset of: sweep simulate stability fitting")
+                        help="subset of: sweep simulate stability fitting lattice")
     args = parser.parse_args(argv)
     import importlib
 
@@ -123,7 +132,8 @@ def main(argv=None) -> int:
 
     # sweep first: it splits the CPU into 2 XLA devices, which must happen before JAX starts
     modules = {"sweep": "bench_sweep", "simulate": "bench_simulate",
-               "stability": "bench_stability", "fitting": "bench_fitting"}
+               "stability": "bench_stability", "fitting": "bench_fitting",
+               "lattice": "bench_lattice"}
     print(f"{time.strftime('%Y-%m-%d')}  {platform.platform()}  {os.cpu_count()} CPUs  "
           f"jax {jax.__version__}  python {platform.python_version()}  load average "
           f"{os.getloadavg()[0]:.2f}", flush=True)

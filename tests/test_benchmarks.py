@@ -37,9 +37,19 @@ def _floats(pattern, text):
 
 def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
     for marker in ["=== sweep ===", "=== simulate ===", "=== stability ===", "=== fitting ===",
-                   "speed-up per trajectory", "max |p - (4.69)|", "first fit", "shard_map over",
-                   "=== summary ===", "compile [s]"]:
+                   "=== lattice ===", "speed-up per trajectory", "max |p - (4.69)|", "first fit",
+                   "shard_map over", "=== summary ===", "compile [s]"]:
         assert marker in smoke_output, marker
+
+
+def test_the_lattice_takes_the_numba_stencils_steps(smoke_output):
+    """The lattice DOP853 and the hand-written numba DOP853 of the same chain take the same
+    steps and end in the same state (the same system, SciPy's algorithm on all 6N scalars)."""
+    if "numba not installed" in smoke_output.split("=== lattice ===")[1]:
+        pytest.skip("numba not installed")
+    assert "accepted steps equal on every N: True" in smoke_output
+    rel = _floats(r"max \|f_jax - f_numba\| / max \|f_jax\| = ([0-9.e+-]+)", smoke_output)
+    assert rel[0] < 1e-13
 
 
 def test_the_three_integrators_agree_to_the_tolerance(smoke_output):
