@@ -31,7 +31,7 @@ from fractions import Fraction
 import jax.numpy as jnp
 
 from ._custom_types import Matrix, MatrixLike, Scalar, Vector, VectorLike
-from ._elementary import _atan2_nonnegative, _cot, _horner, _sincos
+from ._elementary import _atan2_nonnegative, _cot, _horner
 
 __all__ = [
     "skew",
@@ -125,12 +125,13 @@ def _series_or_closed_form(t, coeffs, closed_form, switch=_T_SWITCH):
     return jnp.where(small, _horner(coeffs, t_series), closed_form(t_closed))
 
 
-def _sinc(t):
-    """sin θ/θ as a function of t = θ²."""
+def _sinc(t, sincos=None):
+    """sin θ/θ as a function of t = θ² (``sincos``: a (sin, cos) function of θ for the closed
+    form, default XLA's sin)."""
 
     def closed(t):
         th = jnp.sqrt(t)
-        return _sincos(th)[0] / th
+        return (jnp.sin(th) if sincos is None else sincos(th)[0]) / th
 
     return _series_or_closed_form(t, _SINC, closed)
 
@@ -140,7 +141,7 @@ def _cosc(t):
 
     def closed(t):
         h = 0.5 * jnp.sqrt(t)
-        return 0.5 * (_sincos(h)[0] / h) ** 2
+        return 0.5 * (jnp.sin(h) / h) ** 2
 
     return _series_or_closed_form(t, _COSC, closed)
 
@@ -155,9 +156,12 @@ def _sinc3(t):
     return _series_or_closed_form(t, _SINC3, closed)
 
 
-def _cos(t):
-    """cos θ as a function of t = θ² (smooth at θ = 0, unlike cos(sqrt(t)))."""
-    return _series_or_closed_form(t, _COS, lambda t: _sincos(jnp.sqrt(t))[1])
+def _cos(t, sincos=None):
+    """cos θ as a function of t = θ² (smooth at θ = 0, unlike cos(sqrt(t))); ``sincos`` as
+    :func:`_sinc`."""
+    closed = (lambda t: jnp.cos(jnp.sqrt(t))) if sincos is None else (
+        lambda t: sincos(jnp.sqrt(t))[1])
+    return _series_or_closed_form(t, _COS, closed)
 
 
 def _gcoef(t):
@@ -232,12 +236,13 @@ def turn_tensor(theta: VectorLike) -> Matrix:
     return eye + _sinc(t) * skew(theta) + _cosc(t) * _r_squared(theta, t)
 
 
-def _quaternion(theta):
+def _quaternion(theta, sincos=None):
     """Unit quaternion (w, v) = (cos(θ/2), sin(θ/2)/θ · θ) of the turn-vector θ (half-angle form
     of (4.3)). Component by component (:func:`dot3`), as all of the quaternion helpers: under
-    ``vmap`` elementwise code, not batched ``dot_general`` calls."""
+    ``vmap`` elementwise code, not batched ``dot_general`` calls. ``sincos``: as :func:`_sinc`
+    (the lattices pass :func:`rbo_jax._elementary._sincos`, which vectorises)."""
     t = dot3(theta, theta)
-    return _cos(0.25 * t), 0.5 * _sinc(0.25 * t) * theta
+    return _cos(0.25 * t, sincos), 0.5 * _sinc(0.25 * t, sincos) * theta
 
 
 def _log_quaternion(w, v):

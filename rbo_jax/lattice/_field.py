@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .._elementary import _sincos
 from ..kinematics import (
     Turn,
     _log_quaternion,
@@ -51,7 +52,7 @@ def _per_body(fn, *args, in_axes=None):
 def _quaternions(theta):
     """``(w (N,), v (3, N))``: the unit quaternion of every body's turn (kept, not recomputed
     in every consumer: :func:`rbo_jax.kinematics.stored`)."""
-    w, v = _per_body(_quaternion, theta)
+    w, v = _per_body(lambda th: _quaternion(th, _sincos), theta)
     return stored(w), stored(v)
 
 
