@@ -50,7 +50,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(__name__, {
                      "periodic_orbit"),
     ".batch": ("SweepError", "critical_load", "open_sweep", "stability_map", "status_counts",
                "sweep"),
-    ".plotting": ("plot_bifurcation_diagram", "plot_hopf_boundary", "plot_sweep"),
+    ".plotting": ("plot_bifurcation_diagram", "plot_dispersion", "plot_hopf_boundary",
+                  "plot_space_time", "plot_sweep"),
 })
 
 __version__ = importlib.metadata.version("rbo_jax")

@@ -17,6 +17,7 @@ NOTEBOOKS = [
     "03_precession_and_integrability.ipynb",
     "04_fitting.ipynb",
     "05_bifurcation.ipynb",
+    "06_lattice.ipynb",
 ]
 KERNEL = "python3"
 

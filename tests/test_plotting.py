@@ -1,4 +1,5 @@
-"""Figures (rbo_jax.plotting): stability maps and root loci, drawn headless (Agg)."""
+"""Figures (rbo_jax.plotting): stability maps, root loci, bifurcation diagrams, Hopf boundaries
+and the lattices' space-time images and dispersion branches, drawn headless (Agg)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,10 @@ from matplotlib.contour import ContourSet  # noqa: E402
 import rbo_jax as rbo  # noqa: E402
 from rbo_jax.plotting import (  # noqa: E402
     plot_bifurcation_diagram,
+    plot_dispersion,
     plot_hopf_boundary,
     plot_root_locus,
+    plot_space_time,
     plot_stability_map,
 )
 
@@ -310,3 +313,206 @@ def test_hopf_boundary_checks_its_input(damped_map):
         plot_hopf_boundary(curve.rename(b="A1"), damped_map, select={"A3": 0.6})
     with pytest.raises(ValueError, match="continue_hopf"):
         plot_hopf_boundary(curve.drop_vars("status"))
+
+
+# --- lattices: space-time images and dispersion branches
+
+def _chain_trajectory(theta, Omega=None, shape=None):
+    """A LatticeTrajectory of the given samples (T, N, 3), made by hand (nothing simulated)."""
+    from rbo_jax import lattice as L
+    from rbo_jax.trajectory import SolveStatus
+
+    theta = jnp.asarray(theta)
+    n = theta.shape[1]
+    body = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(1.0, 0.6, K),
+                                   rbo.QuadraticFoundation(1.0, 2.0, K))
+    W = rbo.QuadraticFoundation(0.7, 0.3, K)
+    lat = L.chain(n, body, W) if shape is None else L.grid(shape, body, W)
+    return L.LatticeTrajectory(
+        ts=jnp.linspace(0.0, 2.0, theta.shape[0]), theta=theta,
+        Omega=jnp.zeros_like(theta) if Omega is None else jnp.asarray(Omega),
+        turns=jnp.zeros(theta.shape[:2], jnp.int32), lattice=lat,
+        status=SolveStatus.successful, num_steps=jnp.asarray(1), num_recentred=jnp.asarray(0))
+
+
+def _mesh(ax):
+    (mesh,) = [c for c in ax.collections if isinstance(c, QuadMesh)]
+    return mesh
+
+
+def test_space_time_image_of_a_chain(tmp_path):
+    """A kink-like front (theta_z from 0 to 2 pi, moving right): the mesh holds theta_z with
+    sites along x and times along y, a sequential colour map (one sign); the norm, Omega and
+    the values modulo 2 pi are drawn on request; non-finite samples are masked."""
+    T, n = 5, 7
+    front = np.arange(n)[None, :] - 1.0 - np.arange(T)[:, None]
+    theta = np.zeros((T, n, 3))
+    theta[..., 2] = 4 * np.arctan(np.exp(front))
+    theta[..., 0] = 0.01 * np.arange(n)
+    Omega = np.zeros((T, n, 3))
+    Omega[..., 1] = np.sin(front)
+    traj = _chain_trajectory(theta, Omega)
+    ax = plot_space_time(traj)
+    shown = np.asarray(_mesh(ax).get_array()).reshape(T, n)
+    np.testing.assert_allclose(shown, theta[..., 2])
+    assert ax.get_xlabel() == "site n" and "time" in ax.get_ylabel()
+    assert _mesh(ax).get_cmap().name == "viridis"
+    colorbar = ax.figure.axes[-1].get_ylabel()
+    assert "theta_z" in colorbar and "(4.1)" in colorbar
+    ax.figure.savefig(tmp_path / "space_time.png")
+    assert (tmp_path / "space_time.png").stat().st_size > 1000
+
+    ax = plot_space_time(traj, "norm")
+    np.testing.assert_allclose(np.asarray(_mesh(ax).get_array()).reshape(T, n),
+                               np.linalg.norm(theta, axis=-1))
+    ax = plot_space_time(traj, 1, quantity="Omega", title="Omega_y")
+    mesh = _mesh(ax)
+    np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(T, n), Omega[..., 1])
+    assert mesh.get_cmap().name.startswith("RdBu") and mesh.norm.vmin == -mesh.norm.vmax
+    assert ax.get_title() == "Omega_y"
+    ax = plot_space_time(traj, "z", wrap=True)
+    np.testing.assert_allclose(np.asarray(_mesh(ax).get_array()).reshape(T, n),
+                               np.angle(np.exp(1j * theta[..., 2])), atol=1e-12)
+    theta[-1] = np.inf  # samples after a failed solve
+    fig, ax = plt.subplots()
+    assert plot_space_time(_chain_trajectory(theta), ax=ax) is ax
+    assert np.asarray(np.ma.getmaskarray(_mesh(ax).get_array())).reshape(T, n)[-1].all()
+
+
+def test_space_time_of_a_grid_row_and_bad_input():
+    """A grid needs its sites chosen (a row); wrong components, quantities and sites are
+    refused with the name of the argument."""
+    T = 3
+    theta = np.random.default_rng(0).normal(size=(T, 12, 3))
+    traj = _chain_trajectory(theta, shape=(3, 4))
+    with pytest.raises(ValueError, match="sites="):
+        plot_space_time(traj)
+    row = np.ravel_multi_index((1, np.arange(4)), (3, 4))
+    ax = plot_space_time(traj, "x", sites=row)
+    np.testing.assert_allclose(np.asarray(_mesh(ax).get_array()).reshape(T, 4),
+                               theta[:, 4:8, 0])
+    assert "selected" in ax.get_xlabel()
+    with pytest.raises(ValueError, match="component"):
+        plot_space_time(traj, "w", sites=row)
+    with pytest.raises(ValueError, match="component"):
+        plot_space_time(traj, 3, sites=row)
+    with pytest.raises(ValueError, match="quantity"):
+        plot_space_time(traj, quantity="omega", sites=row)
+    for bad in ([0, 12], [-1, 0], [0.0, 1.0], []):
+        with pytest.raises(ValueError, match="sites"):
+            plot_space_time(traj, sites=bad)
+
+
+A1_, A3_, C_, D_, KB_, KT_ = 1.0, 0.6, 1.0, 2.0, 0.7, 0.3
+
+
+def _branches(q):
+    """The closed-form branches of a chain at rest, (4.50) with a quadratic coupling:
+    omega^2 = (c + 4 kb sin^2(q/2))/A1 (bending, double) and (d + 4 kt sin^2(q/2))/A3."""
+    s = np.sin(np.asarray(q) / 2) ** 2
+    return np.stack([np.sqrt((C_ + 4 * KB_ * s) / A1_), np.sqrt((D_ + 4 * KT_ * s) / A3_)], -1)
+
+
+def _frequency_lines(ax):
+    return [ln for ln in ax.get_lines() if ln.get_linestyle() == "-"]
+
+
+def test_dispersion_of_a_chain_matches_the_closed_form(tmp_path):
+    """A chain at rest at theta = 0, its eigenvalues computed here (one compiled program for
+    every chain length): three frequency branches on the closed forms (drawn dashed), no growth
+    panel (all Re = 0)."""
+    from rbo_jax import lattice as L
+
+    body = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1_, A3_, K),
+                                   rbo.QuadraticFoundation(C_, D_, K))
+    lat = L.chain(10, body, rbo.QuadraticFoundation(KB_, KT_, K))
+    qs = np.linspace(-np.pi, np.pi, 21)
+    ax = plot_dispersion(lat, qs, theta_eq=np.zeros(3),  # at rest
+                         closed_form={"bending": lambda q: _branches(q)[:, 0],
+                                      "torsion": _branches(qs)[:, 1]})
+    lines = _frequency_lines(ax)
+    assert len(lines) == 3
+    w = _branches(qs)
+    expected = np.sort(np.stack([w[:, 0], w[:, 0], w[:, 1]], 1), 1)
+    got = np.stack([ln.get_ydata() for ln in lines], 1)
+    np.testing.assert_allclose(got, expected, rtol=1e-12)
+    np.testing.assert_array_equal(lines[0].get_xdata(), qs)
+    dashed = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]
+    assert len(dashed) == 2
+    np.testing.assert_allclose(dashed[1].get_ydata(), w[:, 1])
+    assert ax.growth_ax is None and len(ax.figure.axes) == 1
+    assert [t.get_text() for t in ax.get_legend().get_texts()][1:] == ["bending", "torsion"]
+    assert "wavenumber" in ax.get_xlabel() and "Im" in ax.get_ylabel()
+    ax.figure.savefig(tmp_path / "dispersion.png")
+    assert (tmp_path / "dispersion.png").stat().st_size > 1000
+
+
+def _fluttering(qs):
+    """Eigenvalues of made-up flutter bands: a pair with growth rates -0.05 ± 0.1 cos q (some
+    wave grows for cos q > 1/2 and for cos q < -1/2) and a decaying torsion wave."""
+    w = _branches(qs)
+    g = 0.1 * np.cos(qs)
+    up = np.stack([g - 0.05 + 1j * w[:, 0], -g - 0.05 + 1j * w[:, 0],
+                   -0.05 + 1j * w[:, 1]], 1)
+    return np.concatenate([np.conj(up), up], 1)[:, ::-1]
+
+
+def test_dispersion_growth_panel_and_flutter_bands():
+    """Given eigenvalues with growth: a second panel below with the growth rates (sorted), the
+    two bands of growing waves shaded on both panels; on a given Axes the growth rates go to a
+    second y axis; growth=False draws none."""
+    from matplotlib.patches import Polygon, Rectangle
+
+    qs = np.linspace(0.0, np.pi, 12)  # k pi/11: bands k <= 3 and k >= 8
+    lam = _fluttering(qs)
+    ax = plot_dispersion(None, qs, eigenvalues=lam)
+    g = ax.growth_ax
+    assert g is not None and len(ax.figure.axes) == 2
+    rates = np.stack([ln.get_ydata() for ln in g.get_lines() if len(ln.get_xdata()) == 12], 1)
+    a = np.abs(0.1 * np.cos(qs))
+    np.testing.assert_allclose(rates, np.stack([a - 0.05, np.full(12, -0.05), -a - 0.05], 1))
+
+    def bands(axes):
+        spans = [p for p in axes.patches if isinstance(p, (Polygon, Rectangle))]
+        return sorted((min(x), max(x)) for x in (
+            np.asarray(p.get_xy())[:, 0] if isinstance(p, Polygon)
+            else [p.get_x(), p.get_x() + p.get_width()] for p in spans))
+
+    top = a - 0.05  # the largest growth rate; the bands end where it crosses 0 between samples
+    ends = [qs[i] + (qs[i + 1] - qs[i]) * top[i] / (top[i] - top[i + 1]) for i in (3, 7)]
+    assert qs[3] < ends[0] < np.pi / 3 < qs[4] and qs[7] < 2 * np.pi / 3 < ends[1] < qs[8]
+    for axes in (ax, g):
+        np.testing.assert_allclose(bands(axes), [(0.0, ends[0]), (ends[1], np.pi)])
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels.count("flutter band (some Re λ > 0)") == 1
+    fig, ax = plt.subplots()
+    out = plot_dispersion(None, qs, eigenvalues=lam, ax=ax)
+    assert out is ax and ax.growth_ax is not None and ax.growth_ax is not ax
+    assert ax.growth_ax.bbox.bounds == ax.bbox.bounds  # a twin of the same Axes
+    ax = plot_dispersion(None, qs, eigenvalues=lam, growth=False)
+    assert ax.growth_ax is None and len(ax.figure.axes) == 1
+
+
+def test_dispersion_of_a_grid_path_and_bad_input():
+    """(Q, 2) wavevectors of a grid: drawn against the length of their path; shapes that do not
+    fit are refused."""
+    qs = np.stack([np.linspace(0.0, np.pi, 5), np.zeros(5)], 1)
+    qs = np.concatenate([qs, np.stack([np.full(4, np.pi), np.linspace(0.0, np.pi, 5)[1:]], 1)])
+    lam = 1j * _fluttering(qs[:, 0]).imag  # no growth
+    ax = plot_dispersion(None, qs, eigenvalues=lam)
+    np.testing.assert_allclose(_frequency_lines(ax)[0].get_xdata(),
+                               np.pi / 4 * np.arange(9))
+    assert "path" in ax.get_xlabel() and ax.growth_ax is None
+    with pytest.raises(ValueError, match="eigenvalues must have shape"):
+        plot_dispersion(None, qs, eigenvalues=lam[:, :3])
+    with pytest.raises(ValueError, match="lattice or its eigenvalues"):
+        plot_dispersion(None, qs)
+    with pytest.raises(ValueError, match="closed form"):
+        plot_dispersion(None, qs, eigenvalues=lam, closed_form=np.zeros(3))
+    from rbo_jax import lattice as L
+
+    body = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1_, A3_, K),
+                                   rbo.QuadraticFoundation(C_, D_, K))
+    with pytest.raises(ValueError, match="one wavenumber per axis"):
+        plot_dispersion(L.grid((3, 3), body, rbo.QuadraticFoundation(KB_, KT_, K)),
+                        np.linspace(0.0, 1.0, 4))

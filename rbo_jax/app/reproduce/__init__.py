@@ -5,7 +5,8 @@ independent computation: scipy integration of the reduced equations, the Euler-a
 section 4.6.3) and passes when the error is below a stated tolerance. Figures are written next to
 the report. The exit status is non-zero if any check fails. One module per part of the paper:
 ``_kinematics`` (4.2), ``_nikolai`` (4.4–4.5), ``_dynamics`` (4.3–4.6), ``_precession`` (4.7),
-``_fitting``, ``_bifurcation`` (Hopf points, Floquet multipliers, continuation).
+``_fitting``, ``_bifurcation`` (Hopf points, Floquet multipliers, continuation), ``_lattice``
+(4.8: chains of bodies, their waves, the sine-Gordon kink and Kelvin's medium).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from ._common import Check
 from ._dynamics import balance_and_energy, simplest
 from ._fitting import fitting
 from ._kinematics import kinematics
+from ._lattice import lattice
 from ._nikolai import nikolai
 from ._precession import precession
 
@@ -44,6 +46,8 @@ def run_reproduction(out: str = "out", *, quick: bool = False, figures: bool = T
         ("regular precession (4.7)", lambda: precession(out, plt)),
         ("fitting", fitting),
         ("bifurcations: Hopf points, continuation", lambda: bifurcation(out, plt, quick)),
+        ("lattices of bodies (4.8): waves, kink, Kelvin's medium",
+         lambda: lattice(out, plt, quick)),
     ]
     checks: list[Check] = []
     for i, (name, fn) in enumerate(steps, 1):
@@ -88,6 +92,11 @@ def _write_report(out, checks, elapsed, quick, figures):
              "Bifurcation diagram of the Nikolai problem with friction: equilibria, Hopf point "
              "and (full run) the limit cycles"),
             ("hopf_boundary.png", "Flutter boundary by continue_hopf over the stability map"),
+            ("lattice_dispersion.png",
+             "Chain of bodies: Bloch branches at rest against the closed forms; the flutter "
+             "band of Nikolai bodies with friction"),
+            ("lattice_kink.png", "Space-time image of a moving sine-Gordon kink on a ring of "
+             "bodies, with x0 + vt"),
         ]:
             if os.path.exists(os.path.join(out, name)):
                 lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
