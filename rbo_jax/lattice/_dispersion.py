@@ -58,20 +58,38 @@ def uniform_equilibrium(lattice: Lattice, theta_guess=None):
     r"""$\theta_{eq}$ of one body (Newton, :func:`rbo_jax.solve_equilibrium`, from
     ``theta_guess``, default 0): with every body there, the lattice is at rest.
 
-    Differentiable with respect to the parameters by the implicit function theorem, written
-    as one Newton step from the converged (constant) point, $\theta^* - J^{-1}M(\theta^*)$:
-    its value is $\theta^*$ ($M(\theta^*) = 0$), its derivative $-J^{-1}\partial M/\partial p$
-    (no solver is differentiated: this also works inside other solvers' derivatives, e.g. a
-    fit's Levenberg–Marquardt)."""
+    Differentiable with respect to the parameters by the implicit function theorem, a
+    :func:`jax.custom_jvp` at the converged point: $\dot\theta = -J^{-1}\,\partial M/\partial p
+    \cdot\dot p$ (no solver is differentiated: this also works inside other solvers'
+    derivatives, e.g. a fit's Levenberg–Marquardt)."""
     _require_grid(lattice, "uniform_equilibrium")
     body = lattice.body
     guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
-    theta = lax.stop_gradient(solve_equilibrium(body, guess).theta)
+    # the Newton solve on constants: its own derivative rule (a linear solve) is not traced
+    theta = solve_equilibrium(lax.stop_gradient(body), lax.stop_gradient(guess)).theta
+    return _converged(body, theta)
 
-    def moment(th):
-        return body.world_moment(0.0, th, jnp.zeros_like(th))
 
-    return theta - jnp.linalg.solve(jax.jacfwd(moment)(theta), moment(theta))
+def _moment(body, theta):
+    return body.world_moment(0.0, theta, jnp.zeros_like(theta))
+
+
+@jax.custom_jvp
+def _converged(body, theta):
+    """``theta``, a converged equilibrium of ``body``, with the implicit derivative."""
+    return theta
+
+
+@_converged.defjvp
+def _converged_jvp(primals, tangents):
+    r"""$\dot\theta = -J^{-1}\,\partial M/\partial p\cdot\dot p$ with $J = \partial M/\partial
+    \theta$ at the solution (itself not differentiated: a second derivative of the vector field
+    made a fit's Jacobian program 2.7x larger, 16.7 s instead of 2.4 s to compile)."""
+    body, theta = primals
+    d_body, _ = tangents
+    J = jax.jacfwd(_moment, argnums=1)(body, theta)
+    _, dM = jax.jvp(lambda b: _moment(b, theta), (body,), (d_body,))
+    return theta, -jnp.linalg.solve(J, dM)
 
 
 def _cell(lattice: Lattice) -> Lattice:

@@ -101,7 +101,10 @@ def fit_dispersion(lattice_fn: Callable, params: Mapping[str, float], q, omega, 
     frequencies (NaN where a branch was not measured) of the branches ``branches`` (indices into
     the three non-negative frequencies $\mathrm{Im}\,\lambda$ of :func:`dispersion`, sorted
     ascending; default the lowest ``B``). The lattice is linearized about ``theta_eq`` (default:
-    each body's equilibrium, :func:`uniform_equilibrium`, which follows the parameters).
+    each body's equilibrium, :func:`uniform_equilibrium`, which follows the parameters: the
+    Jacobian program then also differentiates the Bloch matrix with respect to the state, ~5x
+    longer to compile — pass ``theta_eq`` where the equilibrium does not depend on the fitted
+    parameters, e.g. ``np.zeros(3)`` at rest).
     ``tol``, ``max_steps``: as :func:`rbo_jax.fit` (the relative step size and the number of
     Levenberg–Marquardt iterations). One compiled program per ``lattice_fn`` and data shapes.
     Returns a :class:`LatticeFit`."""
