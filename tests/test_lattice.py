@@ -204,6 +204,30 @@ def test_sine_gordon_kink_keeps_its_speed_width_and_energy():
     np.testing.assert_allclose(energy, energy[0], rtol=1e-10)
 
 
+def test_sine_gordon_breather_oscillates_at_its_frequency_with_its_energy():
+    """The breather of the same chain (lattice.breather, mu = 0.6: amplitude 4 arctan(tan mu) =
+    4 mu at the centre, frequency sqrt(c/A3) cos mu, energy 16 sqrt(c kappa) sin mu) keeps
+    its amplitude and frequency over a period; lattice.kink gives the kink of the test above."""
+    c, kappa, A3k, mu = 1.0, 25.0, 1.0, 0.6
+    n_sites, x0 = 120, 60.0
+    site = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(1.0, A3k, K),
+                                       rbo_jax.CosineFoundation(c))
+    lat = L.chain(n_sites, site, rbo_jax.QuadraticFoundation(kappa, kappa, K), periodic=False)
+    th0, Om0 = L.breather(n_sites, c, kappa, A3k, x0=x0, mu=mu)
+    period = 2 * np.pi / (np.sqrt(c / A3k) * np.cos(mu))
+    ts = np.linspace(0.0, period, 5)  # 0, P/4, P/2, 3P/4, P (the kink test's program)
+    traj = L.simulate(lat, th0, Om0, ts, rtol=1e-10, atol=1e-12)
+    centre = np.asarray(traj.theta)[:, int(x0), 2]
+    np.testing.assert_allclose(centre, [0.0, 4 * mu, 0.0, -4 * mu, 0.0], atol=0.015)  # measured 6e-3 (discreteness)
+    energy = np.asarray(traj.energy)
+    np.testing.assert_allclose(energy, 16 * np.sqrt(c * kappa) * np.sin(mu), rtol=1e-4)  # 2.6e-6
+    np.testing.assert_allclose(energy, energy[0], rtol=1e-10)
+    lam = np.sqrt(kappa / c)
+    xi = (np.arange(40) - 10.0) / lam
+    np.testing.assert_allclose(L.kink(40, c, kappa, A3k, x0=10.0)[0][:, 2],
+                               4 * np.arctan(np.exp(xi)), rtol=1e-14)
+
+
 def kelvin_chain(n=12, kb=0.9, kt=0.4):
     site = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(A1, A3, K),
                                        rbo_jax.ZeroFoundation())
