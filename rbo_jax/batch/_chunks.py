@@ -96,7 +96,11 @@ class Chunks:
 
     def launch(self, cid: int):
         slices = self.space.slices(cid)
-        pts = self.space.points(slices)
+        return self.launch_points(cid, slices, self.space.points(slices))
+
+    def launch_points(self, cid: int, slices, pts: np.ndarray):
+        """Dispatch chunk ``cid`` given its points (a Dask worker gets them from the client,
+        whose space it does not hold: :mod:`rbo_jax.batch._dask`)."""
         valid = np.all(np.isfinite(pts), axis=1)
         future, error = None, None
         if valid.any():

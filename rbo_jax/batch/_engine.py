@@ -23,6 +23,9 @@ How it runs (one private module per concern):
   chunks; ``retry_errors=True`` recomputes only the points whose evaluation raised.
 - **Hosts** (``_hosts.py``): after ``jax.distributed.initialize(...)`` every process computes its
   share of the chunks.
+- **Dask** (``_dask.py``): with ``client=`` a :class:`distributed.Client`, each chunk is one task;
+  idle workers take the next chunks, a lost worker's chunks are computed again elsewhere, and
+  this process stays the store's one writer (results bit for bit those of one process).
 
 **Bad points** never stop the sweep. Each point carries a ``status``: the quantity returns
 ``(values, status)`` with ``status`` an :class:`equinox.Enumeration` item (typically
@@ -48,6 +51,7 @@ import numpy as np
 
 from . import _store
 from ._chunks import Chunks
+from ._dask import DaskChunks, check_devices
 from ._errors import SweepError
 from ._hosts import Hosts
 from ._lock import StoreLock
@@ -100,8 +104,9 @@ def _progress_bar(progress, space: Space, mine, hosts: Hosts, desc: str):
     return tqdm(total=n_mine, desc=label, unit="pt", unit_scale=True, dynamic_ncols=True)
 
 
-def _run_chunks(chunks: Chunks, mine, consume, bar, hosts: Hosts, path):
-    """Run this process's chunks; every process meets afterwards, errors are re-raised."""
+def _run_chunks(chunks: Chunks | DaskChunks, mine, consume, bar, hosts: Hosts, path):
+    """Run this process's chunks (here, or as tasks of a Dask cluster); every process meets
+    afterwards, errors are re-raised."""
     error = None
     try:
         chunks.run(mine, consume, bar)
@@ -141,15 +146,20 @@ def _check_memory(space: Space, spec: OutputSpec):
 
 
 class _InMemory:
-    """Collects chunk results into arrays (one process) or keeps them (several processes)."""
+    """Collects chunk results into arrays (one process) or keeps them (several processes).
+    Error records are listed in chunk order, however the chunks arrive (Dask: as they finish)."""
 
     def __init__(self, space: Space, spec: OutputSpec, hosts: Hosts):
         self.arrays = {v.name: np.empty(space.shape + v.shape, v.dtype) for v in spec.variables}
         self.arrays["status"] = np.empty(space.shape, np.int8)
-        self.kept, self.errors, self.hosts = {}, [], hosts
+        self.kept, self.chunk_errors, self.hosts = {}, {}, hosts
+
+    @property
+    def errors(self) -> list[dict]:
+        return [e for cid in sorted(self.chunk_errors) for e in self.chunk_errors[cid]]
 
     def __call__(self, cid, slices, result):
-        self.errors += result.get("errors", [])
+        self.chunk_errors[cid] = result.get("errors", [])
         if self.hosts.count > 1:
             self.kept[cid] = result
             return
@@ -201,6 +211,7 @@ def sweep(
     desc: str = "sweep",
     postprocess: Callable[[dict], dict] | None = None,
     retry_errors: bool = False,
+    client: Any = None,
 ):
     r"""Evaluate ``quantity(**point)`` at every point of a grid or a list of points.
 
@@ -238,6 +249,9 @@ def sweep(
       {name: array}`` of the same shapes and dtypes (e.g. sorting eigenvalues on the host).
     - `retry_errors`: with ``resume``, also recompute the points of the store whose evaluation
       raised (status ``error``), e.g. after fixing the cause.
+    - `client`: a :class:`distributed.Client` (``pip install 'rbo_jax[dask]'``): every chunk
+      becomes one task of its cluster (see below); ``devices`` then counts each worker's local
+      devices (``None``: all).
 
     **Returns:** an :class:`xarray.Dataset` with coordinates the parameters (grid: one dimension
     per axis; points: dimension ``point``), one variable per output, and ``status`` (int8 codes,
@@ -253,9 +267,26 @@ def sweep(
 
     Multi-process (after ``jax.distributed.initialize``): every process calls ``sweep`` with the
     same arguments; the store must be on a file system that all of them see.
+
+    On Dask (``client``): this process traces the quantity, holds the store's lock and writes
+    every chunk as it arrives (checksums, ``resume`` as above); the workers (which need rbo_jax
+    and see the same Python modules) run the same chunk program — the quantity is cloudpickled
+    (lambdas and closures are fine), traced once per worker process, compiled at most once
+    (loaded from this process's :func:`rbo_jax.enable_compilation_cache` directory when it is
+    on), under this process's float64 and promotion settings. An idle worker takes the next
+    chunk; at most two tasks per worker thread are in flight, so memory does not grow with the
+    grid; the chunks of a worker that dies are computed again by the others (the scheduler's
+    ``allowed-failures``). Values, statuses and error records equal a one-process sweep's bit
+    for bit (same program, padding and batch, given the same number of devices per process).
+    ``retry_errors`` recomputes its few points in this process. Not combined with
+    ``jax.distributed``.
     """
     space = make_space(axes, points, chunk_size)
-    local = local_devices(devices)
+    if client is not None:
+        devices = check_devices(devices)
+    # with a client this process only traces (the outputs' structure; the program that one-device
+    # workers load from the program store): on one device
+    local = local_devices(1 if client is not None else devices)
     attrs = _check_attrs(attrs)
     if (resume or retry_errors) and store is None:
         raise ValueError("resume=True and retry_errors=True need a store.")
@@ -263,12 +294,17 @@ def sweep(
     if path is not None and (resume or retry_errors) and not overwrite:
         space = _store.resumed_layout(path, space)
     hosts = Hosts()
+    if client is not None and hosts.count > 1:
+        raise ValueError("client=... (Dask) and jax.distributed are exclusive: run the sweep in "
+                         "one process, the cluster's workers compute its chunks.")
     chunks = Chunks(quantity, space, local, dims, postprocess)  # traced now, compiled later
     spec = chunks.spec
+    runner = chunks if client is None else DaskChunks(client, chunks, quantity, dims,
+                                                      postprocess, devices)
     if path is None:
         _check_memory(space, spec)
         consume = _InMemory(space, spec, hosts)
-        _run_chunks(chunks, hosts.share(list(range(space.n_chunks))), consume,
+        _run_chunks(runner, hosts.share(list(range(space.n_chunks))), consume,
                     _progress_bar(progress, space, hosts.share(list(range(space.n_chunks))),
                                   hosts, desc), hosts, path)
         if hosts.count > 1:
@@ -280,7 +316,7 @@ def sweep(
             space, missing = _open_store(path, space, spec, attrs, resume or retry_errors,
                                          overwrite, hosts)
             mine = hosts.share(missing)
-            _run_chunks(chunks, mine, _store.Writer(path, spec),
+            _run_chunks(runner, mine, _store.Writer(path, spec),
                         _progress_bar(progress, space, mine, hosts, desc), hosts, path)
             if hosts.index == 0:
                 if retry_errors:
