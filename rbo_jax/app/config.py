@@ -10,6 +10,7 @@ fault, describes the model as a :class:`~rbo_jax.app.spec.ModelSpec` (and the la
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import json
@@ -25,6 +26,7 @@ import numpy as np
 from .._validation import POSITIVE
 from ..batch import POINT_DIM, summary_line, sweep
 from ..plotting import plot_sweep, pyplot
+from ._cluster import dask_client
 from ._reader import Reader, SpecError
 from .quantities import (
     DEFAULT_PLOT,
@@ -271,19 +273,28 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
 
 def run_config(config: SweepConfig | str | os.PathLike, *, resume: bool = False,
                overwrite: bool = False, progress: bool = True, output=None, png=None,
-               plot: bool = True, retry_errors: bool = False):
+               plot: bool = True, retry_errors: bool = False, scheduler: str | None = None,
+               workers: int | None = None, client=None):
     """Run a configured sweep (:func:`load_config`): write the store and, on process 0, the PNG
     of the map. ``output`` / ``png`` override the configured paths; ``retry_errors`` (with
-    ``resume``) computes again the points of status ``error`` (:func:`rbo_jax.sweep`). Returns
-    ``(dataset, png path or None)``."""
+    ``resume``) computes again the points of status ``error`` (:func:`rbo_jax.sweep`). On Dask
+    (``pip install 'rbo_jax[dask]'``): ``scheduler`` the address ``tcp://HOST:PORT`` of a running
+    scheduler, or ``workers`` a local cluster of that many processes (closed at the end), or
+    ``client`` a :class:`distributed.Client` (at most one of the three); this process still
+    writes the store. Returns ``(dataset, png path or None)``."""
     cfg = config if isinstance(config, SweepConfig) else load_config(config)
     out = Path(output) if output is not None else cfg.output
-    ds = sweep(
-        cfg.quantity, cfg.axes, points=cfg.points, chunk_size=cfg.chunk_size, store=out,
-        resume=resume, overwrite=overwrite, progress=progress, dims=cfg.dims,
-        retry_errors=retry_errors, attrs={"quantity": cfg.quantity_name, "config": cfg.canonical},
-        desc=cfg.quantity_name,
-    )
+    if client is not None and (scheduler is not None or workers is not None):
+        raise ValueError("give a client, a scheduler or workers, not several.")
+    with contextlib.nullcontext(client) if client is not None else \
+            dask_client(scheduler, workers) as client:
+        ds = sweep(
+            cfg.quantity, cfg.axes, points=cfg.points, chunk_size=cfg.chunk_size, store=out,
+            resume=resume, overwrite=overwrite, progress=progress, dims=cfg.dims,
+            retry_errors=retry_errors,
+            attrs={"quantity": cfg.quantity_name, "config": cfg.canonical},
+            desc=cfg.quantity_name, client=client,
+        )
     png_path = None
     if plot and jax.process_index() == 0:
         png_path = Path(png) if png is not None else (

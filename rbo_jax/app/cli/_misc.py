@@ -80,7 +80,9 @@ def sweep_command(args: argparse.Namespace) -> int:
 
     from ...batch import SweepError, status_counts
     from ..config import ConfigError, load_config, run_config
+    from ._cluster import check_cluster_options
 
+    check_cluster_options(args)  # --scheduler / --workers (Dask): exit 2 before anything starts
     distributed = (args.coordinator, args.num_processes, args.process_id)
     if any(x is not None for x in distributed):
         if args.coordinator is None or args.num_processes is None or args.process_id is None:
@@ -106,7 +108,8 @@ def sweep_command(args: argparse.Namespace) -> int:
     try:
         ds, png = run_config(cfg, resume=args.resume or args.retry_errors,
                              overwrite=args.overwrite, progress=not args.quiet,
-                             output=args.output, plot=plot, retry_errors=args.retry_errors)
+                             output=args.output, plot=plot, retry_errors=args.retry_errors,
+                             scheduler=args.scheduler, workers=args.workers)
     except (FileExistsError, SweepError) as e:
         print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
         return 2
