@@ -58,3 +58,42 @@ KILL_CHUNK = 2
 #: The two-process sweep: 3 x 5 grid (with a NaN) in chunks of 2 points (9 chunks).
 DIST_AXES = NIKOLAI_AXES
 DIST_CHUNK = 2
+
+
+# The sweeps on Dask (tests/test_dask_sweep.py); the workers import this module by name.
+
+
+def nikolai_spectrum(c, M):
+    """:func:`nikolai_abscissa` without its host callback: a program the program store keeps,
+    which the Dask workers load instead of tracing it."""
+    p = rbo.fast_spectrum(nikolai_model(c, M), M * K)
+    kind, a = rbo.classify(p)
+    return {"abscissa": a, "kind": kind, "p": p}
+
+
+def slowed(seconds):
+    """:func:`nikolai_spectrum` behind a host callback (identity on ``c``) that sleeps
+    ``seconds`` per chunk: a closure, which cloudpickle sends by value, ``seconds`` included;
+    every value of ``seconds`` compiles to the same program."""
+
+    def sleep(x):
+        time.sleep(seconds)
+        return np.asarray(x)
+
+    def slow(c, M):
+        c = jax.pure_callback(sleep, jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)), c,
+                              vmap_method="expand_dims")
+        return nikolai_spectrum(c, M)
+
+    return slow
+
+
+def raises_for_large_c(c, M):
+    import equinox as eqx
+
+    return {"x": eqx.error_if(c + M, c > 1.5, "c too large")}
+
+
+#: 4 x 6 grid (a NaN among the M) in chunks of 2 points: 12 chunks.
+DASK_AXES = {"c": np.array([0.5, 1.0, 1.5, 2.0]), "M": np.array([0.05, 0.1, np.nan, 0.3, 0.4, 0.5])}
+DASK_CHUNK = 2
