@@ -47,6 +47,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -133,8 +134,11 @@ def _resolve(x, point: Mapping[str, Any]):
     if isinstance(x, Ref):
         return point[x.name]
     if isinstance(x, tuple):
-        return jnp.stack([jnp.asarray(_resolve(v, point), dtype=jnp.result_type(float))
-                          for v in x])
+        parts = [_resolve(v, point) for v in x]
+        if any(isinstance(v, jax.core.Tracer) for v in parts):
+            return jnp.stack([jnp.asarray(v, dtype=jnp.result_type(float)) for v in parts])
+        # concrete: a NumPy vector (jnp.stack would compile two small programs eagerly)
+        return np.asarray([np.asarray(v) for v in parts], dtype=jnp.result_type(float))
     return x
 
 

@@ -8,7 +8,6 @@ import time
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 
 from ..model import RigidBodyOscillator
@@ -17,12 +16,12 @@ from ._least_squares import run_least_squares
 from ._optax import run_optax
 from ._residuals import (
     INTEGRATORS,
-    TRANSFORMS,
     Spec,
     jacobian_matrix,
     leaf_paths,
     residuals_and_jacobian,
     resolve_transforms,
+    transform,
     transform_derivative,
     unpack,
 )
@@ -259,7 +258,7 @@ def fit(
                 fit_initial_state=bool(fit_initial_state), rtol=float(solve_rtol),
                 atol=float(solve_atol), forward=optimizer in LEAST_SQUARES,
                 max_solver_steps=int(solve_max_steps), integrator=integrator)
-    u = {"p": tuple(TRANSFORMS[n][0](jnp.asarray(v)) for n, v in zip(spec.transforms, values))}
+    u = {"p": tuple(transform(n, v) for n, v in zip(spec.transforms, values))}
     if fit_initial_state:
         u["x0"] = tuple((d.theta0, d.Omega0) for d in datas)
     history: list[float] = []

@@ -87,6 +87,22 @@ TRANSFORMS = {
     "softplus": (lambda x: x + jnp.log(-jnp.expm1(-x)), jax.nn.softplus),
     "identity": (lambda x: x, lambda u: u),
 }
+# The same maps in NumPy, for concrete values on the host (the start and the result of a fit):
+# each jnp call on a concrete value would be a small program compiled eagerly (0.02-0.05 s each
+# in a fresh process).
+_NUMPY_TRANSFORMS = {
+    "log": (np.log, np.exp),
+    "softplus": (lambda x: x + np.log(-np.expm1(-x)), lambda u: np.logaddexp(0.0, u)),
+    "identity": (lambda x: x, lambda u: u),
+}
+
+
+def transform(name: str, x, inverse: bool = False):
+    """The transform ``name`` (natural -> unconstrained, or back with ``inverse``): in NumPy for a
+    concrete value (float64 where x64 is on), in JAX for a traced one."""
+    if isinstance(x, jax.core.Tracer):
+        return TRANSFORMS[name][int(inverse)](x)
+    return _NUMPY_TRANSFORMS[name][int(inverse)](np.asarray(x, dtype=jnp.result_type(float)))
 
 
 def resolve_transforms(values, transforms):
@@ -158,7 +174,7 @@ def with_params(model, spec: Spec, natural):
 
 
 def unpack(u, model, n_data, spec: Spec):
-    natural = tuple(TRANSFORMS[n][1](x) for n, x in zip(spec.transforms, u["p"]))
+    natural = tuple(transform(n, x, inverse=True) for n, x in zip(spec.transforms, u["p"]))
     states = u["x0"] if spec.fit_initial_state else ((None, None),) * n_data
     return with_params(model, spec, natural), natural, states
 
