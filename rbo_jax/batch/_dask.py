@@ -176,7 +176,8 @@ class DaskChunks:
         space, run_id = self.space, uuid.uuid4().hex[:8]
         todo = iter(chunk_ids)
         submitted: dict = {}  # task key -> (chunk id, slices, future)
-        done = as_completed()
+        # results fetched by the client's event loop as tasks finish, not on request from here
+        done = as_completed(with_results=True, raise_errors=False)
 
         def top_up():
             while len(submitted) < self._in_flight():
@@ -190,15 +191,17 @@ class DaskChunks:
                 submitted[future.key] = (cid, slices, future)
                 done.add(future)
 
-        if bar is not None and self._in_flight() and self._threads == 0:
+        self._in_flight()  # asks the scheduler how many worker threads it has
+        if bar is not None and self._threads == 0:
             print(f"rbo_jax.sweep: no Dask worker yet; waiting for workers of "
                   f"{self.client.scheduler.address}.", file=sys.stderr)
         try:
             top_up()
-            for future in done:
+            for future, result in done:
                 cid, slices, _ = submitted.pop(future.key)
                 try:
-                    result = future.result()
+                    if future.status != "finished":
+                        future.result()  # raises the task's error, with its traceback
                 except KilledWorker as e:
                     raise SweepError(
                         f"chunk {cid} was lost with every worker that ran it ({e}); the "
