@@ -97,3 +97,16 @@ def raises_for_large_c(c, M):
 #: 4 x 6 grid (a NaN among the M) in chunks of 2 points: 12 chunks.
 DASK_AXES = {"c": np.array([0.5, 1.0, 1.5, 2.0]), "M": np.array([0.05, 0.1, np.nan, 0.3, 0.4, 0.5])}
 DASK_CHUNK = 2
+
+
+def _exit_if_large(x):
+    if np.any(np.asarray(x) > 1.5):
+        os._exit(3)  # the worker process dies, as by a crash in native code
+    return np.asarray(x)
+
+
+def kills_its_worker(c, M):
+    """Ends the process that computes a chunk holding c = 2 (run on Dask workers only)."""
+    c = jax.pure_callback(_exit_if_large, jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)),
+                          c, vmap_method="expand_dims")
+    return {"x": c + M}

@@ -24,6 +24,7 @@ from sweep_quantities import (
     DASK_AXES,
     DASK_CHUNK,
     NIKOLAI_DIMS,
+    kills_its_worker,
     nikolai_spectrum,
     raises_for_large_c,
     slowed,
@@ -31,7 +32,7 @@ from sweep_quantities import (
 
 from rbo_jax.app import _cluster, cli
 from rbo_jax.app.cli import _cluster as cli_cluster
-from rbo_jax.batch import _dask, _store, status_counts, sweep
+from rbo_jax.batch import SweepError, _dask, _store, status_counts, sweep
 
 try:
     import zarr
@@ -64,12 +65,16 @@ loads = [{ type = "follower", M = "M" }, { type = "friction", b = "b" }]
 @pytest.fixture(scope="module")
 def client():
     """A local cluster of 2 worker processes (one thread each). Its workers import the
-    quantities of this folder by name (tests/sweep_quantities.py), hence PYTHONPATH."""
+    quantities of this folder by name (tests/sweep_quantities.py), hence PYTHONPATH. A task
+    whose workers died twice fails (allowed-failures 1, Dask's default is 3)."""
+    import dask
+
     saved = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(HERE), str(ROOT), saved) if p)
     try:
-        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                      dashboard_address=":0") as cluster, \
+        with dask.config.set({"distributed.scheduler.allowed-failures": 1}), \
+                distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                         dashboard_address=":0") as cluster, \
                 distributed.Client(cluster) as c:
             c.wait_for_workers(2, timeout=60)
             yield c
@@ -282,3 +287,17 @@ def test_cli_unreachable_scheduler(tmp_path, capsys, monkeypatch):
     assert cli.main(["sweep", str(cfg), "--quiet", "--scheduler", "tcp://127.0.0.1:9"]) == 2
     err = capsys.readouterr().err
     assert "cannot reach the Dask scheduler 'tcp://127.0.0.1:9'" in err and err.count("\n") == 1
+
+
+@needs_zarr
+def test_a_chunk_that_kills_every_worker_is_reported(client, tmp_path):
+    """A quantity that ends its process at c = 2 (as a crash in native code would): the chunk
+    is tried on two workers (allowed-failures 1), then the sweep stops with a SweepError naming
+    it; the chunks already written are kept. (Last: both workers are restarting afterwards.)"""
+    client.wait_for_workers(2, timeout=60)
+    path = tmp_path / "crash.zarr"
+    with pytest.raises(SweepError, match=r"chunk \d+ was lost with every worker that ran it.*"
+                                         r"resume the sweep"):
+        sweep(kills_its_worker, DASK_AXES, chunk_size=DASK_CHUNK, store=path, client=client,
+              progress=False)
+    assert not (tmp_path / "crash.zarr.lock").exists()
