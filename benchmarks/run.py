@@ -23,6 +23,7 @@ SMOKE_ARGS = {
     "stability": ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"],
     "fitting": ["--samples", "20", "--trajectories", "1"],
     "lattice": ["--smoke"],
+    "dask": ["--smoke"],  # skipped without distributed (the `dask` extra)
 }
 
 
@@ -99,6 +100,12 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                          "stencil (1 core each)",
                          _fmt(r.get("ratio"), ".2f") + "x" if nb else "numba not installed",
                          f"jax {r['compile_jax']:.1f}"))
+    da = results.get("dask")
+    if da:
+        rows.append(("dask", f"a chunk of {da['chunk']} points as a Dask task: overhead [ms]",
+                     f"{da['overhead_ms']:.2f}", ""))
+        rows.append(("dask", "sweep on 2 Dask workers vs 1 process",
+                     _fmt(da["speedup_2_workers"], ".2f") + "x", ""))
     return rows
 
 
@@ -124,7 +131,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, for tests")
     parser.add_argument("--only", nargs="*", default=None,
-                        help="subset of: sweep simulate stability fitting lattice")
+                        help="subset of: sweep simulate stability fitting lattice dask")
     args = parser.parse_args(argv)
     import importlib
 
@@ -133,7 +140,7 @@ def main(argv=None) -> int:
     # sweep first: it splits the CPU into 2 XLA devices, which must happen before JAX starts
     modules = {"sweep": "bench_sweep", "simulate": "bench_simulate",
                "stability": "bench_stability", "fitting": "bench_fitting",
-               "lattice": "bench_lattice"}
+               "lattice": "bench_lattice", "dask": "bench_dask"}
     print(f"{time.strftime('%Y-%m-%d')}  {platform.platform()}  {os.cpu_count()} CPUs  "
           f"jax {jax.__version__}  python {platform.python_version()}  load average "
           f"{os.getloadavg()[0]:.2f}", flush=True)

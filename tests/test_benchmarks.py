@@ -37,9 +37,17 @@ def _floats(pattern, text):
 
 def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
     for marker in ["=== sweep ===", "=== simulate ===", "=== stability ===", "=== fitting ===",
-                   "=== lattice ===", "speed-up per trajectory", "max |p - (4.69)|", "first fit",
-                   "shard_map over", "=== summary ===", "compile [s]"]:
+                   "=== lattice ===", "=== dask ===", "speed-up per trajectory", "max |p - (4.69)|",
+                   "first fit", "shard_map over", "=== summary ===", "compile [s]"]:
         assert marker in smoke_output, marker
+
+
+def test_dask_workers_give_the_process_results(smoke_output):
+    """The sweeps on one and two Dask workers equal the in-process sweep bit for bit."""
+    part = smoke_output.split("=== dask ===")[1].split("===")[0]
+    if "distributed not installed" in part:
+        pytest.skip("distributed (the `dask` extra) is not installed")
+    assert "results bit for bit equal to the process's: True" in part
 
 
 def test_the_lattice_takes_the_numba_stencils_steps(smoke_output):
