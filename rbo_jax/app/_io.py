@@ -7,6 +7,10 @@ lattice's ``shape``) as JSON text and boolean attributes as 0 or 1; zarr
 format 3 specifies variable-length strings only, so string coordinates (``component = x, y, z``)
 are written as such. Zarr stores are written with consolidated metadata, so
 ``xarray.open_zarr`` opens them directly.
+
+Every file is written whole (:func:`rbo_jax.app._outputs.replacing`: a temporary beside the target,
+renamed into place), and a file that cannot be read as a trajectory gives a ``ValueError`` that
+says what is wrong with it, whatever the reader library raised.
 """
 
 from __future__ import annotations
@@ -15,8 +19,11 @@ import importlib.util
 import json
 import os
 import warnings
+from pathlib import Path
 
 import numpy as np
+
+from ._outputs import replacing
 
 __all__ = ["DATASET_SUFFIXES", "netcdf_engine", "write_dataset", "read_trajectory_file"]
 
@@ -74,13 +81,14 @@ def write_dataset(ds, path) -> None:
         if engine is None:
             raise RuntimeError("writing .nc needs a netCDF engine for xarray: pip install "
                                "netCDF4, h5netcdf or scipy; or write .zarr.")
-        _for_netcdf(ds).to_netcdf(path, engine=engine)
+        with replacing(path) as tmp:
+            _for_netcdf(ds).to_netcdf(tmp, engine=engine)
     elif kind == ".zarr":
         # zarr notes that consolidated metadata is not yet in the format 3 specification; zarr
         # and xarray read it, and xarray.open_zarr warns without it.
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), replacing(path) as tmp:
             warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
-            _for_zarr(ds).to_zarr(path, mode="w", zarr_format=3, consolidated=True)
+            _for_zarr(ds).to_zarr(tmp, mode="w", zarr_format=3, consolidated=True)
     else:
         raise ValueError(f"{path}: unknown dataset format {kind!r}; use .nc or .zarr.")
 
@@ -91,18 +99,45 @@ def write_trajectory_csv(ds, path) -> None:
     t = np.asarray(ds["t"].values)
     cols = [t, np.asarray(ds["theta"].values), np.asarray(ds["Omega"].values),
             np.asarray(ds["energy"].values)]
-    np.savetxt(path, np.column_stack(cols), delimiter=",", comments="", fmt="%.17g",
-               header="t,theta_x,theta_y,theta_z,Omega_x,Omega_y,Omega_z,energy")
+    with replacing(path) as tmp:
+        np.savetxt(tmp, np.column_stack(cols), delimiter=",", comments="", fmt="%.17g",
+                   header="t,theta_x,theta_y,theta_z,Omega_x,Omega_y,Omega_z,energy")
 
 
-def read_trajectory_file(path) -> dict:
-    """The arrays of an observed trajectory: ``t`` and any of ``theta``, ``Q``, ``Omega``,
-    ``omega`` (and ``theta0``, ``Omega0``), from a dataset written by ``rbo-jax simulate --out``
-    (``.nc``, ``.zarr``) or from an ``.npz`` file with arrays of those names. Raises
-    ``ValueError``/``OSError`` with the reason."""
-    kind = suffix(path)
+# the arrays a trajectory file may hold, all of real numbers
+TRAJECTORY_ARRAYS = ("t", "ts", "theta", "Q", "Omega", "omega", "theta0", "Omega0")
+_SIGNATURES = {".npz": (b"PK\x03\x04", b"PK\x05\x06"),  # a zip archive (numpy.savez)
+               ".nc": (b"CDF\x01", b"CDF\x02", b"CDF\x05", b"\x89HDF\r\n\x1a\n")}
+_FORMATS = {".npz": ".npz archive (numpy.savez)", ".nc": "netCDF file", ".zarr": "zarr store"}
+
+
+def _check_container(path: Path, kind: str) -> None:
+    """The file exists, is of the right kind (file or folder) and starts like its format."""
+    if not path.exists():
+        raise ValueError("no such file")
+    if kind == ".zarr":
+        if not path.is_dir():
+            raise ValueError("not a zarr store (a .zarr store is a folder)")
+        return
+    if path.is_dir():
+        raise ValueError("is a folder, not a file")
+    if not os.access(path, os.R_OK):
+        raise ValueError("not readable (permissions)")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if not head:
+        raise ValueError("an empty file")
+    if not head.startswith(_SIGNATURES[kind]):
+        raise ValueError(f"not a {_FORMATS[kind]} (its first bytes are {head[:4]!r})")
+    if head.startswith(b"\x89HDF") and netcdf_engine() not in ("netcdf4", "h5netcdf"):
+        raise ValueError("a netCDF 4 (HDF5) file, which needs the netCDF4 or h5netcdf package to "
+                         "be read (pip install netCDF4); 'rbo-jax simulate --out' writes netCDF 3")
+
+
+def _read_arrays(path, kind: str) -> dict:
     if kind == ".npz":
-        with np.load(path, allow_pickle=False) as f:
+        # the file opened here, so that it is closed also when numpy fails to read it
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as f:
             arrays = {name: f[name] for name in f.files}
         if "t" not in arrays and "ts" in arrays:
             arrays["t"] = arrays["ts"]
@@ -111,14 +146,43 @@ def read_trajectory_file(path) -> dict:
 
     if kind == ".zarr":
         ds = xr.open_zarr(path, consolidated=None)
-    elif kind == ".nc":
-        ds = xr.open_dataset(path, engine=netcdf_engine())
     else:
-        raise ValueError(f"unknown format {kind or '(no suffix)'!r}; use .nc, .zarr or .npz.")
+        ds = xr.open_dataset(path, engine=netcdf_engine())
     with ds:
         arrays = {name: np.asarray(ds[name].values) for name in ds.variables}
         if "reached" in arrays:  # samples after a solver failure are not observations
             keep = arrays["reached"].astype(bool)
             arrays = {k: v[keep] if v.ndim and v.shape[0] == keep.size else v
                       for k, v in arrays.items()}
+    return arrays
+
+
+def _reason(e: Exception) -> str:
+    """An exception as a short phrase of one line."""
+    text = " ".join(str(e).split())
+    if len(text) > 200:
+        text = text[:197] + "..."
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def read_trajectory_file(path) -> dict:
+    """The arrays of an observed trajectory: ``t`` and any of ``theta``, ``Q``, ``Omega``,
+    ``omega`` (and ``theta0``, ``Omega0``), from a dataset written by ``rbo-jax simulate --out``
+    (``.nc``, ``.zarr``) or from an ``.npz`` file with arrays of those names. Raises
+    ``ValueError`` with the reason (a missing, empty, corrupt or foreign file, arrays that are
+    not real numbers), never the reader library's own error."""
+    kind = suffix(path)
+    if kind not in _FORMATS:
+        raise ValueError(f"unknown format {kind or '(no suffix)'!r}; use .nc, .zarr or .npz.")
+    _check_container(Path(path), kind)
+    try:
+        arrays = _read_arrays(path, kind)
+    except MemoryError:
+        raise
+    except Exception as e:  # whatever numpy, xarray, zarr or the netCDF engine raise
+        raise ValueError(f"not a readable {_FORMATS[kind]} ({_reason(e)})") from None
+    for name in TRAJECTORY_ARRAYS:
+        if name in arrays and arrays[name].dtype.kind not in "fiu":
+            raise ValueError(f"array {name!r} must hold real numbers, got dtype "
+                             f"{arrays[name].dtype}")
     return arrays

@@ -27,6 +27,7 @@ from .._validation import POSITIVE
 from ..batch import POINT_DIM, summary_line, sweep
 from ..plotting import plot_sweep, pyplot
 from ._cluster import dask_client
+from ._outputs import save_figure
 from ._reader import Reader, SpecError
 from .quantities import (
     DEFAULT_PLOT,
@@ -305,7 +306,7 @@ def run_config(config: SweepConfig | str | os.PathLike, *, resume: bool = False,
         plot_sweep(ds, cfg.plot, ax=ax,
                    title=f"{what}   ({summary_line(ds.attrs['status_counts'])})")
         fig.tight_layout()
-        fig.savefig(png_path, dpi=120)
+        save_figure(fig, png_path, dpi=120)  # whole or not at all
         plt.close(fig)
     return ds, png_path
 

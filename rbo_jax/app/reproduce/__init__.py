@@ -15,6 +15,7 @@ import os
 import time
 from collections.abc import Callable
 
+from .._outputs import write_text
 from ._bifurcation import bifurcation
 from ._common import Check
 from ._dynamics import balance_and_energy, simplest
@@ -100,5 +101,4 @@ def _write_report(out, checks, elapsed, quick, figures):
         ]:
             if os.path.exists(os.path.join(out, name)):
                 lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
-    with open(os.path.join(out, "report.md"), "w", encoding="utf-8") as f:
-        f.write("\n".join(lines) + "\n")
+    write_text(os.path.join(out, "report.md"), "\n".join(lines) + "\n")  # whole or not at all

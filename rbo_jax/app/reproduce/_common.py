@@ -8,6 +8,8 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
+from .._outputs import save_figure
+
 K = jnp.array([0.0, 0.0, 1.0])
 TIGHT = dict(rtol=1e-12, atol=1e-12)
 
@@ -34,5 +36,6 @@ def fmt(x) -> str:
 
 
 def save(plt, fig, out: str, name: str):
-    fig.savefig(os.path.join(out, name), dpi=110, bbox_inches="tight")
+    """Write a figure into the report's folder, whole or not at all."""
+    save_figure(fig, os.path.join(out, name), dpi=110, bbox_inches="tight")
     plt.close(fig)
