@@ -9,6 +9,11 @@ error that names the store and the owner. A lock left by a process that died is 
 with a message: on the same host when that process no longer exists (or its id was reused by
 another process), on another host when the heartbeat is older than ``STALE_S``. The lock is
 removed when the sweep ends, so a finished store holds no trace of it.
+
+The locks this process holds are listed (:func:`release_held`), so that the interrupt handler of
+``rbo-jax`` (which ends the process with ``os._exit``, skipping every ``finally``) can remove
+their files: an interrupted sweep leaves no lock behind, and ``--resume`` starts without taking
+one over.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from ._errors import SweepError
 
 HEARTBEAT_S = 30.0
 STALE_S = 300.0
+_HELD: set[StoreLock] = set()
 
 
 def _process_start(pid: int) -> str | None:
@@ -103,6 +109,7 @@ class StoreLock:
             self.file.unlink(missing_ok=True)
         self._thread = threading.Thread(target=self._beat, daemon=True)
         self._thread.start()
+        _HELD.add(self)
         return self
 
     def _beat(self):
@@ -117,9 +124,22 @@ class StoreLock:
         if self._thread is not None:
             self._thread.join()
         self.file.unlink(missing_ok=True)
+        _HELD.discard(self)
 
     def __enter__(self):
         return self.acquire()
 
     def __exit__(self, *exc):
         self.release()
+
+
+def release_held() -> None:
+    """Remove the lock files of every store this process holds, at once (from any thread: the
+    heartbeat threads are told to stop, not waited for). For a process about to end abruptly."""
+    for lock in list(_HELD):
+        lock._stop.set()
+        try:
+            lock.file.unlink(missing_ok=True)
+        except OSError:
+            pass
+        _HELD.discard(lock)
