@@ -24,8 +24,12 @@ done (:func:`exit_process`: the interpreter's teardown of JAX took 0.2–0.4 s).
 default ``rbo_jax/jax-cache`` under the user's cache directory (``$XDG_CACHE_HOME`` or
 ``~/.cache``); ``RBO_JAX_COMPILATION_CACHE=off`` turns it off.
 
-Exit codes: 0 success; 1 the computation failed (a solver status, a fit that did not converge);
-2 invalid input (options, parameters, files), with a message naming it.
+Exit codes: 0 success; 1 the computation failed (a solver status, a fit that did not converge)
+or an unexpected error (one line ``rbo-jax CMD: error: TYPE: MESSAGE``; the traceback with
+``RBO_JAX_TRACEBACK=1``); 2 invalid input (options, parameters, files, output paths, requests
+larger than the memory), with one line naming it, before anything is computed; 130 interrupted
+by Ctrl-C (143: SIGTERM), with one line saying what was kept (:mod:`._interrupt`). Outputs are
+written whole or not at all (:mod:`rbo_jax.app._outputs`).
 """
 
 from __future__ import annotations
@@ -39,11 +43,13 @@ from typing import NoReturn
 import rbo_jax  # noqa: F401  (enables float64 before any array is made)
 
 from ... import _cache
+from .. import _outputs
+from . import _interrupt
 from ._common import Failure
 from ._fit import fit_command
 from ._map import stability_map_command
 from ._misc import demo, reproduce_command, sweep_command
-from ._options import add_command
+from ._options import Parser, add_command
 from ._simulate import simulate_command
 
 __all__ = ["build_parser", "exit_process", "main", "run"]
@@ -51,7 +57,7 @@ __all__ = ["build_parser", "exit_process", "main", "run"]
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``rbo-jax`` argument parser (all subcommands)."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="rbo-jax",
         description="Rigid body oscillator in JAX: simulation and analysis of the turn-vector "
         "model.",
@@ -76,16 +82,49 @@ def enable_compilation_cache() -> Path | None:
     return _cache.enable_compilation_cache()
 
 
+def _unexpected(command: str | None, error: BaseException) -> int:
+    """An exception no command expected: one line (the traceback only on request), status 1."""
+    text = " ".join(str(error).split())
+    if len(text) > 400:
+        text = text[:397] + "..."
+    where = f"rbo-jax {command}" if command else "rbo-jax"
+    if os.environ.get("RBO_JAX_TRACEBACK", "") not in ("", "0"):
+        import traceback
+
+        traceback.print_exception(error)
+        hint = ""
+    else:
+        hint = " (run with RBO_JAX_TRACEBACK=1 for the traceback)"
+    print(f"{where}: error: {type(error).__name__}: {text}{hint}", file=sys.stderr)
+    return 1
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run ``rbo-jax ARGV``; returns the exit status (usage errors raise ``SystemExit(2)``, as
+    argparse does, with one line). Nothing escapes as a traceback: a :class:`Failure` prints
+    its message, a ``KeyboardInterrupt`` what was kept (status 130), any other exception one
+    line (status 1)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(argv)
-    args.argv = argv
-    enable_compilation_cache()
     try:
+        args = build_parser().parse_args(argv)
+    except Exception as e:  # an option's type raised something other than a usage error
+        return _unexpected(None, e)
+    args.argv = argv
+    _outputs.WRITTEN.clear()
+    _interrupt.set_command(args.command)
+    _interrupt.set_describer(None)
+    try:
+        enable_compilation_cache()
         return args.func(args)
     except Failure as e:
         print(f"rbo-jax {args.command}: error: {e}", file=sys.stderr)
         return e.code
+    except KeyboardInterrupt:
+        _interrupt.cleanup()
+        print(_interrupt.message(), file=sys.stderr)
+        return 130
+    except Exception as e:
+        return _unexpected(args.command, e)
 
 
 def exit_process(code: int) -> NoReturn:
@@ -102,9 +141,15 @@ def exit_process(code: int) -> NoReturn:
 
 
 def run() -> NoReturn:
-    """The ``rbo-jax`` console command: :func:`main`, then :func:`exit_process`. An exception
-    other than a :class:`Failure` ends the process as usual (its traceback printed)."""
-    exit_process(main())
+    """The ``rbo-jax`` console command: Ctrl-C and SIGTERM taken over (:func:`._interrupt.install`:
+    they stop the command at once, also inside a compiled solve), :func:`main`, then
+    :func:`exit_process`."""
+    _interrupt.install()
+    try:
+        code = main()
+    except SystemExit as e:  # argparse: --help (0) and usage errors (2)
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    exit_process(code)
 
 
 if __name__ == "__main__":

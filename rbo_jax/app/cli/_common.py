@@ -5,8 +5,10 @@ themselves are data: ``options.toml``."""
 from __future__ import annotations
 
 import argparse
+import math
 
 from .._io import suffix
+from .._outputs import output_problem
 from .._reader import SpecError
 from ..spec import ModelSpec
 
@@ -38,6 +40,11 @@ def horizons(text: str) -> tuple[float, ...]:
     return values
 
 
+# the most values of one axis of a grid (800 MB of float64 for the axis alone; a map of more
+# points than this is a sweep's job, with a store)
+MAX_AXIS = 10**8
+
+
 def grid(text: str):
     """``"start:stop:num"`` (inclusive linspace), ``"a,b,c"`` or ``"a"`` -> 1-D float array."""
     import numpy as np
@@ -48,6 +55,9 @@ def grid(text: str):
             n = int(num)
             if n < 1:
                 raise ValueError
+            if n > MAX_AXIS:
+                raise argparse.ArgumentTypeError(
+                    f"at most {MAX_AXIS:,} values per axis, got {n:,} in {text!r}")
             values = np.linspace(float(start), float(stop), n)
         else:
             values = np.asarray([float(x) for x in text.split(",")])
@@ -58,6 +68,62 @@ def grid(text: str):
     if not np.all(np.isfinite(values)):
         raise argparse.ArgumentTypeError(f"values must be finite, got {text!r}")
     return values
+
+
+def check_output(path: str, option: str, allowed: tuple[str, ...] | None = None, *,
+                 directory: bool | None = None, make_parents: bool = False) -> str:
+    """An output path checked before any work (exit status 2 naming ``option``): its format
+    by the suffix (``allowed``), and that it can be written (:func:`output_problem`). A
+    ``.zarr`` output is a folder unless ``directory`` says otherwise. Returns the suffix."""
+    ext = check_suffix(path, allowed, option) if allowed is not None else suffix(path)
+    if directory is None:
+        directory = ext == ".zarr"
+    why = output_problem(path, directory=directory, make_parents=make_parents)
+    if why is not None:
+        raise Failure(f"{option} {path}: cannot be written: {why}.")
+    return ext
+
+
+def check_number(value, option: str, *, minimum=None, above=None, maximum=None) -> None:
+    """A numeric option: finite, and ``>= minimum`` / ``> above`` / ``<= maximum`` where given
+    (exit status 2 naming ``option``)."""
+    bounds = []
+    if minimum is not None:
+        bounds.append(f">= {minimum:g}")
+    if above is not None:
+        bounds.append(f"> {above:g}")
+    if maximum is not None:
+        bounds.append(f"<= {maximum:g}")
+    ok = math.isfinite(value) and (minimum is None or value >= minimum) and \
+        (above is None or value > above) and (maximum is None or value <= maximum)
+    if not ok:
+        need = "finite" + ("".join(f" and {b}" for b in bounds) if bounds else "")
+        shown = f"{value:g}" if isinstance(value, float) else str(value)
+        raise Failure(f"{option} must be {need}, got {shown}.")
+
+
+# the largest step budget or iteration count: far above any useful one, and below every integer
+# type a solver may count in
+MAX_COUNT = 2**31 - 1
+
+
+def check_count(value: int, option: str, minimum: int = 1) -> None:
+    """An integer option between ``minimum`` and :data:`MAX_COUNT` (exit status 2)."""
+    if not minimum <= value <= MAX_COUNT:
+        raise Failure(f"{option} must be an integer from {minimum} to {MAX_COUNT}, got "
+                      f"{value}.")
+
+
+def check_state(value, option: str) -> None:
+    """An initial vector option (``--theta0``, ``--Omega0``): three finite components."""
+    if value is None:
+        return
+    text = ",".join(f"{x:g}" for x in value)
+    if len(value) != 3:
+        raise Failure(f"{option} must have shape (3,) (three components X,Y,Z), got "
+                      f"{len(value)}: {text}.")
+    if not all(math.isfinite(x) for x in value):
+        raise Failure(f"{option} must be finite, got {text}.")
 
 
 def check_suffix(path: str, allowed: tuple[str, ...], option: str) -> str:

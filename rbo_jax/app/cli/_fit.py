@@ -4,10 +4,21 @@ through the ODE solver (:func:`rbo_jax.fit`), with Gauss-Newton standard errors.
 from __future__ import annotations
 
 import argparse
-import os
 
 from .._io import DATASET_SUFFIXES, read_trajectory_file, write_dataset
-from ._common import Failure, check_suffix, check_vector, load_index, model_spec, model_table
+from ._common import (
+    Failure,
+    check_count,
+    check_number,
+    check_output,
+    check_state,
+    check_suffix,
+    check_vector,
+    load_index,
+    model_spec,
+    model_table,
+)
+from ._memory import BYTES_PER_FIT_SAMPLE, check_memory
 
 PARAMS = ("c", "d", "alpha", "beta", "b")
 _SYNTHETIC_STATE = ((0.8, -0.3, 0.5), (0.2, 1.1, -0.7))
@@ -18,12 +29,10 @@ def _read_data(path: str, theta0, Omega0, sigma_theta, sigma_Omega):
     from ... import TrajectoryData
 
     check_suffix(path, DATASET_SUFFIXES + (".npz",), "--data")
-    if not os.path.exists(path):
-        raise Failure(f"--data {path}: no such file.")
     try:
         arrays = read_trajectory_file(path)
-    except (OSError, ValueError, KeyError) as e:
-        raise Failure(f"--data {path}: not a readable trajectory file ({e}).") from None
+    except (OSError, ValueError) as e:
+        raise Failure(f"--data {path}: {str(e).rstrip('.')}.") from None
     if "t" not in arrays:
         raise Failure(f"--data {path}: missing array 't' (the sample times, shape (n,); 'ts' "
                       f"is accepted too); the file has {sorted(arrays) or 'no arrays'}.")
@@ -63,15 +72,30 @@ def _check_options(args, names, table):
                           f"{name}.")
         v = args.friction if name == "b" else table["foundation"][name]
         if not (v > 0 and v < float("inf")):
-            raise Failure(f"--params {name}: the starting value must be finite and > 0 (the fit "
-                          f"works with log {name}), got {v:g}.")
-    for option in ("max_steps", "samples", "solver_max_steps"):
-        if getattr(args, option) < 1:
-            raise Failure(f"--{option.replace('_', '-')} must be >= 1.")
-    if not (args.tol > 0 and args.rtol > 0 and args.atol > 0):
-        raise Failure("--tol, --rtol and --atol must be > 0.")
+            option = "--friction" if name == "b" else f"--{name}"
+            raise Failure(f"{option} {v:g}: {name} is fitted (--params), so its starting value "
+                          f"must be finite and > 0 (the fit works with log {name}).")
+    for option in ("max_steps", "solver_max_steps"):
+        check_count(getattr(args, option), f"--{option.replace('_', '-')}")
+    for option in ("tol", "rtol", "atol"):
+        check_number(getattr(args, option), f"--{option}", above=0)
+    for option in ("sigma_theta", "sigma_Omega"):
+        if getattr(args, option) is not None:
+            if args.synthetic:
+                raise Failure(f"--{option.replace('_', '-')} is the noise of --data; with "
+                              "--synthetic the noise level is --noise.")
+            check_number(getattr(args, option), f"--{option.replace('_', '-')}", above=0)
+    check_state(args.theta0, "--theta0")
+    check_state(args.Omega0, "--Omega0")
     if args.out is not None:
-        check_suffix(args.out, DATASET_SUFFIXES, "--out")
+        check_output(args.out, "--out", DATASET_SUFFIXES)
+
+
+def check_fit_memory(args, samples: int, n_params: int, what: str) -> None:
+    """Refuse a fit whose residuals and Jacobian do not fit in memory (exit status 2)."""
+    directions = n_params + (6 if args.fit_initial_state else 0)
+    check_memory(samples * (1 + directions) * BYTES_PER_FIT_SAMPLE, what,
+                 "fit fewer samples (--samples, or a shorter record in --data)")
 
 
 def _set(table, name, value):
@@ -95,10 +119,14 @@ def _synthetic(args, table, options, names, theta0, Omega0):
 
     from ... import TrajectoryData, simulate
 
-    if not args.t1 > 0 or args.samples < 2 or not args.noise >= 0:
-        raise Failure("--synthetic needs --t1 > 0, --samples >= 2 and --noise >= 0.")
-    if not args.offset > -1:
-        raise Failure(f"--offset must be > -1, got {args.offset:g}.")
+    check_number(args.t1, "--t1", above=0)
+    if args.samples < 2:
+        raise Failure(f"--samples must be >= 2, got {args.samples}.")
+    check_number(args.noise, "--noise", minimum=0)
+    check_number(args.offset, "--offset", above=-1)
+    if args.seed < 0:
+        raise Failure(f"--seed must be >= 0, got {args.seed}.")
+    check_fit_memory(args, args.samples, len(names), "--samples")
     true_model = model_spec(table, options).build()
     th0 = jnp.asarray(_SYNTHETIC_STATE[0]) if theta0 is None else theta0
     Om0 = jnp.asarray(_SYNTHETIC_STATE[1]) if Omega0 is None else Omega0
@@ -172,6 +200,11 @@ def fit_command(args: argparse.Namespace) -> int:
         data, observed = _read_data(args.data, theta0, Omega0, args.sigma_theta,
                                     args.sigma_Omega)
         source = args.data
+        if data.num_samples < 2:
+            raise Failure(f"--data {args.data}: {data.num_samples} sample; a fit needs at least "
+                          "2 (the first is the initial state).")
+        check_fit_memory(args, data.num_samples, len(names),
+                         f"--data {args.data} ({data.num_samples:,} samples)")
     spec = model_spec(table, options)
     print(f"Model: {spec.describe()} (starting values)")
     print(f"Fitting {', '.join(names)} to {source}: {data.num_samples} samples of "

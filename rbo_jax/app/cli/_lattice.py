@@ -17,6 +17,7 @@ from .._io import DATASET_SUFFIXES
 from .._reader import SpecError
 from ..spec import LatticeSpec, ModelSpec
 from ._common import Failure, check_suffix, table
+from ._memory import BYTES_PER_BODY, BYTES_PER_BODY_SAMPLE, check_memory
 
 DEFAULTS = {"coupling_kb": 1.0, "coupling_kt": 1.0, "wave": "perturbed", "perturbation": 1e-3,
             "seed": 0, "wave_speed": 0.0, "winding": 1, "method": "dop853", "dt": None}
@@ -55,6 +56,8 @@ def _settings(args: argparse.Namespace) -> argparse.Namespace:
         raise Failure(f"--perturbation must be >= 0 and finite, got {s.perturbation:g}.")
     if not math.isfinite(s.wave_speed):
         raise Failure(f"--wave-speed must be finite, got {s.wave_speed:g}.")
+    if s.seed < 0:
+        raise Failure(f"--seed must be >= 0, got {s.seed}.")
     if args.progress:
         raise Failure("--progress is for one body (--integrator simulate); a lattice has no "
                       "progress bar.")
@@ -178,6 +181,10 @@ def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
 
     s = _settings(args)
     lattice = _lattice_spec(args, s)
+    bodies = math.prod(lattice.shape)
+    check_memory(bodies * (BYTES_PER_BODY + args.samples * BYTES_PER_BODY_SAMPLE),
+                 f"--lattice {args.lattice} ({bodies:,} bodies) with --samples {args.samples}",
+                 "give fewer bodies (--lattice) or fewer samples (--samples)")
     k = np.asarray(spec.axis, dtype=float)
     k = k / np.linalg.norm(k)
     _check_wave(args, s, spec, lattice, k)

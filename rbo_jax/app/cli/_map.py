@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 from .._io import DATASET_SUFFIXES, netcdf_engine, write_dataset
-from ._common import Failure, check_suffix, model_spec, pyplot_or_fail
+from .._outputs import save_figure
+from ._common import Failure, check_count, check_number, check_output, model_spec, pyplot_or_fail
+from ._memory import BYTES_PER_MAP_POINT, check_memory
 
 AXES = ("M", "c", "d", "A3")
 K = (0.0, 0.0, 1.0)
@@ -25,9 +28,9 @@ def _spec(args, axes):
     return model_spec(table, options, axes=axes)
 
 
-def _check_options(args, ranged):
+def _check_options(args, ranged, n):
     if args.out is not None:
-        kind = check_suffix(args.out, DATASET_SUFFIXES, "--out")
+        kind = check_output(args.out, "--out", DATASET_SUFFIXES)
         if kind == ".nc" and netcdf_engine() is None:
             raise Failure("--out .nc needs a NetCDF engine for xarray (pip install netCDF4, "
                           "h5netcdf or scipy); or write .zarr.")
@@ -38,16 +41,27 @@ def _check_options(args, ranged):
                 raise Failure("--out .zarr needs zarr (pip install 'zarr>=3'); or write .nc.")
     plt = None
     if args.plot is not None:
-        check_suffix(args.plot, (".png", ".pdf", ".svg"), "--plot")
+        check_output(args.plot, "--plot", (".png", ".pdf", ".svg"))
+        if args.out is not None and _same_file(args.out, args.plot):
+            raise Failure(f"--plot {args.plot} is the file of --out; give two names.")
         if len(ranged) < 2:
             raise Failure("--plot draws a map over two axes: give at least two of --M, --c, "
                           "--d, --A3 as ranges start:stop:num.")
         plt = pyplot_or_fail("rbo-jax stability-map")
-    if args.chunk_size < 1:
-        raise Failure(f"--chunk-size must be >= 1, got {args.chunk_size}.")
-    if not args.rtol > 0:
-        raise Failure(f"--rtol must be > 0, got {args.rtol:g}.")
+    check_count(args.chunk_size, "--chunk-size")
+    check_number(args.rtol, "--rtol", above=0)
+    sizes = " x ".join(f"--{name} {getattr(args, name).size:,}" for name in AXES)
+    check_memory(n * BYTES_PER_MAP_POINT, f"the grid ({sizes} values: {n:,} points)",
+                 "give fewer points (--M, --c, --d, --A3), or run the map as a sweep with a "
+                 "store, written chunk by chunk (rbo-jax sweep CONFIG.toml, quantity "
+                 "spectral_abscissa; examples/nikolai_stability.toml)")
     return plt
+
+
+def _same_file(a: str, b: str) -> bool:
+    import os
+
+    return os.path.abspath(a) == os.path.abspath(b)
 
 
 def _summary(ds, args, axes):
@@ -86,20 +100,20 @@ def _figure(plt, ds, args, axes, ranged):
     ax = plot_stability_map(ds, x, y, select=select or None,
                             title=f"Nikolai problem: max Re p over ({x}, {y})"
                             + (f" at {where}" if where else ""))
-    ax.figure.savefig(args.plot, dpi=120, bbox_inches="tight")
+    save_figure(ax.figure, args.plot, dpi=120, bbox_inches="tight")
     plt.close(ax.figure)
     print(f"figure -> {args.plot}")
 
 
 def stability_map_command(args: argparse.Namespace) -> int:
     """``rbo-jax stability-map``: the Nikolai map (4.57)-(4.62), (4.69) over a grid."""
-    import numpy as np
-
     from ... import nikolai_equilibrium, stability_map
+    from ...batch import SweepError
 
     axes = {name: getattr(args, name) for name in AXES}
     ranged = [n for n, v in axes.items() if v.size > 1]
-    plt = _check_options(args, ranged)
+    n = math.prod(v.size for v in axes.values())
+    plt = _check_options(args, ranged, n)
     spec = _spec(args, axes)
 
     def model_fn(M, c, d, A3):
@@ -108,7 +122,6 @@ def stability_map_command(args: argparse.Namespace) -> int:
     def theta_eq_fn(M, c, d, A3):
         return nikolai_equilibrium(M, d, K)  # (4.62); friction vanishes at rest
 
-    n = int(np.prod([v.size for v in axes.values()]))
     fixed = ", ".join(f"{name} = {axes[name][0]:g}" for name in AXES if name not in ranged)
     print(f"Nikolai problem (4.57)-(4.62): {spec.describe()}; equilibrium theta = (M/d) k "
           "(4.62), spectrum of (4.63)-(4.67)")
@@ -116,8 +129,11 @@ def stability_map_command(args: argparse.Namespace) -> int:
     print(f"grid: {grid_ + f' = {n} points' if grid_ else 'a single point'}"
           + (f"; fixed {fixed}" if fixed else ""))
     start = time.perf_counter()
-    ds = stability_map(model_fn, axes, theta_eq_fn=theta_eq_fn, chunk_size=args.chunk_size,
-                       rtol=args.rtol, progress=args.progress)
+    try:
+        ds = stability_map(model_fn, axes, theta_eq_fn=theta_eq_fn, chunk_size=args.chunk_size,
+                           rtol=args.rtol, progress=args.progress)
+    except SweepError as e:  # the sweep's own memory guard, should the estimate above pass
+        raise Failure(str(e)) from None
     elapsed = time.perf_counter() - start
     ds = ds.squeeze([name for name in AXES if name not in ranged])
     ds.attrs.update(description="Nikolai problem (4.57)-(4.62): spectra of the equilibrium "

@@ -17,6 +17,15 @@ def demo(args: argparse.Namespace) -> int:
     import jax.numpy as jnp
     import numpy as np
 
+    from ._common import Failure, check_number
+    from ._memory import BYTES_PER_SAMPLE
+    from ._simulate import check_samples_memory
+
+    check_number(args.t1, "--t1", above=0)
+    if args.samples < 2:
+        raise Failure(f"--samples must be >= 2, got {args.samples}.")
+    check_samples_memory(args.samples, 2 * BYTES_PER_SAMPLE)  # two trajectories
+
     from ... import (
         BarrierFoundation,
         RigidBodyOscillator,
@@ -61,7 +70,9 @@ def demo(args: argparse.Namespace) -> int:
 def reproduce_command(args: argparse.Namespace) -> int:
     """``rbo-jax reproduce``: every check of the paper, written to OUT/report.md with figures."""
     from .. import reproduce
+    from ._common import check_output
 
+    check_output(args.out, "--out", directory=True, make_parents=True)
     checks = reproduce.run_reproduction(args.out, quick=args.quick, figures=not args.no_figures)
     failed = [c for c in checks if not c.passed]
     width = max(len(c.section) for c in checks)
@@ -81,6 +92,7 @@ def sweep_command(args: argparse.Namespace) -> int:
     from ...batch import SweepError, status_counts
     from ..config import ConfigError, load_config, run_config
     from ._cluster import check_cluster_options
+    from ._sweep_store import check_paths, report_on_interrupt
 
     check_cluster_options(args)  # --scheduler / --workers (Dask): exit 2 before anything starts
     distributed = (args.coordinator, args.num_processes, args.process_id)
@@ -105,6 +117,7 @@ def sweep_command(args: argparse.Namespace) -> int:
         print("rbo-jax sweep: matplotlib is not installed, no PNG (pip install 'rbo_jax[plot]').",
               file=sys.stderr)
         plot = False
+    report_on_interrupt(args, check_paths(args, cfg, plot))  # store and PNG writable; Ctrl-C
     try:
         ds, png = run_config(cfg, resume=args.resume or args.retry_errors,
                              overwrite=args.overwrite, progress=not args.quiet,

@@ -19,6 +19,15 @@ _TYPES = {"float": float, "int": int, "str": str, "floats": floats, "grid": grid
           "horizons": horizons}
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser with usage errors on one line (the option and what is wrong with it,
+    then where the help is) instead of the usage text and the error, exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} "
+                     f"--help)\n")
+
+
 @functools.cache
 def table() -> dict:
     """The parsed ``options.toml``."""

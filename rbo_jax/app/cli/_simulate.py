@@ -6,7 +6,17 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import Failure, check_suffix, check_vector, spec_from_args, table
+from ._common import (
+    Failure,
+    check_count,
+    check_number,
+    check_output,
+    check_state,
+    check_vector,
+    spec_from_args,
+    table,
+)
+from ._memory import BYTES_PER_SAMPLE, check_memory
 
 OUT_SUFFIXES = (".nc", ".zarr", ".csv")
 
@@ -23,20 +33,37 @@ def _spread(indices: list[int], n: int) -> list[int]:
     return [indices[i] for i in pick]
 
 
-def _check_options(args):
-    if args.out is not None:
-        check_suffix(args.out, OUT_SUFFIXES, "--out")
-    if not args.t1 > 0:
-        raise Failure(f"--t1 must be > 0, got {args.t1:g}.")
+def check_solve_options(args) -> None:
+    """The options of the solve shared by one body and a lattice (and ``demo``'s --t1,
+    --samples): everything checked before anything is computed."""
+    check_number(args.t1, "--t1", above=0)
     if args.samples < 2:
         raise Failure(f"--samples must be >= 2, got {args.samples}.")
-    if args.max_steps < 1:
-        raise Failure(f"--max-steps must be >= 1, got {args.max_steps}.")
-    if not (args.rtol > 0 and args.atol > 0):
-        raise Failure(f"--rtol and --atol must be > 0, got {args.rtol:g}, {args.atol:g}.")
+    check_count(args.max_steps, "--max-steps")
+    if args.max_rows < 0:
+        raise Failure(f"--max-rows must be >= 0, got {args.max_rows}.")
+    check_number(args.rtol, "--rtol", above=0)
+    check_number(args.atol, "--atol", above=0)
+    check_state(args.theta0, "--theta0")
+    check_state(args.Omega0, "--Omega0")
+
+
+def check_samples_memory(samples: int, per_sample: float, fixed: float = 0.0) -> None:
+    """Refuse a number of samples whose trajectory does not fit in memory (exit status 2)."""
+    check_memory(fixed + samples * per_sample, f"--samples {samples}",
+                 "give fewer samples (--samples N: the printed and written times; the solver's "
+                 "accuracy does not depend on them)")
+
+
+def _check_options(args):
+    if args.out is not None:
+        check_output(args.out, "--out", OUT_SUFFIXES)
+    check_solve_options(args)
     if args.progress and args.integrator != "simulate" and args.lattice is None:
         raise Failure("--progress needs --integrator simulate (fast_simulate has no progress "
                       "bar).")
+    if args.lattice is None:
+        check_samples_memory(args.samples, BYTES_PER_SAMPLE)
 
 
 def _initial_state(args, model):
@@ -107,7 +134,7 @@ def simulate_command(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - start
     drift = _print_table(ds, args.max_rows)
     if args.out is not None:
-        if args.out.lower().endswith(".csv"):
+        if args.out.lower().rstrip("/").endswith(".csv"):
             write_trajectory_csv(ds, args.out)
         else:
             write_dataset(ds, args.out)
