@@ -28,6 +28,7 @@ called as a function leaves the process's signal handling alone and turns a
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import sys
@@ -91,6 +92,8 @@ def _stop(signum: int) -> None:
     watchdog = threading.Timer(DEADLINE_S, os._exit, (code,))
     watchdog.daemon = True
     watchdog.start()
+    logging.disable(logging.CRITICAL)  # one line from now on (e.g. no log of a local Dask
+    # scheduler in this process about the workers that Ctrl-C took down with it)
     text = message(signum)
     try:
         cleanup()
