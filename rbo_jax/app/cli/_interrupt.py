@@ -59,7 +59,7 @@ def _default_description() -> str:
 
     if WRITTEN:
         return (f"kept {', '.join(WRITTEN)} (complete); the rest was not written; run the "
-                "command again for the rest")
+                "command again")
     return "nothing was written (outputs are written whole, at the end); run the command again"
 
 
