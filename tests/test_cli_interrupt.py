@@ -160,3 +160,24 @@ def test_ctrl_c_keeps_a_sweeps_chunks_and_resume_finishes_it(tmp_path, capsys):
     assert cli.main(["sweep", str(cfg), "--quiet", "--no-plot", "--output", str(clean)]) == 0
     capsys.readouterr()
     assert _store_files(store) == _store_files(clean)
+
+
+def test_keyboard_interrupt_in_process_names_what_was_kept(tmp_path, capsys, monkeypatch):
+    """`main()` called as a function (no signal handling of its own): a KeyboardInterrupt gives
+    the same line and status 130, listing the outputs already written whole, and the temporary
+    of the output in progress is removed."""
+    import rbo_jax.app.reproduce as reproduce
+    from rbo_jax.app import _outputs
+
+    def interrupted(out, quick, figures):
+        _outputs.write_text(Path(out) / "first.md", "done\n")
+        with _outputs.replacing(Path(out) / "second.md") as tmp:
+            tmp.write_text("half")
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(reproduce, "run_reproduction", interrupted)
+    assert cli.main(["reproduce", "--out", str(tmp_path)]) == 130
+    assert capsys.readouterr().err.strip() == (
+        f"rbo-jax reproduce: interrupted (SIGINT); kept {tmp_path / 'first.md'} (complete); the "
+        "rest was not written; run the command again")
+    assert _files(tmp_path) == ["first.md"]
