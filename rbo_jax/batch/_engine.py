@@ -125,6 +125,35 @@ def _run_chunks(chunks: Chunks | DaskChunks, mine, consume, bar, hosts: Hosts, p
                          + ("resume the sweep to finish it." if path else ""))
 
 
+def _run_shares(chunks: Chunks, mine, writer, bar, hosts: Hosts, path: Path, space: Space):
+    """Run this process's share of a multi-process sweep to a store, then meet the others in a
+    way that a lost process cannot block (:meth:`Hosts.live`); process 0 computes what the lost
+    processes left missing. Errors of any process are re-raised (on process 0 as a
+    :class:`SweepError` naming them)."""
+    error = None
+    try:
+        chunks.run(mine, writer, bar)
+    except Exception as e:  # report it to the others, then re-raise it
+        error = e
+    finally:
+        if bar is not None:
+            bar.close()
+    hosts.report(error is not None)
+    alive = hosts.live("shares computed")
+    failed = hosts.failed(alive)
+    if error is not None:
+        raise error
+    if failed:
+        raise SweepError(f"process(es) {failed} failed (see their errors); resume the sweep to "
+                         "finish it.")
+    lost = [i for i in range(hosts.count) if i not in alive]
+    if lost and hosts.index == 0:
+        left = _store.missing_chunks(_store.open_group(path, "r"), space)
+        print(f"rbo_jax.sweep: process(es) {lost} of {hosts.count} lost (no heartbeat); "
+              f"process 0 computes the {len(left)} chunk(s) they left", file=sys.stderr)
+        chunks.run(left, writer, None)
+
+
 # The in-memory result of a grid must fit: refused beforehand above this share of the memory.
 MEMORY_SHARE = 0.5
 
@@ -316,13 +345,16 @@ def sweep(
             space, missing = _open_store(path, space, spec, attrs, resume or retry_errors,
                                          overwrite, hosts)
             mine = hosts.share(missing)
-            _run_chunks(runner, mine, _store.Writer(path, spec),
-                        _progress_bar(progress, space, mine, hosts, desc), hosts, path)
+            bar = _progress_bar(progress, space, mine, hosts, desc)
+            if hosts.count > 1:
+                _run_shares(runner, mine, _store.Writer(path, spec), bar, hosts, path, space)
+            else:
+                _run_chunks(runner, mine, _store.Writer(path, spec), bar, hosts, path)
             if hosts.index == 0:
                 if retry_errors:
                     _retry_errors(chunks, path, spec, space)
                 _store.finalize(path)
-            hosts.barrier("store finalized")
+            hosts.live("store finalized")  # a barrier that a lost process does not block
         ds = _store.open_sweep(path)
     if progress and hosts.index == 0:
         print(f"{desc}: {summary_line(ds.attrs['status_counts'])}", file=sys.stderr)

@@ -6,9 +6,24 @@ robin), computes them on its local devices independently (no lock-step between h
 them to its own chunks of the store (which must then be on a file system all hosts see); without
 a store the results are gathered with :func:`jax.experimental.multihost_utils.process_allgather`
 (on CPU through the gloo collectives). Process 0 creates the store.
+
+**A lost process** (killed, its host gone) does not stop a sweep to a store: after their shares
+the processes meet at :meth:`Hosts.live` — the coordination service's ``get_live_nodes``, a
+barrier that returns when every process still sending heartbeats has arrived (a process
+silent for the heartbeat timeout of ``jax.distributed.initialize`` counts as lost) — and
+process 0 computes the chunks of the lost processes that the store is still missing, then
+finalizes it. That needs the coordination service to survive the loss of a task:
+``jax.config.update("jax_enable_recoverability", True)`` before ``jax.distributed.initialize``
+(``rbo-jax sweep --coordinator`` sets it); without it JAX's service ends every process when one
+is lost. The loss of process 0, which runs the service, ends the others in any case: what they
+wrote is kept, and ``resume=True`` finishes the sweep. Failures (an exception in a process) are
+reported through the service's key-value store, not a collective, so that a lost process does
+not turn them into a second error.
 """
 
 from __future__ import annotations
+
+import itertools
 
 import jax
 import numpy as np
@@ -20,8 +35,50 @@ from ._space import Space
 class Hosts:
     """This process's index and the process count, with the meeting points of a sweep."""
 
+    _sweeps = itertools.count()  # a sweep's number: the same on every process (same calls)
+
     def __init__(self):
         self.index, self.count = jax.process_index(), jax.process_count()
+        self.prefix = f"rbo_jax/sweep/{next(Hosts._sweeps)}" if self.count > 1 else ""
+
+    @staticmethod
+    def _client():
+        """JAX's coordination-service client of this process (None: not distributed)."""
+        from jax._src import distributed
+
+        return distributed.global_state.client
+
+    def live(self, name: str) -> list[int]:
+        """Meet the other processes; the indices of the processes that are alive. Returns when
+        every live process has arrived; a process that stopped sending heartbeats (lost) is
+        not waited for (it is detected after the service's heartbeat timeout)."""
+        if self.count == 1:
+            return [0]
+        client = self._client()
+        if client is None or not hasattr(client, "get_live_nodes"):  # an older jaxlib
+            self.barrier(name)
+            return list(range(self.count))
+        return sorted(int(i) for i in client.get_live_nodes(list(range(self.count))))
+
+    def report(self, failed: bool):
+        """Tell process 0, through the key-value store, whether this process's share failed."""
+        if self.count > 1:
+            self._client().key_value_set(f"{self.prefix}/failed/{self.index}", str(int(failed)),
+                                         allow_overwrite=True)
+
+    def failed(self, alive: list[int]) -> list[int]:
+        """The live processes that reported a failure (after :meth:`report` and :meth:`live`)."""
+        if self.count == 1:
+            return []
+        client = self._client()
+        out = []
+        for i in alive:
+            try:
+                if client.key_value_try_get(f"{self.prefix}/failed/{i}") == "1":
+                    out.append(i)
+            except Exception:  # no report: the process failed before it could make one
+                out.append(i)
+        return out
 
     def barrier(self, name: str):
         if self.count > 1:

@@ -91,18 +91,12 @@ def sweep_command(args: argparse.Namespace) -> int:
 
     from ...batch import SweepError, status_counts
     from ..config import ConfigError, load_config, run_config
+    from . import _distributed
     from ._cluster import check_cluster_options
     from ._sweep_store import check_paths, report_on_interrupt
 
     check_cluster_options(args)  # --scheduler / --workers (Dask): exit 2 before anything starts
-    distributed = (args.coordinator, args.num_processes, args.process_id)
-    if any(x is not None for x in distributed):
-        if args.coordinator is None or args.num_processes is None or args.process_id is None:
-            print("rbo-jax sweep: error: --coordinator, --num-processes and --process-id go "
-                  "together.", file=sys.stderr)
-            return 2
-        jax.distributed.initialize(coordinator_address=args.coordinator,
-                                   num_processes=args.num_processes, process_id=args.process_id)
+    multi_process = _distributed.check_options(args)  # jax.distributed: the same
     try:
         cfg = load_config(args.config)
     except ConfigError as e:
@@ -117,7 +111,12 @@ def sweep_command(args: argparse.Namespace) -> int:
         print("rbo-jax sweep: matplotlib is not installed, no PNG (pip install 'rbo_jax[plot]').",
               file=sys.stderr)
         plot = False
-    report_on_interrupt(args, check_paths(args, cfg, plot))  # store and PNG writable; Ctrl-C
+    store = check_paths(args, cfg, plot)  # store and PNG writable
+    if multi_process and not _distributed.supervised():
+        return _distributed.supervise(args, store)  # this command again, in a watched child
+    report_on_interrupt(args, store)  # Ctrl-C says what was kept
+    if multi_process:
+        _distributed.initialize(args)
     try:
         ds, png = run_config(cfg, resume=args.resume or args.retry_errors,
                              overwrite=args.overwrite, progress=not args.quiet,

@@ -1,0 +1,184 @@
+"""``rbo-jax sweep --coordinator HOST:PORT --num-processes N --process-id I``: one process of a
+multi-process sweep over :mod:`jax.distributed`, which ends in words when a process is lost.
+
+**What JAX does on a loss.** Every process sends heartbeats to the coordination service that
+process 0 runs. When one stops (killed, its host gone), the service tells every other process
+after the heartbeat timeout (100 s by JAX's default), and each of them ends itself by a C++
+``LOG(FATAL)``: SIGABRT, a "Check failure stack trace", no word of what happened. When process 0
+is lost, the others abort at once. JAX offers no Python hook (its ``missed_heartbeat_callback``
+cannot take a Python function: the status argument has no Python type).
+
+**What this module does.**
+
+- The options are checked before anything starts (exit 2 with one line): the three go together,
+  ``HOST:PORT`` with a port in 1..65535, ``0 <= I < N``, a heartbeat timeout of at least 1 s
+  (``--heartbeat-timeout``, default :data:`HEARTBEAT_S`).
+- :func:`supervise`: the command runs again as a child process, which this process waits for.
+  The child sends JAX's own log (C++ writes to file descriptor 2) to a file and keeps Python's
+  ``sys.stderr`` (progress bar, messages) on the terminal. If the child is ended by a signal —
+  JAX's abort — this process reads the log, names the lost process, releases the store's lock if
+  the child held it, counts the chunks kept and prints one line with the command that finishes
+  the sweep (``--resume``), exit 1.
+- :func:`initialize` (in the child): ``jax.distributed.initialize`` with the heartbeat timeout and
+  JAX's recoverable mode (``jax_enable_recoverability``), in which the service survives the loss of
+  a process other than 0: then process 0 finishes the lost process's chunks itself
+  (:mod:`rbo_jax.batch._hosts`) and the sweep ends with exit 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from ._common import Failure
+
+HEARTBEAT_S = 10
+#: Set in the child's environment: the file that receives JAX's log.
+CHILD_ENV = "RBO_JAX_SWEEP_JAX_LOG"
+
+
+def check_options(args: argparse.Namespace) -> bool:
+    """Whether the sweep is one process of a multi-process run; invalid options exit 2."""
+    given = (args.coordinator, args.num_processes, args.process_id)
+    if all(x is None for x in given):
+        if args.heartbeat_timeout is not None:
+            raise Failure("--heartbeat-timeout belongs to a multi-process run (--coordinator, "
+                          "--num-processes, --process-id).")
+        return False
+    if any(x is None for x in given):
+        raise Failure("--coordinator, --num-processes and --process-id go together.")
+    host, sep, port = args.coordinator.strip().rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host  # [IPv6]
+    if (not sep or not host or not re.fullmatch(r"[A-Za-z0-9._:-]+", host)
+            or not port.isdigit() or not 1 <= int(port) <= 65535):
+        raise Failure(f"--coordinator {args.coordinator!r}: expected HOST:PORT, the address of "
+                      "process 0, e.g. localhost:12345 or node01:12345.")
+    if args.num_processes < 1:
+        raise Failure(f"--num-processes must be at least 1, got {args.num_processes}.")
+    if not 0 <= args.process_id < args.num_processes:
+        raise Failure(f"--process-id must lie in 0..{args.num_processes - 1} (--num-processes "
+                      f"{args.num_processes}), got {args.process_id}.")
+    if args.heartbeat_timeout is not None and args.heartbeat_timeout < 1:
+        raise Failure(f"--heartbeat-timeout must be at least 1 s, got {args.heartbeat_timeout}.")
+    return True
+
+
+def supervised() -> bool:
+    """Whether this process is the supervised child."""
+    return CHILD_ENV in os.environ
+
+
+def _lost_process(log: str, count: int) -> str:
+    """Which process was lost, from JAX's log of the child."""
+    found = re.search(r"stopped sending heartbeats\):\s*([\d,\s]+)", log)
+    if found:
+        ids = [int(x) for x in re.findall(r"\d+", found.group(1))]
+        return (f"process {', '.join(map(str, ids))} of {count} was lost (no heartbeat); process 0 "
+                "could not go on without it")
+    if re.search(r"Failed to send RPC to coordination service|Socket closed|"
+                 r"failed to connect to all addresses|leader task", log):
+        return f"process 0 of {count}, which coordinates the run, was lost"
+    tail = [line for line in log.splitlines() if re.match(r"[EF]\d{4} ", line)]
+    return "JAX's distributed runtime ended this process" + (
+        f" ({tail[-1].split('] ', 1)[-1][:200]})" if tail else "")
+
+
+def _release_lock(store: Path, pid: int):
+    """Remove the store's lock if the (dead) child ``pid`` held it."""
+    import json
+    import socket
+
+    lock = Path(str(store) + ".lock")
+    try:
+        owner = json.loads(lock.read_text())
+    except (OSError, ValueError):
+        return
+    if owner.get("pid") == pid and owner.get("host") == socket.gethostname():
+        lock.unlink(missing_ok=True)
+
+
+def supervise(args: argparse.Namespace, store: Path) -> int:
+    """Run the command in a child process and turn its death by a signal into one line."""
+    fd, log_path = tempfile.mkstemp(prefix="rbo-jax-sweep-", suffix=".log")
+    os.close(fd)
+    env = dict(os.environ, **{CHILD_ENV: log_path})
+    code = "import sys; sys.argv[0] = 'rbo-jax'; from rbo_jax.app.cli import run; run()"
+    child = subprocess.Popen([sys.executable, "-c", code, *args.argv], env=env)
+
+    def forward(signum, frame):  # Ctrl-C reaches the child from the terminal too
+        if child.poll() is None:
+            child.send_signal(signum)
+
+    signal.set_wakeup_fd(-1)  # the command's own Ctrl-C thread: the child says what was kept
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, forward)
+    try:
+        rc = child.wait()
+        log = Path(log_path).read_text(errors="replace")
+    finally:
+        Path(log_path).unlink(missing_ok=True)
+    if rc >= 0:
+        return rc
+    name = signal.Signals(-rc).name
+    if -rc in (signal.SIGINT, signal.SIGTERM):
+        return 128 - rc
+    what = (_lost_process(log, args.num_processes) if -rc == signal.SIGABRT
+            else f"process {args.process_id} was killed ({name})")
+    from ._sweep_store import _chunks_done, resume_command
+
+    _release_lock(store, child.pid)
+    counts = _chunks_done(store)
+    kept = (f"{counts[0]} of {counts[1]} chunks are kept in {store}" if counts is not None
+            else f"nothing was written to {store}")
+    one = argparse.Namespace(argv=single_process_argv(args.argv))
+    print(f"rbo-jax sweep: error: {what}; {kept}; finish the sweep with: {resume_command(one)} "
+          "(or all processes again with --resume)", file=sys.stderr)
+    return 1
+
+
+_OPTIONS = ("--coordinator", "--num-processes", "--process-id", "--heartbeat-timeout")
+
+
+def single_process_argv(argv: list[str]) -> list[str]:
+    """``argv`` without the multi-process options (``--opt value`` and ``--opt=value``)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a in _OPTIONS:
+            skip = True
+        elif not a.startswith(tuple(o + "=" for o in _OPTIONS)):
+            out.append(a)
+    return out
+
+
+def initialize(args: argparse.Namespace):
+    """In the child: JAX's log to the file of :data:`CHILD_ENV`, Python's stderr kept on the
+    terminal; then ``jax.distributed.initialize`` with the heartbeat timeout, recoverable."""
+    import io
+
+    import jax
+
+    terminal = os.dup(2)
+    log = os.open(os.environ[CHILD_ENV], os.O_WRONLY | os.O_APPEND | os.O_CREAT)
+    os.dup2(log, 2)
+    os.close(log)
+    sys.stderr.flush()
+    sys.stderr = io.TextIOWrapper(io.FileIO(terminal, "w", closefd=True), write_through=True,
+                                  line_buffering=True)
+    jax.config.update("jax_enable_recoverability", True)
+    heartbeat = HEARTBEAT_S if args.heartbeat_timeout is None else args.heartbeat_timeout
+    try:
+        jax.distributed.initialize(coordinator_address=args.coordinator.strip(),
+                                   num_processes=args.num_processes, process_id=args.process_id,
+                                   heartbeat_timeout_seconds=int(heartbeat))
+    except Exception as e:  # JAX's message names the address; say what to check
+        raise Failure(f"could not join the run at --coordinator {args.coordinator} as process "
+                      f"{args.process_id} of {args.num_processes}: {str(e).splitlines()[0][:300]}",
+                      code=1) from None
