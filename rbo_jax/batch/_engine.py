@@ -99,7 +99,8 @@ def _progress_bar(progress, space: Space, mine, hosts: Hosts, desc: str):
         return None
     from tqdm.auto import tqdm
 
-    n_mine = sum(int(math.prod(s.stop - s.start for s in space.slices(c))) for c in mine)
+    n_mine = (None if mine is None  # taken one at a time: not known beforehand
+              else sum(int(math.prod(s.stop - s.start for s in space.slices(c))) for c in mine))
     label = desc if hosts.count == 1 else f"{desc} [process {hosts.index}/{hosts.count}]"
     return tqdm(total=n_mine, desc=label, unit="pt", unit_scale=True, dynamic_ncols=True)
 
@@ -344,11 +345,13 @@ def sweep(
         with lock:
             space, missing = _open_store(path, space, spec, attrs, resume or retry_errors,
                                          overwrite, hosts)
-            mine = hosts.share(missing)
-            bar = _progress_bar(progress, space, mine, hosts, desc)
             if hosts.count > 1:
-                _run_shares(runner, mine, _store.Writer(path, spec), bar, hosts, path, space)
+                bar = _progress_bar(progress, space, None, hosts, desc)
+                _run_shares(runner, hosts.take(missing), _store.Writer(path, spec), bar, hosts,
+                            path, space)
             else:
+                mine = hosts.share(missing)
+                bar = _progress_bar(progress, space, mine, hosts, desc)
                 _run_chunks(runner, mine, _store.Writer(path, spec), bar, hosts, path)
             if hosts.index == 0:
                 if retry_errors:

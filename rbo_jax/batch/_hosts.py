@@ -1,9 +1,11 @@
 """Processes of a multi-host sweep (:func:`jax.distributed`): barriers, failure votes and the
 gathering of an in-memory result.
 
-After ``jax.distributed.initialize(...)`` every process takes its share of the chunks (round
-robin), computes them on its local devices independently (no lock-step between hosts) and writes
-them to its own chunks of the store (which must then be on a file system all hosts see); without
+After ``jax.distributed.initialize(...)`` every process takes chunks (to a store: one at a time
+from a shared counter, so that no process idles while chunks remain; in memory: round robin,
+the layout of the gathering), computes them on its local devices independently (no lock-step
+between hosts) and writes them to its own chunks of the store (which must then be on a file
+system all hosts see); without
 a store the results are gathered with :func:`jax.experimental.multihost_utils.process_allgather`
 (on CPU through the gloo collectives). Process 0 creates the store.
 
@@ -98,6 +100,19 @@ class Hosts:
     def share(self, chunk_ids: list[int]) -> list[int]:
         """This process's chunks (round robin)."""
         return chunk_ids[self.index :: self.count]
+
+    def take(self, chunk_ids: list[int]):
+        """This process's chunks of a sweep to a store, taken one at a time from a counter
+        that the processes share (the coordination service's ``key_value_increment``): a
+        process that is faster, or has less to compile, takes more, and none idles while
+        chunks remain (round robin left one host idle while the other had half its share to
+        go). Without the service's client: round robin."""
+        client = self._client() if self.count > 1 else None
+        if client is None or not hasattr(client, "key_value_increment"):
+            yield from self.share(chunk_ids)
+            return
+        while (i := client.key_value_increment(f"{self.prefix}/next", 1) - 1) < len(chunk_ids):
+            yield chunk_ids[i]
 
     def gather(self, arrays: dict, kept: dict, missing: list[int], space: Space,
                spec: OutputSpec):
