@@ -218,7 +218,8 @@ def test_sine_gordon_breather_oscillates_at_its_frequency_with_its_energy():
     ts = np.linspace(0.0, period, 5)  # 0, P/4, P/2, 3P/4, P (the kink test's program)
     traj = L.simulate(lat, th0, Om0, ts, rtol=1e-10, atol=1e-12)
     centre = np.asarray(traj.theta)[:, int(x0), 2]
-    np.testing.assert_allclose(centre, [0.0, 4 * mu, 0.0, -4 * mu, 0.0], atol=0.015)  # measured 6e-3 (discreteness)
+    # measured 6e-3 (discreteness)
+    np.testing.assert_allclose(centre, [0.0, 4 * mu, 0.0, -4 * mu, 0.0], atol=0.015)
     energy = np.asarray(traj.energy)
     np.testing.assert_allclose(energy, 16 * np.sqrt(c * kappa) * np.sin(mu), rtol=1e-4)  # 2.6e-6
     np.testing.assert_allclose(energy, energy[0], rtol=1e-10)
