@@ -2,9 +2,10 @@
 (``sweep(..., client=client)``).
 
 Dask is the scheduler that the xarray/zarr community already runs on laptops, clusters and
-SLURM/PBS machines (through dask-jobqueue); with it a sweep survives the loss of a host and keeps
-every worker busy, which the fixed round-robin shares of the ``jax.distributed`` path cannot
-(``_hosts.py``: a lost process loses its share until a human resumes the store). How:
+SLURM/PBS machines (through dask-jobqueue); with it a sweep survives the loss of any host and
+keeps every worker busy. (The ``jax.distributed`` path, ``_hosts.py``, survives the loss of a
+process other than 0, whose coordination service every process needs; Dask's scheduler can run
+apart from the workers.) How:
 
 - **One writer.** The client process traces the quantity (for the outputs' structure and the
   store's layout), holds the store's lock and writes every chunk as its result arrives, with
