@@ -62,7 +62,7 @@ def _sparse(rows):
     nnz = np.zeros(rows.shape[0], np.int64)
     for s, r in enumerate(rows):
         idx = np.flatnonzero(r)
-        cols[s, :idx.size], coefs[s, :idx.size], nnz[s] = idx, r[idx], idx.size
+        cols[s, : idx.size], coefs[s, : idx.size], nnz[s] = idx, r[idx], idx.size
     return cols, coefs, nnz
 
 
@@ -136,8 +136,14 @@ def _pair(wi, a0, a1, a2, wj, b0, b1, b2, kb, kt, k0, k1, k2):
     pu = p0 * u0 + p1 * u1 + p2 * u2
     r0, r1, r2 = g * (p0 * pu - tp * u0), g * (p1 * pu - tp * u1), g * (p2 * pu - tp * u2)
     c0, c1, c2 = 0.5 * (p1 * u2 - p2 * u1), 0.5 * (p2 * u0 - p0 * u2), 0.5 * (p0 * u1 - p1 * u0)
-    return ((u0 + c0) + r0, (u1 + c1) + r1, (u2 + c2) + r2,
-            -((u0 - c0) + r0), -((u1 - c1) + r1), -((u2 - c2) + r2))
+    return (
+        (u0 + c0) + r0,
+        (u1 + c1) + r1,
+        (u2 + c2) + r2,
+        -((u0 - c0) + r0),
+        -((u1 - c1) + r1),
+        -((u2 - c2) + r2),
+    )
 
 
 @njit(cache=False)
@@ -150,8 +156,21 @@ def chain_rhs(y, out, n, c, d, M, kb, kt, Am, Ai, k):
     t_0, w_0, s_0, g_0 = _turn(y[0], y[n], y[2 * n])
     j = n - 1
     _, w_l, s_l, _ = _turn(y[j], y[n + j], y[2 * n + j])
-    _, _, _, m0, m1, m2 = _pair(w_l, s_l * y[j], s_l * y[n + j], s_l * y[2 * n + j],
-                                w_0, s_0 * y[0], s_0 * y[n], s_0 * y[2 * n], kb, kt, k0, k1, k2)
+    _, _, _, m0, m1, m2 = _pair(
+        w_l,
+        s_l * y[j],
+        s_l * y[n + j],
+        s_l * y[2 * n + j],
+        w_0,
+        s_0 * y[0],
+        s_0 * y[n],
+        s_0 * y[2 * n],
+        kb,
+        kt,
+        k0,
+        k1,
+        k2,
+    )
     ti, wi, si, gi = t_0, w_0, s_0, g_0
     for i in range(n):
         j = i + 1 if i + 1 < n else 0
@@ -161,9 +180,21 @@ def chain_rhs(y, out, n, c, d, M, kb, kt, Am, Ai, k):
             tj, wj, sj, gj = t_0, w_0, s_0, g_0
         else:
             tj, wj, sj, gj = _turn(y[j], y[n + j], y[2 * n + j])
-        a0, a1, a2, b0, b1, b2 = _pair(wi, si * th0, si * th1, si * th2,
-                                       wj, sj * y[j], sj * y[n + j], sj * y[2 * n + j],
-                                       kb, kt, k0, k1, k2)
+        a0, a1, a2, b0, b1, b2 = _pair(
+            wi,
+            si * th0,
+            si * th1,
+            si * th2,
+            wj,
+            sj * y[j],
+            sj * y[n + j],
+            sj * y[2 * n + j],
+            kb,
+            kt,
+            k0,
+            k1,
+            k2,
+        )
         # couplings on body i: pair (i, i+1) and the carried pair (i-1, i)
         q0, q1, q2 = a0 + m0, a1 + m1, a2 + m2
         m0, m1, m2 = b0, b1, b2
@@ -312,12 +343,12 @@ def dop853_chain(y0, t0, t_bound, rtol, atol, n, c, d, M, kb, kt, Am, Ai, k):
                 if err == 0.0:
                     factor = MAX_FACTOR
                 else:
-                    factor = min(MAX_FACTOR, SAFETY * err ** ERROR_EXPONENT)
+                    factor = min(MAX_FACTOR, SAFETY * err**ERROR_EXPONENT)
                 if step_rejected:
                     factor = min(1.0, factor)
                 h_abs *= factor
                 break
-            h_abs *= max(MIN_FACTOR, SAFETY * err ** ERROR_EXPONENT)
+            h_abs *= max(MIN_FACTOR, SAFETY * err**ERROR_EXPONENT)
             step_rejected = True
             rejected += 1
         if status != 0:
@@ -344,16 +375,29 @@ def solve_chain(theta0, Omega0, t1, rtol, atol, params) -> dict:
     n = int(np.shape(theta0)[0])
     A = np.ascontiguousarray(params["A"], dtype=np.float64)
     y0 = _flat(theta0, Omega0)
-    args = (float(params["c"]), float(params["d"]), float(params["M"]), float(params["kb"]),
-            float(params["kt"]), A, np.ascontiguousarray(np.linalg.inv(A)),
-            np.ascontiguousarray(params["k"], dtype=np.float64))
+    args = (
+        float(params["c"]),
+        float(params["d"]),
+        float(params["M"]),
+        float(params["kb"]),
+        float(params["kt"]),
+        A,
+        np.ascontiguousarray(np.linalg.inv(A)),
+        np.ascontiguousarray(params["k"], dtype=np.float64),
+    )
     start = time.perf_counter()
-    y, acc, rej, nfev, status = dop853_chain(y0, 0.0, float(t1), float(rtol), float(atol), n,
-                                             *args)
+    y, acc, rej, nfev, status = dop853_chain(y0, 0.0, float(t1), float(rtol), float(atol), n, *args)
     seconds = time.perf_counter() - start
     y = y.reshape(NC, n).T
-    return {"theta": y[:, :3], "Omega": y[:, 3:], "steps": int(acc), "rejected": int(rej),
-            "nfev": int(nfev), "status": int(status), "seconds": seconds}
+    return {
+        "theta": y[:, :3],
+        "Omega": y[:, 3:],
+        "steps": int(acc),
+        "rejected": int(rej),
+        "nfev": int(nfev),
+        "status": int(status),
+        "seconds": seconds,
+    }
 
 
 def rhs(theta, Omega, params) -> np.ndarray:
@@ -361,8 +405,17 @@ def rhs(theta, Omega, params) -> np.ndarray:
     n = int(np.shape(theta)[0])
     A = np.ascontiguousarray(params["A"], dtype=np.float64)
     out = np.empty(NC * n)
-    chain_rhs(_flat(theta, Omega), out, n, float(params["c"]), float(params["d"]),
-              float(params["M"]), float(params["kb"]), float(params["kt"]), A,
-              np.ascontiguousarray(np.linalg.inv(A)),
-              np.ascontiguousarray(params["k"], dtype=np.float64))
+    chain_rhs(
+        _flat(theta, Omega),
+        out,
+        n,
+        float(params["c"]),
+        float(params["d"]),
+        float(params["M"]),
+        float(params["kb"]),
+        float(params["kt"]),
+        A,
+        np.ascontiguousarray(np.linalg.inv(A)),
+        np.ascontiguousarray(params["k"], dtype=np.float64),
+    )
     return out.reshape(NC, n)

@@ -45,7 +45,8 @@ ORDER_INITIAL_STEP = 7.0
 NS = int(_dc.N_STAGES)
 NY = 6
 TABLEAU_A, TABLEAU_B, TABLEAU_E3, TABLEAU_E5 = (
-    np.ascontiguousarray(x, dtype=np.float64) for x in (_dc.A[:NS, :NS], _dc.B, _dc.E3, _dc.E5))
+    np.ascontiguousarray(x, dtype=np.float64) for x in (_dc.A[:NS, :NS], _dc.B, _dc.E3, _dc.E5)
+)
 assert TABLEAU_A.shape == (NS, NS) and TABLEAU_B.shape == (NS,) and TABLEAU_E5.shape == (NS + 1,)
 
 
@@ -187,12 +188,12 @@ def dop853_final(y0, t0, t_bound, rtol, atol, c, d, M, Am, Ai, k):
                 if err == 0.0:
                     factor = MAX_FACTOR
                 else:
-                    factor = min(MAX_FACTOR, SAFETY * err ** ERROR_EXPONENT)
+                    factor = min(MAX_FACTOR, SAFETY * err**ERROR_EXPONENT)
                 if step_rejected:
                     factor = min(1.0, factor)
                 h_abs *= factor
                 break
-            h_abs *= max(MIN_FACTOR, SAFETY * err ** ERROR_EXPONENT)
+            h_abs *= max(MIN_FACTOR, SAFETY * err**ERROR_EXPONENT)
             step_rejected = True
             rejected += 1
         if status != 0:
@@ -241,9 +242,15 @@ def timed_solve(points, parallel, t1, rtol, atol, perturbation, Am, Ai, k):
     then only the dispatch of the first call)."""
     fn = solve_points_parallel if parallel else solve_points_serial
     already_compiled = bool(fn.signatures)
-    args = (float(t1), float(rtol), float(atol), np.ascontiguousarray(perturbation, dtype=float),
-            np.ascontiguousarray(Am, dtype=float), np.ascontiguousarray(Ai, dtype=float),
-            np.ascontiguousarray(k, dtype=float))
+    args = (
+        float(t1),
+        float(rtol),
+        float(atol),
+        np.ascontiguousarray(perturbation, dtype=float),
+        np.ascontiguousarray(Am, dtype=float),
+        np.ascontiguousarray(Ai, dtype=float),
+        np.ascontiguousarray(k, dtype=float),
+    )
     points = np.ascontiguousarray(points, dtype=float)
     t0 = time.perf_counter()
     fn(points[:1], *args)
@@ -251,6 +258,13 @@ def timed_solve(points, parallel, t1, rtol, atol, perturbation, Am, Ai, k):
     t0 = time.perf_counter()
     y, steps, nfev, status = fn(points, *args)
     seconds = time.perf_counter() - t0
-    return {"y": y, "steps": steps, "nfev": nfev, "status": status, "seconds": seconds,
-            "compile_s": compile_s, "already_compiled": already_compiled,
-            "threads": numba.get_num_threads() if parallel else 1}
+    return {
+        "y": y,
+        "steps": steps,
+        "nfev": nfev,
+        "status": status,
+        "seconds": seconds,
+        "compile_s": compile_s,
+        "already_compiled": already_compiled,
+        "threads": numba.get_num_threads() if parallel else 1,
+    }

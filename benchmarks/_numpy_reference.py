@@ -27,7 +27,6 @@ def numpy_rhs(t, y, c, d, M, A, A_inv, K):
     return np.concatenate([Z.T @ Omega, A_inv @ rhs])
 
 
-
 def numpy_jacobian(c, d, M, A, A_inv, K, theta_eq, h=1e-6):
     """6x6 Jacobian of numpy_rhs at (theta_eq, 0) by central finite differences."""
     y0 = np.concatenate([theta_eq, np.zeros(3)])
@@ -35,6 +34,8 @@ def numpy_jacobian(c, d, M, A, A_inv, K, theta_eq, h=1e-6):
     for i in range(6):
         e = np.zeros(6)
         e[i] = h
-        J[:, i] = (numpy_rhs(0.0, y0 + e, c, d, M, A, A_inv, K)
-                   - numpy_rhs(0.0, y0 - e, c, d, M, A, A_inv, K)) / (2 * h)
+        J[:, i] = (
+            numpy_rhs(0.0, y0 + e, c, d, M, A, A_inv, K)
+            - numpy_rhs(0.0, y0 - e, c, d, M, A, A_inv, K)
+        ) / (2 * h)
     return J

@@ -41,8 +41,14 @@ def main(argv=None) -> dict:
     ts = jnp.linspace(0.0, 10.0, args.samples)
     datas = []
     for th0, Om0 in INITS[: args.trajectories]:
-        tr = simulate(RigidBodyOscillator(A, BarrierFoundation(k=K, **TRUTH)), jnp.array(th0),
-                      jnp.array(Om0), ts, rtol=1e-12, atol=1e-12)
+        tr = simulate(
+            RigidBodyOscillator(A, BarrierFoundation(k=K, **TRUTH)),
+            jnp.array(th0),
+            jnp.array(Om0),
+            ts,
+            rtol=1e-12,
+            atol=1e-12,
+        )
         datas.append(TrajectoryData(ts, theta=tr.theta, Omega=tr.Omega, theta0=th0, Omega0=Om0))
     start_model = RigidBodyOscillator(A, BarrierFoundation(k=K, **START))
     select = lambda m: (m.foundation.c, m.foundation.d, m.foundation.alpha, m.foundation.beta)  # noqa: E731
@@ -55,21 +61,34 @@ def main(argv=None) -> dict:
     fitted = np.array([float(v) for v in res.params])
     truth = np.array(list(TRUTH.values()))
     rel = np.max(np.abs(fitted / truth - 1))
-    print(f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, {platform.machine()}, "
-          f"{jax.device_count()} {jax.default_backend()} device(s)")
-    print(f"barrier foundation (4.49), 4 parameters, {args.trajectories} trajectories x "
-          f"{args.samples} samples, Levenberg-Marquardt from 30 % off")
+    print(
+        f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, {platform.machine()}, "
+        f"{jax.device_count()} {jax.default_backend()} device(s)"
+    )
+    print(
+        f"barrier foundation (4.49), 4 parameters, {args.trajectories} trajectories x "
+        f"{args.samples} samples, Levenberg-Marquardt from 30 % off"
+    )
     header = f"{'run':<36}{'wall [s]':>10}{'iterations':>12}{'max rel. error':>16}"
     print(header)
     print("-" * len(header))
-    for name, t, r in [("first fit (compilation included)", t_first, res),
-                       ("second fit (compiled program reused)", t_second, res2)]:
+    for name, t, r in [
+        ("first fit (compilation included)", t_first, res),
+        ("second fit (compiled program reused)", t_second, res2),
+    ]:
         print(f"{name:<36}{t:>10.1f}{r.num_steps:>12d}{rel:>16.2e}")
-    print(f"converged: {res.converged} ({res.message}); standard errors: "
-          + ", ".join(f"{float(s):.1e}" for s in res.stderr))
+    print(
+        f"converged: {res.converged} ({res.message}); standard errors: "
+        + ", ".join(f"{float(s):.1e}" for s in res.stderr)
+    )
     # compile_estimate: what the first fit spent beyond the second (compilation, tracing, caches)
-    return {"first": t_first, "second": t_second, "compile_estimate": t_first - t_second,
-            "iterations": res.num_steps, "max_rel_error": rel}
+    return {
+        "first": t_first,
+        "second": t_second,
+        "compile_estimate": t_first - t_second,
+        "iterations": res.num_steps,
+        "max_rel_error": rel,
+    }
 
 
 if __name__ == "__main__":

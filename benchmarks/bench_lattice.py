@@ -60,8 +60,12 @@ def _parse(argv):
     parser.add_argument("--rtol", type=float, default=1e-8)
     parser.add_argument("--atol", type=float, default=1e-10)
     parser.add_argument("--repeat", type=int, default=3, help="timed calls per side (best kept)")
-    parser.add_argument("--core", type=int, default=None,
-                        help="the core to pin to (default: the first this process may use)")
+    parser.add_argument(
+        "--core",
+        type=int,
+        default=None,
+        help="the core to pin to (default: the first this process may use)",
+    )
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     parser.add_argument("--smoke", action="store_true", help="a tiny run (N = 50, t1 = 0.2)")
     args = parser.parse_args(argv)
@@ -89,8 +93,10 @@ def initial_state(n: int, seed: int = 0):
 
 def build_lattice(n: int):
     body = rbo_jax.RigidBodyOscillator(
-        rbo_jax.transversely_isotropic_inertia(A1, A3, K), rbo_jax.QuadraticFoundation(C, D, K),
-        [rbo_jax.FollowerMoment(M, K)] if M else [])
+        rbo_jax.transversely_isotropic_inertia(A1, A3, K),
+        rbo_jax.QuadraticFoundation(C, D, K),
+        [rbo_jax.FollowerMoment(M, K)] if M else [],
+    )
     return L.chain(n, body, rbo_jax.QuadraticFoundation(KB, KT, K)), body
 
 
@@ -100,8 +106,7 @@ def numba_params(body) -> dict:
 
 def jax_call(lat, theta0, Omega0, args):
     """One ``lattice.simulate`` call, to the final state on the host side of JAX's dispatch."""
-    traj = L.simulate(lat, theta0, Omega0, np.array([0.0, args.t1]), rtol=args.rtol,
-                      atol=args.atol)
+    traj = L.simulate(lat, theta0, Omega0, np.array([0.0, args.t1]), rtol=args.rtol, atol=args.atol)
     jax.block_until_ready(traj.theta)
     return traj
 
@@ -126,8 +131,14 @@ def run_pair(lat, theta0, Omega0, params, args) -> dict:
                 raise RuntimeError(f"numba DOP853 failed (status {r['status']})")
             if best_nb is None or r["seconds"] < best_nb["seconds"]:
                 best_nb = r
-    return {"theta": np.asarray(traj.theta[-1]), "Omega": np.asarray(traj.Omega[-1]),
-            "steps": int(traj.num_steps), "seconds": best_jax, "first": first, "numba": best_nb}
+    return {
+        "theta": np.asarray(traj.theta[-1]),
+        "Omega": np.asarray(traj.Omega[-1]),
+        "steps": int(traj.num_steps),
+        "seconds": best_jax,
+        "first": first,
+        "numba": best_nb,
+    }
 
 
 def jax_overhead(args) -> float:
@@ -164,20 +175,29 @@ def header(args, is_pinned, numba_compile):
         load = f"load average {os.getloadavg()[0]:.2f}"
     except OSError:
         load = "load average unknown"
-    print(f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, "
-          f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"{jax.device_count()} {jax.default_backend()} device(s); "
-          + (f"numba {numba_lattice.NUMBA_VERSION} (compile {numba_compile:.1f} s)"
-             if numba_lattice is not None else "numba not installed, skipped")
-          + f"; {load}")
-    print(f"periodic chain, t in [0, {args.t1:g}], rtol = {args.rtol:g}, atol = {args.atol:g}, "
-          f"DOP853 on the 6N system; best of {args.repeat}; every thread pinned to core "
-          f"{args.core}: {is_pinned}")
+    print(
+        f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"{jax.device_count()} {jax.default_backend()} device(s); "
+        + (
+            f"numba {numba_lattice.NUMBA_VERSION} (compile {numba_compile:.1f} s)"
+            if numba_lattice is not None
+            else "numba not installed, skipped"
+        )
+        + f"; {load}"
+    )
+    print(
+        f"periodic chain, t in [0, {args.t1:g}], rtol = {args.rtol:g}, atol = {args.atol:g}, "
+        f"DOP853 on the 6N system; best of {args.repeat}; every thread pinned to core "
+        f"{args.core}: {is_pinned}"
+    )
 
 
-COLUMNS = (f"{'N':>9}{'steps jax/numba':>17}{'jax us/body-step':>18}"
-           f"{'numba us/body-step':>20}{'numba/jax':>11}{'jax compile [s]':>17}"
-           f"{'max |diff|':>12}")
+COLUMNS = (
+    f"{'N':>9}{'steps jax/numba':>17}{'jax us/body-step':>18}"
+    f"{'numba us/body-step':>20}{'numba/jax':>11}{'jax compile [s]':>17}"
+    f"{'max |diff|':>12}"
+)
 
 
 def row_text(r) -> str:
@@ -186,8 +206,10 @@ def row_text(r) -> str:
     nb_us = f"{nb['us_per_body_step']:.3f}" if nb else "-"
     ratio = f"{nb['us_per_body_step'] / r['us_per_body_step']:.2f}" if nb else "-"
     diff = f"{r['max_diff']:.1e}" if nb else "-"
-    return (f"{r['n']:>9}{steps:>17}{r['us_per_body_step']:>18.3f}{nb_us:>20}{ratio:>11}"
-            f"{r['compile_jax']:>17.1f}{diff:>12}")
+    return (
+        f"{r['n']:>9}{steps:>17}{r['us_per_body_step']:>18.3f}{nb_us:>20}{ratio:>11}"
+        f"{r['compile_jax']:>17.1f}{diff:>12}"
+    )
 
 
 def main(argv=None) -> dict:
@@ -209,39 +231,72 @@ def main(argv=None) -> dict:
                 rhs_diff = rhs_difference(lat, theta0, Omega0, params)
             res = run_pair(lat, theta0, Omega0, params, args)
             steps_j, t_jax, nb = res["steps"], res["seconds"], res["numba"]
-            r = {"n": n, "steps_jax": steps_j, "seconds_jax": t_jax,
-                 "us_per_body_step": t_jax / (n * steps_j) * 1e6, "first_call_jax": res["first"],
-                 "compile_jax": res["first"] - t_jax, "numba": None, "max_diff": None}
+            r = {
+                "n": n,
+                "steps_jax": steps_j,
+                "seconds_jax": t_jax,
+                "us_per_body_step": t_jax / (n * steps_j) * 1e6,
+                "first_call_jax": res["first"],
+                "compile_jax": res["first"] - t_jax,
+                "numba": None,
+                "max_diff": None,
+            }
             if nb is not None:
-                r["numba"] = {"steps": nb["steps"], "rejected": nb["rejected"],
-                              "nfev": nb["nfev"], "seconds": nb["seconds"],
-                              "us_per_body_step": nb["seconds"] / (n * nb["steps"]) * 1e6}
-                r["max_diff"] = float(max(np.max(np.abs(res["theta"] - nb["theta"])),
-                                          np.max(np.abs(res["Omega"] - nb["Omega"]))))
+                r["numba"] = {
+                    "steps": nb["steps"],
+                    "rejected": nb["rejected"],
+                    "nfev": nb["nfev"],
+                    "seconds": nb["seconds"],
+                    "us_per_body_step": nb["seconds"] / (n * nb["steps"]) * 1e6,
+                }
+                r["max_diff"] = float(
+                    max(
+                        np.max(np.abs(res["theta"] - nb["theta"])),
+                        np.max(np.abs(res["Omega"] - nb["Omega"])),
+                    )
+                )
                 r["steps_equal"] = steps_j == nb["steps"]
                 r["ratio"] = r["numba"]["us_per_body_step"] / r["us_per_body_step"]
             rows.append(r)
             print(row_text(r), flush=True)
         overhead = None if args.smoke else jax_overhead(args)
-    print("(steps: accepted; us/body-step: best call time / (N x accepted steps); numba/jax > 1: "
-          "jax faster; jax compile: first call less the best call; max |diff|: final state, "
-          "jax vs numba, over theta and Omega)")
+    print(
+        "(steps: accepted; us/body-step: best call time / (N x accepted steps); numba/jax > 1: "
+        "jax faster; jax compile: first call less the best call; max |diff|: final state, "
+        "jax vs numba, over theta and Omega)"
+    )
     if numba_lattice is not None:
         equal = all(r["steps_equal"] for r in rows)
-        print(f"accepted steps equal on every N: {equal}; numba rejected steps: "
-              + ", ".join(str(r["numba"]["rejected"]) for r in rows)
-              + f"; right-hand sides at the initial state (N = {args.n[0]}): max |f_jax - "
-              f"f_numba| / max |f_jax| = {rhs_diff:.1e}")
+        print(
+            f"accepted steps equal on every N: {equal}; numba rejected steps: "
+            + ", ".join(str(r["numba"]["rejected"]) for r in rows)
+            + f"; right-hand sides at the initial state (N = {args.n[0]}): max |f_jax - "
+            f"f_numba| / max |f_jax| = {rhs_diff:.1e}"
+        )
     else:
         print("numba not installed, skipped (pip install numba, or the 'bench' extra)")
     if overhead is not None:
-        print(f"jax fixed cost of a call (best call on a chain of 8 bodies, same t1 and "
-              f"tolerances): {overhead * 1e3:.2f} ms")
-    out = {"t1": args.t1, "rtol": args.rtol, "atol": args.atol, "repeat": args.repeat,
-           "jax_overhead": overhead, "core": args.core, "pinned": is_pinned,
-           "numba_compile": numba_compile, "rhs_rel_diff": rhs_diff, "rows": rows,
-           "versions": {"rbo_jax": rbo_jax.__version__, "jax": jax.__version__,
-                        "numba": numba_lattice.NUMBA_VERSION if numba_lattice else None}}
+        print(
+            f"jax fixed cost of a call (best call on a chain of 8 bodies, same t1 and "
+            f"tolerances): {overhead * 1e3:.2f} ms"
+        )
+    out = {
+        "t1": args.t1,
+        "rtol": args.rtol,
+        "atol": args.atol,
+        "repeat": args.repeat,
+        "jax_overhead": overhead,
+        "core": args.core,
+        "pinned": is_pinned,
+        "numba_compile": numba_compile,
+        "rhs_rel_diff": rhs_diff,
+        "rows": rows,
+        "versions": {
+            "rbo_jax": rbo_jax.__version__,
+            "jax": jax.__version__,
+            "numba": numba_lattice.NUMBA_VERSION if numba_lattice else None,
+        },
+    }
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2, default=float)

@@ -144,7 +144,12 @@ def run_scipy(points: np.ndarray):
     for c, d, M in points:
         y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
         sol = solve_ivp(
-            numpy_rhs, (0.0, T1), y0, method="DOP853", rtol=RTOL, atol=ATOL,
+            numpy_rhs,
+            (0.0, T1),
+            y0,
+            method="DOP853",
+            rtol=RTOL,
+            atol=ATOL,
             args=(c, d, M, A, A_inv, K),
         )
         assert sol.success, sol.message
@@ -170,8 +175,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--n", type=int, default=4_000, help="parameter points (JAX, numba)")
     parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
     parser.add_argument("--chunk", type=int, default=500, help="vmap chunk size")
-    parser.add_argument("--no-numba-parallel", action="store_true",
-                        help="skip the numba prange run (all cores)")
+    parser.add_argument(
+        "--no-numba-parallel", action="store_true", help="skip the numba prange run (all cores)"
+    )
 
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
@@ -190,92 +196,145 @@ def main(argv=None) -> dict:
         nb["prange"] = run_numba(points, parallel=True)
     err = np.max(np.abs(y_jax[:ns] - y_sp))
     tight = tight_reference(sample) if ns else np.zeros((0, 6))
-    acc = {name: float(np.max(np.abs(y[:ns] - tight))) if ns else float("nan")
-           for name, y in [("fast_simulate", y_fast), ("simulate", y_jax), ("scipy", y_sp)]
-           + ([("numba", nb["serial"]["y"])] if nb else [])}
+    acc = {
+        name: float(np.max(np.abs(y[:ns] - tight))) if ns else float("nan")
+        for name, y in [("fast_simulate", y_fast), ("simulate", y_jax), ("scipy", y_sp)]
+        + ([("numba", nb["serial"]["y"])] if nb else [])
+    }
     per_fast = t_fast / args.n
     per_jax = t_jax / args.n
     per_sp = t_sp / ns
     per_nb = {k: r["seconds"] / args.n for k, r in nb.items()}
 
-    print(f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, "
-          f"{platform.processor() or platform.machine()}, {jax.device_count()} "
-          f"{jax.default_backend()} device(s); "
-          + (f"numba {numba_ref.NUMBA_VERSION} ({nb['prange']['threads'] if 'prange' in nb else 1}"
-             " threads for prange)" if numba_ref is not None else "numba not installed, skipped"))
-    print(f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points "
-          f"(scipy: {ns}); one-core rows pinned to core 0: {is_pinned}")
-    header = (f"{'method':<42}{'s / trajectory':>16}{'traj / s':>12}{'steps (mean)':>14}"
-              f"{'compile [s]':>13}")
+    print(
+        f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, "
+        f"{platform.processor() or platform.machine()}, {jax.device_count()} "
+        f"{jax.default_backend()} device(s); "
+        + (
+            f"numba {numba_ref.NUMBA_VERSION} ({nb['prange']['threads'] if 'prange' in nb else 1}"
+            " threads for prange)"
+            if numba_ref is not None
+            else "numba not installed, skipped"
+        )
+    )
+    print(
+        f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points "
+        f"(scipy: {ns}); one-core rows pinned to core 0: {is_pinned}"
+    )
+    header = (
+        f"{'method':<42}{'s / trajectory':>16}{'traj / s':>12}{'steps (mean)':>14}"
+        f"{'compile [s]':>13}"
+    )
     print(header)
     print("-" * len(header))
-    rows = [("jax.vmap(fast_simulate), DOP853, 1 core", per_fast, steps_fast.mean(),
-             f"{compile_fast:.1f}"),
-            ("jax.vmap(simulate), Dopri8, 1 core", per_jax, steps.mean(), f"{t_compile:.1f}")]
-    labels = {"serial": "numba DOP853, serial loop (1 core)",
-              "prange": "numba DOP853, prange (all cores)"}
+    rows = [
+        (
+            "jax.vmap(fast_simulate), DOP853, 1 core",
+            per_fast,
+            steps_fast.mean(),
+            f"{compile_fast:.1f}",
+        ),
+        ("jax.vmap(simulate), Dopri8, 1 core", per_jax, steps.mean(), f"{t_compile:.1f}"),
+    ]
+    labels = {
+        "serial": "numba DOP853, serial loop (1 core)",
+        "prange": "numba DOP853, prange (all cores)",
+    }
     for key, r in nb.items():
         comp = "(earlier)" if r["already_compiled"] else f"{r['compile_s']:.1f}"
         rows.append((labels[key], per_nb[key], r["steps"].mean(), comp))
     rows.append(("scipy solve_ivp DOP853, NumPy RHS", per_sp, steps_sp.mean(), "-"))
     for name, per, st, comp in rows:
         print(f"{name:<42}{per:>16.3e}{1 / per:>12.1f}{st:>14.1f}{comp:>13}")
-    print("(steps: accepted steps; compile: first call incl. JIT, not in the per-trajectory "
-          "times; numba's serial compile includes the shared integrator, prange reuses it; "
-          "'(earlier)': compiled by an earlier benchmark in this process)")
+    print(
+        "(steps: accepted steps; compile: first call incl. JIT, not in the per-trajectory "
+        "times; numba's serial compile includes the shared integrator, prange reuses it; "
+        "'(earlier)': compiled by an earlier benchmark in this process)"
+    )
     print("ratios below: time per trajectory of the other method / jax's (> 1: jax faster)")
-    print(f"speed-up per trajectory: {per_sp / per_jax:.0f}x   (jax vs scipy; compile once: "
-          f"{t_compile:.1f} s, not included)")
+    print(
+        f"speed-up per trajectory: {per_sp / per_jax:.0f}x   (jax vs scipy; compile once: "
+        f"{t_compile:.1f} s, not included)"
+    )
     steps_equal = float(np.mean(steps_fast[:ns] == steps_sp)) if ns else float("nan")
-    print(f"fast_simulate: {per_sp / per_fast:.0f}x scipy, {per_jax / per_fast:.1f}x "
-          f"vmap(simulate) per trajectory; accepted steps equal to scipy's on {steps_equal:.0%} "
-          f"of the sample; compile {compile_fast:.1f} s")
-    print("max |final state - tight reference| (simulate at 1e-13) on the sample: "
-          + ", ".join(f"{k} {v:.1e}" for k, v in acc.items()))
-    out = {"per_jax": per_jax, "per_scipy": per_sp, "ratio": per_sp / per_jax, "max_diff": err,
-           "compile_jax": t_compile, "steps_jax": float(steps.mean()),
-           "steps_scipy": float(steps_sp.mean()), "numba": None, "pinned": is_pinned,
-           "fast": {"per": per_fast, "compile": compile_fast, "ratio_scipy": per_sp / per_fast,
-                    "ratio_simulate": per_jax / per_fast, "steps_equal_scipy": steps_equal,
-                    "max_diff_scipy": float(np.max(np.abs(y_fast[:ns] - y_sp))) if ns
-                    else float("nan"),
-                    "steps": float(steps_fast.mean())},
-           "accuracy": acc}
+    print(
+        f"fast_simulate: {per_sp / per_fast:.0f}x scipy, {per_jax / per_fast:.1f}x "
+        f"vmap(simulate) per trajectory; accepted steps equal to scipy's on {steps_equal:.0%} "
+        f"of the sample; compile {compile_fast:.1f} s"
+    )
+    print(
+        "max |final state - tight reference| (simulate at 1e-13) on the sample: "
+        + ", ".join(f"{k} {v:.1e}" for k, v in acc.items())
+    )
+    out = {
+        "per_jax": per_jax,
+        "per_scipy": per_sp,
+        "ratio": per_sp / per_jax,
+        "max_diff": err,
+        "compile_jax": t_compile,
+        "steps_jax": float(steps.mean()),
+        "steps_scipy": float(steps_sp.mean()),
+        "numba": None,
+        "pinned": is_pinned,
+        "fast": {
+            "per": per_fast,
+            "compile": compile_fast,
+            "ratio_scipy": per_sp / per_fast,
+            "ratio_simulate": per_jax / per_fast,
+            "steps_equal_scipy": steps_equal,
+            "max_diff_scipy": float(np.max(np.abs(y_fast[:ns] - y_sp))) if ns else float("nan"),
+            "steps": float(steps_fast.mean()),
+        },
+        "accuracy": acc,
+    }
     if nb:
         ser = nb["serial"]
         r_ser = per_nb["serial"] / per_jax
-        print(f"jax vs numba serial (one core each): {r_ser:.2f}x per trajectory"
-              + (f" -- numba is {1 / r_ser:.1f}x faster than jax" if r_ser < 1 else ""))
+        print(
+            f"jax vs numba serial (one core each): {r_ser:.2f}x per trajectory"
+            + (f" -- numba is {1 / r_ser:.1f}x faster than jax" if r_ser < 1 else "")
+        )
         if "prange" in nb:
             r_par = per_nb["prange"] / per_jax
-            print(f"jax (1 device) vs numba prange ({nb['prange']['threads']} threads): "
-                  f"{r_par:.2f}x per trajectory; numba prange / serial speed-up "
-                  f"{per_nb['serial'] / per_nb['prange']:.2f}x")
+            print(
+                f"jax (1 device) vs numba prange ({nb['prange']['threads']} threads): "
+                f"{r_par:.2f}x per trajectory; numba prange / serial speed-up "
+                f"{per_nb['serial'] / per_nb['prange']:.2f}x"
+            )
         print(f"numba serial vs scipy: {per_sp / per_nb['serial']:.0f}x per trajectory")
         d_sp = float(np.max(np.abs(ser["y"][:ns] - y_sp)))
         d_jax = float(np.max(np.abs(ser["y"] - y_jax)))
         r_fast = per_nb["serial"] / per_fast
-        print(f"fast_simulate vs numba serial (one core each): {r_fast:.2f}x per trajectory; "
-              f"accepted steps equal on {np.mean(ser['steps'] == steps_fast):.1%} of all points, "
-              f"max |final state difference| {np.max(np.abs(ser['y'] - y_fast)):.1e}")
+        print(
+            f"fast_simulate vs numba serial (one core each): {r_fast:.2f}x per trajectory; "
+            f"accepted steps equal on {np.mean(ser['steps'] == steps_fast):.1%} of all points, "
+            f"max |final state difference| {np.max(np.abs(ser['y'] - y_fast)):.1e}"
+        )
         if "prange" in nb:
-            print(f"fast_simulate (1 core) vs numba prange ({nb['prange']['threads']} threads): "
-                  f"{per_nb['prange'] / per_fast:.2f}x")
-        out["fast"].update(ratio_numba_serial=r_fast,
-                           ratio_numba_prange=per_nb["prange"] / per_fast if "prange" in nb
-                           else None,
-                           steps_equal_numba=float(np.mean(ser["steps"] == steps_fast)),
-                           max_diff_numba=float(np.max(np.abs(ser["y"] - y_fast))))
-        d_par = (float(np.max(np.abs(nb["prange"]["y"] - ser["y"]))) if "prange" in nb
-                 else float("nan"))
+            print(
+                f"fast_simulate (1 core) vs numba prange ({nb['prange']['threads']} threads): "
+                f"{per_nb['prange'] / per_fast:.2f}x"
+            )
+        out["fast"].update(
+            ratio_numba_serial=r_fast,
+            ratio_numba_prange=per_nb["prange"] / per_fast if "prange" in nb else None,
+            steps_equal_numba=float(np.mean(ser["steps"] == steps_fast)),
+            max_diff_numba=float(np.max(np.abs(ser["y"] - y_fast))),
+        )
+        d_par = (
+            float(np.max(np.abs(nb["prange"]["y"] - ser["y"]))) if "prange" in nb else float("nan")
+        )
         nfev_diff = int(np.max(np.abs(ser["nfev"][:ns] - nfev))) if ns else 0
-        print(f"numba check: max |final state difference| vs scipy (sample) {d_sp:.2e}, vs jax "
-              f"(all points) {d_jax:.2e}, prange vs serial {d_par:.1e}; max |nfev numba - nfev "
-              f"scipy| = {nfev_diff} (mean nfev {ser['nfev'][:ns].mean():.1f}); failed: "
-              f"{int((ser['status'] != 0).sum())}")
+        print(
+            f"numba check: max |final state difference| vs scipy (sample) {d_sp:.2e}, vs jax "
+            f"(all points) {d_jax:.2e}, prange vs serial {d_par:.1e}; max |nfev numba - nfev "
+            f"scipy| = {nfev_diff} (mean nfev {ser['nfev'][:ns].mean():.1f}); failed: "
+            f"{int((ser['status'] != 0).sum())}"
+        )
         out["numba"] = {
             "version": numba_ref.NUMBA_VERSION,
-            "per_serial": per_nb["serial"], "compile_serial": ser["compile_s"],
+            "per_serial": per_nb["serial"],
+            "compile_serial": ser["compile_s"],
             "already_compiled": ser["already_compiled"],
             "per_prange": per_nb.get("prange"),
             "compile_prange": nb["prange"]["compile_s"] if "prange" in nb else None,
@@ -285,7 +344,9 @@ def main(argv=None) -> dict:
             "ratio_serial": per_nb["serial"] / per_jax,
             "ratio_prange": per_nb["prange"] / per_jax if "prange" in nb else None,
             "scipy_over_numba_serial": per_sp / per_nb["serial"],
-            "max_diff_scipy": d_sp, "max_diff_jax": d_jax, "nfev_diff_scipy": nfev_diff,
+            "max_diff_scipy": d_sp,
+            "max_diff_jax": d_jax,
+            "nfev_diff_scipy": nfev_diff,
         }
     else:
         print("numba not installed, skipped (pip install numba, or the 'bench' extra)")

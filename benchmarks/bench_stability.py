@@ -41,7 +41,8 @@ K = jnp.array([0.0, 0.0, 1.0])
 
 def model_fn(M, c, A3):
     return RigidBodyOscillator(
-        transversely_isotropic_inertia(1.0, A3, K), QuadraticFoundation(c, 1.0, K),
+        transversely_isotropic_inertia(1.0, A3, K),
+        QuadraticFoundation(c, 1.0, K),
         FollowerMoment(M, K),
     )
 
@@ -101,8 +102,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--chunk", type=int, default=50_000)
     args = parser.parse_args(argv)
     n = args.n_per_axis
-    axes = {"M": np.linspace(-0.9, 0.9, n), "c": np.linspace(0.2, 2.0, n),
-            "A3": np.linspace(0.3, 2.0, n)}
+    axes = {
+        "M": np.linspace(-0.9, 0.9, n),
+        "c": np.linspace(0.2, 2.0, n),
+        "A3": np.linspace(0.3, 2.0, n),
+    }
     grids = np.meshgrid(*axes.values(), indexing="ij")
     flat_points = np.stack([g.ravel() for g in grids], axis=1)
     N = flat_points.shape[0]
@@ -126,9 +130,11 @@ def main(argv=None) -> dict:
     err_plain = max_error_vs_closed_form(flat_points, eig_plain)
     err_np = max_error_vs_closed_form(sample, eig_np)
     per = {"map": t_map / N, "plain": t_plain / N, "numpy": t_np / sample.shape[0]}
-    print(f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, {platform.machine()}, "
-          f"{jax.device_count()} {jax.default_backend()} device(s); {N} map points "
-          f"(numpy: {sample.shape[0]}), chunk {chunk}")
+    print(
+        f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, {platform.machine()}, "
+        f"{jax.device_count()} {jax.default_backend()} device(s); {N} map points "
+        f"(numpy: {sample.shape[0]}), chunk {chunk}"
+    )
     header = f"{'method':<44}{'us / point':>12}{'ratio':>9}{'max |p - (4.69)|':>18}"
     print(header)
     print("-" * len(header))
@@ -138,14 +144,21 @@ def main(argv=None) -> dict:
         ("numpy", "(b) NumPy loop: FD Jacobian + eigvals", err_np),
     ]:
         print(f"{name:<44}{per[key] * 1e6:>12.3f}{per[key] / per['map']:>9.1f}{err:>18.2e}")
-    print(f"first map run incl. compilation {t_first:.1f} s; plain compile {t_compile_plain:.1f} s "
-          "(compilation not included above)")
+    print(
+        f"first map run incl. compilation {t_first:.1f} s; plain compile {t_compile_plain:.1f} s "
+        "(compilation not included above)"
+    )
     print(f"unstable points (max Re p > 0): {int((ds['kind'] >= 2).sum())} of {N}")
-    return {"per_point": per, "errors": {"map": err_map, "plain": err_plain, "numpy": err_np},
-            "ratio": {"plain": per["plain"] / per["map"], "numpy": per["numpy"] / per["map"]},
-            "first_run_s": t_first, "compile_map_estimate": t_first - t_map,
-            "compile_plain": t_compile_plain, "n": N,
-            "numpy_sample": int(sample.shape[0])}
+    return {
+        "per_point": per,
+        "errors": {"map": err_map, "plain": err_plain, "numpy": err_np},
+        "ratio": {"plain": per["plain"] / per["map"], "numpy": per["numpy"] / per["map"]},
+        "first_run_s": t_first,
+        "compile_map_estimate": t_first - t_map,
+        "compile_plain": t_compile_plain,
+        "n": N,
+        "numpy_sample": int(sample.shape[0]),
+    }
 
 
 if __name__ == "__main__":

@@ -39,8 +39,12 @@ def _parse(argv):
     parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
     parser.add_argument("--no-numba", action="store_true", help="skip the numba runs")
     parser.add_argument("--json", default=None, help="also write the figures to this file")
-    parser.add_argument("--integrator", default="fast_simulate",
-                        choices=["fast_simulate", "simulate"], help="the sweep's solver")
+    parser.add_argument(
+        "--integrator",
+        default="fast_simulate",
+        choices=["fast_simulate", "simulate"],
+        help="the sweep's solver",
+    )
     args = parser.parse_args(argv)
     try:
         args.devices = [int(x) for x in args.devices.split(",")]
@@ -95,16 +99,31 @@ def main(argv=None) -> dict:
 
     def final_state(c, d, M):
         k = jnp.asarray(K)
-        model = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, k),
-                                    QuadraticFoundation(c, d, k), FollowerMoment(M, k))
-        traj = solver(model, (M / d) * k + jnp.asarray(PERTURBATION), jnp.zeros(3),
-                      jnp.array([0.0, T1]), rtol=RTOL, atol=ATOL, throw=False)
-        return {"y": jnp.concatenate([traj.theta[-1], traj.Omega[-1]]),
-                "num_steps": traj.num_steps}, traj.status
+        model = RigidBodyOscillator(
+            transversely_isotropic_inertia(A1, A3, k),
+            QuadraticFoundation(c, d, k),
+            FollowerMoment(M, k),
+        )
+        traj = solver(
+            model,
+            (M / d) * k + jnp.asarray(PERTURBATION),
+            jnp.zeros(3),
+            jnp.array([0.0, T1]),
+            rtol=RTOL,
+            atol=ATOL,
+            throw=False,
+        )
+        return {
+            "y": jnp.concatenate([traj.theta[-1], traj.Omega[-1]]),
+            "num_steps": traj.num_steps,
+        }, traj.status
 
     rng = np.random.default_rng(0)
-    points = {"c": rng.uniform(0.5, 2.0, args.n), "d": rng.uniform(0.5, 2.0, args.n),
-              "M": rng.uniform(0.05, 0.6, args.n)}
+    points = {
+        "c": rng.uniform(0.5, 2.0, args.n),
+        "d": rng.uniform(0.5, 2.0, args.n),
+        "M": rng.uniform(0.05, 0.6, args.n),
+    }
     n_local = jax.local_device_count()
     counts = [k for k in args.devices if k <= n_local]
     batch = make_space(None, points, args.chunk).chunk_shape[0]
@@ -123,10 +142,17 @@ def main(argv=None) -> dict:
         if reference is None:
             reference = ds
         diff_1 = float(np.max(np.abs(ds["y"].values - reference["y"].values)))
-        results.append({"devices": k, "seconds": elapsed, "traj_per_s": args.n / elapsed,
-                        "compile_s": t_compile, "successful": ok,
-                        "steps_mean": float(ds["num_steps"].values.mean()),
-                        "max_diff_to_first": diff_1})
+        results.append(
+            {
+                "devices": k,
+                "seconds": elapsed,
+                "traj_per_s": args.n / elapsed,
+                "compile_s": t_compile,
+                "successful": ok,
+                "steps_mean": float(ds["num_steps"].values.mean()),
+                "max_diff_to_first": diff_1,
+            }
+        )
 
     # scipy on a sample of the same points.
     A = A1 * (np.eye(3) - np.outer(K, K)) + A3 * np.outer(K, K)
@@ -136,15 +162,25 @@ def main(argv=None) -> dict:
     for i in range(args.scipy_sample):
         c, d, M = points["c"][i], points["d"][i], points["M"][i]
         y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
-        sol = solve_ivp(numpy_rhs, (0.0, T1), y0, method="DOP853", rtol=RTOL, atol=ATOL,
-                        args=(c, d, M, A, A_inv, K))
+        sol = solve_ivp(
+            numpy_rhs,
+            (0.0, T1),
+            y0,
+            method="DOP853",
+            rtol=RTOL,
+            atol=ATOL,
+            args=(c, d, M, A, A_inv, K),
+        )
         assert sol.success, sol.message
         ys.append(sol.y[:, -1])
         nfev_sp.append(sol.nfev)
     t_scipy = time.perf_counter() - t0
     per_scipy = t_scipy / args.scipy_sample if args.scipy_sample else float("nan")
-    diff = (float(np.max(np.abs(np.array(ys) - reference["y"].values[: args.scipy_sample])))
-            if args.scipy_sample else float("nan"))
+    diff = (
+        float(np.max(np.abs(np.array(ys) - reference["y"].values[: args.scipy_sample])))
+        if args.scipy_sample
+        else float("nan")
+    )
 
     # numba on all points, serial (one core) and prange (all cores numba sees).
     nb = {}
@@ -153,79 +189,114 @@ def main(argv=None) -> dict:
         for key, par in [("serial", False), ("prange", True)]:
             r = numba_ref.timed_solve(pts, par, T1, RTOL, ATOL, PERTURBATION, A, A_inv, K)
             nb[key] = {
-                "seconds": r["seconds"], "traj_per_s": args.n / r["seconds"],
-                "compile_s": r["compile_s"], "threads": r["threads"],
+                "seconds": r["seconds"],
+                "traj_per_s": args.n / r["seconds"],
+                "compile_s": r["compile_s"],
+                "threads": r["threads"],
                 "successful": int((r["status"] == 0).sum()),
                 "steps_mean": float(r["steps"].mean()),
                 "max_diff_to_sweep": float(np.max(np.abs(r["y"] - reference["y"].values)))
-                if reference is not None else float("nan"),
-                "max_diff_to_scipy": float(np.max(np.abs(r["y"][: args.scipy_sample]
-                                                         - np.array(ys))))
-                if args.scipy_sample else float("nan"),
-                "nfev_diff_to_scipy": int(np.max(np.abs(r["nfev"][: args.scipy_sample]
-                                                        - np.array(nfev_sp))))
-                if args.scipy_sample else 0,
+                if reference is not None
+                else float("nan"),
+                "max_diff_to_scipy": float(
+                    np.max(np.abs(r["y"][: args.scipy_sample] - np.array(ys)))
+                )
+                if args.scipy_sample
+                else float("nan"),
+                "nfev_diff_to_scipy": int(
+                    np.max(np.abs(r["nfev"][: args.scipy_sample] - np.array(nfev_sp)))
+                )
+                if args.scipy_sample
+                else 0,
             }
 
     env = {
-        "rbo_jax": rbo_jax.__version__, "jax": jax.__version__,
-        "jaxlib": __import__("jaxlib").__version__, "python": platform.python_version(),
-        "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-        "load_average_1min": os.getloadavg()[0], "backend": jax.default_backend(),
+        "rbo_jax": rbo_jax.__version__,
+        "jax": jax.__version__,
+        "jaxlib": __import__("jaxlib").__version__,
+        "python": platform.python_version(),
+        "machine": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "load_average_1min": os.getloadavg()[0],
+        "backend": jax.default_backend(),
         "local_devices": n_local,
         "numba": numba_ref.NUMBA_VERSION if numba_ref is not None else None,
     }
-    print(f"rbo_jax {env['rbo_jax']}, jax {env['jax']}, jaxlib {env['jaxlib']}, Python "
-          f"{env['python']}, {env['machine']}, {env['cpu_count']} CPUs, load average "
-          f"{env['load_average_1min']:.2f}, {n_local} {env['backend']} device(s); "
-          + (f"numba {env['numba']}" if env["numba"] else "numba not installed, skipped"))
-    print(f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points, "
-          f"chunks of {batch} (scipy: {args.scipy_sample} points); sweep solver "
-          f"{args.integrator}")
-    header = (f"{'method':<42}{'traj / s':>12}{'s / traj':>12}{'compile s':>11}"
-              f"{'steps':>8}{'ok':>9}")
+    print(
+        f"rbo_jax {env['rbo_jax']}, jax {env['jax']}, jaxlib {env['jaxlib']}, Python "
+        f"{env['python']}, {env['machine']}, {env['cpu_count']} CPUs, load average "
+        f"{env['load_average_1min']:.2f}, {n_local} {env['backend']} device(s); "
+        + (f"numba {env['numba']}" if env["numba"] else "numba not installed, skipped")
+    )
+    print(
+        f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points, "
+        f"chunks of {batch} (scipy: {args.scipy_sample} points); sweep solver "
+        f"{args.integrator}"
+    )
+    header = f"{'method':<42}{'traj / s':>12}{'s / traj':>12}{'compile s':>11}{'steps':>8}{'ok':>9}"
     print(header)
     print("-" * len(header))
     for r in results:
         name = f"sweep, shard_map over {r['devices']} device(s)"
-        print(f"{name:<42}{r['traj_per_s']:>12.1f}{1 / r['traj_per_s']:>12.3e}"
-              f"{r['compile_s']:>11.1f}{r['steps_mean']:>8.1f}{r['successful']:>9d}")
-    labels = {"serial": "numba DOP853, serial loop (1 core)",
-              "prange": "numba DOP853, prange ({} threads)"}
+        print(
+            f"{name:<42}{r['traj_per_s']:>12.1f}{1 / r['traj_per_s']:>12.3e}"
+            f"{r['compile_s']:>11.1f}{r['steps_mean']:>8.1f}{r['successful']:>9d}"
+        )
+    labels = {
+        "serial": "numba DOP853, serial loop (1 core)",
+        "prange": "numba DOP853, prange ({} threads)",
+    }
     for key, r in nb.items():
         name = labels[key].format(r["threads"])
-        print(f"{name:<42}{r['traj_per_s']:>12.1f}{1 / r['traj_per_s']:>12.3e}"
-              f"{r['compile_s']:>11.1f}{r['steps_mean']:>8.1f}{r['successful']:>9d}")
+        print(
+            f"{name:<42}{r['traj_per_s']:>12.1f}{1 / r['traj_per_s']:>12.3e}"
+            f"{r['compile_s']:>11.1f}{r['steps_mean']:>8.1f}{r['successful']:>9d}"
+        )
     if args.scipy_sample:
         print(f"{'scipy solve_ivp DOP853, NumPy RHS':<42}{1 / per_scipy:>12.1f}{per_scipy:>12.3e}")
-    print("(steps: mean accepted steps; compile: first call incl. JIT, not in the rates; numba's "
-          "serial compile includes the shared integrator, prange reuses it)")
+    print(
+        "(steps: mean accepted steps; compile: first call incl. JIT, not in the rates; numba's "
+        "serial compile includes the shared integrator, prange reuses it)"
+    )
     base = results[0]["traj_per_s"] if results else float("nan")
     for r in results[1:]:
-        print(f"{r['devices']} devices / {results[0]['devices']}: {r['traj_per_s'] / base:.2f}x; "
-              f"max |final state difference| {r['max_diff_to_first']:.1e} (another per-device "
-              "batch size may round differently)")
+        print(
+            f"{r['devices']} devices / {results[0]['devices']}: {r['traj_per_s'] / base:.2f}x; "
+            f"max |final state difference| {r['max_diff_to_first']:.1e} (another per-device "
+            "batch size may round differently)"
+        )
     if results and args.scipy_sample:
-        print(f"sweep on {results[-1]['devices']} device(s) / scipy: "
-              f"{results[-1]['traj_per_s'] * per_scipy:.0f}x per trajectory; max |final state "
-              f"difference| on the sample: {diff:.2e}")
+        print(
+            f"sweep on {results[-1]['devices']} device(s) / scipy: "
+            f"{results[-1]['traj_per_s'] * per_scipy:.0f}x per trajectory; max |final state "
+            f"difference| on the sample: {diff:.2e}"
+        )
     if results and nb:
         last = results[-1]
         for key, r in nb.items():
             ratio = last["traj_per_s"] / r["traj_per_s"]
-            print(f"sweep on {last['devices']} device(s) / numba {key}: {ratio:.2f}x per "
-                  "trajectory" + (f" -- numba {key} is {1 / ratio:.1f}x faster" if ratio < 1
-                                  else ""))
+            print(
+                f"sweep on {last['devices']} device(s) / numba {key}: {ratio:.2f}x per "
+                "trajectory" + (f" -- numba {key} is {1 / ratio:.1f}x faster" if ratio < 1 else "")
+            )
         r = nb["serial"]
         par = nb["prange"]["traj_per_s"] / r["traj_per_s"]
-        print(f"numba check: max |final state difference| vs the sweep {r['max_diff_to_sweep']:.2e}"
-              f", vs scipy (sample) {r['max_diff_to_scipy']:.2e}; max |nfev numba - nfev scipy| "
-              f"= {r['nfev_diff_to_scipy']}; prange / serial {par:.2f}x")
+        print(
+            f"numba check: max |final state difference| vs the sweep {r['max_diff_to_sweep']:.2e}"
+            f", vs scipy (sample) {r['max_diff_to_scipy']:.2e}; max |nfev numba - nfev scipy| "
+            f"= {r['nfev_diff_to_scipy']}; prange / serial {par:.2f}x"
+        )
     if len(counts) < len(args.devices):
         print(f"(skipped device counts above the {n_local} local devices)")
-    out = {"env": env, "integrator": args.integrator, "n": args.n, "chunk": batch, "sweep": results,
-           "scipy": {"sample": args.scipy_sample, "s_per_traj": per_scipy, "max_diff": diff},
-           "numba": nb or None}
+    out = {
+        "env": env,
+        "integrator": args.integrator,
+        "n": args.n,
+        "chunk": batch,
+        "sweep": results,
+        "scipy": {"sample": args.scipy_sample, "s_per_traj": per_scipy, "max_diff": diff},
+        "numba": nb or None,
+    }
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2)

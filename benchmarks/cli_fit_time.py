@@ -23,12 +23,28 @@ import time
 
 EXAMPLES = {
     # the README's example: a stable (conservative) motion, the fit starts 30 % / 25 % off
-    "readme": (["--c", "1", "--d", "2", "--theta0", "0.8,-0.3,0.5", "--Omega0", "0.2,1.1,-0.7",
-                "--t1", "6", "--samples", "61"],
-               ["--c", "1.3", "--d", "1.5", "--params", "c,d"]),
+    "readme": (
+        [
+            "--c",
+            "1",
+            "--d",
+            "2",
+            "--theta0",
+            "0.8,-0.3,0.5",
+            "--Omega0",
+            "0.2,1.1,-0.7",
+            "--t1",
+            "6",
+            "--samples",
+            "61",
+        ],
+        ["--c", "1.3", "--d", "1.5", "--params", "c,d"],
+    ),
     # the README's example before: flutter under a follower moment, fitted without it
-    "follower": (["--c", "1", "--d", "2", "--follower", "0.3", "--theta0", "0.1,0,0.15",
-                  "--t1", "50"], ["--params", "c,d"]),
+    "follower": (
+        ["--c", "1", "--d", "2", "--follower", "0.3", "--theta0", "0.1,0,0.15", "--t1", "50"],
+        ["--params", "c,d"],
+    ),
 }
 
 
@@ -44,8 +60,9 @@ def _rbo_jax(tree, args, env):
     start, cpu = time.perf_counter(), _cpu()
     # run from the tree: ``python -c`` puts the working directory first on sys.path, ahead of
     # PYTHONPATH, so a run started elsewhere would import that directory's rbo_jax
-    proc = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True,
-                          text=True, cwd=tree)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *args], env=env, capture_output=True, text=True, cwd=tree
+    )
     return time.perf_counter() - start, _cpu() - cpu, proc
 
 
@@ -77,9 +94,11 @@ def main(argv=None):
             load = os.getloadavg()[0]
             last = proc.stdout.strip().splitlines()
             (w1, c1), (w2, c2) = times
-            print(f"run {run + 1}: first {w1:.2f} s (CPU {c1:.2f} s), second {w2:.2f} s "
-                  f"(CPU {c2:.2f} s), load {load:.2f}; "
-                  f"{next((x.strip()[:60] for x in last if 'iterations' in x), '')}")
+            print(
+                f"run {run + 1}: first {w1:.2f} s (CPU {c1:.2f} s), second {w2:.2f} s "
+                f"(CPU {c2:.2f} s), load {load:.2f}; "
+                f"{next((x.strip()[:60] for x in last if 'iterations' in x), '')}"
+            )
         print(proc.stdout)
 
 

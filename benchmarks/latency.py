@@ -121,12 +121,19 @@ theta0 = np.array([0.0, 0.0, M / d]) + PERT
 ts = np.linspace(0.0, T1, 501)
 """
 
-_ONE_TRAJECTORY = _CACHE + _NIKOLAI + """\
+_ONE_TRAJECTORY = (
+    _CACHE
+    + _NIKOLAI
+    + """\
 traj = rbo_jax.{fn}(nikolai(c, d, M), theta0, np.zeros(3), ts, rtol=RTOL, atol=ATOL)
 result = np.asarray(traj.theta)[-1]
 """
+)
 
-_VMAP = _CACHE + _NIKOLAI + """\
+_VMAP = (
+    _CACHE
+    + _NIKOLAI
+    + """\
 def final_state(p):
     c, d, M = p[0], p[1], p[2]
     theta0 = (M / d) * K + PERT
@@ -135,8 +142,11 @@ def final_state(p):
     return jnp.concatenate([traj.theta[-1], traj.Omega[-1]])
 result = np.asarray(jax.jit(jax.vmap(final_state))(points(1000)))[:2]
 """
+)
 
-_MAP = _CACHE + """\
+_MAP = (
+    _CACHE
+    + """\
 K = np.array([0.0, 0.0, 1.0])
 Ms, cs = np.linspace(-0.8, 0.8, 41), np.linspace(0.2, 2.0, 37)
 def run_map():  # new lambdas on every call, as a notebook cell run again
@@ -145,20 +155,26 @@ def run_map():  # new lambdas on every call, as a notebook cell run again
                                  theta_eq_fn=lambda M, c: rbo_jax.nikolai_equilibrium(M, 2.0, K))
 result = np.asarray(run_map()["spectral_abscissa"])[[0, 20, 40]]
 """
-_MAP_NEWTON = _CACHE + """\
+)
+_MAP_NEWTON = (
+    _CACHE
+    + """\
 Ms, cs = np.linspace(-0.8, 0.8, 41), np.linspace(0.2, 2.0, 37)
 def run_map():  # equilibria by Newton (the default), new lambdas on every call
     return rbo_jax.stability_map(lambda M, c: rbo_jax.nikolai_model(M, c, 2.0, A3=0.5),
                                  {"M": Ms, "c": cs})
 result = np.asarray(run_map()["spectral_abscissa"])[[0, 20, 40]]
 """
+)
 _MAP_AGAIN = """\
 _a0 = time.perf_counter()
 np.asarray(run_map()["spectral_abscissa"])
 _again = time.perf_counter() - _a0
 """
 
-_FIT = _CACHE + """\
+_FIT = (
+    _CACHE
+    + """\
 obs = np.load(os.environ["RBO_LATENCY_FIT_DATA"])
 K = np.array([0.0, 0.0, 1.0])
 data = rbo_jax.TrajectoryData(obs["ts"], theta=obs["theta"], theta0=obs["theta0"],
@@ -168,18 +184,28 @@ start = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(1.0, 
 res = rbo_jax.fit(start, data, lambda m: (m.foundation.c, m.foundation.d))
 result = np.concatenate([np.asarray(res.params), [float(res.converged)]])
 """
+)
 
-_HOPF_SETUP = _CACHE + """\
+_HOPF_SETUP = (
+    _CACHE
+    + """\
 def nikolai(M, b):  # tests/test_bifurcation.py
     return rbo_jax.nikolai_model(M, 1.0, 2.0, A1=1.0, A3=0.6, k=(0.0, 0.0, 1.0), friction=b)
 """
-_HOPF = _HOPF_SETUP + """\
+)
+_HOPF = (
+    _HOPF_SETUP
+    + """\
 h = rbo_jax.hopf_point(nikolai, {"b": 0.1}, "M", 0.15)
 result = np.array([float(h.value), float(h.frequency), float(h.first_lyapunov)])
 """
-_HOPF_GRAD = _HOPF_SETUP + """\
+)
+_HOPF_GRAD = (
+    _HOPF_SETUP
+    + """\
 result = float(jax.grad(lambda b: rbo_jax.hopf_point(nikolai, {"b": b}, "M", 0.15).value)(0.1))
 """
+)
 
 _SCIPY = """\
 from _numpy_reference import numpy_rhs
@@ -203,9 +229,12 @@ result = y[0, :3]
 """
 
 # diffrax's Dopri8 on a hand-written vector field (_numpy_reference.numpy_rhs in jax.numpy).
-_DIFFRAX = """\
+_DIFFRAX = (
+    """\
 jax.config.update("jax_enable_x64", True)
-""" + _CACHE + """\
+"""
+    + _CACHE
+    + """\
 def rhs(t, y, args):
     c, d, M = args
     k = jnp.array([0.0, 0.0, 1.0])
@@ -235,17 +264,57 @@ pts = np.stack([rng.uniform(0.5, 2.0, 1000), rng.uniform(0.5, 2.0, 1000),
                 rng.uniform(0.05, 0.6, 1000)], axis=1)
 result = np.asarray(jax.jit(jax.vmap(final_state))(pts))[:2]
 """
+)
 
 _RBO = "import rbo_jax\nimport jax\nimport jax.numpy as jnp\nimport numpy as np\n"
 _BENCH_PATH = "import sys\nsys.path.insert(0, {bench!r})\n"
 
 # The README's two commands (the fit's input file is made once per run, not timed).
-CLI_SIMULATE = ["simulate", "--c", "1", "--d", "2", "--follower", "0.3", "--theta0", "0.1,0,0.15",
-                "--t1", "50", "--out", "{work}/run.nc"]
-CLI_OBS = ["simulate", "--c", "1", "--d", "2", "--theta0", "0.8,-0.3,0.5", "--Omega0",
-           "0.2,1.1,-0.7", "--t1", "6", "--samples", "61", "--out", "{data}/obs.nc"]
-CLI_FIT = ["fit", "--data", "{data}/obs.nc", "--c", "1.3", "--d", "1.5", "--params", "c,d",
-           "--out", "{work}/fit.nc"]
+CLI_SIMULATE = [
+    "simulate",
+    "--c",
+    "1",
+    "--d",
+    "2",
+    "--follower",
+    "0.3",
+    "--theta0",
+    "0.1,0,0.15",
+    "--t1",
+    "50",
+    "--out",
+    "{work}/run.nc",
+]
+CLI_OBS = [
+    "simulate",
+    "--c",
+    "1",
+    "--d",
+    "2",
+    "--theta0",
+    "0.8,-0.3,0.5",
+    "--Omega0",
+    "0.2,1.1,-0.7",
+    "--t1",
+    "6",
+    "--samples",
+    "61",
+    "--out",
+    "{data}/obs.nc",
+]
+CLI_FIT = [
+    "fit",
+    "--data",
+    "{data}/obs.nc",
+    "--c",
+    "1.3",
+    "--d",
+    "1.5",
+    "--params",
+    "c,d",
+    "--out",
+    "{work}/fit.nc",
+]
 _CLI = """\
 import sys
 from rbo_jax.app.cli import main
@@ -272,31 +341,66 @@ def rows() -> list[Row]:
     bench = _BENCH_PATH.format(bench=HERE)
     return [
         Row("import", "`import rbo_jax`", "import rbo_jax\n", "result = 0.0\n"),
-        Row("simulate", "`simulate`, 1 trajectory, 501 samples", _RBO,
-            _ONE_TRAJECTORY.format(fn="simulate")),
-        Row("fast_simulate", "`fast_simulate`, 1 trajectory, 501 samples", _RBO,
-            _ONE_TRAJECTORY.format(fn="fast_simulate")),
+        Row(
+            "simulate",
+            "`simulate`, 1 trajectory, 501 samples",
+            _RBO,
+            _ONE_TRAJECTORY.format(fn="simulate"),
+        ),
+        Row(
+            "fast_simulate",
+            "`fast_simulate`, 1 trajectory, 501 samples",
+            _RBO,
+            _ONE_TRAJECTORY.format(fn="fast_simulate"),
+        ),
         Row("vmap", "`jax.jit(jax.vmap(fast_simulate))`, 1,000 points", _RBO, _VMAP),
         Row("stability_map", "`stability_map`, 41 x 37", _RBO, _MAP, after=_MAP_AGAIN),
-        Row("stability_map_newton", "`stability_map`, 41 x 37, equilibria by Newton", _RBO,
-            _MAP_NEWTON, after=_MAP_AGAIN),
-        Row("fit", "`fit` of c, d (Levenberg-Marquardt, 61 samples)", _RBO + "import os\n", _FIT,
-            needs=("fit_data",)),
+        Row(
+            "stability_map_newton",
+            "`stability_map`, 41 x 37, equilibria by Newton",
+            _RBO,
+            _MAP_NEWTON,
+            after=_MAP_AGAIN,
+        ),
+        Row(
+            "fit",
+            "`fit` of c, d (Levenberg-Marquardt, 61 samples)",
+            _RBO + "import os\n",
+            _FIT,
+            needs=("fit_data",),
+        ),
         Row("hopf", "`hopf_point` (damped Nikolai)", _RBO, _HOPF),
-        Row("hopf_grad", "`jax.grad` of `hopf_point(...).value`", _RBO, _HOPF_GRAD,
-            target=(8.0, 2.0)),
+        Row(
+            "hopf_grad",
+            "`jax.grad` of `hopf_point(...).value`",
+            _RBO,
+            _HOPF_GRAD,
+            target=(8.0, 2.0),
+        ),
         Row("cli_simulate", "`rbo-jax simulate` (README example, process)", cli=CLI_SIMULATE),
-        Row("cli_fit", "`rbo-jax fit` (README example, process)", cli=CLI_FIT,
-            needs=("cli_obs",)),
+        Row("cli_fit", "`rbo-jax fit` (README example, process)", cli=CLI_FIT, needs=("cli_obs",)),
         Row("import_jax", "anchor: `import jax`", "import jax\n", "result = 0.0\n", target=None),
-        Row("scipy", "anchor: SciPy `solve_ivp` DOP853, 1 trajectory", bench
-            + "import numpy as np\nfrom scipy.integrate import solve_ivp\n", _SCIPY, target=None),
-        Row("numba", "anchor: numba DOP853 (`cache=True`), 1 trajectory", bench
-            + "import numba\nimport numpy as np\nimport _numba_reference as ref\n", _NUMBA,
-            target=None),
-        Row("diffrax", "anchor: diffrax Dopri8, hand-written field, vmap 1,000",
+        Row(
+            "scipy",
+            "anchor: SciPy `solve_ivp` DOP853, 1 trajectory",
+            bench + "import numpy as np\nfrom scipy.integrate import solve_ivp\n",
+            _SCIPY,
+            target=None,
+        ),
+        Row(
+            "numba",
+            "anchor: numba DOP853 (`cache=True`), 1 trajectory",
+            bench + "import numba\nimport numpy as np\nimport _numba_reference as ref\n",
+            _NUMBA,
+            target=None,
+        ),
+        Row(
+            "diffrax",
+            "anchor: diffrax Dopri8, hand-written field, vmap 1,000",
             "import diffrax\nimport jax\nimport jax.numpy as jnp\nimport numpy as np\n",
-            _DIFFRAX, target=None),
+            _DIFFRAX,
+            target=None,
+        ),
     ]
 
 
@@ -304,10 +408,19 @@ def snippet(row: Row) -> str:
     """The program one process of ``row`` runs (``python -c``)."""
     if row.cli is not None:
         # as the console script ends (rbo_jax.app.cli.run: exit_process, where the tree has it)
-        return (_HEAD + _CLI + _TAIL + "import rbo_jax.app.cli as _cli\n"
-                "getattr(_cli, 'exit_process', sys.exit)(_rc)\n")
-    return (_HEAD + row.imports + "_t1 = time.perf_counter()\n" + row.call
-            + "_t2 = time.perf_counter()\n" + row.after + _TAIL)
+        return (
+            _HEAD + _CLI + _TAIL + "import rbo_jax.app.cli as _cli\n"
+            "getattr(_cli, 'exit_process', sys.exit)(_rc)\n"
+        )
+    return (
+        _HEAD
+        + row.imports
+        + "_t1 = time.perf_counter()\n"
+        + row.call
+        + "_t2 = time.perf_counter()\n"
+        + row.after
+        + _TAIL
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -329,8 +442,16 @@ def make_fit_data(path: str) -> str:
     A = np.eye(3) - np.outer(k, k) + 0.6 * np.outer(k, k)
     theta0, Omega0 = np.array([0.8, -0.3, 0.5]), np.array([0.2, 1.1, -0.7])
     ts = np.linspace(0.0, 6.0, 61)
-    sol = solve_ivp(numpy_rhs, (0.0, 6.0), np.concatenate([theta0, Omega0]), method="DOP853",
-                    rtol=1e-12, atol=1e-12, t_eval=ts, args=(1.0, 2.0, 0.0, A, np.linalg.inv(A), k))
+    sol = solve_ivp(
+        numpy_rhs,
+        (0.0, 6.0),
+        np.concatenate([theta0, Omega0]),
+        method="DOP853",
+        rtol=1e-12,
+        atol=1e-12,
+        t_eval=ts,
+        args=(1.0, 2.0, 0.0, A, np.linalg.inv(A), k),
+    )
     sigma = 1e-3
     theta = sol.y[:3].T + sigma * np.random.default_rng(7).standard_normal((61, 3))
     out = os.path.join(path, "fit_data.npz")
@@ -343,29 +464,50 @@ def make_fit_data(path: str) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
-def run_process(row: Row, tree: str, cache: str, work: str, env_extra: dict, timeout: float,
-                jax_cache: bool = True, cpus: set | None = None):
+def run_process(
+    row: Row,
+    tree: str,
+    cache: str,
+    work: str,
+    env_extra: dict,
+    timeout: float,
+    jax_cache: bool = True,
+    cpus: set | None = None,
+):
     """One process of ``row`` on the cache directory ``cache`` (``jax_cache=False``: no
     persistent JAX cache, for the library rows and the CLI; numba's stays on): a dict with
     import_s, call_s, process_s (start to exit, measured here), again_s, result, or error.
     ``cpus``: the cores the process may run on (``--pin``; None: all)."""
     report = os.path.join(work, f"report-{row.key}-{time.monotonic_ns()}.json")
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("JAX_COMPILATION_CACHE", "RBO_LATENCY"))}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("JAX_COMPILATION_CACHE", "RBO_LATENCY"))
+    }
     env.update(env_extra)
-    env.update(PYTHONPATH=tree, RBO_LATENCY_REPORT=report,
-               RBO_LATENCY_CACHE=cache if jax_cache else "off",
-               RBO_JAX_COMPILATION_CACHE=cache if jax_cache else "off",
-               NUMBA_CACHE_DIR=os.path.join(cache, "numba"),
-               XDG_CACHE_HOME=os.path.join(cache, "xdg"))
-    args = [a.format(work=work, data=env_extra.get("RBO_LATENCY_DATA_DIR", work))
-            for a in (row.cli or [])]
+    env.update(
+        PYTHONPATH=tree,
+        RBO_LATENCY_REPORT=report,
+        RBO_LATENCY_CACHE=cache if jax_cache else "off",
+        RBO_JAX_COMPILATION_CACHE=cache if jax_cache else "off",
+        NUMBA_CACHE_DIR=os.path.join(cache, "numba"),
+        XDG_CACHE_HOME=os.path.join(cache, "xdg"),
+    )
+    args = [
+        a.format(work=work, data=env_extra.get("RBO_LATENCY_DATA_DIR", work))
+        for a in (row.cli or [])
+    ]
     start = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, "-c", snippet(row), *args], env=env, cwd=tree,
-                              capture_output=True, text=True, timeout=timeout,
-                              preexec_fn=None if cpus is None
-                              else lambda: os.sched_setaffinity(0, cpus))
+        proc = subprocess.run(
+            [sys.executable, "-c", snippet(row), *args],
+            env=env,
+            cwd=tree,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            preexec_fn=None if cpus is None else lambda: os.sched_setaffinity(0, cpus),
+        )
     except subprocess.TimeoutExpired:
         return {"error": f"timed out after {timeout:.0f} s"}
     wall = time.perf_counter() - start
@@ -390,13 +532,18 @@ def first_answer(run: dict, row: Row) -> float | None:
 
 def machine(tree: str) -> dict:
     """CPU model, cores, load average, memory, versions and the tree's commit."""
-    info = {"date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "platform": platform.platform(),
-            "python": platform.python_version(), "cores": os.cpu_count(),
-            "tree": os.path.abspath(tree)}
+    info = {
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cores": os.cpu_count(),
+        "tree": os.path.abspath(tree),
+    }
     try:
         with open("/proc/cpuinfo") as f:
-            info["cpu"] = next(line.split(":", 1)[1].strip() for line in f
-                               if line.startswith("model name"))
+            info["cpu"] = next(
+                line.split(":", 1)[1].strip() for line in f if line.startswith("model name")
+            )
     except (OSError, StopIteration):
         info["cpu"] = platform.processor() or "unknown"
     if hasattr(os, "sched_getaffinity"):
@@ -415,10 +562,14 @@ def machine(tree: str) -> dict:
             pass
     git = ["git", "-C", tree]
     try:
-        info["commit"] = subprocess.run([*git, "rev-parse", "--short", "HEAD"], text=True,
-                                        capture_output=True, check=True).stdout.strip()
-        dirty = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no", "--",
-                                "rbo_jax"], text=True, capture_output=True).stdout.strip()
+        info["commit"] = subprocess.run(
+            [*git, "rev-parse", "--short", "HEAD"], text=True, capture_output=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            [*git, "status", "--porcelain", "--untracked-files=no", "--", "rbo_jax"],
+            text=True,
+            capture_output=True,
+        ).stdout.strip()
         info["rbo_jax_modified"] = bool(dirty)  # uncommitted changes under rbo_jax/
     except (OSError, subprocess.CalledProcessError):
         info["commit"] = None
@@ -460,19 +611,28 @@ def _met(result: dict, row: Row) -> str:
 
 
 def table(results: dict, selected: list[Row]) -> str:
-    lines = ["| task | cold: import + call [s] | warm: import + call [s] | cold / warm process "
-             "[s] | target cold / warm [s] | met? |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| task | cold: import + call [s] | warm: import + call [s] | cold / warm process "
+        "[s] | target cold / warm [s] | met? |",
+        "|---|---|---|---|---|---|",
+    ]
     for row in selected:
         res = results[row.key]
         proc = " / ".join(_span([r.get("process_s") for r in res[w]]) for w in ("cold", "warm"))
         target = "-" if row.target is None else f"{row.target[0]:g} / {row.target[1]:g}"
-        lines.append(f"| {row.label} | {_cell(res['cold'], row)} | {_cell(res['warm'], row)} | "
-                     f"{proc} | {target} | {_met(res, row)} |")
+        lines.append(
+            f"| {row.label} | {_cell(res['cold'], row)} | {_cell(res['warm'], row)} | "
+            f"{proc} | {target} | {_met(res, row)} |"
+        )
         if row.after:
-            again = [_span([r.get("again_s") for r in res[w] if "error" not in r])
-                     for w in ("cold", "warm")]
-            lines.append(f"| ... the same call again, new lambdas, same process | {again[0]} | "
-                         f"{again[1]} | | - | - |")
+            again = [
+                _span([r.get("again_s") for r in res[w] if "error" not in r])
+                for w in ("cold", "warm")
+            ]
+            lines.append(
+                f"| ... the same call again, new lambdas, same process | {again[0]} | "
+                f"{again[1]} | | - | - |"
+            )
     return "\n".join(lines)
 
 
@@ -481,17 +641,30 @@ def main(argv=None):
     keys = [r.key for r in all_rows]
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tree", default=ROOT, help="checkout to time (default: this one)")
-    parser.add_argument("--rows", default=",".join(keys),
-                        help=f"comma-separated rows (default: all): {','.join(keys)}")
-    parser.add_argument("--repeat", type=int, default=1,
-                        help="cold/warm pairs per row, each on a fresh cache (min-max reported)")
+    parser.add_argument(
+        "--rows",
+        default=",".join(keys),
+        help=f"comma-separated rows (default: all): {','.join(keys)}",
+    )
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="cold/warm pairs per row, each on a fresh cache (min-max reported)",
+    )
     parser.add_argument("--json", help="write the machine, every run and the table here")
-    parser.add_argument("--no-cache", action="store_true",
-                        help="no persistent JAX cache in any process (a plain notebook): cold "
-                        "and warm then differ only by the operating system's file cache")
-    parser.add_argument("--pin", help="run every process on these cores only, e.g. '0' or "
-                        "'0,1' (Linux): on a loaded machine XLA's multi-threaded runtime can "
-                        "slow a vmapped program many times over; one core is steadier")
+    parser.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="no persistent JAX cache in any process (a plain notebook): cold "
+        "and warm then differ only by the operating system's file cache",
+    )
+    parser.add_argument(
+        "--pin",
+        help="run every process on these cores only, e.g. '0' or "
+        "'0,1' (Linux): on a loaded machine XLA's multi-threaded runtime can "
+        "slow a vmapped program many times over; one core is steadier",
+    )
     parser.add_argument("--label", help="name of the tree in the output (e.g. 'before')")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per process")
     args = parser.parse_args(argv)
@@ -519,14 +692,19 @@ def main(argv=None):
     info["jax_cache"] = not args.no_cache
     info["pinned_to"] = sorted(cpus) if cpus else None
     info["load_start"] = os.getloadavg()
-    print(f"{args.label + ': ' if args.label else ''}tree {tree} (commit {info.get('commit')}"
-          f"{', rbo_jax/ modified' if info.get('rbo_jax_modified') else ''}); "
-          f"{info['cpu']}, {info['cores']} cores, {info.get('memory_gib', '?')} GiB; "
-          f"Python {info['python']}, "
-          + ", ".join(f"{k} {v}" for k, v in info["versions"].items()), flush=True)
-    print(f"load average at start {' '.join(f'{x:.2f}' for x in info['load_start'])}"
-          f"{'; processes pinned to cores ' + args.pin if cpus else ''}"
-          f"{'; no persistent JAX cache' if args.no_cache else ''}", flush=True)
+    print(
+        f"{args.label + ': ' if args.label else ''}tree {tree} (commit {info.get('commit')}"
+        f"{', rbo_jax/ modified' if info.get('rbo_jax_modified') else ''}); "
+        f"{info['cpu']}, {info['cores']} cores, {info.get('memory_gib', '?')} GiB; "
+        f"Python {info['python']}, " + ", ".join(f"{k} {v}" for k, v in info["versions"].items()),
+        flush=True,
+    )
+    print(
+        f"load average at start {' '.join(f'{x:.2f}' for x in info['load_start'])}"
+        f"{'; processes pinned to cores ' + args.pin if cpus else ''}"
+        f"{'; no persistent JAX cache' if args.no_cache else ''}",
+        flush=True,
+    )
     results = {r.key: {"cold": [], "warm": []} for r in selected}
     with tempfile.TemporaryDirectory(prefix="rbo-latency-") as tmp:
         extra = {}
@@ -537,8 +715,7 @@ def main(argv=None):
             os.makedirs(data_dir)
             extra["RBO_LATENCY_DATA_DIR"] = data_dir
             obs = Row("cli_obs", "input of the fit", cli=CLI_OBS)
-            made = run_process(obs, tree, data_dir, data_dir, extra, args.timeout,
-                               jax_cache=False)
+            made = run_process(obs, tree, data_dir, data_dir, extra, args.timeout, jax_cache=False)
             if "error" in made:
                 sys.exit(f"making the fit's input failed: {made['error']}")
         for rep in range(args.repeat):
@@ -548,30 +725,48 @@ def main(argv=None):
                 work = os.path.join(tmp, f"work-{row.key}-{rep}")
                 os.makedirs(work)
                 for which in ("cold", "warm"):
-                    run = run_process(row, tree, cache, work, extra, args.timeout,
-                                      jax_cache=not args.no_cache, cpus=cpus)
+                    run = run_process(
+                        row,
+                        tree,
+                        cache,
+                        work,
+                        extra,
+                        args.timeout,
+                        jax_cache=not args.no_cache,
+                        cpus=cpus,
+                    )
                     run["load"] = os.getloadavg()[0]
                     results[row.key][which].append(run)
                     if "error" in run:
                         status = run["error"]
                     else:
-                        status = (f"import {run['import_s']:.2f} s + call {run['call_s']:.2f} s"
-                                  f" (process {run['process_s']:.2f} s)")
+                        status = (
+                            f"import {run['import_s']:.2f} s + call {run['call_s']:.2f} s"
+                            f" (process {run['process_s']:.2f} s)"
+                        )
                         if run.get("again_s") is not None:
                             status += f", again {run['again_s']:.2f} s"
-                    print(f"[{rep + 1}/{args.repeat}] {row.key:20s} {which}: {status}; "
-                          f"load {run['load']:.2f}", flush=True)
+                    print(
+                        f"[{rep + 1}/{args.repeat}] {row.key:20s} {which}: {status}; "
+                        f"load {run['load']:.2f}",
+                        flush=True,
+                    )
                 shutil.rmtree(cache, ignore_errors=True)
     info["load_end"] = os.getloadavg()
     text = table(results, selected)
     how = sorted({r["cache"] for v in results.values() for r in v["cold"] if r.get("cache")})
-    print(f"\nload average at end {' '.join(f'{x:.2f}' for x in info['load_end'])}; JAX cache "
-          f"turned on by: {', '.join(how) or '-'} (CLI rows: $RBO_JAX_COMPILATION_CACHE)\n")
+    print(
+        f"\nload average at end {' '.join(f'{x:.2f}' for x in info['load_end'])}; JAX cache "
+        f"turned on by: {', '.join(how) or '-'} (CLI rows: $RBO_JAX_COMPILATION_CACHE)\n"
+    )
     print(text)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": info, "repeat": args.repeat, "runs": results,
-                       "table": text}, f, indent=1)
+            json.dump(
+                {"machine": info, "repeat": args.repeat, "runs": results, "table": text},
+                f,
+                indent=1,
+            )
     return results
 
 

@@ -34,8 +34,10 @@ def main():
     parser.add_argument("--n", default="1000,100000", help="chain sizes")
     parser.add_argument("--t1", type=float, default=20.0)
     args = parser.parse_args()
-    print(f"{'N':>8}  {'precision':>9}  {'rtol':>6}  {'atol':>6}  {'steps':>5}  "
-          f"{'max|theta-ref|':>14}  {'us/body-step':>12}")
+    print(
+        f"{'N':>8}  {'precision':>9}  {'rtol':>6}  {'atol':>6}  {'steps':>5}  "
+        f"{'max|theta-ref|':>14}  {'us/body-step':>12}"
+    )
     for n in (int(x) for x in args.n.split(",")):
         lat, _ = build_lattice(n)
         th0, Om0 = initial_state(n)
@@ -52,8 +54,10 @@ def main():
                 seconds = time.perf_counter() - start
             err = np.abs(np.asarray(traj.theta, np.float64) - np.asarray(ref.theta)).max()
             steps = int(traj.num_steps)
-            print(f"{n:8d}  {jnp.dtype(dtype).name:>9}  {rtol:6.0e}  {atol:6.0e}  {steps:5d}  "
-                  f"{err:14.1e}  {seconds / n / steps * 1e6:12.3f}")
+            print(
+                f"{n:8d}  {jnp.dtype(dtype).name:>9}  {rtol:6.0e}  {atol:6.0e}  {steps:5d}  "
+                f"{err:14.1e}  {seconds / n / steps * 1e6:12.3f}"
+            )
 
 
 if __name__ == "__main__":

@@ -38,27 +38,60 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
     sim = results.get("simulate")
     if sim and sim.get("fast"):
         fa = sim["fast"]
-        rows.append(("simulate", "jax.vmap(fast_simulate) vs scipy DOP853 (1 core each)",
-                     _fmt(fa["ratio_scipy"], ".0f") + "x", f"jax {fa['compile']:.1f}"))
+        rows.append(
+            (
+                "simulate",
+                "jax.vmap(fast_simulate) vs scipy DOP853 (1 core each)",
+                _fmt(fa["ratio_scipy"], ".0f") + "x",
+                f"jax {fa['compile']:.1f}",
+            )
+        )
         if fa.get("ratio_numba_serial") is not None:
-            rows.append(("simulate", "jax.vmap(fast_simulate) vs numba DOP853 serial (1 core "
-                         "each)", _fmt(fa["ratio_numba_serial"], ".2f") + "x", ""))
-            rows.append(("simulate", "jax.vmap(fast_simulate) (1 core) vs numba prange",
-                         _fmt(fa.get("ratio_numba_prange"), ".2f") + "x", ""))
+            rows.append(
+                (
+                    "simulate",
+                    "jax.vmap(fast_simulate) vs numba DOP853 serial (1 core each)",
+                    _fmt(fa["ratio_numba_serial"], ".2f") + "x",
+                    "",
+                )
+            )
+            rows.append(
+                (
+                    "simulate",
+                    "jax.vmap(fast_simulate) (1 core) vs numba prange",
+                    _fmt(fa.get("ratio_numba_prange"), ".2f") + "x",
+                    "",
+                )
+            )
     if sim:
-        rows.append(("simulate", "jax.vmap(simulate) vs scipy DOP853 (1 core each)",
-                     _fmt(sim["ratio"], ".0f") + "x", f"jax {sim['compile_jax']:.1f}"))
+        rows.append(
+            (
+                "simulate",
+                "jax.vmap(simulate) vs scipy DOP853 (1 core each)",
+                _fmt(sim["ratio"], ".0f") + "x",
+                f"jax {sim['compile_jax']:.1f}",
+            )
+        )
         nb = sim.get("numba")
         if nb:
             pre = nb.get("already_compiled")
-            rows.append(("simulate", "jax.vmap(simulate) vs numba DOP853 serial (1 core each)",
-                         _fmt(nb["ratio_serial"], ".2f") + "x",
-                         "numba: compiled in sweep" if pre
-                         else f"numba {nb['compile_serial']:.1f}"))
+            rows.append(
+                (
+                    "simulate",
+                    "jax.vmap(simulate) vs numba DOP853 serial (1 core each)",
+                    _fmt(nb["ratio_serial"], ".2f") + "x",
+                    "numba: compiled in sweep" if pre else f"numba {nb['compile_serial']:.1f}",
+                )
+            )
             if nb.get("ratio_prange") is not None:
-                rows.append(("simulate", f"jax.vmap (1 device) vs numba prange "
-                             f"({nb['threads']} threads)", _fmt(nb["ratio_prange"], ".2f") + "x",
-                             "" if pre else f"numba prange {nb['compile_prange']:.1f}"))
+                rows.append(
+                    (
+                        "simulate",
+                        f"jax.vmap (1 device) vs numba prange ({nb['threads']} threads)",
+                        _fmt(nb["ratio_prange"], ".2f") + "x",
+                        "" if pre else f"numba prange {nb['compile_prange']:.1f}",
+                    )
+                )
         else:
             rows.append(("simulate", "numba not installed, skipped", "-", ""))
     sw = results.get("sweep")
@@ -67,45 +100,90 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
         k = last["devices"]
         compiles = ", ".join(f"{r['devices']} dev {r['compile_s']:.1f}" for r in sw["sweep"])
         if sw["scipy"]["sample"]:
-            rows.append(("sweep", f"sweep on {k} device(s) vs scipy DOP853 (1 core)",
-                         _fmt(last["traj_per_s"] * sw["scipy"]["s_per_traj"], ".0f") + "x",
-                         f"sweep {compiles}"))
+            rows.append(
+                (
+                    "sweep",
+                    f"sweep on {k} device(s) vs scipy DOP853 (1 core)",
+                    _fmt(last["traj_per_s"] * sw["scipy"]["s_per_traj"], ".0f") + "x",
+                    f"sweep {compiles}",
+                )
+            )
         nb = sw.get("numba")
         if nb:
             for key, r in nb.items():
                 who = "1 core" if key == "serial" else f"{r['threads']} threads"
-                rows.append(("sweep", f"sweep on {k} device(s) vs numba {key} ({who})",
-                             _fmt(last["traj_per_s"] / r["traj_per_s"], ".2f") + "x",
-                             f"numba {key} {r['compile_s']:.1f}"))
+                rows.append(
+                    (
+                        "sweep",
+                        f"sweep on {k} device(s) vs numba {key} ({who})",
+                        _fmt(last["traj_per_s"] / r["traj_per_s"], ".2f") + "x",
+                        f"numba {key} {r['compile_s']:.1f}",
+                    )
+                )
         else:
             rows.append(("sweep", "numba not installed, skipped", "-", ""))
     st = results.get("stability")
     if st:
-        rows.append(("stability", "stability_map vs vmap(eigvals(jacfwd))",
-                     _fmt(st["ratio"]["plain"], ".1f") + "x",
-                     f"map ~{st['compile_map_estimate']:.1f}, plain {st['compile_plain']:.1f}"))
-        rows.append(("stability", "stability_map vs NumPy loop (FD + eigvals)",
-                     _fmt(st["ratio"]["numpy"], ".0f") + "x", ""))
+        rows.append(
+            (
+                "stability",
+                "stability_map vs vmap(eigvals(jacfwd))",
+                _fmt(st["ratio"]["plain"], ".1f") + "x",
+                f"map ~{st['compile_map_estimate']:.1f}, plain {st['compile_plain']:.1f}",
+            )
+        )
+        rows.append(
+            (
+                "stability",
+                "stability_map vs NumPy loop (FD + eigvals)",
+                _fmt(st["ratio"]["numpy"], ".0f") + "x",
+                "",
+            )
+        )
     fi = results.get("fitting")
     if fi:
-        rows.append(("fitting", "first fit, wall incl. compilation [s]", f"{fi['first']:.1f}",
-                     f"~{fi['compile_estimate']:.1f}"))
-        rows.append(("fitting", "second fit, compiled program reused [s]", f"{fi['second']:.1f}",
-                     ""))
+        rows.append(
+            (
+                "fitting",
+                "first fit, wall incl. compilation [s]",
+                f"{fi['first']:.1f}",
+                f"~{fi['compile_estimate']:.1f}",
+            )
+        )
+        rows.append(
+            ("fitting", "second fit, compiled program reused [s]", f"{fi['second']:.1f}", "")
+        )
     la = results.get("lattice")
     if la:
         for r in la["rows"]:
             nb = r.get("numba")
-            rows.append(("lattice", f"lattice.simulate (DOP853, N = {r['n']}) vs numba DOP853 "
-                         "stencil (1 core each)",
-                         _fmt(r.get("ratio"), ".2f") + "x" if nb else "numba not installed",
-                         f"jax {r['compile_jax']:.1f}"))
+            rows.append(
+                (
+                    "lattice",
+                    f"lattice.simulate (DOP853, N = {r['n']}) vs numba DOP853 "
+                    "stencil (1 core each)",
+                    _fmt(r.get("ratio"), ".2f") + "x" if nb else "numba not installed",
+                    f"jax {r['compile_jax']:.1f}",
+                )
+            )
     da = results.get("dask")
     if da:
-        rows.append(("dask", f"a chunk of {da['chunk']} points as a Dask task: overhead [ms]",
-                     f"{da['overhead_ms']:.2f}", ""))
-        rows.append(("dask", "sweep on 2 Dask workers vs 1 process",
-                     _fmt(da["speedup_2_workers"], ".2f") + "x", ""))
+        rows.append(
+            (
+                "dask",
+                f"a chunk of {da['chunk']} points as a Dask task: overhead [ms]",
+                f"{da['overhead_ms']:.2f}",
+                "",
+            )
+        )
+        rows.append(
+            (
+                "dask",
+                "sweep on 2 Dask workers vs 1 process",
+                _fmt(da["speedup_2_workers"], ".2f") + "x",
+                "",
+            )
+        )
     return rows
 
 
@@ -114,13 +192,16 @@ def print_summary(results: dict) -> None:
     if not rows:
         return
     print("\n=== summary ===")
-    print("ratio: the other method's time per trajectory / point over rbo_jax's (> 1: rbo_jax "
-          "faster, < 1: the other is faster); compile [s]: first call incl. compilation, not in "
-          "the ratios (~: first run minus second run)")
+    print(
+        "ratio: the other method's time per trajectory / point over rbo_jax's (> 1: rbo_jax "
+        "faster, < 1: the other is faster); compile [s]: first call incl. compilation, not in "
+        "the ratios (~: first run minus second run)"
+    )
     w = [max(len(r[i]) for r in rows) for i in range(4)]
     w = [max(a, len(h)) for a, h in zip(w, ["benchmark", "comparison", "ratio", "compile [s]"])]
-    header = (f"{'benchmark':<{w[0]}}  {'comparison':<{w[1]}}  {'ratio':>{w[2]}}  "
-              f"{'compile [s]':<{w[3]}}")
+    header = (
+        f"{'benchmark':<{w[0]}}  {'comparison':<{w[1]}}  {'ratio':>{w[2]}}  {'compile [s]':<{w[3]}}"
+    )
     print(header.rstrip())
     print("-" * len(header))
     for b, c, v, comp in rows:
@@ -130,20 +211,32 @@ def print_summary(results: dict) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, for tests")
-    parser.add_argument("--only", nargs="*", default=None,
-                        help="subset of: sweep simulate stability fitting lattice dask")
+    parser.add_argument(
+        "--only",
+        nargs="*",
+        default=None,
+        help="subset of: sweep simulate stability fitting lattice dask",
+    )
     args = parser.parse_args(argv)
     import importlib
 
     import jax
 
     # sweep first: it splits the CPU into 2 XLA devices, which must happen before JAX starts
-    modules = {"sweep": "bench_sweep", "simulate": "bench_simulate",
-               "stability": "bench_stability", "fitting": "bench_fitting",
-               "lattice": "bench_lattice", "dask": "bench_dask"}
-    print(f"{time.strftime('%Y-%m-%d')}  {platform.platform()}  {os.cpu_count()} CPUs  "
-          f"jax {jax.__version__}  python {platform.python_version()}  load average "
-          f"{os.getloadavg()[0]:.2f}", flush=True)
+    modules = {
+        "sweep": "bench_sweep",
+        "simulate": "bench_simulate",
+        "stability": "bench_stability",
+        "fitting": "bench_fitting",
+        "lattice": "bench_lattice",
+        "dask": "bench_dask",
+    }
+    print(
+        f"{time.strftime('%Y-%m-%d')}  {platform.platform()}  {os.cpu_count()} CPUs  "
+        f"jax {jax.__version__}  python {platform.python_version()}  load average "
+        f"{os.getloadavg()[0]:.2f}",
+        flush=True,
+    )
     results = {}
     for name, module in modules.items():
         if args.only and name not in args.only:

@@ -28,8 +28,14 @@ import warnings
 
 import jax
 
-__all__ = ["CACHE_ENV", "compilation_cache_dir", "enable_compilation_cache",
-           "enable_from_environment", "program_store", "set_program_store"]
+__all__ = [
+    "CACHE_ENV",
+    "compilation_cache_dir",
+    "enable_compilation_cache",
+    "enable_from_environment",
+    "program_store",
+    "set_program_store",
+]
 
 CACHE_ENV = "RBO_JAX_COMPILATION_CACHE"
 _OFF = ("off", "0", "no", "false", "none")
@@ -104,8 +110,12 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.P
         try:
             (target / "programs").mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            warnings.warn(f"rbo_jax: compilation cache off ({target}: {e.strerror or e}); set "
-                          f"{CACHE_ENV}=off to silence this.", RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"rbo_jax: compilation cache off ({target}: {e.strerror or e}); set "
+                f"{CACHE_ENV}=off to silence this.",
+                RuntimeWarning,
+                stacklevel=2,
+            )
             target = None
     if target is None:
         set_program_store(None)

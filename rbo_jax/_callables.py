@@ -49,8 +49,19 @@ __all__ = ["callable_key", "describe_treedef", "stable_text"]
 _SCALARS = (bool, int, float, complex, str, bytes, type(None), type(Ellipsis))
 # Modules whose content the program store's key covers (by the package's sources or the
 # versions in rbo_jax._programs.PACKAGES) or that come with Python.
-COVERED = ("rbo_jax", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "numpy",
-           "scipy", "optax", "jaxtyping")
+COVERED = (
+    "rbo_jax",
+    "jax",
+    "jaxlib",
+    "equinox",
+    "diffrax",
+    "optimistix",
+    "lineax",
+    "numpy",
+    "scipy",
+    "optax",
+    "jaxtyping",
+)
 
 
 class _Unkeyable(Exception):
@@ -113,7 +124,8 @@ class _Describer:
         if type(x) is dict:
             return ("dict", tuple((self(k), self(v)) for k, v in x.items()))
         if isinstance(x, (np.ndarray, np.generic)) or (
-                isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer)):
+            isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer)
+        ):
             return self.array(x)
         if isinstance(x, types.ModuleType):
             if self.stable and not _covered(x.__name__):
@@ -127,8 +139,9 @@ class _Describer:
             return ("method", self(x.__func__), self(x.__self__))
         if _named(x) and (not self.stable or _covered(x.__module__)):
             # classes, builtins, jitted library functions, enumeration classes
-            return ("named", x.__module__, x.__qualname__) if self.stable else ("named",
-                                                                               _Identity(x))
+            return (
+                ("named", x.__module__, x.__qualname__) if self.stable else ("named", _Identity(x))
+            )
         return self.tree(x)
 
     def array(self, x):
@@ -136,8 +149,14 @@ class _Describer:
         if a.dtype.hasobject:
             return self.other(x)
         digest = hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
-        return ("array", type(x).__name__, a.dtype.str, a.shape,
-                bool(getattr(x, "weak_type", False)), digest)
+        return (
+            "array",
+            type(x).__name__,
+            a.dtype.str,
+            a.shape,
+            bool(getattr(x, "weak_type", False)),
+            digest,
+        )
 
     def tree(self, x):
         """A pytree node (an equinox Module, a registered class) by structure and leaves."""
@@ -174,20 +193,42 @@ class _Describer:
                     cells.append(("empty",))
             names = sorted(_global_names(code))
             glob = f.__globals__
-            values = tuple((n, self(glob[n])) if n in glob else
-                           (n, ("builtin",) if hasattr(builtins, n) else ("missing",))
-                           for n in names)
-            return ("code", self.code(code), self(f.__defaults__), self(f.__kwdefaults__),
-                    tuple(cells), values)
+            values = tuple(
+                (n, self(glob[n]))
+                if n in glob
+                else (n, ("builtin",) if hasattr(builtins, n) else ("missing",))
+                for n in names
+            )
+            return (
+                "code",
+                self.code(code),
+                self(f.__defaults__),
+                self(f.__kwdefaults__),
+                tuple(cells),
+                values,
+            )
         finally:
             self.stack.discard(id(f))
 
     def code(self, c: types.CodeType):
-        consts = tuple(self.code(k) if isinstance(k, types.CodeType) else self(k)
-                       for k in c.co_consts)
-        return (c.co_code, consts, c.co_names, c.co_varnames, c.co_freevars, c.co_cellvars,
-                c.co_argcount, c.co_posonlyargcount, c.co_kwonlyargcount, c.co_flags,
-                c.co_qualname, os.path.basename(c.co_filename), c.co_firstlineno)
+        consts = tuple(
+            self.code(k) if isinstance(k, types.CodeType) else self(k) for k in c.co_consts
+        )
+        return (
+            c.co_code,
+            consts,
+            c.co_names,
+            c.co_varnames,
+            c.co_freevars,
+            c.co_cellvars,
+            c.co_argcount,
+            c.co_posonlyargcount,
+            c.co_kwonlyargcount,
+            c.co_flags,
+            c.co_qualname,
+            os.path.basename(c.co_filename),
+            c.co_firstlineno,
+        )
 
 
 def describe_treedef(treedef) -> list:

@@ -32,22 +32,27 @@ class _LazyPackage(types.ModuleType):
     as the eager ``from .simulate import simulate`` it replaces did."""
 
     def __setattr__(self, name: str, value) -> None:
-        if (name in _EXPORTS.get(self.__name__, ()) and isinstance(value, types.ModuleType)
-                and value.__name__ == f"{self.__name__}.{name}"):
+        if (
+            name in _EXPORTS.get(self.__name__, ())
+            and isinstance(value, types.ModuleType)
+            and value.__name__ == f"{self.__name__}.{name}"
+        ):
             return
         super().__setattr__(name, value)
 
 
-def attach(package: str, table: Mapping[str, Sequence[str]]
-           ) -> tuple[Callable[[str], object], Callable[[], list[str]], list[str]]:
+def attach(
+    package: str, table: Mapping[str, Sequence[str]]
+) -> tuple[Callable[[str], object], Callable[[], list[str]], list[str]]:
     """``__getattr__, __dir__, __all__`` for ``package``, whose public names are
     ``table[module]`` for each (relative, e.g. ``".model"``) ``module``."""
     exports: dict[str, str] = {}
     for module, names in table.items():
         for name in names:
             if name in exports:
-                raise ValueError(f"{package}: {name!r} is exported from both "
-                                 f"{exports[name]!r} and {module!r}.")
+                raise ValueError(
+                    f"{package}: {name!r} is exported from both {exports[name]!r} and {module!r}."
+                )
             exports[name] = module
     _EXPORTS[package] = exports
     pkg = sys.modules[package]

@@ -59,16 +59,41 @@ import numpy as np
 from . import _cache
 from ._callables import describe_treedef, stable_text
 
-__all__ = ["PACKAGES", "enable_program_store", "jit", "load", "program", "program_key",
-           "program_store", "save", "small_program_options", "stored"]
+__all__ = [
+    "PACKAGES",
+    "enable_program_store",
+    "jit",
+    "load",
+    "program",
+    "program_key",
+    "program_store",
+    "save",
+    "small_program_options",
+    "stored",
+]
 
 _CALLS: dict[tuple[pathlib.Path, str], Callable | None] = {}
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
-PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "numpy", "scipy",
-            "optax", "jaxtyping")
+PACKAGES = (
+    "jax",
+    "jaxlib",
+    "equinox",
+    "diffrax",
+    "optimistix",
+    "lineax",
+    "numpy",
+    "scipy",
+    "optax",
+    "jaxtyping",
+)
 # JAX settings that change what a trace gives (or whether it raises)
-_FLAGS = ("jax_enable_x64", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
-          "jax_default_matmul_precision", "jax_default_prng_impl")
+_FLAGS = (
+    "jax_enable_x64",
+    "jax_numpy_dtype_promotion",
+    "jax_numpy_rank_promotion",
+    "jax_default_matmul_precision",
+    "jax_default_prng_impl",
+)
 _MAGIC = b"rbo_jax program 2\n"  # then the length of the metadata (8 bytes), it, the program
 
 
@@ -122,16 +147,16 @@ def _key(fn: Callable, args: tuple) -> tuple[str | None, list, object, object]:
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dynamic)
     static_leaves, static_def = jax.tree_util.tree_flatten(static)
-    avals = [
-        (tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves
-    ]
-    text = repr((
-        f"{fn.__module__}.{fn.__qualname__}",
-        describe_treedef(treedef),
-        describe_treedef(static_def),
-        [_static_text(v) for v in static_leaves],
-        avals,
-    ))
+    avals = [(tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
+    text = repr(
+        (
+            f"{fn.__module__}.{fn.__qualname__}",
+            describe_treedef(treedef),
+            describe_treedef(static_def),
+            [_static_text(v) for v in static_leaves],
+            avals,
+        )
+    )
     return program_key(text), leaves, treedef, static
 
 
@@ -146,8 +171,11 @@ def _write(path: pathlib.Path, data: bytes) -> None:
         tmp.write_bytes(data)
         tmp.replace(path)
     except OSError as e:
-        warnings.warn(f"program store: cannot write {path} ({e}); the program is traced in "
-                      "every process.", RuntimeWarning, stacklevel=4)
+        warnings.warn(
+            f"program store: cannot write {path} ({e}); the program is traced in every process.",
+            RuntimeWarning,
+            stacklevel=4,
+        )
 
 
 def load(key: str) -> tuple[jax.export.Exported, str] | None:
@@ -161,14 +189,17 @@ def load(key: str) -> tuple[jax.export.Exported, str] | None:
         if not data.startswith(_MAGIC):
             raise ValueError("not an entry of this store")
         start = len(_MAGIC) + 8
-        (n,) = struct.unpack("<Q", data[len(_MAGIC):start])
+        (n,) = struct.unpack("<Q", data[len(_MAGIC) : start])
         if start + n > len(data):
             raise ValueError("truncated")
-        meta = data[start:start + n].decode()
-        exported = jax.export.deserialize(bytearray(data[start + n:]))
+        meta = data[start : start + n].decode()
+        exported = jax.export.deserialize(bytearray(data[start + n :]))
     except (OSError, struct.error, ValueError, IndexError, UnicodeDecodeError) as e:
-        warnings.warn(f"program store: cannot read {path} ({type(e).__name__}: {e}); it is "
-                      "exported again.", RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"program store: cannot read {path} ({type(e).__name__}: {e}); it is exported again.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         return None
     return exported, meta
 
@@ -312,13 +343,19 @@ def jit(fn: Callable, *, small: bool = False) -> Callable:
     def jitted(options):
         if options not in made:
             made[options] = eqx.filter_jit(
-                fn, compiler_options=small_program_options() if options else None)
+                fn, compiler_options=small_program_options() if options else None
+            )
         return made[options]
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if small and small_program_options() is not None and not any(
-                isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))):
+        if (
+            small
+            and small_program_options() is not None
+            and not any(
+                isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))
+            )
+        ):
             try:
                 return jitted(True)(*args, **kwargs)
             except ValueError as e:  # inside a jit trace, with concrete arguments
@@ -336,5 +373,4 @@ def jit(fn: Callable, *, small: bool = False) -> Callable:
 def program(fn: Callable, *, small: bool = False) -> Callable:
     """The compiled entry point of ``fn``: :func:`jit` of it, kept by the program store
     (:func:`stored`; positional arguments only)."""
-    return stored(jit(fn, small=small),
-                  small_program_options if small else lambda: None)
+    return stored(jit(fn, small=small), small_program_options if small else lambda: None)

@@ -75,8 +75,7 @@ def _xp(*xs):
 def on_host(tree):
     """``tree`` with its JAX arrays as NumPy arrays (pytrees such as models are rebuilt without
     running their constructors): checks then run in NumPy."""
-    return jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x,
-                                  tree)
+    return jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, tree)
 
 
 def _device(x):
@@ -87,8 +86,9 @@ def _device(x):
 
 # While tracing a solver's vector field with throw=False: runtime checks give NaN, not a host
 # callback (JAX's persistent compilation cache keeps no program with one).
-_FAILURES_AS_NAN: contextvars.ContextVar = contextvars.ContextVar("rbo_jax_failures_as_nan",
-                                                                  default=False)
+_FAILURES_AS_NAN: contextvars.ContextVar = contextvars.ContextVar(
+    "rbo_jax_failures_as_nan", default=False
+)
 
 
 def error_if(x, pred, message: str):
@@ -141,14 +141,14 @@ def library_code_only(tree) -> bool:
     """Whether ``tree`` (a model) is made of rbo_jax's own classes, arrays and plain values only:
     no user function (a callable foundation or load), no user subclass, whose code could call
     :func:`equinox.error_if` (:func:`checked_inputs_trusted` would turn that off)."""
-    if tree is None or isinstance(tree, (bool, int, float, complex, str, np.ndarray, np.generic,
-                                         jax.Array, np.dtype)):
+    if tree is None or isinstance(
+        tree, (bool, int, float, complex, str, np.ndarray, np.generic, jax.Array, np.dtype)
+    ):
         return True
     if isinstance(tree, (tuple, list)):
         return all(library_code_only(x) for x in tree)
     if isinstance(tree, eqx.Module) and type(tree).__module__.split(".")[0] == "rbo_jax":
-        return all(library_code_only(getattr(tree, f.name, None))
-                   for f in dataclasses.fields(tree))
+        return all(library_code_only(getattr(tree, f.name, None)) for f in dataclasses.fields(tree))
     return False
 
 
@@ -208,8 +208,9 @@ def _scalar_parameter(
     ``x`` (:func:`_device` makes it a JAX array), ``x`` itself if traced."""
     x = _as_float(x, (), f"the parameter {name}", owner)
     detail = f" ({meaning})" if meaning else ""
-    return _check(x, requirement.holds(x), f"{owner}: the parameter {name} must be "
-                                           f"{requirement.text}{detail}")
+    return _check(
+        x, requirement.holds(x), f"{owner}: the parameter {name} must be {requirement.text}{detail}"
+    )
 
 
 def set_parameters(module, **values) -> None:
@@ -219,8 +220,7 @@ def set_parameters(module, **values) -> None:
     table = {name: (requirement, meaning) for name, requirement, meaning in module._requirements}
     for name, value in values.items():
         requirement, meaning = table[name]
-        setattr(module, name,
-                _device(_scalar_parameter(value, name, owner, meaning, requirement)))
+        setattr(module, name, _device(_scalar_parameter(value, name, owner, meaning, requirement)))
 
 
 def requirement_checks(module) -> list:
@@ -231,13 +231,16 @@ def requirement_checks(module) -> list:
     for name, requirement, meaning in getattr(module, "_requirements", ()):
         detail = f" ({meaning})" if meaning else ""
         value = getattr(module, name)
-        out.append((_xp(value).all(requirement.holds(value)),
-                    f"{owner}: the parameter {name} must be {requirement.text}{detail}"))
+        out.append(
+            (
+                _xp(value).all(requirement.holds(value)),
+                f"{owner}: the parameter {name} must be {requirement.text}{detail}",
+            )
+        )
     k = getattr(module, "k", None)
     if isinstance(k, (jax.Array, np.ndarray)) and k.shape == (3,):
         xp = _xp(k)
-        out.append((xp.all(xp.isfinite(k)),
-                    f"{owner}: the axis k must be a nonzero finite vector"))
+        out.append((xp.all(xp.isfinite(k)), f"{owner}: the axis k must be a nonzero finite vector"))
     return out
 
 

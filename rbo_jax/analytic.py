@@ -51,8 +51,9 @@ def nikolai_bending_stiffness(c: ScalarLike, d: ScalarLike, M: ScalarLike) -> Sc
 
 def _roots_of_biquadratic(A1, K, M):
     """Roots p of (A1 p² + K)² + M²/4 = 0: A1 p² = −K ± iM/2."""
-    K, M, A1 = jnp.broadcast_arrays(*(jnp.asarray(x, dtype=jnp.result_type(float))
-                                      for x in (K, M, A1)))
+    K, M, A1 = jnp.broadcast_arrays(
+        *(jnp.asarray(x, dtype=jnp.result_type(float)) for x in (K, M, A1))
+    )
     re = -K / A1
     im = 0.5 * M / A1
     p2 = jnp.stack([jax.lax.complex(re, im), jax.lax.complex(re, -im)])
@@ -60,8 +61,9 @@ def _roots_of_biquadratic(A1, K, M):
     return jnp.concatenate([r, -r])
 
 
-def nikolai_bending_roots(A1: ScalarLike, c: ScalarLike, d: ScalarLike, M: ScalarLike
-                          ) -> Complex[Array, "4"]:
+def nikolai_bending_roots(
+    A1: ScalarLike, c: ScalarLike, d: ScalarLike, M: ScalarLike
+) -> Complex[Array, "4"]:
     r"""The four bending roots of (4.69), $(A_1p^2 + K)^2 + M^2/4 = 0$, for the quadratic
     foundation (4.50) under a follower moment $M$ (4.57) at $\theta_0 = (M/d)k$.
 
@@ -70,8 +72,9 @@ def nikolai_bending_roots(A1: ScalarLike, c: ScalarLike, d: ScalarLike, M: Scala
     return _roots_of_biquadratic(A1, nikolai_bending_stiffness(c, d, M), M)
 
 
-def nikolai_bending_roots_small_load(A1: ScalarLike, c: ScalarLike, d: ScalarLike,
-                                     M: ScalarLike) -> Complex[Array, "4"]:
+def nikolai_bending_roots_small_load(
+    A1: ScalarLike, c: ScalarLike, d: ScalarLike, M: ScalarLike
+) -> Complex[Array, "4"]:
     r"""Roots of (4.72), the small-$|M|/d$ form of (4.69) (reading R5):
     $(A_1p^2 + c + \frac{(c - 2d)M^2}{12 d^2})^2 + \frac{M^2}{4} = 0$."""
     c, d, M = jnp.asarray(c), jnp.asarray(d), jnp.asarray(M)
@@ -90,8 +93,7 @@ def nikolai_spectrum(A1, A3, c, d, M) -> Complex[Array, "6"]:
     return jnp.concatenate([nikolai_bending_roots(A1, c, d, M), torsion_roots(A3, d)])
 
 
-def precession_rate(C: ScalarLike, vartheta: ScalarLike, A1: ScalarLike, A3: ScalarLike
-                    ) -> Scalar:
+def precession_rate(C: ScalarLike, vartheta: ScalarLike, A1: ScalarLike, A3: ScalarLike) -> Scalar:
     r"""Rate $\dot\psi > 0$ of the regular precession (4.110)–(4.113):
 
     $\dot\psi^2 = \frac{C(\vartheta^2, 0)\,\vartheta}{\sin\vartheta\,[A_3(1-\cos\vartheta)

@@ -61,11 +61,6 @@ __all__ = [
 ]
 
 
-# --------------------------------------------------------------------------------------------
-# Foundations.
-# --------------------------------------------------------------------------------------------
-
-
 def _axial_split(theta, k):
     r"""$x = k\cdot\theta$ and $\theta_\perp^2 = |\theta - x k|^2 = \theta^2 - (k\cdot\theta)^2$.
 
@@ -107,8 +102,7 @@ class AbstractFoundation(eqx.Module):
         r"""$dU/d\theta$, the derivative in the elastic moment $-Z^T\cdot dU/d\theta$ (4.23):
         by automatic differentiation of :meth:`energy`; the transversely isotropic foundations
         use the closed form $C\theta + D k$ of (4.47)–(4.48) instead."""
-        return jax.grad(lambda th: _as_scalar_output(self.energy(th), "energy"))(
-            _as_vector(theta))
+        return jax.grad(lambda th: _as_scalar_output(self.energy(th), "energy"))(_as_vector(theta))
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""$C$ and $D$ of (4.48), $dU/d\theta = C\theta + D k$, for transversely isotropic
@@ -178,6 +172,10 @@ class AbstractTransverselyIsotropicFoundation(AbstractFoundation):
         return self.k
 
 
+# the stiffnesses c, d of (4.50) and (4.49), checked at construction
+_STIFFNESSES = (("c", POSITIVE, "bending stiffness"), ("d", POSITIVE, "torsional stiffness"))
+
+
 class QuadraticFoundation(AbstractTransverselyIsotropicFoundation):
     r"""The quadratic transversely isotropic foundation, eq. (4.50):
 
@@ -193,8 +191,7 @@ class QuadraticFoundation(AbstractTransverselyIsotropicFoundation):
 
     domain_description: ClassVar[str] = "nothing (it is defined everywhere)"
 
-    _requirements: ClassVar = (("c", POSITIVE, "bending stiffness"),
-                               ("d", POSITIVE, "torsional stiffness"))
+    _requirements: ClassVar = _STIFFNESSES
 
     def __init__(self, c: ScalarLike, d: ScalarLike, k: VectorLike):
         set_parameters(self, c=c, d=d)
@@ -249,10 +246,10 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
         "(torsion barrier), eq. (4.49)"
     )
 
-    _requirements: ClassVar = (
-        ("c", POSITIVE, "bending stiffness"), ("d", POSITIVE, "torsional stiffness"),
+    _requirements: ClassVar = _STIFFNESSES + (
         ("alpha", POSITIVE_OR_INF, "bending barrier; inf switches it off"),
-        ("beta", POSITIVE_OR_INF, "torsion barrier; inf switches it off"))
+        ("beta", POSITIVE_OR_INF, "torsion barrier; inf switches it off"),
+    )
 
     def __init__(
         self,
@@ -453,8 +450,9 @@ class TransverselyIsotropicFoundation(AbstractTransverselyIsotropicFoundation):
         r"""$C = 2\,\partial F/\partial t$, $D = \partial F/\partial x$ by automatic
         differentiation of ``F`` on the two scalars (4.48)."""
         theta = _as_vector(theta)
-        D, dF_dt = jax.grad(lambda x_, t_: _as_scalar_output(self.F(x_, t_), "F"),
-                            argnums=(0, 1))(dot3(self.k, theta), dot3(theta, theta))
+        D, dF_dt = jax.grad(lambda x_, t_: _as_scalar_output(self.F(x_, t_), "F"), argnums=(0, 1))(
+            dot3(self.k, theta), dot3(theta, theta)
+        )
         return 2.0 * dF_dt, D
 
 
@@ -521,9 +519,11 @@ class SumFoundation(AbstractFoundation):
             return x
         mismatch = jnp.max(jnp.stack([jnp.max(jnp.abs(a - axes[0])) for a in axes[1:]]))
         return error_if(
-            x, mismatch > 1e-12,
+            x,
+            mismatch > 1e-12,
             "SumFoundation: the transversely isotropic terms have different axes k, so the sum "
-            "is not transversely isotropic (its moment is not of the form (4.47)).")
+            "is not transversely isotropic (its moment is not of the form (4.47)).",
+        )
 
     def symmetry_axis(self) -> Vector | None:
         """The common axis of the transversely isotropic terms (checked equal), ``None`` if a
@@ -548,11 +548,6 @@ def _as_scalar_output(u, what: str) -> Scalar:
     if u.shape != ():
         raise ValueError(f"{what} must return a scalar, got shape {u.shape}.")
     return u
-
-
-# --------------------------------------------------------------------------------------------
-# Potential moment.
-# --------------------------------------------------------------------------------------------
 
 
 def potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> Vector:

@@ -25,8 +25,13 @@ from ._validation import (
     _unit_axis,
 )
 
-__all__ = ["transversely_isotropic_inertia", "principal_inertia", "check_inertia", "inertia_checks",
-           "NonPhysicalInertiaWarning"]
+__all__ = [
+    "transversely_isotropic_inertia",
+    "principal_inertia",
+    "check_inertia",
+    "inertia_checks",
+    "NonPhysicalInertiaWarning",
+]
 
 
 class NonPhysicalInertiaWarning(UserWarning):
@@ -57,8 +62,11 @@ def _warn_if_not_physical(A):
                 "inertia. "
                 "If this is intended, silence it with warnings.filterwarnings('ignore', "
                 "category=rbo_jax.inertia.NonPhysicalInertiaWarning).",
-                NonPhysicalInertiaWarning, stacklevel=3)
+                NonPhysicalInertiaWarning,
+                stacklevel=3,
+            )
             return
+
 
 # Relative tolerances of the checks (rounding of matrices built from rotated axes is ~1e-16).
 _SYMMETRY_RTOL = 1e-10
@@ -131,9 +139,11 @@ def _inertia_properties(A):
     symmetric = asymmetry <= _SYMMETRY_RTOL * scale
     S = 0.5 * (A + A.T)
     minor2 = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
-    det = (S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1])
-           - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
-           + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]))
+    det = (
+        S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1])
+        - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
+        + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0])
+    )
     positive = (S[0, 0] > 0) & (minor2 > 0) & (det > 0)
     return finite, symmetric, positive, asymmetry
 
@@ -146,8 +156,11 @@ def inertia_checks(A) -> list:
     owner = "check_inertia"
     return [
         (finite, f"{owner}: the inertia tensor A must be finite."),
-        (symmetric, f"{owner}: the inertia tensor A must be symmetric (|A - A^T| <= "
-                    f"{_SYMMETRY_RTOL} max|A|)."),
+        (
+            symmetric,
+            f"{owner}: the inertia tensor A must be symmetric (|A - A^T| <= "
+            f"{_SYMMETRY_RTOL} max|A|).",
+        ),
         (positive, f"{owner}: the inertia tensor A must be positive definite."),
     ]
 

@@ -159,8 +159,9 @@ def _sinc3(t):
 def _cos(t, sincos=None):
     """cos θ as a function of t = θ² (smooth at θ = 0, unlike cos(sqrt(t))); ``sincos`` as
     :func:`_sinc`."""
-    closed = (lambda t: jnp.cos(jnp.sqrt(t))) if sincos is None else (
-        lambda t: sincos(jnp.sqrt(t))[1])
+    closed = (
+        (lambda t: jnp.cos(jnp.sqrt(t))) if sincos is None else (lambda t: sincos(jnp.sqrt(t))[1])
+    )
     return _series_or_closed_form(t, _COS, closed)
 
 
@@ -501,13 +502,19 @@ class Turn:
 
     def rotate(self, v) -> Vector:
         """$Q(\\theta)\\cdot v$, eq. (4.3)."""
-        return v + self._coef("sinc", _sinc) * cross3(self.theta, v) + \
-            self._coef("cosc", _cosc) * self._r2(v)
+        return (
+            v
+            + self._coef("sinc", _sinc) * cross3(self.theta, v)
+            + self._coef("cosc", _cosc) * self._r2(v)
+        )
 
     def rotate_back(self, v) -> Vector:
         """$Q^T(\\theta)\\cdot v$."""
-        return v - self._coef("sinc", _sinc) * cross3(self.theta, v) + \
-            self._coef("cosc", _cosc) * self._r2(v)
+        return (
+            v
+            - self._coef("sinc", _sinc) * cross3(self.theta, v)
+            + self._coef("cosc", _cosc) * self._r2(v)
+        )
 
     def Z(self, v) -> Vector:
         """$Z(\\theta)\\cdot v$, eq. (4.11)."""

@@ -161,8 +161,11 @@ class SemiTangentialMoment(AbstractLoad):
     l1: Scalar
     l2: Scalar
 
-    _requirements: ClassVar = (("M", FINITE, ""), ("l1", FINITE, "dead part"),
-                               ("l2", FINITE, "follower part"))
+    _requirements: ClassVar = (
+        ("M", FINITE, ""),
+        ("l1", FINITE, "dead part"),
+        ("l2", FINITE, "follower part"),
+    )
 
     def __init__(self, M: ScalarLike, k: VectorLike, l1: ScalarLike = 1.0, l2: ScalarLike = 1.0):
         set_parameters(self, M=M, l1=l1, l2=l2)
@@ -179,8 +182,9 @@ class SemiTangentialMoment(AbstractLoad):
         return f"{type(self).__name__}: the parameters l1 and l2 must not both be zero"
 
     def parameter_checks(self) -> list:
-        return super().parameter_checks() + [(self._weights_valid(self.l1, self.l2),
-                                                self._weights_message())]
+        return super().parameter_checks() + [
+            (self._weights_valid(self.l1, self.l2), self._weights_message())
+        ]
 
     depends_on_velocity: ClassVar[bool] = False
 

@@ -27,8 +27,12 @@ from .stability import (
     spectrum,
 )
 
-__all__ = ["EquilibriumStability", "equilibrium_stability", "critical_value",
-           "STABILITY_KIND_NAMES"]
+__all__ = [
+    "EquilibriumStability",
+    "equilibrium_stability",
+    "critical_value",
+    "STABILITY_KIND_NAMES",
+]
 
 STABILITY_KIND_NAMES = enum.names(StabilityKind)
 
@@ -75,8 +79,9 @@ def equilibrium_stability(
     """
     if theta_eq is not None:
         theta = _as_vector(theta_eq, "theta_eq")
-        status = EquilibriumStatus.where(jnp.all(jnp.isfinite(theta)),
-                                         EquilibriumStatus.successful, EquilibriumStatus.nonfinite)
+        status = EquilibriumStatus.where(
+            jnp.all(jnp.isfinite(theta)), EquilibriumStatus.successful, EquilibriumStatus.nonfinite
+        )
     else:
         guess = jnp.zeros(3) if theta_guess is None else theta_guess
         sol = solve_equilibrium(model, guess, t=t, **equilibrium_kwargs)
@@ -90,8 +95,9 @@ def equilibrium_stability(
 def is_unstable(result: EquilibriumStability):
     """Whether the classification is divergence or flutter (a traced boolean)."""
     code = enum.code(result.kind)
-    return ((code == enum.code(StabilityKind.flutter))
-            | (code == enum.code(StabilityKind.divergence)))
+    return (code == enum.code(StabilityKind.flutter)) | (
+        code == enum.code(StabilityKind.divergence)
+    )
 
 
 def critical_value(unstable: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48):

@@ -114,8 +114,9 @@ def _default_p(k):
     return p / jnp.linalg.norm(p)
 
 
-def regular_precession(model: RigidBodyOscillator, vartheta, p=None, *, k=None
-                       ) -> RegularPrecession:
+def regular_precession(
+    model: RigidBodyOscillator, vartheta, p=None, *, k=None
+) -> RegularPrecession:
     r"""The regular precession of ``model`` with nutation angle $\vartheta$ (4.110)–(4.113).
 
     Requires a transversely isotropic foundation (axis $k$) with $D = 0$ at $k\cdot\theta = 0$ (the
@@ -159,8 +160,9 @@ def precessing_frame_vector_field(model: RigidBodyOscillator, k, rate):
     return f
 
 
-def precession_variational_matrix(model: RigidBodyOscillator, precession: RegularPrecession
-                                  ) -> Float[Array, "6 6"]:
+def precession_variational_matrix(
+    model: RigidBodyOscillator, precession: RegularPrecession
+) -> Float[Array, "6 6"]:
     r"""The 6×6 constant coefficient matrix of the variational equations of section 4.7 for
     $(\varphi, \eta)$, $\theta_\varepsilon = Q(\psi k)\cdot(\vartheta p + \varepsilon\varphi)$,
     $\omega_\varepsilon = Q(\psi k)\cdot(\omega_0 + \varepsilon\eta)$ (4.117), by autodiff."""
@@ -173,8 +175,9 @@ def precession_variational_matrix(model: RigidBodyOscillator, precession: Regula
     return jax.jacfwd(flat)(jnp.concatenate([precession.theta0, precession.omega0]))
 
 
-def precession_spectrum(model: RigidBodyOscillator, precession: RegularPrecession
-                        ) -> Complex[Array, "6"]:
+def precession_spectrum(
+    model: RigidBodyOscillator, precession: RegularPrecession
+) -> Complex[Array, "6"]:
     """Eigenvalues of :func:`precession_variational_matrix`: perturbations of the regular
     precession grow as exp(max Re p · t) in the precessing frame."""
     return jnp.sort(jnp.linalg.eigvals(precession_variational_matrix(model, precession)))
@@ -186,4 +189,3 @@ def precession_residual(model: RigidBodyOscillator, precession: RegularPrecessio
     f = precessing_frame_vector_field(model, precession.k, precession.rate)
     x_dot, w_dot = f(precession.theta0, precession.omega0)
     return jnp.sqrt(jnp.sum(x_dot**2) + jnp.sum(w_dot**2))
-

@@ -37,5 +37,6 @@ def nikolai_model(
     loads = [FollowerMoment(M, k)]
     if friction is not None:
         loads.append(Friction(friction))
-    return RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, k),
-                               QuadraticFoundation(c, d, k), loads)
+    return RigidBodyOscillator(
+        transversely_isotropic_inertia(A1, A3, k), QuadraticFoundation(c, d, k), loads
+    )

@@ -176,9 +176,27 @@ def simulate(
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
     inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
     _check_start(t0, dt0, inputs.ts)
-    args = (model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype, t0,
-            solver, rtol, atol, dt0, dtmin, max_steps, adjoint, stepsize_controller, singular_tol,
-            form, throw, progress)
+    args = (
+        model,
+        inputs.theta0,
+        inputs.Omega0,
+        inputs.ts,
+        inputs.bad_times,
+        inputs.dtype,
+        t0,
+        solver,
+        rtol,
+        atol,
+        dt0,
+        dtmin,
+        max_steps,
+        adjoint,
+        stepsize_controller,
+        singular_tol,
+        form,
+        throw,
+        progress,
+    )
     # Concrete inputs: one compiled program for everything between the checks and the result
     # (the step-size bounds, A^-1, the statuses), not a dozen small eager ones, without diffrax's
     # host callbacks where that is safe (kept by JAX's cache and the program store); inside a
@@ -201,13 +219,17 @@ def _check_start(t0, dt0, ts):
         if t0.shape != () or not np.isfinite(t0):
             raise ValueError(f"t0 must be a finite scalar, got {t0.tolist()!r}.")
         if not isinstance(ts, jax.core.Tracer) and t0 > np.asarray(ts)[0]:
-            raise ValueError(f"t0 must not be after the first sample time ts[0] = "
-                             f"{float(np.asarray(ts)[0])!r}, got {float(t0)!r}.")
+            raise ValueError(
+                f"t0 must not be after the first sample time ts[0] = "
+                f"{float(np.asarray(ts)[0])!r}, got {float(t0)!r}."
+            )
     if dt0 is not None and not isinstance(dt0, jax.core.Tracer):
         dt0 = np.asarray(dt0)
         if dt0.shape != () or not (np.isfinite(dt0) and dt0 > 0):
-            raise ValueError(f"dt0 must be a finite number > 0 (the solve runs forward in "
-                             f"time), got {dt0.tolist()!r}.")
+            raise ValueError(
+                f"dt0 must be a finite number > 0 (the solve runs forward in "
+                f"time), got {dt0.tolist()!r}."
+            )
 
 
 def _trusted(model, *diffrax_objects) -> bool:
@@ -216,13 +238,33 @@ def _trusted(model, *diffrax_objects) -> bool:
     and the solver, adjoint and controller are diffrax's, not ``StepTo`` (whose own checks of
     its times would go too)."""
     return library_code_only(model) and all(
-        x is None or (type(x).__module__.split(".")[0] == "diffrax"
-                      and not isinstance(x, diffrax.StepTo))
-        for x in diffrax_objects)
+        x is None
+        or (type(x).__module__.split(".")[0] == "diffrax" and not isinstance(x, diffrax.StepTo))
+        for x in diffrax_objects
+    )
 
 
-def _solve(model, theta0, Omega0, ts, bad_times, dtype, t0, solver, rtol, atol, dt0, dtmin,
-           max_steps, adjoint, stepsize_controller, singular_tol, form, throw, progress):
+def _solve(
+    model,
+    theta0,
+    Omega0,
+    ts,
+    bad_times,
+    dtype,
+    t0,
+    solver,
+    rtol,
+    atol,
+    dt0,
+    dtmin,
+    max_steps,
+    adjoint,
+    stepsize_controller,
+    singular_tol,
+    form,
+    throw,
+    progress,
+):
     """The diffrax solve of :func:`simulate` from checked inputs: ``(theta, Omega, status code,
     accepted steps)``, plain arrays (a program the store can keep)."""
     # Bad traced times (throw=False) are replaced by zeros: then t0 = t1 = 0 too.

@@ -146,8 +146,9 @@ def equilibrium(model: RigidBodyOscillator, theta_guess, **kwargs) -> Vector:
     $\theta_{eq} = (M/d)\,k$ (4.62).
     """
     ok, which, messages = model.parameter_status()
-    theta_guess = eqx.branched_error_if(_as_vector(theta_guess, "theta_guess"), ~ok, which,
-                                        messages)
+    theta_guess = eqx.branched_error_if(
+        _as_vector(theta_guess, "theta_guess"), ~ok, which, messages
+    )
     sol = solve_equilibrium(model, theta_guess, **kwargs)
     return sol.status.error_if(sol.theta, ~sol.ok)
 

@@ -158,19 +158,33 @@ class Trajectory(eqx.Module):
         vec = ("t", "component")
         data = {
             "theta": (vec, theta, {"long_name": "turn-vector theta (4.1)", "units": "rad"}),
-            "Omega": (vec, Omega, {"long_name": "right (body-frame) angular velocity Omega",
-                                   "units": "rad s-1"}),
-            "omega": (vec, np.asarray(self.omega),
-                      {"long_name": "left (world-frame) angular velocity omega = P.Omega",
-                       "units": "rad s-1"}),
-            "energy": ("t", np.asarray(self.energy),
-                       {"long_name": "mechanical energy K + U + V", "units": "J"}),
+            "Omega": (
+                vec,
+                Omega,
+                {"long_name": "right (body-frame) angular velocity Omega", "units": "rad s-1"},
+            ),
+            "omega": (
+                vec,
+                np.asarray(self.omega),
+                {
+                    "long_name": "left (world-frame) angular velocity omega = P.Omega",
+                    "units": "rad s-1",
+                },
+            ),
+            "energy": (
+                "t",
+                np.asarray(self.energy),
+                {"long_name": "mechanical energy K + U + V", "units": "J"},
+            ),
             "reached": ("t", reached, {"long_name": "the solver reached this sample"}),
         }
-        ds = xr.Dataset(data, coords={"t": ("t", np.asarray(self.ts), {"units": "s"}),
-                                      "component": ["x", "y", "z"]})
-        ds.attrs.update(status=self.status_name, message=self.message,
-                        num_steps=int(self.num_steps), **attrs)
+        ds = xr.Dataset(
+            data,
+            coords={"t": ("t", np.asarray(self.ts), {"units": "s"}), "component": ["x", "y", "z"]},
+        )
+        ds.attrs.update(
+            status=self.status_name, message=self.message, num_steps=int(self.num_steps), **attrs
+        )
         return ds
 
 
@@ -287,24 +301,40 @@ def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw) -> Inputs:
         ok = bool(ok)
         if throw and not ok:
             theta0 = eqx.branched_error_if(theta0, jnp.asarray(True), int(which), messages)
-        bad_input = not (np.all(np.isfinite(np.asarray(theta0)))
-                         and np.all(np.isfinite(np.asarray(Omega0))))
+        bad_input = not (
+            np.all(np.isfinite(np.asarray(theta0))) and np.all(np.isfinite(np.asarray(Omega0)))
+        )
         if bad_input or not ok:
             zeros = jax.device_put(np.zeros(3, dtype))
             theta0, Omega0 = zeros, zeros
-        return Inputs(theta0=theta0, Omega0=Omega0, ts=ts, dtype=dtype,
-                      bad_input=np.bool_(bad_input), invalid=np.bool_(not ok),
-                      bad_times=np.bool_(False), ts_given=ts)
+        return Inputs(
+            theta0=theta0,
+            Omega0=Omega0,
+            ts=ts,
+            dtype=dtype,
+            bad_input=np.bool_(bad_input),
+            invalid=np.bool_(not ok),
+            bad_times=np.bool_(False),
+            ts_given=ts,
+        )
     if throw:
         theta0 = eqx.branched_error_if(theta0, ~ok, which, messages)
-    bad_times = (~times_ok(ts) if isinstance(ts, jax.core.Tracer) and not throw
-                 else jnp.asarray(False))
+    bad_times = (
+        ~times_ok(ts) if isinstance(ts, jax.core.Tracer) and not throw else jnp.asarray(False)
+    )
     bad_input = ~all_finite((theta0, Omega0))
     zeros = jnp.zeros_like(theta0)
     stop = bad_input | ~ok | bad_times
-    return Inputs(theta0=jnp.where(stop, zeros, theta0), Omega0=jnp.where(stop, zeros, Omega0),
-                  ts=jnp.where(bad_times, jnp.zeros_like(ts), ts), dtype=dtype,
-                  bad_input=bad_input, invalid=~ok, bad_times=bad_times, ts_given=ts)
+    return Inputs(
+        theta0=jnp.where(stop, zeros, theta0),
+        Omega0=jnp.where(stop, zeros, Omega0),
+        ts=jnp.where(bad_times, jnp.zeros_like(ts), ts),
+        dtype=dtype,
+        bad_input=bad_input,
+        invalid=~ok,
+        bad_times=bad_times,
+        ts_given=ts,
+    )
 
 
 def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Trajectory:
@@ -312,14 +342,23 @@ def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Tra
     invalid parameters or times NaN (none of them is a result); with ``throw`` a failure raises
     its status message."""
     flags = (inputs.bad_input, inputs.invalid, inputs.bad_times)
-    if _xp(flags) is np and not any(bool(f) for f in flags) and not _is_traced(
-            _enumeration.code(status)):
+    if (
+        _xp(flags) is np
+        and not any(bool(f) for f in flags)
+        and not _is_traced(_enumeration.code(status))
+    ):
         # concrete and nothing flagged: no replacement, and a successful solve raises nothing
         # (no small eager programs)
         if throw and _enumeration.name(status) != "successful":
             theta = status.error_if(theta, status != SolveStatus.successful)
-        return Trajectory(ts=inputs.ts_given, theta=theta, Omega=Omega, model=model,
-                          status=status, num_steps=num_steps)
+        return Trajectory(
+            ts=inputs.ts_given,
+            theta=theta,
+            Omega=Omega,
+            model=model,
+            status=status,
+            num_steps=num_steps,
+        )
     status = SolveStatus.where(inputs.bad_input, SolveStatus.nonfinite_input, status)
     status = SolveStatus.where(inputs.invalid, SolveStatus.invalid_parameters, status)
     status = SolveStatus.where(inputs.bad_times, SolveStatus.invalid_times, status)
@@ -329,5 +368,11 @@ def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Tra
     Omega = jnp.where(inputs.bad_input | nan, fill, Omega)
     if throw:
         theta = status.error_if(theta, status != SolveStatus.successful)
-    return Trajectory(ts=inputs.ts_given, theta=theta, Omega=Omega, model=model, status=status,
-                      num_steps=num_steps)
+    return Trajectory(
+        ts=inputs.ts_given,
+        theta=theta,
+        Omega=Omega,
+        model=model,
+        status=status,
+        num_steps=num_steps,
+    )

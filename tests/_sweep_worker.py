@@ -30,8 +30,9 @@ def devices(out):
     # Chunks of 6 points, padded to 8 on 4 devices, and chunks of 2 on one device: the same
     # per-device batch (2 points), so the results must be bitwise equal.
     on4 = sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=6, dims=NIKOLAI_DIMS, progress=False)
-    on1 = sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=2, dims=NIKOLAI_DIMS, progress=False,
-                devices=1)
+    on1 = sweep(
+        nikolai_abscissa, NIKOLAI_AXES, chunk_size=2, dims=NIKOLAI_DIMS, progress=False, devices=1
+    )
     # Where do the shards of one chunk live? (Same shape as above: no new compilation.)
     space = make_space(NIKOLAI_AXES, None, 6)
     chunks = Chunks(nikolai_abscissa, space, tuple(jax.local_devices()), NIKOLAI_DIMS)
@@ -42,8 +43,9 @@ def devices(out):
         "strategy": chunks.program.strategy,
         "shard_devices": len(values["abscissa"].sharding.device_set),
         "shard_shapes": [list(s.data.shape) for s in values["abscissa"].addressable_shards],
-        "identical": bool(all(np.array_equal(on4[v].values, on1[v].values, equal_nan=True)
-                              for v in on4.data_vars)),
+        "identical": bool(
+            all(np.array_equal(on4[v].values, on1[v].values, equal_nan=True) for v in on4.data_vars)
+        ),
         "status_counts": on4.attrs["status_counts"],
     }
     with open(out, "w") as f:
@@ -55,26 +57,44 @@ def kill(store):
 
     from rbo_jax.batch import sweep
 
-    sweep(nikolai_abscissa, KILL_AXES, chunk_size=KILL_CHUNK, dims=NIKOLAI_DIMS, store=store,
-          progress=False)
+    sweep(
+        nikolai_abscissa,
+        KILL_AXES,
+        chunk_size=KILL_CHUNK,
+        dims=NIKOLAI_DIMS,
+        store=store,
+        progress=False,
+    )
 
 
 def distributed(port, nproc, pid, store, out):
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=int(nproc),
-                               process_id=int(pid), initialization_timeout=60)
+    jax.distributed.initialize(
+        coordinator_address=f"127.0.0.1:{port}",
+        num_processes=int(nproc),
+        process_id=int(pid),
+        initialization_timeout=60,
+    )
     from sweep_quantities import DIST_AXES, DIST_CHUNK, NIKOLAI_DIMS, nikolai_abscissa
 
     from rbo_jax.batch import sweep
 
     assert jax.process_count() == int(nproc)
-    in_memory = sweep(nikolai_abscissa, DIST_AXES, chunk_size=DIST_CHUNK, dims=NIKOLAI_DIMS,
-                      progress=False)
-    stored = sweep(nikolai_abscissa, DIST_AXES, chunk_size=DIST_CHUNK, dims=NIKOLAI_DIMS,
-                   store=store, progress=False).load()
+    in_memory = sweep(
+        nikolai_abscissa, DIST_AXES, chunk_size=DIST_CHUNK, dims=NIKOLAI_DIMS, progress=False
+    )
+    stored = sweep(
+        nikolai_abscissa,
+        DIST_AXES,
+        chunk_size=DIST_CHUNK,
+        dims=NIKOLAI_DIMS,
+        store=store,
+        progress=False,
+    ).load()
     with open(out, "wb") as f:
-        pickle.dump({"in_memory": in_memory, "stored": stored,
-                     "process_count": jax.process_count()}, f)
+        pickle.dump(
+            {"in_memory": in_memory, "stored": stored, "process_count": jax.process_count()}, f
+        )
     jax.distributed.shutdown()
 
 

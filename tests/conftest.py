@@ -12,8 +12,9 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 # (rbo_jax._programs.small_program_options), and the large ones keep XLA's defaults only for
 # their run time, which the benchmarks measure, not the tests.
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                               + " --xla_cpu_use_fusion_emitters=false").strip()
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false"
+    ).strip()
 # One persistent compilation cache for the whole run: the two xdist workers, the notebook kernels
 # and the rbo-jax processes of the CLI tests compile many of the same programs (the DOP853 loop of
 # fast_simulate, the fit's program, the Hopf system), and a program compiled by one process is

@@ -19,8 +19,10 @@ K = jnp.array([0.0, 0.0, 1.0])
 
 #: Host hook settings: seconds to sleep per call, and a file to which each call appends a line.
 #: Read at call time, so the compiled program is the same whatever they are.
-HOOK = {"sleep": float(os.environ.get("RBO_SWEEP_TEST_SLEEP", "0")),
-        "log": os.environ.get("RBO_SWEEP_TEST_LOG")}
+HOOK = {
+    "sleep": float(os.environ.get("RBO_SWEEP_TEST_SLEEP", "0")),
+    "log": os.environ.get("RBO_SWEEP_TEST_LOG"),
+}
 
 
 def _hook(x):
@@ -33,16 +35,20 @@ def _hook(x):
 
 
 def nikolai_model(c, M, A3=0.5, d=1.0):
-    return rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(1.0, A3, K),
-                                   rbo.QuadraticFoundation(c, d, K), rbo.FollowerMoment(M, K))
+    return rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(1.0, A3, K),
+        rbo.QuadraticFoundation(c, d, K),
+        rbo.FollowerMoment(M, K),
+    )
 
 
 def nikolai_abscissa(c, M):
     """Spectrum of the Nikolai problem at its closed-form equilibrium θ = (M/d)k (4.62), d = 1:
     cheap to compile, so the subprocess tests stay fast. A host callback (identity on ``c``)
     runs once per chunk and device: it sleeps and logs on demand (see ``HOOK``)."""
-    c = jax.pure_callback(_hook, jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)), c,
-                          vmap_method="expand_dims")
+    c = jax.pure_callback(
+        _hook, jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)), c, vmap_method="expand_dims"
+    )
     model = nikolai_model(c, M)
     p = rbo.fast_spectrum(model, M * K)
     kind, a = rbo.classify(p)
@@ -81,8 +87,12 @@ def slowed(seconds):
         return np.asarray(x)
 
     def slow(c, M):
-        c = jax.pure_callback(sleep, jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)), c,
-                              vmap_method="expand_dims")
+        c = jax.pure_callback(
+            sleep,
+            jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)),
+            c,
+            vmap_method="expand_dims",
+        )
         return nikolai_spectrum(c, M)
 
     return slow
@@ -107,6 +117,10 @@ def _exit_if_large(x):
 
 def kills_its_worker(c, M):
     """Ends the process that computes a chunk holding c = 2 (run on Dask workers only)."""
-    c = jax.pure_callback(_exit_if_large, jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)),
-                          c, vmap_method="expand_dims")
+    c = jax.pure_callback(
+        _exit_if_large,
+        jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c)),
+        c,
+        vmap_method="expand_dims",
+    )
     return {"x": c + M}

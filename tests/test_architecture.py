@@ -41,8 +41,9 @@ MAX_FUNCTION_LINES = 80
 
 
 def _modules():
-    return sorted(p for p in PACKAGE.rglob("*.py") if p.name != "__init__.py" or
-                  p.parent != PACKAGE)
+    return sorted(
+        p for p in PACKAGE.rglob("*.py") if p.name != "__init__.py" or p.parent != PACKAGE
+    )
 
 
 def _top(path: pathlib.Path) -> str:
@@ -98,7 +99,8 @@ def test_imports_point_downwards(path):
         assert unit in LAYER, (path, unit)
         assert LAYER[unit] < LAYER[me], (
             f"{path.relative_to(PACKAGE)} (layer {LAYER[me]}, {me}) imports {unit} "
-            f"(layer {LAYER[unit]}): imports must point downwards")
+            f"(layer {LAYER[unit]}): imports must point downwards"
+        )
 
 
 @pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PACKAGE)))
@@ -111,8 +113,9 @@ def test_modules_and_functions_are_small(path):
             doc = node.body[0]
             if isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant):
                 length -= doc.end_lineno - doc.lineno + 1  # the code, not its documentation
-            assert length <= MAX_FUNCTION_LINES, f"{path.name}:{node.lineno} {node.name} is " \
-                                                 f"{length} lines"
+            assert length <= MAX_FUNCTION_LINES, (
+                f"{path.name}:{node.lineno} {node.name} is {length} lines"
+            )
 
 
 def test_the_package_root_only_re_exports():
@@ -123,11 +126,15 @@ def test_the_package_root_only_re_exports():
         if isinstance(node, ast.Expr) and isinstance(node.value, (ast.Constant, ast.Call)):
             continue  # the docstring, and the call that enables float64
         if isinstance(node, ast.Assign) and [ast.unparse(t) for t in node.targets] == [
-                "__version__"]:
+            "__version__"
+        ]:
             continue
-        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call) and \
-                [ast.unparse(t) for t in node.targets] == ["(__getattr__, __dir__, __all__)"] \
-                and ast.unparse(node.value.func) == "_lazy.attach":
+        if (
+            isinstance(node, ast.Assign)
+            and isinstance(node.value, ast.Call)
+            and [ast.unparse(t) for t in node.targets] == ["(__getattr__, __dir__, __all__)"]
+            and ast.unparse(node.value.func) == "_lazy.attach"
+        ):
             continue  # the re-exports, loaded on first use: a table module -> names
         raise AssertionError(f"rbo_jax/__init__.py line {node.lineno}: only re-exports belong here")
 

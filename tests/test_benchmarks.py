@@ -23,8 +23,14 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 @pytest.fixture(scope="module")
 def smoke_output():
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "run.py"), "--smoke"],
-                          capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, os.path.join(ROOT, "benchmarks", "run.py"), "--smoke"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env=env,
+        cwd=ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc.stdout
 
@@ -36,9 +42,20 @@ def _floats(pattern, text):
 
 
 def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
-    for marker in ["=== sweep ===", "=== simulate ===", "=== stability ===", "=== fitting ===",
-                   "=== lattice ===", "=== dask ===", "speed-up per trajectory", "max |p - (4.69)|",
-                   "first fit", "shard_map over", "=== summary ===", "compile [s]"]:
+    for marker in [
+        "=== sweep ===",
+        "=== simulate ===",
+        "=== stability ===",
+        "=== fitting ===",
+        "=== lattice ===",
+        "=== dask ===",
+        "speed-up per trajectory",
+        "max |p - (4.69)|",
+        "first fit",
+        "shard_map over",
+        "=== summary ===",
+        "compile [s]",
+    ]:
         assert marker in smoke_output, marker
 
 
@@ -63,15 +80,22 @@ def test_the_lattice_takes_the_numba_stencils_steps(smoke_output):
 def test_the_three_integrators_agree_to_the_tolerance(smoke_output):
     """rbo_jax vs scipy, numba vs scipy and numba vs rbo_jax final states differ at the level of
     rtol = atol = 1e-8 (different step sequences), not more."""
-    jax_scipy = _floats(r"max \|final state difference\| jax vs scipy on the sample: ([0-9.e+-]+)",
-                        smoke_output)
-    sweep_scipy = _floats(r"/ scipy: \d+x per trajectory; max \|final state difference\| on the "
-                          r"sample: ([0-9.e+-]+)", smoke_output)
+    jax_scipy = _floats(
+        r"max \|final state difference\| jax vs scipy on the sample: ([0-9.e+-]+)", smoke_output
+    )
+    sweep_scipy = _floats(
+        r"/ scipy: \d+x per trajectory; max \|final state difference\| on the "
+        r"sample: ([0-9.e+-]+)",
+        smoke_output,
+    )
     assert max(jax_scipy + sweep_scipy) < 1e-6
     if "numba not installed" in smoke_output:
         pytest.skip("numba (the `bench` extra) is not installed: its rows were skipped")
-    vs_scipy = _floats(r"numba check: max \|final state difference\| vs (?:the sweep [0-9.e+-]+, "
-                       r"vs )?scipy \(sample\) ([0-9.e+-]+)", smoke_output)
+    vs_scipy = _floats(
+        r"numba check: max \|final state difference\| vs (?:the sweep [0-9.e+-]+, "
+        r"vs )?scipy \(sample\) ([0-9.e+-]+)",
+        smoke_output,
+    )
     assert max(vs_scipy) < 1e-10  # same tableau, same controller: the same steps as scipy
     nfev = _floats(r"max \|nfev numba - nfev scipy\| = (\d+)", smoke_output)
     assert max(nfev) == 0
@@ -80,8 +104,11 @@ def test_the_three_integrators_agree_to_the_tolerance(smoke_output):
 
 
 def test_stability_map_and_fit_are_accurate(smoke_output):
-    errors = _floats(r"rbo_jax\.stability_map \(block fast path\)\s+[0-9.]+\s+[0-9.]+\s+"
-                     r"([0-9.e+-]+)", smoke_output)
+    errors = _floats(
+        r"rbo_jax\.stability_map \(block fast path\)\s+[0-9.]+\s+[0-9.]+\s+"
+        r"([0-9.e+-]+)",
+        smoke_output,
+    )
     assert max(errors) < 1e-12  # against the closed-form roots (4.69)
     assert "converged: True" in smoke_output
 
@@ -93,8 +120,11 @@ def test_fast_simulate_takes_scipys_steps(smoke_output):
     assert "=== simulate ===" in smoke_output
     if "numba not installed" in smoke_output:
         pytest.skip("numba (the `bench` extra) is not installed")
-    m = re.search(r"accepted steps equal on ([0-9.]+)% of all points, max \|final state "
-                  r"difference\| ([0-9.e+-]+)", smoke_output)
+    m = re.search(
+        r"accepted steps equal on ([0-9.]+)% of all points, max \|final state "
+        r"difference\| ([0-9.e+-]+)",
+        smoke_output,
+    )
     assert m, "no fast_simulate vs numba line"
     assert float(m.group(1)) == 100.0
     assert float(m.group(2)) < 1e-10
@@ -106,7 +136,8 @@ def _latency_module(monkeypatch):
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(
-        "_latency_benchmark", os.path.join(ROOT, "benchmarks", "latency.py"))
+        "_latency_benchmark", os.path.join(ROOT, "benchmarks", "latency.py")
+    )
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look the module up
     spec.loader.exec_module(module)
@@ -118,10 +149,21 @@ def test_latency_smoke_run(tmp_path):
     warm), imported this checkout's rbo_jax, and the table and JSON carry the machine and the
     rows. SciPy's answer is the same in both processes."""
     out = tmp_path / "latency.json"
-    proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "latency.py"),
-                           "--rows", "import,scipy", "--json", str(out)],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT,
-                          env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    proc = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "benchmarks", "latency.py"),
+            "--rows",
+            "import,scipy",
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "| `import rbo_jax` |" in proc.stdout and "anchor: SciPy" in proc.stdout
     report = json.loads(out.read_text())

@@ -30,6 +30,7 @@ def critical_moment(b):
     r"""The root of $M = 2b\sqrt{K(M)/A_1}$: Routh-Hurwitz for the damped bending equation
     $(A_1p^2 + bp + K)^2 + M^2/4 = 0$ (notebook 02), with $K$ of (4.69), by Brent's method on
     the closed form (no autodiff, no Newton of the package)."""
+
     def f(M):
         return M - 2 * b * np.sqrt(float(rbo.nikolai_bending_stiffness(C, D, M)) / A1)
 
@@ -48,6 +49,7 @@ def hopf():
 
 def _planar_l1(f, g, omega):
     """l1 of x' = -omega y + f(x, y), y' = omega x + g(x, y) at 0, embedded in R^2."""
+
     def F(x):
         return jnp.stack([-omega * x[1] + f(x[0], x[1]), omega * x[0] + g(x[0], x[1])])
 
@@ -60,8 +62,9 @@ def test_first_lyapunov_of_the_normal_form():
     """x' = -w y + s x r^2, y' = w x + s y r^2 is z' = iwz + s z|z|^2 (z = x + iy): with
     Kuznetsov's normalisation x = zq + conj(zq), |q| = 1, the coefficient is 2s/w."""
     for s, w in [(-0.3, 2.0), (0.7, 0.5)]:
-        l1 = _planar_l1(lambda x, y, s=s: s * x * (x * x + y * y),
-                        lambda x, y, s=s: s * y * (x * x + y * y), w)
+        l1 = _planar_l1(
+            lambda x, y, s=s: s * x * (x * x + y * y), lambda x, y, s=s: s * y * (x * x + y * y), w
+        )
         assert l1 == pytest.approx(2 * s / w, rel=1e-12)
 
 
@@ -80,8 +83,9 @@ def test_first_lyapunov_against_guckenheimer_holmes():
 
     fxx, fxy, fyy, gxx, gxy, gyy = 2 * a1, a2, 2 * a3, 2 * b1, b2, 2 * b3
     fxxx, fxyy, gxxy, gyyy = 6 * c1, 2 * c2, -0.8, 4.8
-    a = ((fxxx + fxyy + gxxy + gyyy) / 16
-         + (fxy * (fxx + fyy) - gxy * (gxx + gyy) - fxx * gxx + fyy * gyy) / (16 * w))
+    a = (fxxx + fxyy + gxxy + gyyy) / 16 + (
+        fxy * (fxx + fyy) - gxy * (gxx + gyy) - fxx * gxx + fyy * gyy
+    ) / (16 * w)
     assert _planar_l1(f, g, w) == pytest.approx(2 * a / w, rel=1e-12)
 
 
@@ -112,6 +116,7 @@ def test_hopf_point_is_the_damped_nikolai_critical_load(hopf):
 def test_transversality_is_the_speed_of_the_critical_root(hopf):
     """d Re(p)/dM at the Hopf point equals the finite difference of the spectral abscissa of
     the equilibria (4.62) on both sides."""
+
     def abscissa(M):
         p = rbo.spectrum(nikolai(M, 0.1), rbo.nikolai_equilibrium(M, D, K_AXIS))
         return float(jnp.max(jnp.real(p)))
@@ -132,8 +137,14 @@ def test_first_lyapunov_coefficient_is_the_decay_at_the_hopf_point(hopf):
     x0 = x_h + 2 * 0.05 * np.real(q)
     T, t_end = float(hopf.period), 3000.0
     ts = np.concatenate([np.linspace(0, T, 101)[:-1], t_end + np.linspace(0, T, 101)[:-1]])
-    traj = rbo.fast_simulate(nikolai(hopf.value, 0.1), jnp.asarray(x0[:3]), jnp.asarray(x0[3:]),
-                             jnp.asarray(ts), rtol=1e-11, atol=1e-12)
+    traj = rbo.fast_simulate(
+        nikolai(hopf.value, 0.1),
+        jnp.asarray(x0[:3]),
+        jnp.asarray(x0[3:]),
+        jnp.asarray(ts),
+        rtol=1e-11,
+        atol=1e-12,
+    )
     X = np.concatenate([np.asarray(traj.theta), np.asarray(traj.Omega)], axis=1)
     z = np.abs((X - x_h) @ np.conj(p))
     r_first, r_last = np.mean(z[:100]), np.mean(z[100:])
@@ -145,6 +156,7 @@ def test_hopf_value_gradient_matches_finite_differences(hopf):
     """jax.grad and jax.jacfwd of the critical moment with respect to b (implicit function
     theorem at the converged Hopf system) against central differences of the closed form
     M = 2b sqrt(K(M)/A1) (Brent's method, no autodiff), also under jit."""
+
     def value(b):
         return rbo.hopf_point(nikolai, {"b": b}, "M", 0.15).value
 
@@ -163,8 +175,10 @@ class TraceCounter:
         self.names, self.count = names, 0
 
     def _listen(self, event, duration, **kwargs):
-        if event == "/jax/core/compile/jaxpr_trace_duration" and \
-                kwargs.get("fun_name") in self.names:
+        if (
+            event == "/jax/core/compile/jaxpr_trace_duration"
+            and kwargs.get("fun_name") in self.names
+        ):
             self.count += 1
 
     def __enter__(self):
@@ -179,6 +193,7 @@ def test_hopf_programs_are_traced_once_per_model_structure(hopf):
     """A new but identical model function (a notebook cell run again), other parameter values
     and the gradient reuse the compiled Hopf program: no trace. A model function that computes
     something else is a new program."""
+
     def cell():  # the same source run again: a new function object with the same code
         return lambda M, b: nikolai(M, b)
 
@@ -197,8 +212,9 @@ def test_hopf_programs_are_traced_once_per_model_structure(hopf):
 
 def test_equilibrium_continuation_is_traced_once_per_model_structure():
     def run():  # a new but identical lambda each time
-        return rbo.continue_equilibria(lambda M, b: nikolai(M, b), {"b": 0.1}, "M", 0.0, 0.1,
-                                       ds=0.05, locate_hopf=False)
+        return rbo.continue_equilibria(
+            lambda M, b: nikolai(M, b), {"b": 0.1}, "M", 0.0, 0.1, ds=0.05, locate_hopf=False
+        )
 
     run()
     with TraceCounter("_step") as again:
@@ -235,8 +251,11 @@ def test_flutter_boundary_matches_the_stability_map_and_the_closed_form():
     assert np.all(np.abs(error) < 0.2 * bs**2)
     assert np.all(np.abs(error[1:]) < np.abs(error[:-1]))
     Ms = np.linspace(0.0, 0.3, 61) + 1.3e-3  # no grid point on a critical value
-    smap = rbo.stability_map(lambda M, b: nikolai(M, b), {"b": bs, "M": Ms},
-                             theta_eq_fn=lambda M, b: rbo.nikolai_equilibrium(M, D, K_AXIS))
+    smap = rbo.stability_map(
+        lambda M, b: nikolai(M, b),
+        {"b": bs, "M": Ms},
+        theta_eq_fn=lambda M, b: rbo.nikolai_equilibrium(M, D, K_AXIS),
+    )
     for i, b in enumerate(bs):
         a = smap["spectral_abscissa"].sel(b=b).values
         j = int(np.argmax(a > 0))
@@ -255,8 +274,9 @@ def test_floquet_multipliers_of_a_regular_precession():
     multipliers are exp(lambda T). The double zero exponent (a Jordan block: energy and phase)
     makes the two multipliers 1 split by O(sqrt(tolerance))."""
     k = jnp.asarray(K_AXIS)
-    model = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1, A3, k),
-                                    rbo.QuadraticFoundation(C, D, k))
+    model = rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(A1, A3, k), rbo.QuadraticFoundation(C, D, k)
+    )
     pr = rbo.regular_precession(model, 0.5)
     T = 2 * np.pi / float(pr.rate)
     mu = np.asarray(rbo.floquet_multipliers(model, pr.theta0, pr.Omega0, T))
@@ -274,8 +294,7 @@ def test_floquet_multipliers_of_a_regular_precession():
 
 @pytest.fixture(scope="module")
 def cycles(hopf):
-    return rbo.continue_limit_cycles(nikolai, {"b": 0.1}, "M", hopf, amplitude=0.02,
-                                      max_points=9)
+    return rbo.continue_limit_cycles(nikolai, {"b": 0.1}, "M", hopf, amplitude=0.02, max_points=9)
 
 
 @pytest.mark.slow  # notebook 05 checks the same in the default run
@@ -291,8 +310,11 @@ def test_limit_cycles_follow_the_normal_form(hopf, cycles):
     q = np.asarray(hopf.eigenvector)[:3]
     phases = np.exp(1j * np.linspace(0, 2 * np.pi, 721))
     shape = np.max(np.linalg.norm(np.real(phases[:, None] * q[None, :]), axis=1))
-    z2 = -float(hopf.transversality) * (M[0] - float(hopf.value)) / (
-        float(hopf.frequency) * float(hopf.first_lyapunov))
+    z2 = (
+        -float(hopf.transversality)
+        * (M[0] - float(hopf.value))
+        / (float(hopf.frequency) * float(hopf.first_lyapunov))
+    )
     predicted = 2 * np.sqrt(z2) * shape
     assert cycles["amplitude"].values[1] == pytest.approx(predicted, rel=1e-3)
     # amplitude^2 grows linearly with the distance to the Hopf point at first
@@ -315,8 +337,9 @@ def test_simulation_beyond_the_hopf_point_settles_on_the_continued_cycle(hopf, c
     T = float(cycles["period"].values[-1])
     ts = jnp.concatenate([jnp.zeros(1), 6000.0 + jnp.linspace(0.0, T, 65)[:-1]])
     for scale in (0.5, 1.5):
-        traj = rbo.fast_simulate(model, theta_eq + scale * (th0 - theta_eq), scale * Om0, ts,
-                                 rtol=1e-9, atol=1e-9)
+        traj = rbo.fast_simulate(
+            model, theta_eq + scale * (th0 - theta_eq), scale * Om0, ts, rtol=1e-9, atol=1e-9
+        )
         th = np.asarray(traj.theta[1:])
         amplitude = np.max(np.linalg.norm(th - th.mean(axis=0), axis=1))
         assert amplitude == pytest.approx(float(cycles["amplitude"].values[-1]), rel=2e-3)
@@ -336,8 +359,9 @@ def test_periodic_orbit_corrects_a_perturbed_limit_cycle(cycles):
     assert bool(orbit.ok), orbit.status
     assert float(orbit.period) == pytest.approx(T, rel=1e-8)
     assert abs(complex(orbit.trivial_multiplier) - 1) < 1e-8
-    np.testing.assert_allclose(np.abs(orbit.multipliers),
-                               np.abs(cycles["multipliers"].values[j]), atol=1e-6)
+    np.testing.assert_allclose(
+        np.abs(orbit.multipliers), np.abs(cycles["multipliers"].values[j]), atol=1e-6
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -359,15 +383,18 @@ def softening(M):
     with friction (4.84): along k the balance is (1 - theta^2) theta = M (Z^T theta = theta),
     with a fold at theta = 1/sqrt(3), M = 2/(3 sqrt(3))."""
     k = jnp.asarray(K_AXIS)
-    return rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1, A3, k),
-                                   rbo.IsotropicFoundation(lambda s: 0.5 * s - 0.25 * s * s),
-                                   [rbo.DeadMoment(M, k), rbo.Friction(0.05)])
+    return rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(A1, A3, k),
+        rbo.IsotropicFoundation(lambda s: 0.5 * s - 0.25 * s * s),
+        [rbo.DeadMoment(M, k), rbo.Friction(0.05)],
+    )
 
 
 @pytest.mark.slow
 def test_equilibrium_branch_passes_a_fold():
-    branch = rbo.continue_equilibria(softening, {}, "M", 0.0, 0.5, theta_guess=(0, 0, 0.0),
-                                     ds=0.05, max_points=40)
+    branch = rbo.continue_equilibria(
+        softening, {}, "M", 0.0, 0.5, theta_guess=(0, 0, 0.0), ds=0.05, max_points=40
+    )
     types = list(branch["special_type"].values)
     assert "fold" in types
     fold = float(branch["special_value"].values[types.index("fold")])
@@ -400,8 +427,9 @@ def anti_damped(M, b, e):
     """The damped Nikolai problem with a cubic anti-damping moment e|omega|^2 omega (a
     CallableLoad): the linearization, hence the Hopf point, is that of e = 0."""
     model = nikolai(M, b)
-    return rbo.RigidBodyOscillator(model.inertia, model.foundation,
-                                   list(model.loads) + [rbo.CallableLoad(CubicAntiDamping(e))])
+    return rbo.RigidBodyOscillator(
+        model.inertia, model.foundation, list(model.loads) + [rbo.CallableLoad(CubicAntiDamping(e))]
+    )
 
 
 @pytest.mark.slow
@@ -418,8 +446,9 @@ def test_subcritical_hopf_point_has_unstable_cycles_on_the_stable_side():
     l1 = [float(h.first_lyapunov) for h in (h0, h1, h2)]
     assert l1[0] < 0 < l1[1]
     assert (l1[2] - l1[0]) / e2 == pytest.approx((l1[1] - l1[0]) / e1, rel=1e-8)
-    cycles = rbo.continue_limit_cycles(anti_damped, {"b": 0.1, "e": e1}, "M", h1,
-                                       amplitude=0.02, max_points=6)
+    cycles = rbo.continue_limit_cycles(
+        anti_damped, {"b": 0.1, "e": e1}, "M", h1, amplitude=0.02, max_points=6
+    )
     M = cycles["M"].values[1:]
     assert np.all(M < float(h1.value))
     assert not np.any(cycles["stable"].values[1:])
@@ -431,8 +460,15 @@ def test_subcritical_hopf_point_has_unstable_cycles_on_the_stable_side():
     ts = jnp.linspace(0.0, 4000.0, 5)
     amplitude0 = float(jnp.linalg.norm(th0 - theta_eq))
     for scale, grows in ((0.5, False), (1.1, True)):
-        traj = rbo.fast_simulate(model, theta_eq + scale * (th0 - theta_eq), scale * Om0, ts,
-                                 rtol=1e-9, atol=1e-9, throw=False)
+        traj = rbo.fast_simulate(
+            model,
+            theta_eq + scale * (th0 - theta_eq),
+            scale * Om0,
+            ts,
+            rtol=1e-9,
+            atol=1e-9,
+            throw=False,
+        )
         last = np.asarray(traj.theta[-1])
         finite = bool(np.all(np.isfinite(last)))
         distance = np.linalg.norm(last - np.asarray(theta_eq)) if finite else np.inf

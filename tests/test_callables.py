@@ -66,6 +66,7 @@ def test_nested_functions_partials_and_values_changed_in_place():
     def outer(scale):
         def f(x):
             return jnp.sum(jnp.array([g(x) for g in (lambda y: scale * y,)]))
+
         return f
 
     assert callable_key(outer(2.0)) == callable_key(outer(2.0)) != callable_key(outer(5.0))
@@ -93,10 +94,12 @@ def test_unknown_objects_by_identity_and_never_across_processes():
     # library functions and classes by name across processes; a model (pytree) by its leaves
     assert "nikolai_model" in stable_text(rbo_jax.nikolai_model)
     model = rbo_jax.nikolai_model(0.3, 1.0, 2.0)
-    assert stable_text(make_scaled(model)) == stable_text(make_scaled(rbo_jax.nikolai_model(
-        0.3, 1.0, 2.0)))
-    assert stable_text(make_scaled(model)) != stable_text(make_scaled(rbo_jax.nikolai_model(
-        0.3, 1.0, 2.5)))
+    assert stable_text(make_scaled(model)) == stable_text(
+        make_scaled(rbo_jax.nikolai_model(0.3, 1.0, 2.0))
+    )
+    assert stable_text(make_scaled(model)) != stable_text(
+        make_scaled(rbo_jax.nikolai_model(0.3, 1.0, 2.5))
+    )
 
 
 @pytest.fixture
@@ -104,8 +107,9 @@ def compilations(monkeypatch):
     """Counts the chunk programs the batch engine traces (none cached before the test)."""
     calls = []
     compile_program = _program._compile_program
-    monkeypatch.setattr(_program, "_compile_program",
-                        lambda *a: calls.append(a[0]) or compile_program(*a))
+    monkeypatch.setattr(
+        _program, "_compile_program", lambda *a: calls.append(a[0]) or compile_program(*a)
+    )
     _program._cached_program.cache_clear()
     yield calls
     _program._cached_program.cache_clear()
@@ -115,8 +119,9 @@ AXES = {"M": np.linspace(-0.6, 0.6, 5), "c": np.linspace(0.5, 1.5, 3)}
 
 
 def stability(cell, **kwargs):
-    ds = rbo_jax.stability_map(cell["model_fn"], AXES, theta_eq_fn=cell["theta_eq_fn"],
-                               progress=False, **kwargs)
+    ds = rbo_jax.stability_map(
+        cell["model_fn"], AXES, theta_eq_fn=cell["theta_eq_fn"], progress=False, **kwargs
+    )
     return np.asarray(ds["spectral_abscissa"])
 
 
@@ -134,8 +139,7 @@ def test_stability_map_of_a_cell_run_twice_compiles_once(compilations):
 
 def test_sweep_and_critical_load_of_a_cell_run_twice_compile_once(compilations):
     source = "quantity = lambda M, c: {'x': M * c + D}\n"
-    results = [rbo_jax.sweep(run_cell(source)["quantity"], AXES, progress=False)
-               for _ in range(2)]
+    results = [rbo_jax.sweep(run_cell(source)["quantity"], AXES, progress=False) for _ in range(2)]
     assert len(compilations) == 1
     np.testing.assert_array_equal(results[1]["x"], results[0]["x"])
     shifted = rbo_jax.sweep(run_cell(source, D=5.0)["quantity"], AXES, progress=False)
@@ -143,9 +147,17 @@ def test_sweep_and_critical_load_of_a_cell_run_twice_compile_once(compilations):
     np.testing.assert_allclose(shifted["x"] - results[0]["x"], 3.0)
 
     def critical(cell):
-        return np.asarray(rbo_jax.critical_load(
-            cell["model_fn"], {"c": np.array([0.5, 1.0])}, "M", 1.0, n_scan=4, n_bisect=4,
-            theta_eq_fn=cell["theta_eq_fn"]))
+        return np.asarray(
+            rbo_jax.critical_load(
+                cell["model_fn"],
+                {"c": np.array([0.5, 1.0])},
+                "M",
+                1.0,
+                n_scan=4,
+                n_bisect=4,
+                theta_eq_fn=cell["theta_eq_fn"],
+            )
+        )
 
     first = critical(run_cell())
     np.testing.assert_array_equal(critical(run_cell()), first)

@@ -42,8 +42,14 @@ def test_reproduce_quick_passes_and_writes_the_report(tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "checks passed" in report and "**FAIL**" not in report
     assert report.count("| pass |") >= 20
-    for name in ["map_M_c.png", "map_M_A3.png", "root_locus.png", "nikolai_growth.png",
-                 "simplest_oscillator.png", "precession_growth.png"]:
+    for name in [
+        "map_M_c.png",
+        "map_M_A3.png",
+        "root_locus.png",
+        "nikolai_growth.png",
+        "simplest_oscillator.png",
+        "precession_growth.png",
+    ]:
         assert (tmp_path / name).stat().st_size > 1000
 
 
@@ -83,8 +89,10 @@ def _open(path):
 def _estimates(path) -> dict[str, tuple[float, float]]:
     """{name: (estimate, standard error)} of a fit result written with --out."""
     ds = _open(path)
-    return {str(n): (float(v), float(e)) for n, v, e in
-            zip(ds["parameter"].values, ds["estimate"].values, ds["stderr"].values)}
+    return {
+        str(n): (float(v), float(e))
+        for n, v, e in zip(ds["parameter"].values, ds["estimate"].values, ds["stderr"].values)
+    }
 
 
 def test_every_subcommand_help_explains_each_option(capsys):
@@ -93,7 +101,8 @@ def test_every_subcommand_help_explains_each_option(capsys):
     parser = cli.build_parser()
     (subparsers,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
     assert {"demo", "reproduce", "sweep", "simulate", "stability-map", "fit"} <= set(
-        subparsers.choices)
+        subparsers.choices
+    )
     for name, sub in subparsers.choices.items():
         code, out, _ = _run(capsys, [name, "--help"])
         assert code == 0
@@ -124,10 +133,34 @@ def test_simulate_conservative_energy_and_files_match_rbo_jax_simulate(capsys, t
         transversely_isotropic_inertia,
     )
 
-    argv = ["simulate", "--foundation", "barrier", "--c", "1", "--d", "2", "--alpha", "2",
-            "--beta", "1.5", "--A1", "1", "--A3", "0.6", "--theta0", "0.8,-0.3,0.5",
-            "--Omega0=0.2,1.1,-0.7", "--t1", "5", "--samples", "11", "--rtol", "1e-12",
-            "--atol", "1e-12"]
+    argv = [
+        "simulate",
+        "--foundation",
+        "barrier",
+        "--c",
+        "1",
+        "--d",
+        "2",
+        "--alpha",
+        "2",
+        "--beta",
+        "1.5",
+        "--A1",
+        "1",
+        "--A3",
+        "0.6",
+        "--theta0",
+        "0.8,-0.3,0.5",
+        "--Omega0=0.2,1.1,-0.7",
+        "--t1",
+        "5",
+        "--samples",
+        "11",
+        "--rtol",
+        "1e-12",
+        "--atol",
+        "1e-12",
+    ]
     code, out, err = _run(capsys, argv + ["--out", str(tmp_path / "run.nc")])
     assert code == 0, err
     ds = _open(tmp_path / "run.nc")
@@ -136,19 +169,24 @@ def test_simulate_conservative_energy_and_files_match_rbo_jax_simulate(capsys, t
     assert ds.attrs["status"] == "successful" and bool(ds["reached"].all())
     assert np.max(np.abs(E - E[0])) < 1e-9
     k = jnp.asarray(K)
-    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 0.6, k),
-                                BarrierFoundation(1.0, 2.0, 2.0, 1.5, k))
+    model = RigidBodyOscillator(
+        transversely_isotropic_inertia(1.0, 0.6, k), BarrierFoundation(1.0, 2.0, 2.0, 1.5, k)
+    )
     ts = jnp.linspace(0.0, 5.0, 11)
-    traj = fast_simulate(model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
-                         rtol=1e-12, atol=1e-12)
-    diffrax_traj = simulate(model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
-                            rtol=1e-12, atol=1e-12)
+    traj = fast_simulate(
+        model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts, rtol=1e-12, atol=1e-12
+    )
+    diffrax_traj = simulate(
+        model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts, rtol=1e-12, atol=1e-12
+    )
     np.testing.assert_allclose(traj.theta, diffrax_traj.theta, rtol=0, atol=1e-9)
-    code, _, err = _run(capsys, argv + ["--integrator", "simulate", "--out",
-                                        str(tmp_path / "diffrax.nc")])
+    code, _, err = _run(
+        capsys, argv + ["--integrator", "simulate", "--out", str(tmp_path / "diffrax.nc")]
+    )
     assert code == 0, err
-    np.testing.assert_array_equal(_open(tmp_path / "diffrax.nc")["theta"].values,
-                                  np.asarray(diffrax_traj.theta))
+    np.testing.assert_array_equal(
+        _open(tmp_path / "diffrax.nc")["theta"].values, np.asarray(diffrax_traj.theta)
+    )
     np.testing.assert_allclose(ds["t"].values, np.asarray(ts), rtol=0, atol=0)
     np.testing.assert_allclose(ds["theta"].values, np.asarray(traj.theta), rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(ds["Omega"].values, np.asarray(traj.Omega), rtol=1e-12, atol=1e-14)
@@ -162,8 +200,9 @@ def test_simulate_conservative_energy_and_files_match_rbo_jax_simulate(capsys, t
     assert list(z["component"].values) == ["x", "y", "z"]
     code, out, _ = _run(capsys, argv + ["--out", str(tmp_path / "run.csv"), "--max-rows", "0"])
     csv = np.loadtxt(tmp_path / "run.csv", delimiter=",", skiprows=1)
-    np.testing.assert_array_equal(csv, np.column_stack([ds["t"].values, ds["theta"].values,
-                                                        ds["Omega"].values, E]))
+    np.testing.assert_array_equal(
+        csv, np.column_stack([ds["t"].values, ds["theta"].values, ds["Omega"].values, E])
+    )
 
 
 def test_simulate_inertia_forms_and_a_rotated_axis_give_the_same_motion(capsys, tmp_path):
@@ -171,14 +210,39 @@ def test_simulate_inertia_forms_and_a_rotated_axis_give_the_same_motion(capsys, 
     and the initial state by R (e3 -> e1, e1 -> e2, e2 -> e3) turns the whole motion, θ -> Rθ
     (to the solver's tolerance: the rotated run rounds, so steps, differently)."""
 
-    common = ["simulate", "--c", "1", "--d", "2", "--t1", "4", "--samples", N_QUAD,
-              "--rtol", "1e-12", "--atol", "1e-12"]
+    common = [
+        "simulate",
+        "--c",
+        "1",
+        "--d",
+        "2",
+        "--t1",
+        "4",
+        "--samples",
+        N_QUAD,
+        "--rtol",
+        "1e-12",
+        "--atol",
+        "1e-12",
+    ]
     runs = {
         "ti": ["--A1", "1", "--A3", "0.6", "--theta0", "0.3,-0.2,0.5", "--Omega0", "0.4,0.1,-0.6"],
-        "principal": ["--principal", "1,1,0.6", "--theta0", "0.3,-0.2,0.5",
-                      "--Omega0", "0.4,0.1,-0.6"],
-        "rotated": ["--principal", "0.6,1,1", "--axis", "1,0,0", "--theta0=0.5,0.3,-0.2",
-                    "--Omega0=-0.6,0.4,0.1"],
+        "principal": [
+            "--principal",
+            "1,1,0.6",
+            "--theta0",
+            "0.3,-0.2,0.5",
+            "--Omega0",
+            "0.4,0.1,-0.6",
+        ],
+        "rotated": [
+            "--principal",
+            "0.6,1,1",
+            "--axis",
+            "1,0,0",
+            "--theta0=0.5,0.3,-0.2",
+            "--Omega0=-0.6,0.4,0.1",
+        ],
     }
     theta = {}
     for name, extra in runs.items():
@@ -198,10 +262,29 @@ def test_simulate_follower_moment_near_equilibrium_grows_at_the_rate_of_4_69(cap
     from rbo_jax import nikolai_bending_roots
 
     M, c, d = 0.4, 1.0, 2.0
-    code, out, err = _run(capsys, [
-        "simulate", "--follower", str(M), "--c", str(c), "--d", str(d), "--about-equilibrium",
-        "--theta0", "1e-6,0,0", "--t1", "60", "--samples", "61", "--max-rows", "5",
-        "--out", str(tmp_path / "nikolai.nc")])
+    code, out, err = _run(
+        capsys,
+        [
+            "simulate",
+            "--follower",
+            str(M),
+            "--c",
+            str(c),
+            "--d",
+            str(d),
+            "--about-equilibrium",
+            "--theta0",
+            "1e-6,0,0",
+            "--t1",
+            "60",
+            "--samples",
+            "61",
+            "--max-rows",
+            "5",
+            "--out",
+            str(tmp_path / "nikolai.nc"),
+        ],
+    )
     assert code == 0, err
     ds = _open(tmp_path / "nikolai.nc")
     t, theta = ds["t"].values, ds["theta"].values
@@ -230,20 +313,42 @@ def test_simulate_loads_add_up_as_in_the_package(capsys, tmp_path):
         transversely_isotropic_inertia,
     )
 
-    code, out, err = _run(capsys, [
-        "simulate", "--friction", "0.2", "--dead", "0.1", "--follower", "0.3", "--theta0",
-        "0.4,0.2,0.1", "--Omega0", "0.3,-0.5,0.2", "--t1", "8", "--samples", "9",
-        "--out", str(tmp_path / "loads.nc")])
+    code, out, err = _run(
+        capsys,
+        [
+            "simulate",
+            "--friction",
+            "0.2",
+            "--dead",
+            "0.1",
+            "--follower",
+            "0.3",
+            "--theta0",
+            "0.4,0.2,0.1",
+            "--Omega0",
+            "0.3,-0.5,0.2",
+            "--t1",
+            "8",
+            "--samples",
+            "9",
+            "--out",
+            str(tmp_path / "loads.nc"),
+        ],
+    )
     assert code == 0, err
     ds = _open(tmp_path / "loads.nc")
-    assert "follower (4.57) M = 0.3; dead (4.75) M = 0.1; friction (4.84) b = 0.2" in \
-        ds.attrs["model"]
+    assert (
+        "follower (4.57) M = 0.3; dead (4.75) M = 0.1; friction (4.84) b = 0.2" in ds.attrs["model"]
+    )
     k = jnp.asarray(K)
     model = RigidBodyOscillator(
-        transversely_isotropic_inertia(1.0, 0.6, k), QuadraticFoundation(1.0, 2.0, k),
-        [FollowerMoment(0.3, k), DeadMoment(0.1, k), Friction(0.2)])
-    traj = fast_simulate(model, jnp.array([0.4, 0.2, 0.1]), jnp.array([0.3, -0.5, 0.2]),
-                         jnp.linspace(0.0, 8.0, 9))
+        transversely_isotropic_inertia(1.0, 0.6, k),
+        QuadraticFoundation(1.0, 2.0, k),
+        [FollowerMoment(0.3, k), DeadMoment(0.1, k), Friction(0.2)],
+    )
+    traj = fast_simulate(
+        model, jnp.array([0.4, 0.2, 0.1]), jnp.array([0.3, -0.5, 0.2]), jnp.linspace(0.0, 8.0, 9)
+    )
     np.testing.assert_allclose(ds["theta"].values, np.asarray(traj.theta), rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(ds["energy"].values, np.asarray(traj.energy), rtol=1e-12)
 
@@ -252,10 +357,30 @@ def test_simulate_singular_point_exits_1_with_the_solver_status(capsys, tmp_path
     """A nearly plane rotation through |θ| = 2π (4.11) (cf. tests/test_simulate.py): exit status 1,
     the SolveStatus message, the table up to the failure, the samples after it inf in --out."""
 
-    code, out, err = _run(capsys, [
-        "simulate", "--A1", "1", "--A3", "1", "--c", "0.01", "--d", "0.01", "--theta0", "0,0,6",
-        "--Omega0", "1e-5,0,1", "--t1", "4", "--samples", N_QUAD,
-        "--out", str(tmp_path / "singular.nc")])
+    code, out, err = _run(
+        capsys,
+        [
+            "simulate",
+            "--A1",
+            "1",
+            "--A3",
+            "1",
+            "--c",
+            "0.01",
+            "--d",
+            "0.01",
+            "--theta0",
+            "0,0,6",
+            "--Omega0",
+            "1e-5,0,1",
+            "--t1",
+            "4",
+            "--samples",
+            N_QUAD,
+            "--out",
+            str(tmp_path / "singular.nc"),
+        ],
+    )
     assert code == 1
     assert "singular point" in err and "(eq. 4.11)" in err and "after t = 0.2 " in err
     # |θ| = R cos(wt − φ) reaches 2π at t ≈ 0.28 (w = 0.1): the first two samples exist
@@ -268,30 +393,35 @@ def test_simulate_singular_point_exits_1_with_the_solver_status(capsys, tmp_path
 
 def test_simulate_step_budget_exits_1(capsys):
     """--max-steps exhausted: exit status 1 with SolveStatus.max_steps_reached's message."""
-    code, out, err = _run(capsys, ["simulate", "--theta0", "0.5,0,0", "--t1", "50",
-                                   "--samples", N_QUAD, "--max-steps", "4"])
+    code, out, err = _run(
+        capsys,
+        ["simulate", "--theta0", "0.5,0,0", "--t1", "50", "--samples", N_QUAD, "--max-steps", "4"],
+    )
     assert code == 1
     assert "maximum number of solver steps" in err and "max_steps" in err
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--c", "-1"], "--c: must be > 0, got -1"),
-    (["--d", "0"], "--d: must be > 0, got 0"),
-    (["--theta0", "1,2"], "theta0 must have shape (3,)"),
-    (["--Omega0", "1,2,3,4"], "Omega0 must have shape (3,)"),
-    (["--A3", "-0.6"], "--A3: must be > 0"),
-    (["--principal", "1,2"], "--principal: must be a list of 3 numbers"),
-    (["--principal", "1,1,0.6", "--A1", "2"], "--principal replaces --A1"),
-    (["--foundation", "barrier", "--alpha", "1"], "needs --alpha and --beta"),
-    (["--alpha", "1"], "belong to --foundation barrier"),
-    (["--foundation", "barrier", "--alpha", "1", "--beta", "0"], "--beta: must be > 0 or inf"),
-    (["--friction", "-0.1"], "--friction: must be >= 0"),
-    (["--axis", "0,0,0"], "--axis: must be a nonzero vector"),
-    (["--c", "nan"], "--c: must be > 0, got nan"),
-    (["--out", "run.txt"], "unknown format '.txt'"),
-    (["--samples", "1"], "--samples must be >= 2"),
-    (["--theta0", "a,b,c"], None),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--c", "-1"], "--c: must be > 0, got -1"),
+        (["--d", "0"], "--d: must be > 0, got 0"),
+        (["--theta0", "1,2"], "theta0 must have shape (3,)"),
+        (["--Omega0", "1,2,3,4"], "Omega0 must have shape (3,)"),
+        (["--A3", "-0.6"], "--A3: must be > 0"),
+        (["--principal", "1,2"], "--principal: must be a list of 3 numbers"),
+        (["--principal", "1,1,0.6", "--A1", "2"], "--principal replaces --A1"),
+        (["--foundation", "barrier", "--alpha", "1"], "needs --alpha and --beta"),
+        (["--alpha", "1"], "belong to --foundation barrier"),
+        (["--foundation", "barrier", "--alpha", "1", "--beta", "0"], "--beta: must be > 0 or inf"),
+        (["--friction", "-0.1"], "--friction: must be >= 0"),
+        (["--axis", "0,0,0"], "--axis: must be a nonzero vector"),
+        (["--c", "nan"], "--c: must be > 0, got nan"),
+        (["--out", "run.txt"], "unknown format '.txt'"),
+        (["--samples", "1"], "--samples must be >= 2"),
+        (["--theta0", "a,b,c"], None),
+    ],
+)
 def test_simulate_invalid_input_exits_2_naming_the_parameter(capsys, argv, message):
     code, out, err = _run(capsys, ["simulate", *argv])
     assert code == 2
@@ -306,9 +436,24 @@ def test_stability_map_matches_the_closed_form_4_69(capsys, tmp_path):
     from rbo_jax import nikolai_bending_roots, nikolai_spectrum
 
     d, A1 = 2.0, 1.0
-    code, out, err = _run(capsys, [
-        "stability-map", "--M=-0.6:0.6:5", "--c", "0.5,1,2", "--A3", "0.4:1.2:2", "--d", str(d),
-        "--A1", str(A1), "--out", str(tmp_path / "map.nc"), "--progress"])
+    code, out, err = _run(
+        capsys,
+        [
+            "stability-map",
+            "--M=-0.6:0.6:5",
+            "--c",
+            "0.5,1,2",
+            "--A3",
+            "0.4:1.2:2",
+            "--d",
+            str(d),
+            "--A1",
+            str(A1),
+            "--out",
+            str(tmp_path / "map.nc"),
+            "--progress",
+        ],
+    )
     assert code == 0, err
     ds = _open(tmp_path / "map.nc")
     a = ds["spectral_abscissa"]
@@ -323,8 +468,9 @@ def test_stability_map_matches_the_closed_form_4_69(capsys, tmp_path):
             for m, A3 in enumerate(ds["A3"].values):
                 closed[i, j, m] = np.max(np.real(nikolai_bending_roots(A1, c, d, M)))
                 assert spectrum_match_error(p[i, j, m], nikolai_spectrum(A1, A3, c, d, M)) < 1e-10
-                np.testing.assert_allclose(ds["theta_eq"].values[i, j, m], [0, 0, M / d],
-                                           atol=1e-15)
+                np.testing.assert_allclose(
+                    ds["theta_eq"].values[i, j, m], [0, 0, M / d], atol=1e-15
+                )
                 assert kinds[i, j, m] == ("marginally_stable" if M == 0 else "flutter")
     assert np.sum(kinds == "marginally_stable") == 6  # the 6 points with M = 0
     np.testing.assert_allclose(a.values, closed, rtol=0, atol=1e-10)
@@ -355,8 +501,9 @@ def test_stability_map_writes_netcdf_zarr_and_a_figure(capsys, tmp_path):
     assert code == 0, err
     ds = _open(zarr_store)
     assert ds["eigenvalues"].dtype == np.complex128
-    assert ds["kind"].attrs["flag_meanings"].split()[int(ds["kind"][1, 0])] == \
-        "asymptotically_stable"
+    assert (
+        ds["kind"].attrs["flag_meanings"].split()[int(ds["kind"][1, 0])] == "asymptotically_stable"
+    )
 
 
 def test_stability_map_invalid_input_exits_2(capsys, monkeypatch, tmp_path):
@@ -382,9 +529,25 @@ def test_fit_synthetic_recovers_c_and_d(capsys, tmp_path, integrator):
     """fit --synthetic: noise-free data of c = 1, d = 2 (4.50), the fit started 30 % off recovers
     both to 1e-6 relative with tiny standard errors, through either integrator; the result
     dataset says so."""
-    code, out, err = _run(capsys, ["fit", "--synthetic", "--c", "1", "--d", "2", "--t1", "4",
-                                   "--samples", N_QUAD, "--integrator", integrator,
-                                   "--out", str(tmp_path / "fit.nc")])
+    code, out, err = _run(
+        capsys,
+        [
+            "fit",
+            "--synthetic",
+            "--c",
+            "1",
+            "--d",
+            "2",
+            "--t1",
+            "4",
+            "--samples",
+            N_QUAD,
+            "--integrator",
+            integrator,
+            "--out",
+            str(tmp_path / "fit.nc"),
+        ],
+    )
     assert code == 0, err
     assert f"through the ODE solver ({integrator})" in out
     est = _estimates(tmp_path / "fit.nc")
@@ -403,9 +566,27 @@ def test_fit_synthetic_with_noise_reports_consistent_standard_errors(capsys, tmp
     """fit --synthetic --noise 1e-3: the residuals are whitened by the known noise, so their rms
     is ≈ 1 at the answer (no local-minimum note), and c, d lie within 4 standard errors of the
     truth."""
-    code, out, err = _run(capsys, ["fit", "--synthetic", "--c", "1", "--d", "2", "--t1", "4",
-                                   "--samples", N_QUAD, "--noise", "1e-3", "--seed", "3",
-                                   "--out", str(tmp_path / "fit.zarr")])
+    code, out, err = _run(
+        capsys,
+        [
+            "fit",
+            "--synthetic",
+            "--c",
+            "1",
+            "--d",
+            "2",
+            "--t1",
+            "4",
+            "--samples",
+            N_QUAD,
+            "--noise",
+            "1e-3",
+            "--seed",
+            "3",
+            "--out",
+            str(tmp_path / "fit.zarr"),
+        ],
+    )
     assert code == 0, err
     est = _estimates(tmp_path / "fit.zarr")
     for name, truth in (("c", 1.0), ("d", 2.0)):
@@ -420,12 +601,32 @@ def test_simulate_out_then_fit_data_roundtrip(capsys, tmp_path):
     """`simulate --out obs.nc` then `fit --data obs.nc` from wrong starting values: the
     stiffnesses of the simulation come back."""
     path = str(tmp_path / "obs.nc")
-    code, _, err = _run(capsys, ["simulate", "--c", "1", "--d", "2", "--theta0", "0.8,-0.3,0.5",
-                                 "--Omega0=0.2,1.1,-0.7", "--t1", "4", "--samples", N_QUAD,
-                                 "--out", path, "--max-rows", "0"])
+    code, _, err = _run(
+        capsys,
+        [
+            "simulate",
+            "--c",
+            "1",
+            "--d",
+            "2",
+            "--theta0",
+            "0.8,-0.3,0.5",
+            "--Omega0=0.2,1.1,-0.7",
+            "--t1",
+            "4",
+            "--samples",
+            N_QUAD,
+            "--out",
+            path,
+            "--max-rows",
+            "0",
+        ],
+    )
     assert code == 0, err
-    code, out, err = _run(capsys, ["fit", "--data", path, "--c", "1.3", "--d", "2.6",
-                                   "--out", str(tmp_path / "fit.nc")])
+    code, out, err = _run(
+        capsys,
+        ["fit", "--data", path, "--c", "1.3", "--d", "2.6", "--out", str(tmp_path / "fit.nc")],
+    )
     assert code == 0, err
     ds = _open(tmp_path / "fit.nc")
     assert int(ds.attrs["num_samples"]) == 21 and ds.attrs["observed"] == "Omega theta"
@@ -440,15 +641,34 @@ def test_fit_of_an_unstable_record_needs_staged_horizons(capsys, tmp_path):
     the whole record at once, Levenberg-Marquardt stops in a local minimum far from (c, d) = (1, 2)
     and the result says so; fitted on growing horizons (0.2, 0.5, 1) it recovers them."""
     path = str(tmp_path / "nikolai.zarr")
-    code, _, err = _run(capsys, ["simulate", "--c", "1", "--d", "2", "--follower", "0.3",
-                                 "--theta0", "0.1,0,0.15", "--t1", "50", "--samples", "11",
-                                 "--out", path, "--max-rows", "0"])
+    code, _, err = _run(
+        capsys,
+        [
+            "simulate",
+            "--c",
+            "1",
+            "--d",
+            "2",
+            "--follower",
+            "0.3",
+            "--theta0",
+            "0.1,0,0.15",
+            "--t1",
+            "50",
+            "--samples",
+            "11",
+            "--out",
+            path,
+            "--max-rows",
+            "0",
+        ],
+    )
     assert code == 0, err
     start = ["fit", "--data", path, "--c", "1.3", "--d", "1.6", "--follower", "0.3"]
     once, staged = str(tmp_path / "once.nc"), str(tmp_path / "staged.nc")
     code, out, err = _run(capsys, start + ["--out", once])
     if code == 0 and abs(_estimates(once)["c"][0] - 1.0) > 1e-3:  # stopped away from the answer
-        assert "local minimum" in _open(once).attrs["note"]      # (it does here): say why
+        assert "local minimum" in _open(once).attrs["note"]  # (it does here): say why
     code, out, err = _run(capsys, start + ["--horizons", "0.2,0.5,1", "--out", staged])
     assert code == 0, err
     est = _estimates(staged)
@@ -459,16 +679,21 @@ def test_fit_of_an_unstable_record_needs_staged_horizons(capsys, tmp_path):
     assert code == 2 and "increasing fractions" in err
 
 
-@pytest.mark.parametrize("arrays, message", [
-    ({"theta": np.zeros((5, 3))}, "missing array 't'"),
-    ({"t": np.arange(5.0), "energy": np.zeros(5)}, "missing array 'theta'"),
-    ({"t": np.arange(5.0), "theta": np.zeros((5, 2))}, "theta must have shape (n, 3)"),
-    ({"t": np.arange(5.0), "theta": np.zeros((4, 3))}, "theta has 4 samples but ts has 5"),
-    ({"t": np.arange(5.0), "theta": np.zeros((5, 3))}, "Omega0 is needed"),
-    ({"t": np.arange(5.0)[::-1], "theta": np.zeros((5, 3)), "Omega": np.zeros((5, 3))},
-     "strictly increasing"),
-    (None, "no such file"),
-])
+@pytest.mark.parametrize(
+    "arrays, message",
+    [
+        ({"theta": np.zeros((5, 3))}, "missing array 't'"),
+        ({"t": np.arange(5.0), "energy": np.zeros(5)}, "missing array 'theta'"),
+        ({"t": np.arange(5.0), "theta": np.zeros((5, 2))}, "theta must have shape (n, 3)"),
+        ({"t": np.arange(5.0), "theta": np.zeros((4, 3))}, "theta has 4 samples but ts has 5"),
+        ({"t": np.arange(5.0), "theta": np.zeros((5, 3))}, "Omega0 is needed"),
+        (
+            {"t": np.arange(5.0)[::-1], "theta": np.zeros((5, 3)), "Omega": np.zeros((5, 3))},
+            "strictly increasing",
+        ),
+        (None, "no such file"),
+    ],
+)
 def test_fit_bad_data_file_exits_2_naming_the_problem(capsys, tmp_path, arrays, message):
     path = tmp_path / "data.npz"
     if arrays is not None:
@@ -478,12 +703,15 @@ def test_fit_bad_data_file_exits_2_naming_the_problem(capsys, tmp_path, arrays, 
     assert message in err and str(path) in err
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--params", "c,e"], "--params must be distinct names"),
-    (["--params", "alpha"], "needs --foundation barrier"),
-    (["--params", "b"], "needs --friction"),
-    (["--c", "0"], "starting value must be finite and > 0"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--params", "c,e"], "--params must be distinct names"),
+        (["--params", "alpha"], "needs --foundation barrier"),
+        (["--params", "b"], "needs --friction"),
+        (["--c", "0"], "starting value must be finite and > 0"),
+    ],
+)
 def test_fit_invalid_options_exit_2(capsys, argv, message):
     code, _, err = _run(capsys, ["fit", "--synthetic", *argv])
     assert code == 2 and message in err
@@ -503,8 +731,13 @@ def test_persistent_compilation_cache_is_written_and_reused(tmp_path):
     def run(value):
         env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
         env.update(RBO_JAX_COMPILATION_CACHE=value, JAX_PLATFORMS="cpu", JAX_LOG_COMPILES="1")
-        proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True,
-                              text=True, env=env, timeout=600)
+        proc = subprocess.run(
+            [sys.executable, "-c", code, *argv],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
         assert proc.returncode == 0, proc.stderr[-2000:]
         return proc.stdout.split("wall time")[0], proc.stderr
 

@@ -33,8 +33,14 @@ RUN = "from rbo_jax.app.cli import run; run()"  # what the console script `rbo-j
 
 def _start(argv, cwd):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-c", RUN, *argv], cwd=cwd, env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    return subprocess.Popen(
+        [sys.executable, "-c", RUN, *argv],
+        cwd=cwd,
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
 
 
 def _interrupt(proc, signum=signal.SIGINT):
@@ -72,9 +78,25 @@ def test_ctrl_c_stops_a_long_simulation_inside_its_compiled_solve(tmp_path):
     machine), interrupted 3 s after it started: exit status 130 within 2 s, one line saying
     nothing was written, and no file (not even a temporary) where --out pointed."""
     out = tmp_path / "run.nc"
-    proc = _start(["simulate", "--theta0", "0.8,-0.3,0.5", "--Omega0=0.2,1.1,-0.7", "--t1",
-                   "1e6", "--max-steps", "1000000000", "--rtol", "1e-12", "--atol", "1e-12",
-                   "--out", str(out)], tmp_path)
+    proc = _start(
+        [
+            "simulate",
+            "--theta0",
+            "0.8,-0.3,0.5",
+            "--Omega0=0.2,1.1,-0.7",
+            "--t1",
+            "1e6",
+            "--max-steps",
+            "1000000000",
+            "--rtol",
+            "1e-12",
+            "--atol",
+            "1e-12",
+            "--out",
+            str(out),
+        ],
+        tmp_path,
+    )
     _wait_for_line(proc, "Rigid body oscillator")  # printed just before the solve
     time.sleep(3.0)
     assert proc.poll() is None, "the solve ended before it could be interrupted"
@@ -83,7 +105,8 @@ def test_ctrl_c_stops_a_long_simulation_inside_its_compiled_solve(tmp_path):
     assert seconds < LIMIT_S, f"{seconds:.2f} s"
     assert err.strip().splitlines()[-1] == (
         "rbo-jax simulate: interrupted (SIGINT); nothing was written (outputs are written whole, "
-        "at the end); run the command again")
+        "at the end); run the command again"
+    )
     assert "Traceback" not in err
     assert _files(tmp_path) == []
 
@@ -91,15 +114,29 @@ def test_ctrl_c_stops_a_long_simulation_inside_its_compiled_solve(tmp_path):
 def test_sigterm_stops_a_stability_map_with_143(tmp_path):
     """SIGTERM (a batch system ending a job) as Ctrl-C, with 143 = 128 + 15: a map of 3e5 points
     in 600 compiled chunks, stopped while it computes."""
-    proc = _start(["stability-map", "--M=-0.8:0.8:1000", "--c", "0.2:2:300", "--chunk-size",
-                   "500", "--out", str(tmp_path / "map.nc")], tmp_path)
+    proc = _start(
+        [
+            "stability-map",
+            "--M=-0.8:0.8:1000",
+            "--c",
+            "0.2:2:300",
+            "--chunk-size",
+            "500",
+            "--out",
+            str(tmp_path / "map.nc"),
+        ],
+        tmp_path,
+    )
     _wait_for_line(proc, "grid: M (1000) x c (300)")
     time.sleep(1.0)
     assert proc.poll() is None
     code, seconds, err = _interrupt(proc, signal.SIGTERM)
     assert code == 143 and seconds < LIMIT_S, (code, seconds, err)
-    assert err.strip().splitlines()[-1].startswith(
-        "rbo-jax stability-map: interrupted (SIGTERM); nothing was written")
+    assert (
+        err.strip()
+        .splitlines()[-1]
+        .startswith("rbo-jax stability-map: interrupted (SIGTERM); nothing was written")
+    )
     assert _files(tmp_path) == []
 
 
@@ -120,8 +157,9 @@ loads = [{ type = "follower", M = "M" }]
 
 
 def _store_files(path: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()
+    }
 
 
 @pytest.mark.skipif(zarr is None, reason="the sweep store needs zarr >= 3 (Python >= 3.11)")
@@ -148,7 +186,7 @@ def test_ctrl_c_keeps_a_sweeps_chunks_and_resume_finishes_it(tmp_path, capsys):
     line = err.strip().splitlines()[-1]
     head = "rbo-jax sweep: interrupted (SIGINT); kept "
     assert line.startswith(head) and f" of 80 chunks in {store}; finish with: " in line, line
-    kept = int(line[len(head):].split()[0])
+    kept = int(line[len(head) :].split()[0])
     done = np.asarray(zarr.open_group(str(store), mode="r")["_sweep/chunk_done"][...])
     assert 3 <= kept <= int(done.sum()) <= kept + 1 < 80  # (one more may land meanwhile)
     assert not store.with_name("m.zarr.lock").exists()
@@ -179,5 +217,6 @@ def test_keyboard_interrupt_in_process_names_what_was_kept(tmp_path, capsys, mon
     assert cli.main(["reproduce", "--out", str(tmp_path)]) == 130
     assert capsys.readouterr().err.strip() == (
         f"rbo-jax reproduce: interrupted (SIGINT); kept {tmp_path / 'first.md'} (complete); the "
-        "rest was not written; run the command again")
+        "rest was not written; run the command again"
+    )
     assert _files(tmp_path) == ["first.md"]

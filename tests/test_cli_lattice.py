@@ -25,8 +25,17 @@ ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "examples" / "lattice_flutter_bands.toml"
 K = np.array([0.0, 0.0, 1.0])
 # one lattice structure for every simulation here: a periodic chain of 8 cosine bodies
-CHAIN = ["simulate", "--lattice", "chain:8", "--foundation", "cosine", "--t1", "2",
-         "--samples", "5"]
+CHAIN = [
+    "simulate",
+    "--lattice",
+    "chain:8",
+    "--foundation",
+    "cosine",
+    "--t1",
+    "2",
+    "--samples",
+    "5",
+]
 
 
 def _run(capsys, argv):
@@ -56,9 +65,22 @@ def test_simulate_chain_prints_a_conserved_energy_and_writes_the_lattice(capsys,
     the tolerance; the netCDF file holds theta (t, site, component) from that initial state, the
     energy, and the lattice's shape (JSON text: netCDF has no list attributes)."""
     out_file = tmp_path / "chain.nc"
-    code, out, err = _run(capsys, CHAIN + ["--theta0", "0.3,0,0.1", "--Omega0", "0,0.2,0",
-                                           "--perturbation", "0.05", "--seed", "3",
-                                           "--out", str(out_file)])
+    code, out, err = _run(
+        capsys,
+        CHAIN
+        + [
+            "--theta0",
+            "0.3,0,0.1",
+            "--Omega0",
+            "0,0.2,0",
+            "--perturbation",
+            "0.05",
+            "--seed",
+            "3",
+            "--out",
+            str(out_file),
+        ],
+    )
     assert code == 0, err
     assert "max |theta_i|" in out and "status: successful" in out
     drift = float(re.search(r"max \|energy drift\| = (\S+)", out).group(1))
@@ -79,8 +101,11 @@ def test_simulate_kink_runs_as_plane_rotations(capsys, tmp_path):
     k rising by 2 pi along the chain, the periodic ends joined by a whole turn) moves as plane
     rotations about k, its energy conserved; written as zarr."""
     out_file = tmp_path / "kink.zarr"
-    code, out, err = _run(capsys, CHAIN + ["--wave", "kink", "--coupling-kt", "4",
-                                           "--wave-speed", "0.5", "--out", str(out_file)])
+    code, out, err = _run(
+        capsys,
+        CHAIN
+        + ["--wave", "kink", "--coupling-kt", "4", "--wave-speed", "0.5", "--out", str(out_file)],
+    )
     assert code == 0, err
     ds = _open(out_file)
     theta = ds["theta"].values
@@ -96,11 +121,15 @@ BAD_OPTIONS = [
     (["--lattice", "chain:8:open"], "--lattice chain:8:open: expected"),
     (["--lattice", "chain:8", "--wave", "wavy"], "--wave"),
     (["--lattice", "chain:8", "--wave", "kink"], "--wave kink needs --foundation cosine"),
-    (["--lattice", "grid:4x4", "--foundation", "cosine", "--wave", "kink"],
-     "--wave kink needs a chain"),
+    (
+        ["--lattice", "grid:4x4", "--foundation", "cosine", "--wave", "kink"],
+        "--wave kink needs a chain",
+    ),
     (["--lattice", "chain:8:free", "--wave", "twist"], "--wave twist needs a periodic chain"),
-    (["--lattice", "chain:8", "--follower", "0.3", "--method", "splitting", "--dt", "0.01"],
-     "--method splitting integrates lattices without loads"),
+    (
+        ["--lattice", "chain:8", "--follower", "0.3", "--method", "splitting", "--dt", "0.01"],
+        "--method splitting integrates lattices without loads",
+    ),
     (["--lattice", "chain:8", "--method", "splitting"], "--method splitting needs --dt"),
     (["--lattice", "chain:8", "--coupling-kt=-1"], "--coupling-kt: must be > 0"),
     (["--lattice", "chain:8", "--wave-speed", "1"], "--wave-speed belongs to --wave kink"),
@@ -110,8 +139,9 @@ BAD_OPTIONS = [
 
 
 @pytest.mark.parametrize("argv, message", BAD_OPTIONS, ids=[" ".join(a) for a, _ in BAD_OPTIONS])
-def test_bad_lattice_options_exit_2_naming_the_option_before_compiling(capsys, monkeypatch,
-                                                                         argv, message):
+def test_bad_lattice_options_exit_2_naming_the_option_before_compiling(
+    capsys, monkeypatch, argv, message
+):
     def never(*args, **kwargs):
         raise AssertionError("simulated although the options are invalid")
 
@@ -134,15 +164,17 @@ def test_flutter_band_example_sweeps_the_bloch_growth_and_frequencies(capsys, tm
     assert cfg.quantity_name == "bloch_growth" and cfg.lattice.kind == "chain"
     assert set(cfg.axes) == {"q", "M"} and cfg.lattice.parameters() == ("q",)
     assert LatticeSpec.from_mapping(cfg.lattice.to_mapping(), axes=cfg.axes) == cfg.lattice
-    text = EXAMPLE.read_text().replace('quantity = "bloch_growth"',
-                                       'quantity = "bloch_frequencies"')
+    text = EXAMPLE.read_text().replace(
+        'quantity = "bloch_growth"', 'quantity = "bloch_frequencies"'
+    )
     text = re.sub(r"(?m)^q = \{.*$", "q = [0.0, 2.5]", text)
     text = re.sub(r"(?m)^M = \{.*$", "M = [0.0, 0.3]", text)
     config = tmp_path / "bands.toml"
     config.write_text(text)
     store = tmp_path / "bands.zarr"
-    code, _, err = _run(capsys, ["sweep", str(config), "--quiet", "--no-plot", "--output",
-                                 str(store)])
+    code, _, err = _run(
+        capsys, ["sweep", str(config), "--quiet", "--no-plot", "--output", str(store)]
+    )
     assert code == 0, err
     ds = rbo_jax.open_sweep(store)
     assert ds["bloch_frequencies"].dims == ("q", "M", "branch")
@@ -173,14 +205,18 @@ foundation = { type = "quadratic", c = 1.0, d = 2.0 }
 LATTICE = '\n[lattice]\nkind = "chain"\nn = 8\nq = "q"\n'
 BAD_CONFIGS = [
     (BASE, "config: missing required key 'lattice'"),
-    (BASE.replace("bloch_growth", "spectral_abscissa") + LATTICE,
-     "[lattice]: is only used by the quantities bloch_growth, bloch_frequencies"),
+    (
+        BASE.replace("bloch_growth", "spectral_abscissa") + LATTICE,
+        "[lattice]: is only used by the quantities bloch_growth, bloch_frequencies",
+    ),
     (BASE + LATTICE.replace('"chain"', '"ring"'), "[lattice] kind: must be one of"),
     (BASE + LATTICE.replace("n = 8", "n = 1"), "[lattice] n: must be an integer >= 2"),
     (BASE + LATTICE.replace('"chain"', '"grid"'), "[lattice] n: is not a key of kind = 'grid'"),
-    (BASE + LATTICE.replace('"chain"', '"grid"').replace("n = 8", "shape = [4, 4]"),
-     "[lattice] q: a grid needs one wavenumber per axis"),
-    (BASE + LATTICE + "kappa_b = \"q\"\n", "axis 'q' takes the value 0, but kappa_b must be > 0"),
+    (
+        BASE + LATTICE.replace('"chain"', '"grid"').replace("n = 8", "shape = [4, 4]"),
+        "[lattice] q: a grid needs one wavenumber per axis",
+    ),
+    (BASE + LATTICE + 'kappa_b = "q"\n', "axis 'q' takes the value 0, but kappa_b must be > 0"),
     (BASE + LATTICE + "periodic = 1\n", "[lattice] periodic: must be true or false"),
     (BASE + LATTICE + "[solver]\nt1 = 1.0\n", "[solver]: is not used by quantity 'bloch_growth'"),
 ]

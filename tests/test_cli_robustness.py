@@ -43,6 +43,7 @@ def computed(monkeypatch):
         def called(*args, **kwargs):
             calls.append(name)
             raise Reached(name)
+
         return called
 
     for name in ("fast_simulate", "simulate", "solve_equilibrium", "stability_map", "fit"):
@@ -99,8 +100,12 @@ def places(tmp_path):
     (tmp_path / "afile").write_text("not a folder")
     cfg = tmp_path / "small.toml"
     cfg.write_text(SWEEP_CONFIG)
-    return {"file": tmp_path / "afile", "missing": tmp_path / "missing" / "deeper",
-            "config": cfg, "dir": tmp_path}
+    return {
+        "file": tmp_path / "afile",
+        "missing": tmp_path / "missing" / "deeper",
+        "config": cfg,
+        "dir": tmp_path,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -108,25 +113,29 @@ def places(tmp_path):
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("argv, option, where", [
-    (["simulate", "--out", "{missing}/run.nc"], "--out", "does not exist"),
-    (["simulate", "--out", "{file}/run.nc"], "--out", "is a file, not a folder"),
-    (["simulate", "--out", "{dir}"], "--out", "unknown format"),
-    (["simulate", "--out", "{dir}/x.nc", "--lattice", "chain:8"], None, None),  # fine: reached
-    (["simulate", "--lattice", "chain:8", "--out", "{file}/chain.zarr"], "--out", "afile"),
-    (["stability-map", "--plot", "{missing}/map.png"], "--plot", "does not exist"),
-    (["stability-map", "--out", "{file}/map.nc"], "--out", "is a file"),
-    (["stability-map", "--out", "{dir}/m.nc", "--plot", "{dir}/m.nc"], "--plot", "unknown"),
-    (["fit", "--synthetic", "--out", "{file}/fit.nc"], "--out", "is a file, not a folder"),
-    (["fit", "--synthetic", "--out", "{missing}/fit.zarr"], "--out", "does not exist"),
-    (["reproduce", "--out", "{file}"], "--out", "is a file, not a folder"),
-    (["reproduce", "--out", "{file}/report"], "--out", "is a file, not a folder"),
-    (["sweep", "{config}", "--output", "{file}/s.zarr"], "--output", "is a file, not a folder"),
-    (["sweep", "{config}", "--output", "{file}"], "--output", "is a file, not a folder"),
-    (["sweep", "{config}", "--output", "{dir}/s.png"], "the map (PNG) of --output", "own path"),
-])
-def test_unwritable_output_paths_are_refused_before_computing(capsys, computed, places, argv,
-                                                              option, where):
+@pytest.mark.parametrize(
+    "argv, option, where",
+    [
+        (["simulate", "--out", "{missing}/run.nc"], "--out", "does not exist"),
+        (["simulate", "--out", "{file}/run.nc"], "--out", "is a file, not a folder"),
+        (["simulate", "--out", "{dir}"], "--out", "unknown format"),
+        (["simulate", "--out", "{dir}/x.nc", "--lattice", "chain:8"], None, None),  # fine: reached
+        (["simulate", "--lattice", "chain:8", "--out", "{file}/chain.zarr"], "--out", "afile"),
+        (["stability-map", "--plot", "{missing}/map.png"], "--plot", "does not exist"),
+        (["stability-map", "--out", "{file}/map.nc"], "--out", "is a file"),
+        (["stability-map", "--out", "{dir}/m.nc", "--plot", "{dir}/m.nc"], "--plot", "unknown"),
+        (["fit", "--synthetic", "--out", "{file}/fit.nc"], "--out", "is a file, not a folder"),
+        (["fit", "--synthetic", "--out", "{missing}/fit.zarr"], "--out", "does not exist"),
+        (["reproduce", "--out", "{file}"], "--out", "is a file, not a folder"),
+        (["reproduce", "--out", "{file}/report"], "--out", "is a file, not a folder"),
+        (["sweep", "{config}", "--output", "{file}/s.zarr"], "--output", "is a file, not a folder"),
+        (["sweep", "{config}", "--output", "{file}"], "--output", "is a file, not a folder"),
+        (["sweep", "{config}", "--output", "{dir}/s.png"], "the map (PNG) of --output", "own path"),
+    ],
+)
+def test_unwritable_output_paths_are_refused_before_computing(
+    capsys, computed, places, argv, option, where
+):
     """Each output path is checked before anything is computed: a missing folder, a file where
     a folder must be, a folder where a file goes, the map on the store's own path. (Before:
     tracebacks after the computation, and `[Errno 17] File exists` from sweep.)"""
@@ -139,12 +148,15 @@ def test_unwritable_output_paths_are_refused_before_computing(capsys, computed, 
     assert "Errno" not in line
 
 
-def test_missing_folders_above_a_sweep_store_or_a_report_are_created_later(capsys, computed,
-                                                                           places):
+def test_missing_folders_above_a_sweep_store_or_a_report_are_created_later(
+    capsys, computed, places
+):
     """A sweep makes the folders above its store and `reproduce` those above its folder: a
     missing folder there is no error (the command reaches its computation)."""
-    for argv in (["sweep", str(places["config"]), "--output", f"{places['missing']}/s.zarr"],
-                 ["reproduce", "--out", str(places["missing"])]):
+    for argv in (
+        ["sweep", str(places["config"]), "--output", f"{places['missing']}/s.zarr"],
+        ["reproduce", "--out", str(places["missing"])],
+    ):
         computed.clear()
         code, _, err = _run(capsys, argv)
         assert code == 1 and computed, err
@@ -158,15 +170,33 @@ def test_requests_larger_than_the_memory_are_refused_with_the_way_out(capsys, co
     if physical_memory() is None:
         pytest.skip("the system does not tell its memory")
     total = f"{physical_memory() / 2**30:.1f} GiB"
-    line = _refused(capsys, computed, ["simulate", "--samples", "1000000000"],
-                    "--samples 1000000000", "GiB of memory", total, "fewer samples")
+    line = _refused(
+        capsys,
+        computed,
+        ["simulate", "--samples", "1000000000"],
+        "--samples 1000000000",
+        "GiB of memory",
+        total,
+        "fewer samples",
+    )
     need = float(line.split("needs about ")[1].split(" GiB")[0].replace(",", ""))
     assert need * 2**30 > SHARE * physical_memory()
-    _refused(capsys, computed, ["stability-map", "--M", "0:1:100000", "--c", "0.1:1:100000",
-                                "--d", "1:2:1000"],
-             "10,000,000,000,000 points", total, "fewer points", "rbo-jax sweep")
-    _refused(capsys, computed, ["simulate", "--lattice", "chain:1000000000", "--samples", "100"],
-             "--lattice chain:1000000000", "fewer bodies")
+    _refused(
+        capsys,
+        computed,
+        ["stability-map", "--M", "0:1:100000", "--c", "0.1:1:100000", "--d", "1:2:1000"],
+        "10,000,000,000,000 points",
+        total,
+        "fewer points",
+        "rbo-jax sweep",
+    )
+    _refused(
+        capsys,
+        computed,
+        ["simulate", "--lattice", "chain:1000000000", "--samples", "100"],
+        "--lattice chain:1000000000",
+        "fewer bodies",
+    )
     _refused(capsys, computed, ["demo", "--samples", "100000000000"], "--samples")
     _refused(capsys, computed, ["fit", "--synthetic", "--samples", "10000000000"], "--samples")
     _refused(capsys, computed, ["stability-map", "--M", "0:1:1000000000"], "--M", "at most")
@@ -196,13 +226,19 @@ def _data_files(folder) -> dict[str, tuple[str, str | None]]:
     add("garbage.csv", "unknown format '.csv'", b"t,theta\n1,x\n\x00\x01")
     add("no-theta.npz", "missing array 'theta'", arrays={"t": t})
     add("no-t.npz", "missing array 't'", arrays={"theta": good["theta"]})
-    add("text.npz", "must hold real numbers", arrays={"t": np.array(["a", "b"]),
-                                                      "theta": np.zeros((2, 3))})
+    add(
+        "text.npz",
+        "must hold real numbers",
+        arrays={"t": np.array(["a", "b"]), "theta": np.zeros((2, 3))},
+    )
     add("complex.npz", "must hold real numbers", arrays={**good, "theta": good["theta"] + 1j})
     add("nan-t.npz", "NaN", arrays={**good, "t": np.r_[t[:-1], np.nan]})
     add("2d-t.npz", "1-D", arrays={**good, "t": np.zeros((6, 2))})
-    add("one-sample.npz", "a fit needs at least 2",
-        arrays={"t": t[:1], "theta": good["theta"][:1], "Omega": good["Omega"][:1]})
+    add(
+        "one-sample.npz",
+        "a fit needs at least 2",
+        arrays={"t": t[:1], "theta": good["theta"][:1], "Omega": good["Omega"][:1]},
+    )
     add("hdf5.nc", "netCDF 4", b"\x89HDF\r\n\x1a\n" + rng.bytes(100))
     add("truncated.npz", "not a readable .npz", (folder / "valid.npz").read_bytes()[:120])
     add("npy.npz", "not a .npz archive", b"\x93NUMPY" + rng.bytes(50))
@@ -213,13 +249,17 @@ def _data_files(folder) -> dict[str, tuple[str, str | None]]:
     (folder / "junk.zarr").mkdir()
     (folder / "junk.zarr" / "zarr.json").write_bytes(rng.bytes(40))
     add("junk.zarr", "not a readable zarr store")
-    add("pickled.npz", "not a readable .npz",  # object arrays are pickled: not loaded
-        arrays={"t": np.array([0.0, "a"], dtype=object), "theta": np.zeros((2, 3))})
+    add(
+        "pickled.npz",
+        "not a readable .npz",  # object arrays are pickled: not loaded
+        arrays={"t": np.array([0.0, "a"], dtype=object), "theta": np.zeros((2, 3))},
+    )
     return files
 
 
-def test_corrupt_empty_or_foreign_data_files_are_refused_naming_the_file(capsys, computed,
-                                                                         tmp_path):
+def test_corrupt_empty_or_foreign_data_files_are_refused_naming_the_file(
+    capsys, computed, tmp_path
+):
     """`fit --data` with random bytes named .nc (a traceback suggesting `pip install netcdf4`
     before), an empty .npz (a traceback), garbage, missing or non-numeric arrays: exit status 2
     with one line naming the file and what is wrong; a valid file reaches the fit."""
@@ -239,56 +279,60 @@ def test_corrupt_empty_or_foreign_data_files_are_refused_naming_the_file(capsys,
 def test_a_noise_level_must_be_positive_and_finite(capsys, computed, tmp_path, option, value):
     """`fit --sigma-theta 0` was accepted: a noise level is > 0 and finite."""
     path, _ = _data_files(tmp_path)["valid.npz"]
-    _refused(capsys, computed, ["fit", "--data", path, f"{option}={value}"], option,
-             "finite and > 0")
+    _refused(
+        capsys, computed, ["fit", "--data", path, f"{option}={value}"], option, "finite and > 0"
+    )
     _refused(capsys, computed, ["fit", "--synthetic", option, "0.1"], option, "--noise")
 
 
-@pytest.mark.parametrize("argv, option", [
-    (["simulate", "--t1", "inf"], "--t1"),
-    (["simulate", "--t1", "nan"], "--t1"),
-    (["simulate", "--rtol", "nan"], "--rtol"),
-    (["simulate", "--atol=-1e-9"], "--atol"),
-    (["simulate", "--max-steps", "0"], "--max-steps"),
-    (["simulate", "--max-steps", "99999999999999999999"], "--max-steps"),
-    (["simulate", "--max-rows=-1"], "--max-rows"),
-    (["simulate", "--theta0", "nan,0,0"], "--theta0"),
-    (["simulate", "--Omega0", "0,inf,0"], "--Omega0"),
-    (["simulate", "--follower", "inf"], "--follower"),
-    (["simulate", "--dead", "nan"], "--dead"),
-    (["simulate", "--axis", "0,0,inf"], "--axis"),
-    (["simulate", "--lattice", "chain:8", "--seed=-1"], "--seed"),
-    (["simulate", "--lattice", "chain:8", "--perturbation", "nan"], "--perturbation"),
-    (["simulate", "--lattice", "chain:8", "--coupling-kb", "0"], "--coupling-kb"),
-    (["simulate", "--lattice", "chain:1"], "--lattice"),
-    (["simulate", "--lattice", "ring:8"], "--lattice"),
-    (["simulate", "--lattice", "chain:8", "--method", "splitting", "--dt", "inf"], "--dt"),
-    (["stability-map", "--rtol", "0"], "--rtol"),
-    (["stability-map", "--rtol", "inf"], "--rtol"),
-    (["stability-map", "--chunk-size", "0"], "--chunk-size"),
-    (["stability-map", "--A1", "nan"], "--A1"),
-    (["stability-map", "--friction", "inf"], "--friction"),
-    (["stability-map", "--M", "0:1:0"], "--M"),
-    (["stability-map", "--d", "1,nan"], "--d"),
-    (["fit", "--synthetic", "--tol", "0"], "--tol"),
-    (["fit", "--synthetic", "--rtol", "nan"], "--rtol"),
-    (["fit", "--synthetic", "--max-steps", "0"], "--max-steps"),
-    (["fit", "--synthetic", "--solver-max-steps=-3"], "--solver-max-steps"),
-    (["fit", "--synthetic", "--t1", "inf"], "--t1"),
-    (["fit", "--synthetic", "--samples", "1"], "--samples"),
-    (["fit", "--synthetic", "--noise", "nan"], "--noise"),
-    (["fit", "--synthetic", "--noise=-1"], "--noise"),
-    (["fit", "--synthetic", "--offset", "inf"], "--offset"),
-    (["fit", "--synthetic", "--offset=-1"], "--offset"),
-    (["fit", "--synthetic", "--seed=-1"], "--seed"),
-    (["fit", "--synthetic", "--theta0", "nan,0,0"], "--theta0"),
-    (["fit", "--synthetic", "--horizons", "0,1"], "--horizons"),
-    (["demo", "--t1", "0"], "--t1"),
-    (["demo", "--t1", "inf"], "--t1"),
-    (["demo", "--samples", "1"], "--samples"),
-    (["simulate", "--samples", "x"], "--samples"),
-    (["simulate", "--nonsense"], "--nonsense"),
-])
+@pytest.mark.parametrize(
+    "argv, option",
+    [
+        (["simulate", "--t1", "inf"], "--t1"),
+        (["simulate", "--t1", "nan"], "--t1"),
+        (["simulate", "--rtol", "nan"], "--rtol"),
+        (["simulate", "--atol=-1e-9"], "--atol"),
+        (["simulate", "--max-steps", "0"], "--max-steps"),
+        (["simulate", "--max-steps", "99999999999999999999"], "--max-steps"),
+        (["simulate", "--max-rows=-1"], "--max-rows"),
+        (["simulate", "--theta0", "nan,0,0"], "--theta0"),
+        (["simulate", "--Omega0", "0,inf,0"], "--Omega0"),
+        (["simulate", "--follower", "inf"], "--follower"),
+        (["simulate", "--dead", "nan"], "--dead"),
+        (["simulate", "--axis", "0,0,inf"], "--axis"),
+        (["simulate", "--lattice", "chain:8", "--seed=-1"], "--seed"),
+        (["simulate", "--lattice", "chain:8", "--perturbation", "nan"], "--perturbation"),
+        (["simulate", "--lattice", "chain:8", "--coupling-kb", "0"], "--coupling-kb"),
+        (["simulate", "--lattice", "chain:1"], "--lattice"),
+        (["simulate", "--lattice", "ring:8"], "--lattice"),
+        (["simulate", "--lattice", "chain:8", "--method", "splitting", "--dt", "inf"], "--dt"),
+        (["stability-map", "--rtol", "0"], "--rtol"),
+        (["stability-map", "--rtol", "inf"], "--rtol"),
+        (["stability-map", "--chunk-size", "0"], "--chunk-size"),
+        (["stability-map", "--A1", "nan"], "--A1"),
+        (["stability-map", "--friction", "inf"], "--friction"),
+        (["stability-map", "--M", "0:1:0"], "--M"),
+        (["stability-map", "--d", "1,nan"], "--d"),
+        (["fit", "--synthetic", "--tol", "0"], "--tol"),
+        (["fit", "--synthetic", "--rtol", "nan"], "--rtol"),
+        (["fit", "--synthetic", "--max-steps", "0"], "--max-steps"),
+        (["fit", "--synthetic", "--solver-max-steps=-3"], "--solver-max-steps"),
+        (["fit", "--synthetic", "--t1", "inf"], "--t1"),
+        (["fit", "--synthetic", "--samples", "1"], "--samples"),
+        (["fit", "--synthetic", "--noise", "nan"], "--noise"),
+        (["fit", "--synthetic", "--noise=-1"], "--noise"),
+        (["fit", "--synthetic", "--offset", "inf"], "--offset"),
+        (["fit", "--synthetic", "--offset=-1"], "--offset"),
+        (["fit", "--synthetic", "--seed=-1"], "--seed"),
+        (["fit", "--synthetic", "--theta0", "nan,0,0"], "--theta0"),
+        (["fit", "--synthetic", "--horizons", "0,1"], "--horizons"),
+        (["demo", "--t1", "0"], "--t1"),
+        (["demo", "--t1", "inf"], "--t1"),
+        (["demo", "--samples", "1"], "--samples"),
+        (["simulate", "--samples", "x"], "--samples"),
+        (["simulate", "--nonsense"], "--nonsense"),
+    ],
+)
 def test_every_numeric_option_is_checked(capsys, computed, argv, option):
     """The sign and finiteness the physics demands, for every numeric option of every command
     (the gaps found: infinite and NaN times, tolerances and initial states, negative seeds and
@@ -296,8 +340,9 @@ def test_every_numeric_option_is_checked(capsys, computed, argv, option):
     _refused(capsys, computed, argv, option)
 
 
-def test_an_unexpected_error_is_one_line_and_the_traceback_on_request(capsys, computed,
-                                                                      monkeypatch):
+def test_an_unexpected_error_is_one_line_and_the_traceback_on_request(
+    capsys, computed, monkeypatch
+):
     """An exception no command expected: `rbo-jax CMD: error: TYPE: MESSAGE` on one line, exit
     status 1; with RBO_JAX_TRACEBACK=1 the traceback too."""
     import rbo_jax
@@ -311,7 +356,8 @@ def test_an_unexpected_error_is_one_line_and_the_traceback_on_request(capsys, co
     assert code == 1
     assert err.strip().splitlines() == [
         "rbo-jax simulate: error: RuntimeError: something inside broke (run with "
-        "RBO_JAX_TRACEBACK=1 for the traceback)"]
+        "RBO_JAX_TRACEBACK=1 for the traceback)"
+    ]
     monkeypatch.setenv("RBO_JAX_TRACEBACK", "1")
     code, _, err = _run(capsys, ["simulate", "--t1", "1"])
     assert code == 1
@@ -339,8 +385,7 @@ def _open(path):
 
 
 @pytest.mark.parametrize("name", ["out.nc", "out.zarr"])
-def test_a_failed_write_leaves_the_previous_output_and_no_temporary(tmp_path, monkeypatch,
-                                                                    name):
+def test_a_failed_write_leaves_the_previous_output_and_no_temporary(tmp_path, monkeypatch, name):
     """netCDF and zarr are written into a temporary beside the target and renamed into place:
     a writer failing half-way leaves the previous file (or store) untouched and no temporary;
     a successful one replaces it whole (a store too: no file of the old one is left)."""
@@ -425,8 +470,14 @@ def test_read_trajectory_file_says_what_is_wrong(tmp_path):
     """The reader raises ValueError with a reason for every bad file, whatever the library
     underneath raised."""
     for name, (path, what) in _data_files(tmp_path).items():
-        if what is None or name in ("no-theta.npz", "no-t.npz", "nan-t.npz", "2d-t.npz",
-                                    "one-sample.npz", "empty-archive.npz"):
+        if what is None or name in (
+            "no-theta.npz",
+            "no-t.npz",
+            "nan-t.npz",
+            "2d-t.npz",
+            "one-sample.npz",
+            "empty-archive.npz",
+        ):
             continue  # readable files: the command checks what their arrays mean
         with pytest.raises(ValueError) as info:
             read_trajectory_file(path)
@@ -440,24 +491,66 @@ def test_read_trajectory_file_says_what_is_wrong(tmp_path):
 # Values by kind of option, each with whether it must be refused (True), must be accepted
 # (False) or may be either (None; e.g. a huge but finite number). ``{dir}`` and friends are
 # filled in with the test's folders.
-_FLOATS = [("-1", "neg"), ("0", "zero"), ("nan", "bad"), ("inf", "bad"), ("-inf", "bad"),
-           ("1e308", "big"), ("1e999", "bad"), ("-1e-300", "neg"), ("", "bad"), ("abc", "bad"),
-           ("1,2", "bad"), ("0x10", "bad"), ("1.5", "pos"), ("1e-300", "pos"), ("7", "pos")]
-_INTS = [("-1", -1), ("0", 0), ("1", 1), ("2", 2), ("3", 3), ("1.5", None), ("", None),
-         ("abc", None), ("2147483648", 2**31), ("99999999999999999999999", 10**23)]
-_VECTORS = [("0.1,0,0", True), ("1,2", False), ("nan,0,0", False), ("0,inf,0", False),
-            ("a,b,c", False), ("", False), ("1,2,3,4", False), ("0.3,-0.2,0.5", True)]
-_OUT_FILES = [("{dir}/ok{ext}", True), ("{dir}/missing/x{ext}", False),
-              ("{file}/x{ext}", False), ("{dir}", False), ("", False),
-              ("{dir}/" + "x" * 300 + "{ext}", False), ("{dir}/x.txt", False)]
+_FLOATS = [
+    ("-1", "neg"),
+    ("0", "zero"),
+    ("nan", "bad"),
+    ("inf", "bad"),
+    ("-inf", "bad"),
+    ("1e308", "big"),
+    ("1e999", "bad"),
+    ("-1e-300", "neg"),
+    ("", "bad"),
+    ("abc", "bad"),
+    ("1,2", "bad"),
+    ("0x10", "bad"),
+    ("1.5", "pos"),
+    ("1e-300", "pos"),
+    ("7", "pos"),
+]
+_INTS = [
+    ("-1", -1),
+    ("0", 0),
+    ("1", 1),
+    ("2", 2),
+    ("3", 3),
+    ("1.5", None),
+    ("", None),
+    ("abc", None),
+    ("2147483648", 2**31),
+    ("99999999999999999999999", 10**23),
+]
+_VECTORS = [
+    ("0.1,0,0", True),
+    ("1,2", False),
+    ("nan,0,0", False),
+    ("0,inf,0", False),
+    ("a,b,c", False),
+    ("", False),
+    ("1,2,3,4", False),
+    ("0.3,-0.2,0.5", True),
+]
+_OUT_FILES = [
+    ("{dir}/ok{ext}", True),
+    ("{dir}/missing/x{ext}", False),
+    ("{file}/x{ext}", False),
+    ("{dir}", False),
+    ("", False),
+    ("{dir}/" + "x" * 300 + "{ext}", False),
+    ("{dir}/x.txt", False),
+]
 
 
 def _float_verdict(kind: str, rule: str) -> bool | None:
     """Must a float of this kind be refused under ``rule`` (>0, >=0, finite, >-1)?"""
     if kind == "bad":
         return True
-    ok = {">0": kind in ("pos", "big"), ">=0": kind in ("pos", "big", "zero"),
-          "finite": True, ">-1": kind != "bad"}[rule]
+    ok = {
+        ">0": kind in ("pos", "big"),
+        ">=0": kind in ("pos", "big", "zero"),
+        "finite": True,
+        ">-1": kind != "bad",
+    }[rule]
     return not ok
 
 
@@ -473,44 +566,142 @@ def _int_verdict(value, minimum: int, maximum: float) -> bool | None:
 # ("int", minimum, maximum accepted for sure) , "vector", ("out", suffix), "grid>0", "grid",
 # "refuse" (never valid with this base)
 _COMMANDS = {
-    "simulate": (["simulate", "--t1", "1", "--samples", "5"], {
-        "--t1": ">0", "--rtol": ">0", "--atol": ">0", "--c": ">0", "--d": ">0", "--A1": ">0",
-        "--A3": ">0", "--follower": "finite", "--dead": "finite", "--friction": ">=0",
-        "--samples": ("int", 2, 10**6), "--max-steps": ("int", 1, 10**6),
-        "--max-rows": ("int", 0, 10**6), "--theta0": "vector", "--Omega0": "vector",
-        "--out": ("out", ".nc"), "--perturbation": "refuse", "--coupling-kb": "refuse"}),
-    "lattice": (["simulate", "--lattice", "chain:8", "--foundation", "cosine", "--t1", "1",
-                 "--samples", "3"], {
-        "--t1": ">0", "--coupling-kb": ">0", "--coupling-kt": ">0", "--perturbation": ">=0",
-        "--c": ">=0", "--samples": ("int", 2, 10**4), "--seed": ("int", 0, 10**6),
-        "--out": ("out", ".zarr"), "--integrator": "refuse", "--lattice": "lattice"}),
-    "stability-map": (["stability-map", "--M", "0:0.4:3", "--c", "1,2"], {
-        "--M": "grid", "--c": "grid>0", "--d": "grid>0", "--A3": "grid>0", "--A1": ">0",
-        "--friction": ">=0", "--rtol": ">0", "--chunk-size": ("int", 1, 10**6),
-        "--out": ("out", ".nc"), "--plot": ("out", ".png")}),
-    "fit": (["fit", "--synthetic", "--t1", "2", "--samples", "11"], {
-        "--t1": ">0", "--tol": ">0", "--rtol": ">0", "--atol": ">0", "--noise": ">=0",
-        "--offset": ">-1", "--c": ">0", "--d": ">0", "--samples": ("int", 2, 10**5),
-        "--max-steps": ("int", 1, 10**6), "--solver-max-steps": ("int", 1, 10**6),
-        "--seed": ("int", 0, 10**6), "--theta0": "vector", "--Omega0": "vector",
-        "--out": ("out", ".zarr"), "--sigma-theta": "refuse"}),
-    "fit-data": (["fit", "--data", "{valid}"], {
-        "--sigma-theta": ">0", "--sigma-Omega": ">0", "--c": ">0", "--data": "data",
-        "--out": ("out", ".nc")}),
-    "demo": (["demo", "--t1", "1", "--samples", "3"], {
-        "--t1": ">0", "--samples": ("int", 2, 10**5)}),
+    "simulate": (
+        ["simulate", "--t1", "1", "--samples", "5"],
+        {
+            "--t1": ">0",
+            "--rtol": ">0",
+            "--atol": ">0",
+            "--c": ">0",
+            "--d": ">0",
+            "--A1": ">0",
+            "--A3": ">0",
+            "--follower": "finite",
+            "--dead": "finite",
+            "--friction": ">=0",
+            "--samples": ("int", 2, 10**6),
+            "--max-steps": ("int", 1, 10**6),
+            "--max-rows": ("int", 0, 10**6),
+            "--theta0": "vector",
+            "--Omega0": "vector",
+            "--out": ("out", ".nc"),
+            "--perturbation": "refuse",
+            "--coupling-kb": "refuse",
+        },
+    ),
+    "lattice": (
+        [
+            "simulate",
+            "--lattice",
+            "chain:8",
+            "--foundation",
+            "cosine",
+            "--t1",
+            "1",
+            "--samples",
+            "3",
+        ],
+        {
+            "--t1": ">0",
+            "--coupling-kb": ">0",
+            "--coupling-kt": ">0",
+            "--perturbation": ">=0",
+            "--c": ">=0",
+            "--samples": ("int", 2, 10**4),
+            "--seed": ("int", 0, 10**6),
+            "--out": ("out", ".zarr"),
+            "--integrator": "refuse",
+            "--lattice": "lattice",
+        },
+    ),
+    "stability-map": (
+        ["stability-map", "--M", "0:0.4:3", "--c", "1,2"],
+        {
+            "--M": "grid",
+            "--c": "grid>0",
+            "--d": "grid>0",
+            "--A3": "grid>0",
+            "--A1": ">0",
+            "--friction": ">=0",
+            "--rtol": ">0",
+            "--chunk-size": ("int", 1, 10**6),
+            "--out": ("out", ".nc"),
+            "--plot": ("out", ".png"),
+        },
+    ),
+    "fit": (
+        ["fit", "--synthetic", "--t1", "2", "--samples", "11"],
+        {
+            "--t1": ">0",
+            "--tol": ">0",
+            "--rtol": ">0",
+            "--atol": ">0",
+            "--noise": ">=0",
+            "--offset": ">-1",
+            "--c": ">0",
+            "--d": ">0",
+            "--samples": ("int", 2, 10**5),
+            "--max-steps": ("int", 1, 10**6),
+            "--solver-max-steps": ("int", 1, 10**6),
+            "--seed": ("int", 0, 10**6),
+            "--theta0": "vector",
+            "--Omega0": "vector",
+            "--out": ("out", ".zarr"),
+            "--sigma-theta": "refuse",
+        },
+    ),
+    "fit-data": (
+        ["fit", "--data", "{valid}"],
+        {
+            "--sigma-theta": ">0",
+            "--sigma-Omega": ">0",
+            "--c": ">0",
+            "--data": "data",
+            "--out": ("out", ".nc"),
+        },
+    ),
+    "demo": (
+        ["demo", "--t1", "1", "--samples", "3"],
+        {"--t1": ">0", "--samples": ("int", 2, 10**5)},
+    ),
     "reproduce": (["reproduce", "--quick", "--out", "{dir}/report"], {"--out": "folder"}),
-    "sweep": (["sweep", "{config}", "--quiet", "--output", "{dir}/s.zarr"], {
-        "--output": "store", "config": "config"}),
+    "sweep": (
+        ["sweep", "{config}", "--quiet", "--output", "{dir}/s.zarr"],
+        {"--output": "store", "config": "config"},
+    ),
 }
-_GRIDS = [("0:1:3", "pos0"), ("0:1:0", "bad"), ("0:1:x", "bad"), ("nan", "bad"),
-          ("1,2,inf", "bad"), ("", "bad"), ("0:1:100000000000", "bad"), ("-1:1:3", "neg"),
-          ("0.5,2", "pos"), ("1e300,1", "pos")]
-_LATTICES = [("chain:16", False), ("grid:4x4", False), ("chain:8:free", False), ("chain:1", True),
-             ("chain:-5", True), ("chain:abc", True), ("", True), ("grid:0x3", True),
-             ("grid:2x2x2x2", True), ("chain:100000000000000", True), ("ring:8", True)]
-_FOLDERS = [("{dir}/rep", False), ("{missing}", False), ("{file}", True),
-            ("{file}/sub", True), ("", True)]
+_GRIDS = [
+    ("0:1:3", "pos0"),
+    ("0:1:0", "bad"),
+    ("0:1:x", "bad"),
+    ("nan", "bad"),
+    ("1,2,inf", "bad"),
+    ("", "bad"),
+    ("0:1:100000000000", "bad"),
+    ("-1:1:3", "neg"),
+    ("0.5,2", "pos"),
+    ("1e300,1", "pos"),
+]
+_LATTICES = [
+    ("chain:16", False),
+    ("grid:4x4", False),
+    ("chain:8:free", False),
+    ("chain:1", True),
+    ("chain:-5", True),
+    ("chain:abc", True),
+    ("", True),
+    ("grid:0x3", True),
+    ("grid:2x2x2x2", True),
+    ("chain:100000000000000", True),
+    ("ring:8", True),
+]
+_FOLDERS = [
+    ("{dir}/rep", False),
+    ("{missing}", False),
+    ("{file}", True),
+    ("{file}/sub", True),
+    ("", True),
+]
 
 
 def _values(rule, rng, places, data):
@@ -537,13 +728,22 @@ def _values(rule, rng, places, data):
         text, bad = _FOLDERS[rng.integers(len(_FOLDERS))]
         return text.format(**places), bad
     if rule == "store":
-        text, bad = [("{dir}/t.zarr", False), ("{missing}/t.zarr", False),
-                     ("{file}", True), ("{file}/t.zarr", True), ("", True),
-                     ("{dir}/t.png", True)][rng.integers(6)]
+        text, bad = [
+            ("{dir}/t.zarr", False),
+            ("{missing}/t.zarr", False),
+            ("{file}", True),
+            ("{file}/t.zarr", True),
+            ("", True),
+            ("{dir}/t.png", True),
+        ][rng.integers(6)]
         return text.format(**places), bad
     if rule == "config":
-        return [(str(places["config"]), False), (f"{places['dir']}/none.toml", True),
-                (str(places["dir"]), True), (data["random.nc"][0], True)][rng.integers(4)]
+        return [
+            (str(places["config"]), False),
+            (f"{places['dir']}/none.toml", True),
+            (str(places["dir"]), True),
+            (data["random.nc"][0], True),
+        ][rng.integers(4)]
     text, kind = _FLOATS[rng.integers(len(_FLOATS))]
     return text, True if rule == "refuse" else _float_verdict(kind, rule)
 

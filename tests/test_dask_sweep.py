@@ -39,7 +39,8 @@ try:
 except ImportError:  # zarr >= 3 needs Python >= 3.11; there sweeps run in memory only
     zarr = None
 needs_zarr = pytest.mark.skipif(
-    zarr is None, reason="the sweep store needs zarr >= 3, which needs Python >= 3.11")
+    zarr is None, reason="the sweep store needs zarr >= 3, which needs Python >= 3.11"
+)
 distributed = pytest.importorskip("distributed")
 
 HERE = Path(__file__).resolve().parent
@@ -72,10 +73,13 @@ def client():
     saved = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(HERE), str(ROOT), saved) if p)
     try:
-        with dask.config.set({"distributed.scheduler.allowed-failures": 1}), \
-                distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                         dashboard_address=":0") as cluster, \
-                distributed.Client(cluster) as c:
+        with (
+            dask.config.set({"distributed.scheduler.allowed-failures": 1}),
+            distributed.LocalCluster(
+                n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+            ) as cluster,
+            distributed.Client(cluster) as c,
+        ):
             c.wait_for_workers(2, timeout=60)
             yield c
     finally:
@@ -86,8 +90,9 @@ def client():
 
 
 def _files(path: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()
+    }
 
 
 def _assert_identical(ds, ref):
@@ -142,20 +147,26 @@ def test_two_workers_equal_one_process_bit_for_bit(client, tmp_path, capsys):
     kwargs = dict(chunk_size=DASK_CHUNK, dims=NIKOLAI_DIMS)
     one = sweep(nikolai_spectrum, DASK_AXES, progress=False, **kwargs)
     sweep(nikolai_spectrum, DASK_AXES, store=tmp_path / "one.zarr", progress=False, **kwargs)
-    in_memory = sweep(nikolai_spectrum, DASK_AXES, client=client, progress=True, desc="dask",
-                      **kwargs)
+    in_memory = sweep(
+        nikolai_spectrum, DASK_AXES, client=client, progress=True, desc="dask", **kwargs
+    )
     err = capsys.readouterr().err
     assert "24.0/24.0" in err and "dask: 24 points: 20 successful, 4 nonfinite_input" in err
-    stored = sweep(nikolai_spectrum, DASK_AXES, client=client, store=tmp_path / "dask.zarr",
-                   progress=False, **kwargs).load()
+    stored = sweep(
+        nikolai_spectrum,
+        DASK_AXES,
+        client=client,
+        store=tmp_path / "dask.zarr",
+        progress=False,
+        **kwargs,
+    ).load()
     _assert_identical(in_memory, one)
     _assert_identical(stored, one)
     assert _files(tmp_path / "dask.zarr") == _files(tmp_path / "one.zarr")
     assert stored["abscissa"].dtype == np.float64 and stored["p"].dtype == np.complex128
     built = client.run(lambda: dict(_dask.BUILT))
     assert built and all(n == 1 for b in built.values() for n in b.values())
-    settings = client.run(lambda: (jax.config.jax_enable_x64,
-                                   jax.config.jax_numpy_dtype_promotion))
+    settings = client.run(lambda: (jax.config.jax_enable_x64, jax.config.jax_numpy_dtype_promotion))
     assert set(settings.values()) == {(True, "strict")}
 
 
@@ -167,8 +178,10 @@ def test_a_worker_killed_mid_sweep_changes_nothing(client, tmp_path):
     done = store / "_sweep" / "chunk_done"
 
     def two_written():
-        return done.exists() and sum(p.is_file() and p.name != "zarr.json"
-                                     for p in done.rglob("*")) >= 2
+        return (
+            done.exists()
+            and sum(p.is_file() and p.name != "zarr.json" for p in done.rglob("*")) >= 2
+        )
 
     stop = _kill_when_busy(client, two_written)
     kwargs = dict(chunk_size=DASK_CHUNK, dims=NIKOLAI_DIMS, progress=False)
@@ -182,12 +195,14 @@ def test_a_point_that_raises_is_flagged_as_on_one_process(client):
     """eqx.error_if at c = 2: those points get `error` with their message, the others their
     values; the records list the points in chunk order, as on one process."""
     one = sweep(raises_for_large_c, DASK_AXES, chunk_size=DASK_CHUNK, progress=False)
-    on_dask = sweep(raises_for_large_c, DASK_AXES, chunk_size=DASK_CHUNK, progress=False,
-                    client=client)
+    on_dask = sweep(
+        raises_for_large_c, DASK_AXES, chunk_size=DASK_CHUNK, progress=False, client=client
+    )
     _assert_identical(on_dask, one)
     assert status_counts(on_dask)["error"] == 5
-    assert all(e["message"] == "c too large" and e["point"]["c"] == 2.0
-               for e in on_dask.attrs["errors"])
+    assert all(
+        e["message"] == "c too large" and e["point"]["c"] == 2.0 for e in on_dask.attrs["errors"]
+    )
 
 
 @needs_zarr
@@ -197,8 +212,9 @@ def test_resume_on_dask_submits_only_the_missing_chunks(client, tmp_path):
     sweep(nikolai_spectrum, DASK_AXES, **kwargs)
     before = _files(path)
     group = _store.open_group(path, "r+")
-    _store.mark_missing(group, _store.space_from_store(group, _store.read_descriptor(group, path)),
-                        [1, 5, 10])
+    _store.mark_missing(
+        group, _store.space_from_store(group, _store.read_descriptor(group, path)), [1, 5, 10]
+    )
     with distributed.get_task_stream(client) as tasks:
         sweep(nikolai_spectrum, DASK_AXES, resume=True, client=client, **kwargs)
     assert sorted(int(str(t["key"]).rsplit("-", 1)[1]) for t in tasks.data) == [1, 5, 10]
@@ -207,12 +223,22 @@ def test_resume_on_dask_submits_only_the_missing_chunks(client, tmp_path):
 
 def test_bad_arguments_with_a_client(client):
     with pytest.raises(ValueError, match="devices must be None"):
-        sweep(nikolai_spectrum, DASK_AXES, chunk_size=DASK_CHUNK, client=client,
-              devices=jax.local_devices())
+        sweep(
+            nikolai_spectrum,
+            DASK_AXES,
+            chunk_size=DASK_CHUNK,
+            client=client,
+            devices=jax.local_devices(),
+        )
     lock = threading.Lock()
     with pytest.raises(TypeError, match="must be picklable"):
-        sweep(lambda c, M: c + M + 0.0 * (lock is None), DASK_AXES, chunk_size=DASK_CHUNK,
-              client=client, progress=False)
+        sweep(
+            lambda c, M: c + M + 0.0 * (lock is None),
+            DASK_AXES,
+            chunk_size=DASK_CHUNK,
+            client=client,
+            progress=False,
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -235,8 +261,21 @@ def test_cli_on_a_scheduler_survives_a_killed_worker(client, one_process, tmp_pa
     cfg, expected = one_process
     out = tmp_path / "map.zarr"
     stop = _kill_when_busy(client)
-    assert cli.main(["sweep", str(cfg), "--quiet", "--no-plot", "--output", str(out),
-                     "--scheduler", client.scheduler.address]) == 0
+    assert (
+        cli.main(
+            [
+                "sweep",
+                str(cfg),
+                "--quiet",
+                "--no-plot",
+                "--output",
+                str(out),
+                "--scheduler",
+                client.scheduler.address,
+            ]
+        )
+        == 0
+    )
     assert stop(), "no worker was killed: the sweep ended first"
     assert _files(out) == expected
 
@@ -252,16 +291,31 @@ def test_cli_workers_end_to_end(one_process, tmp_path, capsys):
     assert f"spectral_abscissa: 12 points -> {out}" in captured.out
 
 
-@pytest.mark.parametrize("options, message", [
-    (["--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"], "exclude each other"),
-    (["--workers", "2", "--coordinator", "127.0.0.1:1234", "--num-processes", "2",
-      "--process-id", "0"],
-     "--workers (Dask) and --coordinator, --num-processes, --process-id (jax.distributed)"),
-    (["--scheduler", "tcp://127.0.0.1:8786", "--coordinator", "127.0.0.1:1234"],
-     "--scheduler (Dask) and --coordinator (jax.distributed) exclude each other"),
-    (["--workers", "0"], "--workers must be >= 1"),
-    (["--scheduler", " "], "--scheduler needs an address"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"], "exclude each other"),
+        (
+            [
+                "--workers",
+                "2",
+                "--coordinator",
+                "127.0.0.1:1234",
+                "--num-processes",
+                "2",
+                "--process-id",
+                "0",
+            ],
+            "--workers (Dask) and --coordinator, --num-processes, --process-id (jax.distributed)",
+        ),
+        (
+            ["--scheduler", "tcp://127.0.0.1:8786", "--coordinator", "127.0.0.1:1234"],
+            "--scheduler (Dask) and --coordinator (jax.distributed) exclude each other",
+        ),
+        (["--workers", "0"], "--workers must be >= 1"),
+        (["--scheduler", " "], "--scheduler needs an address"),
+    ],
+)
 def test_cli_refuses_bad_cluster_options(tmp_path, capsys, options, message):
     cfg = tmp_path / "map.toml"
     cfg.write_text(CONFIG)
@@ -296,8 +350,17 @@ def test_a_chunk_that_kills_every_worker_is_reported(client, tmp_path):
     it; the chunks already written are kept. (Last: both workers are restarting afterwards.)"""
     client.wait_for_workers(2, timeout=60)
     path = tmp_path / "crash.zarr"
-    with pytest.raises(SweepError, match=r"chunk \d+ was lost with every worker that ran it.*"
-                                         r"resume the sweep"):
-        sweep(kills_its_worker, DASK_AXES, chunk_size=DASK_CHUNK, store=path, client=client,
-              progress=False)
+    with pytest.raises(
+        SweepError,
+        match=r"chunk \d+ was lost with every worker that ran it.*"
+        r"resume the sweep",
+    ):
+        sweep(
+            kills_its_worker,
+            DASK_AXES,
+            chunk_size=DASK_CHUNK,
+            store=path,
+            client=client,
+            progress=False,
+        )
     assert not (tmp_path / "crash.zarr.lock").exists()

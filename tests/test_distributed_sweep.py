@@ -57,16 +57,20 @@ rtol = 1e-8
 atol = 1e-8
 samples = 51
 """
-RBO_JAX = [sys.executable, "-c", "import sys; sys.argv[0] = 'rbo-jax'; "
-           "from rbo_jax.app.cli import run; run()"]
+RBO_JAX = [
+    sys.executable,
+    "-c",
+    "import sys; sys.argv[0] = 'rbo-jax'; from rbo_jax.app.cli import run; run()",
+]
 CRASH_MARKS = ("Check failure", "    @ 0x", "Traceback", "terminate called")
 
 
 def _crashed(err: str) -> bool:
     """Whether stderr shows a C++ abort, JAX's log (glog lines: E1125 12:00:00...) or a
     Python traceback."""
-    return (any(mark in err for mark in CRASH_MARKS)
-            or any(re.match(r"[IWEF]\d{4} \d\d:", line) for line in err.splitlines()))
+    return any(mark in err for mark in CRASH_MARKS) or any(
+        re.match(r"[IWEF]\d{4} \d\d:", line) for line in err.splitlines()
+    )
 
 
 def _env():
@@ -92,8 +96,9 @@ def _chunks_done(store: Path) -> int:
     import zarr
 
     try:
-        return int((np.asarray(zarr.open_group(store, mode="r")["_sweep/chunk_done"][...])
-                    == 1).sum())
+        return int(
+            (np.asarray(zarr.open_group(store, mode="r")["_sweep/chunk_done"][...]) == 1).sum()
+        )
     except Exception:  # not created yet
         return 0
 
@@ -103,8 +108,14 @@ def reference(tmp_path_factory):
     """The sweep on one process (the CLI, as the multi-process runs)."""
     folder = tmp_path_factory.mktemp("one")
     (folder / "growth.toml").write_text(CONFIG)
-    done = subprocess.run([*RBO_JAX, "sweep", "growth.toml", "--quiet", "--no-plot"],
-                          cwd=folder, env=_env(), capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [*RBO_JAX, "sweep", "growth.toml", "--quiet", "--no-plot"],
+        cwd=folder,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     return _arrays(folder / "growth.zarr")
 
@@ -115,12 +126,32 @@ def _two_processes(folder: Path, kill: int, heartbeat: int):
     (returncode, stderr, seconds from the kill to its end)."""
     (folder / "growth.toml").write_text(CONFIG)
     store, port = folder / "growth.zarr", _free_port()
-    procs = [subprocess.Popen(
-        [*RBO_JAX, "sweep", "growth.toml", "--no-plot", "--quiet", "--coordinator",
-         f"localhost:{port}", "--num-processes", "2", "--process-id", str(i),
-         "--heartbeat-timeout", str(heartbeat)],
-        cwd=folder, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        start_new_session=True) for i in range(2)]
+    procs = [
+        subprocess.Popen(
+            [
+                *RBO_JAX,
+                "sweep",
+                "growth.toml",
+                "--no-plot",
+                "--quiet",
+                "--coordinator",
+                f"localhost:{port}",
+                "--num-processes",
+                "2",
+                "--process-id",
+                str(i),
+                "--heartbeat-timeout",
+                str(heartbeat),
+            ],
+            cwd=folder,
+            env=_env(),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+        for i in range(2)
+    ]
     survivor = procs[1 - kill]
     try:
         deadline = time.monotonic() + 300
@@ -170,29 +201,54 @@ def test_lost_coordinator_ends_the_worker_in_one_line_and_resume_finishes(tmp_pa
     assert seconds < 60
     command = lines[0].split("finish the sweep with: rbo-jax ", 1)[1].split(" (or all", 1)[0]
     assert "--coordinator" not in command and command.endswith("--resume")
-    done = subprocess.run([*RBO_JAX, *command.split()], cwd=tmp_path, env=_env(),
-                          capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [*RBO_JAX, *command.split()],
+        cwd=tmp_path,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     got = _arrays(tmp_path / "growth.zarr")
     for name in reference:
         np.testing.assert_array_equal(got[name], reference[name], err_msg=name)
 
 
-@pytest.mark.parametrize("options, message", [
-    (["--coordinator", "localhost:1234"], "go together"),
-    (["--coordinator", "not a host", "--num-processes", "2", "--process-id", "0"], "HOST:PORT"),
-    (["--coordinator", "localhost:99999", "--num-processes", "2", "--process-id", "0"],
-     "HOST:PORT"),
-    (["--coordinator", "localhost:1234", "--num-processes", "2", "--process-id", "5"],
-     "--process-id must lie in 0..1"),
-    (["--coordinator", "localhost:1234", "--num-processes", "0", "--process-id", "0"],
-     "--num-processes must be at least 1"),
-    (["--coordinator", "localhost:1234", "--num-processes", "2", "--process-id", "0",
-      "--heartbeat-timeout", "0"], "--heartbeat-timeout must be at least 1"),
-    (["--heartbeat-timeout", "5"], "--heartbeat-timeout belongs to a multi-process run"),
-])
-def test_multi_process_options_refused_before_anything_starts(tmp_path, capsys, options,
-                                                                message):
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--coordinator", "localhost:1234"], "go together"),
+        (["--coordinator", "not a host", "--num-processes", "2", "--process-id", "0"], "HOST:PORT"),
+        (
+            ["--coordinator", "localhost:99999", "--num-processes", "2", "--process-id", "0"],
+            "HOST:PORT",
+        ),
+        (
+            ["--coordinator", "localhost:1234", "--num-processes", "2", "--process-id", "5"],
+            "--process-id must lie in 0..1",
+        ),
+        (
+            ["--coordinator", "localhost:1234", "--num-processes", "0", "--process-id", "0"],
+            "--num-processes must be at least 1",
+        ),
+        (
+            [
+                "--coordinator",
+                "localhost:1234",
+                "--num-processes",
+                "2",
+                "--process-id",
+                "0",
+                "--heartbeat-timeout",
+                "0",
+            ],
+            "--heartbeat-timeout must be at least 1",
+        ),
+        (["--heartbeat-timeout", "5"], "--heartbeat-timeout belongs to a multi-process run"),
+    ],
+)
+def test_multi_process_options_refused_before_anything_starts(tmp_path, capsys, options, message):
     (tmp_path / "growth.toml").write_text(CONFIG)
     rc = cli.main(["sweep", str(tmp_path / "growth.toml"), "--no-plot", *options])
     err = capsys.readouterr().err

@@ -41,8 +41,9 @@ K = np.array([0.0, 0.0, 1.0])
 def _compiled_by(code: str) -> list[str]:
     """The programs compiled while ``code`` runs in a fresh interpreter (after the prelude)."""
     script = PRELUDE + textwrap.dedent(code) + "\nprint(json.dumps(compiled))\n"
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         timeout=300, check=False)
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=False
+    )
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -70,8 +71,12 @@ def test_concrete_times_are_checked_on_the_host():
     np.testing.assert_array_equal(ts, np.arange(5.0))
     given = jax.device_put(np.linspace(0.0, 1.0, 4))
     assert check_times(given) is given
-    for bad, match in [([0.0, 1.0, 1.0], "strictly increasing"), ([0.0, np.inf], "finite"),
-                       (np.zeros((2, 2)), "1-D"), ([], "non-empty")]:
+    for bad, match in [
+        ([0.0, 1.0, 1.0], "strictly increasing"),
+        ([0.0, np.inf], "finite"),
+        (np.zeros((2, 2)), "1-D"),
+        ([], "non-empty"),
+    ]:
         with pytest.raises(ValueError, match=match):
             check_times(bad)
 
@@ -105,13 +110,16 @@ def test_derived_quantities_match_the_model_per_sample():
     model = nikolai_model(0.3, 1.0, 2.0, friction=0.05)
     ts = np.linspace(0.0, 1.0, 5)
     traj = simulate(model, np.array([0.3, -0.2, 0.5]), np.array([0.1, 0.4, -0.3]), ts)
-    for name, f, args in [("omega", model.omega, (traj.theta, traj.Omega)),
-                          ("energy", model.energy, (traj.theta, traj.Omega)),
-                          ("kinetic_energy", model.kinetic_energy, (traj.Omega,)),
-                          ("potential_energy", model.potential_energy, (traj.theta,))]:
+    for name, f, args in [
+        ("omega", model.omega, (traj.theta, traj.Omega)),
+        ("energy", model.energy, (traj.theta, traj.Omega)),
+        ("kinetic_energy", model.kinetic_energy, (traj.Omega,)),
+        ("potential_energy", model.potential_energy, (traj.theta,)),
+    ]:
         expected = np.stack([np.asarray(f(*(a[i] for a in args))) for i in range(len(ts))])
-        np.testing.assert_allclose(getattr(traj, name), expected, rtol=1e-14, atol=1e-15,
-                                   err_msg=name)
+        np.testing.assert_allclose(
+            getattr(traj, name), expected, rtol=1e-14, atol=1e-15, err_msg=name
+        )
     # inside a transformation the quantities are traced with the rest
     energy = jax.jit(lambda t: t.energy)(traj)
     np.testing.assert_allclose(energy, traj.energy, rtol=1e-14)
@@ -119,8 +127,9 @@ def test_derived_quantities_match_the_model_per_sample():
 
 
 def test_observed_data_stay_float64_on_the_device():
-    data = TrajectoryData(np.linspace(0.0, 1.0, 3), theta=np.zeros((3, 3)), Omega0=np.ones(3),
-                          t0=-0.5)
+    data = TrajectoryData(
+        np.linspace(0.0, 1.0, 3), theta=np.zeros((3, 3)), Omega0=np.ones(3), t0=-0.5
+    )
     for x in (data.ts, data.theta, data.theta0, data.t0):
         assert isinstance(x, jax.Array) and x.dtype == np.float64
     assert float(data.t0) == -0.5

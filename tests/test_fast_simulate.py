@@ -32,23 +32,31 @@ RUNTIME_ERRORS = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)
 
 def make_model(c=1.0, d=2.0, alpha=2.0, beta=1.5, A1=1.0, A3=0.6, M=0.3, b=0.05):
     """Barrier foundation (4.49), semi-tangential moment (4.75), friction (4.84)."""
-    return RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K),
-                               BarrierFoundation(c, d, alpha, beta, K),
-                               [SemiTangentialMoment(M, K), Friction(b)])
+    return RigidBodyOscillator(
+        transversely_isotropic_inertia(A1, A3, K),
+        BarrierFoundation(c, d, alpha, beta, K),
+        [SemiTangentialMoment(M, K), Friction(b)],
+    )
 
 
 def conservative_model(c=1.0, d=2.0, A1=1.0, A3=0.6):
-    return RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K),
-                               QuadraticFoundation(c, d, K), [])
+    return RigidBodyOscillator(
+        transversely_isotropic_inertia(A1, A3, K), QuadraticFoundation(c, d, K), []
+    )
 
 
 def scipy_dop853(model, y0, ts, rtol, atol, sample=True):
     """SciPy's DOP853 on the model's right form: at ``ts`` (``sample``) or at its own steps."""
     rhs = jax.jit(lambda y: jnp.concatenate(model.right_form()(0.0, (y[:3], y[3:]))))
-    return scipy.integrate.solve_ivp(lambda t, y: np.asarray(rhs(jnp.asarray(y))),
-                                     (float(ts[0]), float(ts[-1])), np.asarray(y0),
-                                     method="DOP853", rtol=rtol, atol=atol,
-                                     t_eval=np.asarray(ts) if sample else None)
+    return scipy.integrate.solve_ivp(
+        lambda t, y: np.asarray(rhs(jnp.asarray(y))),
+        (float(ts[0]), float(ts[-1])),
+        np.asarray(y0),
+        method="DOP853",
+        rtol=rtol,
+        atol=atol,
+        t_eval=np.asarray(ts) if sample else None,
+    )
 
 
 def test_tableau_is_scipys():
@@ -104,9 +112,16 @@ def test_error_follows_the_tolerance():
     model = conservative_model()
     ts = jnp.array([0.0, 5.0])
     ref = simulate(model, THETA0, OMEGA0, ts, rtol=1e-14, atol=1e-14).theta[-1]
-    errs = [float(jnp.max(jnp.abs(fast_simulate(model, THETA0, OMEGA0, ts, rtol=tol,
-                                                atol=tol).theta[-1] - ref)))
-            for tol in (1e-6, 1e-9)]
+    errs = [
+        float(
+            jnp.max(
+                jnp.abs(
+                    fast_simulate(model, THETA0, OMEGA0, ts, rtol=tol, atol=tol).theta[-1] - ref
+                )
+            )
+        )
+        for tol in (1e-6, 1e-9)
+    ]
     assert errs[1] < errs[0] / 100  # tolerance proportionality over three decades
     assert errs[0] < 1e-4
 
@@ -133,8 +148,9 @@ def test_vmap_without_jit_takes_numpy_batches():
 
     ps = np.array([[0.8, 0.1], [1.2, 0.3], [1.6, 0.5]])
     eager = jax.vmap(final)(ps)
-    np.testing.assert_allclose(eager, jax.jit(jax.vmap(final))(jnp.asarray(ps)), rtol=1e-12,
-                               atol=1e-14)
+    np.testing.assert_allclose(
+        eager, jax.jit(jax.vmap(final))(jnp.asarray(ps)), rtol=1e-12, atol=1e-14
+    )
     assert np.all(np.isfinite(eager))
 
 
@@ -161,14 +177,23 @@ def test_bad_points_are_flagged_and_the_rest_solved(monkeypatch):
     (4.49)), a step budget too small; the other trajectories are unaffected."""
     monkeypatch.setattr(ensemble, "LANES", 3)
     ps = jnp.array([[1.0, 0.3], [1.0, 0.3], [-1.0, 0.3], [1.0, 0.3], [1.5, 0.1]])
-    y0s = jnp.array([[0.1, 0.0, 0.1, 0.0, 0.2, 0.0],
-                     [jnp.nan, 0.0, 0.1, 0.0, 0.2, 0.0],
-                     [0.1, 0.0, 0.1, 0.0, 0.2, 0.0],
-                     [0.0, 2.1, 0.0, 0.0, 0.2, 0.0],  # beyond the bending barrier
-                     [0.2, 0.1, 0.0, 0.1, 0.0, 0.3]])
+    y0s = jnp.array(
+        [
+            [0.1, 0.0, 0.1, 0.0, 0.2, 0.0],
+            [jnp.nan, 0.0, 0.1, 0.0, 0.2, 0.0],
+            [0.1, 0.0, 0.1, 0.0, 0.2, 0.0],
+            [0.0, 2.1, 0.0, 0.0, 0.2, 0.0],  # beyond the bending barrier
+            [0.2, 0.1, 0.0, 0.1, 0.0, 0.3],
+        ]
+    )
     theta, Omega, status, _ = _batch(_model_of, ps, y0s, TS)
-    expect = [SolveStatus.successful, SolveStatus.nonfinite_input,
-              SolveStatus.invalid_parameters, SolveStatus.domain_error, SolveStatus.successful]
+    expect = [
+        SolveStatus.successful,
+        SolveStatus.nonfinite_input,
+        SolveStatus.invalid_parameters,
+        SolveStatus.domain_error,
+        SolveStatus.successful,
+    ]
     for i, e in enumerate(expect):
         assert bool((status == e)[i]), i
     assert np.all(np.isinf(np.asarray(theta[1]))) and np.all(np.isnan(np.asarray(theta[2])))
@@ -204,8 +229,9 @@ def test_singular_point_is_reported_not_nan():
 def test_plane_motion_passes_through_2pi():
     """Rotation about a fixed axis (θ ∥ Ω) crosses |θ| = 2π harmlessly: no singular status, and
     the rotation angle grows as for a free spin about k at rate Ω (4.14)."""
-    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 0.6, K),
-                                QuadraticFoundation(1.0, 1e-12, K), [])
+    model = RigidBodyOscillator(
+        transversely_isotropic_inertia(1.0, 0.6, K), QuadraticFoundation(1.0, 1e-12, K), []
+    )
     ts = jnp.linspace(0.0, 10.0, 11)
     tr = fast_simulate(model, jnp.zeros(3), jnp.array([0.0, 0.0, 1.0]), ts)
     np.testing.assert_allclose(tr.theta[:, 2], ts, rtol=1e-8, atol=1e-8)
@@ -252,8 +278,9 @@ def test_throw_false_programs_hold_no_host_callback():
     solve) is in the status; with throw=True the checks raise, through callbacks."""
 
     def run(throw):
-        return jax.jit(lambda c, ts: fast_simulate(make_model(c=c), THETA0, OMEGA0, ts,
-                                                   throw=throw).theta)
+        return jax.jit(
+            lambda c, ts: fast_simulate(make_model(c=c), THETA0, OMEGA0, ts, throw=throw).theta
+        )
 
     assert "callback" not in run(False).lower(1.0, TS).as_text()
     assert "callback" in run(True).lower(1.0, TS).as_text()
@@ -272,8 +299,11 @@ def test_traced_bad_times_give_a_status_without_throw(integrator):
         np.testing.assert_array_equal(tr.ts, np.asarray(ts))
     if integrator is fast_simulate:
         with pytest.raises(RUNTIME_ERRORS, match="strictly increasing"):
-            jax.block_until_ready(jax.jit(lambda ts: integrator(
-                conservative_model(), THETA0, OMEGA0, ts).theta)(jnp.array([0.0, 2.0, 1.0])))
+            jax.block_until_ready(
+                jax.jit(lambda ts: integrator(conservative_model(), THETA0, OMEGA0, ts).theta)(
+                    jnp.array([0.0, 2.0, 1.0])
+                )
+            )
 
 
 @pytest.mark.slow
@@ -303,8 +333,11 @@ def test_undefined_moment_direction_is_a_status_without_throw():
     of the semi-tangential moment (4.75) is undefined: throw=True raises its message; with
     throw=False the vector field gives NaN instead of a host callback and the solve stops with
     nonfinite_state."""
-    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 0.6, K),
-                                QuadraticFoundation(1.0, 2.0, K), [SemiTangentialMoment(1.0, K)])
+    model = RigidBodyOscillator(
+        transversely_isotropic_inertia(1.0, 0.6, K),
+        QuadraticFoundation(1.0, 2.0, K),
+        [SemiTangentialMoment(1.0, K)],
+    )
     half_turn = jnp.array([0.0, np.pi, 0.0])
     ts = jnp.linspace(0.0, 1.0, 5)
     run = jax.jit(lambda th: fast_simulate(model, th, OMEGA0 * 0, ts, throw=False))

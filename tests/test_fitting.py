@@ -91,9 +91,16 @@ def test_loss_gradient_matches_finite_differences():
     data = tuple(_synthetic(true_model, INITS[:1], ts))
     model = RigidBodyOscillator(A, QuadraticFoundation(1.1, 1.8, K))
     spec = _Spec(
-        paths=tuple(p for p, leaf in jax.tree_util.tree_flatten_with_path(model)[0]
-                    if leaf is model.foundation.c or leaf is model.foundation.d),
-        transforms=("log", "log"), fit_initial_state=False, rtol=1e-12, atol=1e-12, forward=False,
+        paths=tuple(
+            p
+            for p, leaf in jax.tree_util.tree_flatten_with_path(model)[0]
+            if leaf is model.foundation.c or leaf is model.foundation.d
+        ),
+        transforms=("log", "log"),
+        fit_initial_state=False,
+        rtol=1e-12,
+        atol=1e-12,
+        forward=False,
     )
     u = {"p": (jnp.log(1.1), jnp.log(1.8))}
     _, g = _loss_and_grad(u, model, data, spec)
@@ -165,11 +172,13 @@ def test_partial_observations_omega_only_and_masked_theta():
 
 def _quat_to_mat(q):
     w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _mujoco_ball_joint(c, b, inertia, theta0, Omega0, t1, n, dt=1e-4):
@@ -206,8 +215,10 @@ def test_mujoco_ball_joint_stiffness_and_damping_recovered():
     c, b, inertia = 2.0, 0.1, (1.0, 1.3, 0.7)
     A_diag = jnp.diag(jnp.asarray(inertia))
     datas = []
-    for th0, Om0 in [(np.array([0.5, -0.3, 0.8]), np.array([0.4, 1.2, -0.6])),
-                     (np.array([-0.2, 0.7, 0.1]), np.array([1.0, -0.3, 0.5]))]:
+    for th0, Om0 in [
+        (np.array([0.5, -0.3, 0.8]), np.array([0.4, 1.2, -0.6])),
+        (np.array([-0.2, 0.7, 0.1]), np.array([1.0, -0.3, 0.5])),
+    ]:
         ts, Qs, Oms = _mujoco_ball_joint(c, b, inertia, th0, Om0, 5.0, 101)
         datas.append(TrajectoryData(ts, Q=Qs, Omega=Oms, theta0=th0, Omega0=Om0))
     start = RigidBodyOscillator(A_diag, QuadraticFoundation(1.4 * c, 1.4 * c, K), Friction(0.7 * b))
@@ -227,15 +238,24 @@ def test_mujoco_ball_joint_stiffness_and_damping_recovered():
 
 @pytest.mark.parametrize(
     "optimizer",
-    [pytest.param("adam", marks=pytest.mark.slow), pytest.param("lbfgs", marks=pytest.mark.slow),
-     "gauss_newton"],
+    [
+        pytest.param("adam", marks=pytest.mark.slow),
+        pytest.param("lbfgs", marks=pytest.mark.slow),
+        "gauss_newton",
+    ],
 )
 def test_other_optimizers_decrease_the_loss(optimizer):
     true_model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
     data = _synthetic(true_model, INITS[:1], jnp.linspace(0.0, 3.0, 30))
     start = RigidBodyOscillator(A, QuadraticFoundation(1.2, 1.7, K))
-    res = fit(start, data, lambda m: (m.foundation.c, m.foundation.d), optimizer=optimizer,
-              max_steps=15, learning_rate=0.05)
+    res = fit(
+        start,
+        data,
+        lambda m: (m.foundation.c, m.foundation.d),
+        optimizer=optimizer,
+        max_steps=15,
+        learning_rate=0.05,
+    )
     assert res.loss_history[-1] < 0.2 * res.loss_history[0]
 
 
@@ -247,8 +267,13 @@ def test_staged_horizons_and_initial_state_fit():
     tr = simulate(true_model, th0, Om0, ts, rtol=1e-12, atol=1e-12)
     data = TrajectoryData(ts, theta=tr.theta, Omega=tr.Omega, theta0=th0 + 0.05, Omega0=Om0 - 0.05)
     start = RigidBodyOscillator(A, QuadraticFoundation(1.2, 1.7, K))
-    res = fit(start, data, lambda m: (m.foundation.c, m.foundation.d), fit_initial_state=True,
-              horizons=(0.5, 1.0))
+    res = fit(
+        start,
+        data,
+        lambda m: (m.foundation.c, m.foundation.d),
+        fit_initial_state=True,
+        horizons=(0.5, 1.0),
+    )
     np.testing.assert_allclose([float(v) for v in res.params], [1.0, 2.0], rtol=1e-6)
     np.testing.assert_allclose(res.initial_states[0][0], th0, atol=1e-7)
     np.testing.assert_allclose(res.initial_states[0][1], Om0, atol=1e-7)
@@ -319,11 +344,16 @@ def test_fast_simulate_residuals_vanish_on_the_generating_model(t0):
     true_model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
     th0, Om0 = INITS[0]
     ts = jnp.linspace(0.0 if t0 is None else 0.5, 3.0, 30)
-    tr = simulate(true_model, th0, Om0, jnp.concatenate([jnp.zeros(1), ts]) if t0 is not None
-                  else ts, rtol=1e-12, atol=1e-12)
+    tr = simulate(
+        true_model,
+        th0,
+        Om0,
+        jnp.concatenate([jnp.zeros(1), ts]) if t0 is not None else ts,
+        rtol=1e-12,
+        atol=1e-12,
+    )
     k = 0 if t0 is None else 1
-    data = TrajectoryData(ts, theta=tr.theta[k:], Omega=tr.Omega[k:], theta0=th0, Omega0=Om0,
-                          t0=t0)
+    data = TrajectoryData(ts, theta=tr.theta[k:], Omega=tr.Omega[k:], theta0=th0, Omega0=Om0, t0=t0)
     r = residuals(true_model, data, rtol=1e-12, atol=1e-12, integrator="fast_simulate")
     assert r.shape == (30 * 3 * 2,)
     assert float(jnp.max(jnp.abs(r))) < 1e-9
@@ -346,8 +376,9 @@ def test_fast_simulate_and_simulate_fits_agree():
     for res in (fast, slow):
         assert res.converged, res.message
         np.testing.assert_allclose([float(v) for v in res.params], [1.0, 2.0, 0.1], rtol=1e-6)
-    np.testing.assert_allclose([float(v) for v in fast.params],
-                               [float(v) for v in slow.params], rtol=1e-7)
+    np.testing.assert_allclose(
+        [float(v) for v in fast.params], [float(v) for v in slow.params], rtol=1e-7
+    )
 
 
 def test_fit_programs_hold_no_host_callback():
@@ -362,9 +393,15 @@ def test_fit_programs_hold_no_host_callback():
     u = {"p": tuple(jnp.log(v) for v in values)}
 
     def program(integrator):
-        spec = _Spec(paths=leaf_paths(model, values), transforms=("log", "log"),
-                     fit_initial_state=False, rtol=1e-10, atol=1e-10, forward=True,
-                     integrator=integrator)
+        spec = _Spec(
+            paths=leaf_paths(model, values),
+            transforms=("log", "log"),
+            fit_initial_state=False,
+            rtol=1e-10,
+            atol=1e-10,
+            forward=True,
+            integrator=integrator,
+        )
         return residuals_and_jacobian.lower(u, model, (data,), spec).as_text()
 
     assert "callback" not in program("fast_simulate")
@@ -379,8 +416,9 @@ def test_fit_program_is_kept_by_the_program_store(tmp_path, monkeypatch):
 
     traces = []
     vector = _residuals.residual_vector
-    monkeypatch.setattr(_residuals, "residual_vector",
-                        lambda *a: traces.append(1) or vector(*a))  # called when traced
+    monkeypatch.setattr(
+        _residuals, "residual_vector", lambda *a: traces.append(1) or vector(*a)
+    )  # called when traced
     model = RigidBodyOscillator(A, QuadraticFoundation(1.3, 1.5, K))
     truth = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
     (data,) = _synthetic(truth, INITS[:1], jnp.linspace(0.0, 1.0, 6))

@@ -526,6 +526,7 @@ def test_construction_inside_vmap_jit_grad():
 def test_traced_bad_parameters_are_named_by_the_checks(make, match):
     """A foundation built from traced values cannot be checked at construction; its
     parameter_checks() evaluate the same requirements (the solvers use them), per point."""
+
     def valid(c):
         return jnp.stack([v for v, _ in make(c).parameter_checks()])
 

@@ -21,8 +21,13 @@ SUBPACKAGES = ("rbo_jax.batch", "rbo_jax.bifurcation", "rbo_jax.fitting")
 
 def _fresh(code: str) -> dict:
     """Run ``code`` in a new interpreter; it prints one JSON object as its last line."""
-    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
-                         text=True, timeout=300, check=False)
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -39,18 +44,27 @@ def test_import_loads_no_layer_and_no_heavy_dependency():
         print({_loaded(", 'layers': layers, 'x64': rbo_jax.float64_enabled()")})
     """)
     assert got["heavy"] == []
-    assert set(got["layers"]) <= {"rbo_jax._lazy", "rbo_jax._precision", "rbo_jax._cache"}, \
-        got["layers"]
+    assert set(got["layers"]) <= {"rbo_jax._lazy", "rbo_jax._precision", "rbo_jax._cache"}, got[
+        "layers"
+    ]
     assert got["x64"] is True
 
 
-@pytest.mark.parametrize("statement, absent", [
-    ("from rbo_jax import turn_tensor", HEAVY),
-    ("from rbo_jax import nikolai_model, Trajectory, fast_simulate",
-     ("diffrax", "optimistix", "optax", "xarray", "zarr", "matplotlib")),
-    ("from rbo_jax.fitting import TrajectoryData", ("diffrax", "optax", "xarray", "zarr")),
-    ("from rbo_jax.batch import POINT_DIM, status_counts", ("diffrax", "optax", "xarray", "zarr")),
-])
+@pytest.mark.parametrize(
+    "statement, absent",
+    [
+        ("from rbo_jax import turn_tensor", HEAVY),
+        (
+            "from rbo_jax import nikolai_model, Trajectory, fast_simulate",
+            ("diffrax", "optimistix", "optax", "xarray", "zarr", "matplotlib"),
+        ),
+        ("from rbo_jax.fitting import TrajectoryData", ("diffrax", "optax", "xarray", "zarr")),
+        (
+            "from rbo_jax.batch import POINT_DIM, status_counts",
+            ("diffrax", "optax", "xarray", "zarr"),
+        ),
+    ],
+)
 def test_a_name_loads_only_what_it_needs(statement, absent):
     got = _fresh(f"""
         import json, sys

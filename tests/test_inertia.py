@@ -103,8 +103,11 @@ def test_check_inertia_traced():
         return jnp.stack([~v for v, _ in inertia_checks(A)])
 
     messages = [m for _, m in inertia_checks(good)]
-    bad = {"positive definite": np.diag([1.0, -1.0, 3.0]),
-           "symmetric": good + np.triu(np.ones((3, 3)), 1), "finite": np.diag([1.0, np.nan, 1.0])}
+    bad = {
+        "positive definite": np.diag([1.0, -1.0, 3.0]),
+        "symmetric": good + np.triu(np.ones((3, 3)), 1),
+        "finite": np.diag([1.0, np.nan, 1.0]),
+    }
     flags = np.asarray(jax.jit(jax.vmap(failed))(jnp.asarray([good, *bad.values()])))
     assert not flags[0].any()
     for row, word in zip(flags[1:], bad):

@@ -22,8 +22,11 @@ TS = np.linspace(0.0, 5.0, 11)
 
 
 def body(c=C, d=D, A3=A3, loads=()):
-    return rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(A1, A3, K),
-                                       rbo_jax.QuadraticFoundation(c, d, K), loads)
+    return rbo_jax.RigidBodyOscillator(
+        rbo_jax.transversely_isotropic_inertia(A1, A3, K),
+        rbo_jax.QuadraticFoundation(c, d, K),
+        loads,
+    )
 
 
 def coupling(kb=KB, kt=KT):
@@ -148,8 +151,7 @@ def test_friction_gives_flutter_bands_of_wavenumbers():
         lat = L.chain(6, nikolai_body(M, b), coupling(0.8, 0.5))
         return {"growth": jnp.max(jnp.real(L.dispersion(lat, q)))}
 
-    ds = rbo_jax.sweep(growth, {"q": qs, "M": np.array([0.0, 0.15, 0.25, 0.35])},
-                       progress=False)
+    ds = rbo_jax.sweep(growth, {"q": qs, "M": np.array([0.0, 0.15, 0.25, 0.35])}, progress=False)
     g = ds["growth"].values  # (q, M)
     assert np.all(g[:, :2] < 0)  # no load, or below the Hopf load: every wave decays
     edges = []
@@ -161,7 +163,8 @@ def test_friction_gives_flutter_bands_of_wavenumbers():
         edges.append(edge)
     assert edges[1] > edges[0]  # wider with the load
     single = rbo_jax.spectral_abscissa(
-        rbo_jax.spectrum(nikolai_body(0.25, b), jnp.array([0.0, 0.0, 0.25 / D])))
+        rbo_jax.spectrum(nikolai_body(0.25, b), jnp.array([0.0, 0.0, 0.25 / D]))
+    )
     np.testing.assert_allclose(g[0, 2], single, rtol=1e-10)
 
 
@@ -182,8 +185,9 @@ def test_sine_gordon_kink_keeps_its_speed_width_and_energy():
     v = 0.5 * s
     gamma = 1.0 / np.sqrt(1.0 - (v / s) ** 2)
     n_sites, x0 = 120, 30.0
-    site = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(1.0, A3k, K),
-                                       rbo_jax.CosineFoundation(c))
+    site = rbo_jax.RigidBodyOscillator(
+        rbo_jax.transversely_isotropic_inertia(1.0, A3k, K), rbo_jax.CosineFoundation(c)
+    )
     lat = L.chain(n_sites, site, rbo_jax.QuadraticFoundation(kappa, kappa, K), periodic=False)
     xi = gamma * (np.arange(n_sites) - x0) / lam
     phi, dphi = 4 * np.arctan(np.exp(xi)), -2 / np.cosh(xi) * gamma * v / lam
@@ -210,8 +214,9 @@ def test_sine_gordon_breather_oscillates_at_its_frequency_with_its_energy():
     its amplitude and frequency over a period; lattice.kink gives the kink of the test above."""
     c, kappa, A3k, mu = 1.0, 25.0, 1.0, 0.6
     n_sites, x0 = 120, 60.0
-    site = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(1.0, A3k, K),
-                                       rbo_jax.CosineFoundation(c))
+    site = rbo_jax.RigidBodyOscillator(
+        rbo_jax.transversely_isotropic_inertia(1.0, A3k, K), rbo_jax.CosineFoundation(c)
+    )
     lat = L.chain(n_sites, site, rbo_jax.QuadraticFoundation(kappa, kappa, K), periodic=False)
     th0, Om0 = L.breather(n_sites, c, kappa, A3k, x0=x0, mu=mu)
     period = 2 * np.pi / (np.sqrt(c / A3k) * np.cos(mu))
@@ -225,13 +230,15 @@ def test_sine_gordon_breather_oscillates_at_its_frequency_with_its_energy():
     np.testing.assert_allclose(energy, energy[0], rtol=1e-10)
     lam = np.sqrt(kappa / c)
     xi = (np.arange(40) - 10.0) / lam
-    np.testing.assert_allclose(L.kink(40, c, kappa, A3k, x0=10.0)[0][:, 2],
-                               4 * np.arctan(np.exp(xi)), rtol=1e-14)
+    np.testing.assert_allclose(
+        L.kink(40, c, kappa, A3k, x0=10.0)[0][:, 2], 4 * np.arctan(np.exp(xi)), rtol=1e-14
+    )
 
 
 def kelvin_chain(n=12, kb=0.9, kt=0.4):
-    site = rbo_jax.RigidBodyOscillator(rbo_jax.transversely_isotropic_inertia(A1, A3, K),
-                                       rbo_jax.ZeroFoundation())
+    site = rbo_jax.RigidBodyOscillator(
+        rbo_jax.transversely_isotropic_inertia(A1, A3, K), rbo_jax.ZeroFoundation()
+    )
     return L.chain(n, site, rbo_jax.QuadraticFoundation(kb, kt, K))
 
 
@@ -243,8 +250,7 @@ def test_kelvin_medium_spinning_twist_is_exact():
     lat = kelvin_chain(n)
     phi0 = np.angle(np.exp(1j * np.arange(n) * 2 * np.pi * 2 / n))  # m = 2, in (-pi, pi]
     ts = np.linspace(0.0, 10.0, 11)
-    traj = L.simulate(lat, phi0[:, None] * K, np.tile(Om * K, (n, 1)), ts, rtol=1e-11,
-                      atol=1e-12)
+    traj = L.simulate(lat, phi0[:, None] * K, np.tile(Om * K, (n, 1)), ts, rtol=1e-11, atol=1e-12)
     assert traj.status_name == "successful" and int(traj.num_recentred) == 0
     theta = np.asarray(traj.theta)
     np.testing.assert_allclose(theta[..., 2], phi0[None] + Om * ts[:, None], atol=1e-8)
@@ -288,8 +294,7 @@ def test_off_plane_turns_are_recentred_through_the_singular_sphere():
         exact = np.asarray(rbo_jax.turn_tensor(th0[0]) @ rbo_jax.turn_tensor(w * t * np.eye(3)[0]))
         for i in (0, n - 1):
             np.testing.assert_allclose(rbo_jax.turn_tensor(traj.theta[k, i]), exact, atol=1e-8)
-    stopped = L.simulate(lat, th0, Om0, ts, rtol=1e-11, atol=1e-12, recenter=False,
-                         throw=False)
+    stopped = L.simulate(lat, th0, Om0, ts, rtol=1e-11, atol=1e-12, recenter=False, throw=False)
     assert stopped.status_name == "singular_point"
     assert not np.all(np.isfinite(np.asarray(stopped.theta)[-1]))
 
@@ -312,11 +317,16 @@ def test_splitting_energy_error_stays_bounded_over_1e5_steps():
     assert err[-10:].max() < 2 * err[:11].max()
     short = np.linspace(0.0, 2.0, 101)
     ref = np.asarray(L.simulate(lat, th0, Om0, short, rtol=1e-12, atol=1e-13).theta[-1])
-    errs = [np.abs(np.asarray(L.simulate(lat, th0, Om0, short, method="splitting",
-                                         dt=dt).theta[-1]) - ref).max() for dt in (0.02, 0.01)]
+    errs = [
+        np.abs(
+            np.asarray(L.simulate(lat, th0, Om0, short, method="splitting", dt=dt).theta[-1]) - ref
+        ).max()
+        for dt in (0.02, 0.01)
+    ]
     np.testing.assert_allclose(errs[0] / errs[1], 4.0, rtol=0.1)  # second order
-    traj = L.simulate(kelvin_chain(6), th0, Om0, np.linspace(0.0, 50.0, 101),
-                      method="splitting", dt=0.01)
+    traj = L.simulate(
+        kelvin_chain(6), th0, Om0, np.linspace(0.0, 50.0, 101), method="splitting", dt=0.01
+    )
     moment = np.asarray(traj.kinetic_moment)
     assert np.abs(moment - moment[0]).max() < 1e-11
 
@@ -394,8 +404,9 @@ def test_bad_input_is_refused_with_the_name_of_the_argument():
     with pytest.raises(ValueError, match="needs a step dt"):
         L.simulate(lat, th, th, ts, method="splitting")
     with pytest.raises(ValueError, match="no loads"):
-        L.simulate(L.chain(4, nikolai_body(0.2), coupling()), th, th, ts, method="splitting",
-                   dt=0.1)
+        L.simulate(
+            L.chain(4, nikolai_body(0.2), coupling()), th, th, ts, method="splitting", dt=0.1
+        )
     with pytest.raises(ValueError, match="strictly increasing"):
         L.simulate(lat, th, th, ts[::-1])
     with pytest.raises(ValueError, match="n must be >= 2"):
@@ -424,17 +435,17 @@ def test_coupling_moments_are_the_potential_moments_of_the_total_energy():
 
     rng = np.random.default_rng(8)
     barrier = rbo_jax.BarrierFoundation(0.7, 0.3, 2.0, 1.5, K)
-    for lat in (L.chain(5, body(), coupling()),
-                L.grid((3, 4), body(), barrier, periodic=(True, False)),
-                L.Lattice.from_edges(body(), np.array([[0, 1], [1, 2], [0, 2], [3, 1]]),
-                                     coupling())):
+    for lat in (
+        L.chain(5, body(), coupling()),
+        L.grid((3, 4), body(), barrier, periodic=(True, False)),
+        L.Lattice.from_edges(body(), np.array([[0, 1], [1, 2], [0, 2], [3, 1]]), coupling()),
+    ):
         theta = jnp.asarray(rng.normal(size=(3, lat.size)) * 0.6)
 
         @jax.jit
         def both(lat, theta):
             G = jax.grad(L.coupling_energy, argnums=1)(lat, theta)
-            by_gradient = jax.vmap(lambda t, g: -Turn(t).Z(g), in_axes=(1, 1), out_axes=1)(
-                theta, G)
+            by_gradient = jax.vmap(lambda t, g: -Turn(t).Z(g), in_axes=(1, 1), out_axes=1)(theta, G)
             return L.coupling_moments(lat, theta), by_gradient
 
         got, expected = both(lat, theta)
@@ -445,6 +456,7 @@ def test_fits_recover_the_stiffnesses_from_a_dispersion_curve_and_a_field():
     """Least squares by gradients: the foundation's and the coupling's stiffnesses from the
     closed-form branches (the torsion branch measured at every other wavenumber, NaN
     elsewhere), and the coupling's from a recorded space-time field of a simulated chain."""
+
     def lattice(c, kb, kt):
         return L.chain(8, body(c=c), coupling(kb, kt))
 
@@ -452,18 +464,26 @@ def test_fits_recover_the_stiffnesses_from_a_dispersion_curve_and_a_field():
     wb = np.sqrt((C + 4 * KB * np.sin(qs / 2) ** 2) / A1)
     wt = np.sqrt((D + 4 * KT * np.sin(qs / 2) ** 2) / A3)
     omega = np.stack([wb, np.where(np.arange(9) % 2 == 0, wt, np.nan)], 1)
-    fit = L.fit_dispersion(lattice, {"c": 1.5, "kb": 0.3, "kt": 1.0}, qs, omega,
-                           branches=[0, 2], theta_eq=np.zeros(3))  # at rest for every c, kb, kt
+    fit = L.fit_dispersion(
+        lattice, {"c": 1.5, "kb": 0.3, "kt": 1.0}, qs, omega, branches=[0, 2], theta_eq=np.zeros(3)
+    )  # at rest for every c, kb, kt
     assert fit.converged and float(fit.rms) < 1e-12
-    np.testing.assert_allclose([fit.params[k] for k in ("c", "kb", "kt")], [C, KB, KT],
-                               rtol=1e-10)
+    np.testing.assert_allclose([fit.params[k] for k in ("c", "kb", "kt")], [C, KB, KT], rtol=1e-10)
 
     rng = np.random.default_rng(9)
     th0, Om0 = rng.normal(size=(8, 3)) * 0.3, rng.normal(size=(8, 3)) * 0.5
     ts = 0.6 * TS
     field = np.asarray(L.simulate(lattice(C, KB, KT), th0, Om0, ts, **TOL).theta)
-    fit = L.fit_field(lambda kb, kt: lattice(C, kb, kt), {"kb": 0.5, "kt": 0.5}, ts, field,
-                      th0, Om0, rtol=1e-11, atol=1e-12)
+    fit = L.fit_field(
+        lambda kb, kt: lattice(C, kb, kt),
+        {"kb": 0.5, "kt": 0.5},
+        ts,
+        field,
+        th0,
+        Om0,
+        rtol=1e-11,
+        atol=1e-12,
+    )
     assert fit.converged
     np.testing.assert_allclose([fit.params["kb"], fit.params["kt"]], [KB, KT], rtol=1e-8)
     with pytest.raises(ValueError, match="starting values must be finite numbers > 0"):

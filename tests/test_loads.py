@@ -215,15 +215,18 @@ def test_construction_inside_transformations():
         jax.vmap(lambda ll: rbo.SemiTangentialMoment(2.0, K, ll[0], ll[1]).moment(0.0, th, om))
     )(ls)
     np.testing.assert_allclose(np.linalg.norm(out, axis=1), [2.0, 2.0, 2.0], rtol=1e-13)
+
     # traced bad values are named by the parameter checks (which the solvers use)
     def failed(make):
         return [m for v, m in make().parameter_checks() if not bool(v)]
 
-    checks = jax.jit(lambda ll: [v for v, _ in rbo.SemiTangentialMoment(
-        2.0, K, ll[0], ll[1]).parameter_checks()])(jnp.zeros(2))
+    checks = jax.jit(
+        lambda ll: [v for v, _ in rbo.SemiTangentialMoment(2.0, K, ll[0], ll[1]).parameter_checks()]
+    )(jnp.zeros(2))
     names = [m for _, m in rbo.SemiTangentialMoment(2.0, K).parameter_checks()]
     assert [m for m, v in zip(names, checks) if not bool(v)] == [
-        "SemiTangentialMoment: the parameters l1 and l2 must not both be zero"]
+        "SemiTangentialMoment: the parameters l1 and l2 must not both be zero"
+    ]
     assert failed(lambda: rbo.Friction(0.5)) == []
     flags = jax.jit(lambda b: [v for v, _ in rbo.Friction(b).parameter_checks()])(-1.0)
     assert not bool(flags[0])
@@ -246,14 +249,18 @@ def test_parameter_and_state_gradients_match_finite_differences():
     assert np.all(np.abs(np.asarray(J)).max(axis=0) > 1e-3)
 
 
-@pytest.mark.parametrize("make", [
-    lambda: rbo.DeadMoment(0.7, K),
-    lambda: rbo.FollowerMoment(-0.4, K),
-    lambda: rbo.SemiTangentialMoment(0.5, K, 1.0, 0.6),
-    lambda: rbo.Friction(0.3),
-    lambda: rbo.PotentialLoad(lambda th: 0.5 * jnp.sum(th**2) + jnp.sin(th[0]) * th[2]),
-    lambda: rbo.as_load(lambda t, th, w: jnp.array([jnp.cos(t), th[0], w[2]])),
-], ids=["dead", "follower", "semi", "friction", "potential", "callable"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: rbo.DeadMoment(0.7, K),
+        lambda: rbo.FollowerMoment(-0.4, K),
+        lambda: rbo.SemiTangentialMoment(0.5, K, 1.0, 0.6),
+        lambda: rbo.Friction(0.3),
+        lambda: rbo.PotentialLoad(lambda th: 0.5 * jnp.sum(th**2) + jnp.sin(th[0]) * th[2]),
+        lambda: rbo.as_load(lambda t, th, w: jnp.array([jnp.cos(t), th[0], w[2]])),
+    ],
+    ids=["dead", "follower", "semi", "friction", "potential", "callable"],
+)
 def test_body_moment_is_the_world_moment_in_the_body_frame(make):
     """body_moment(t, θ, Ω, P) = Pᵀ·M_ex(t, θ, P·Ω), P = Q(θ) (4.3) with P given as a
     component-wise :class:`rbo_jax.Turn`: the right-hand side of (4.55), whether a load uses the
@@ -275,5 +282,6 @@ def test_body_potential_moment_4_13_4_23():
         grad = np.asarray(jax.grad(U)(jnp.asarray(theta)))
         got = np.asarray(rbo.body_potential_moment(U, jnp.asarray(theta)))
         np.testing.assert_allclose(got, -np_Z(theta) @ grad, rtol=1e-13, atol=1e-14)
-        np.testing.assert_allclose(got, np_Q(theta).T @ (-np_Z(theta).T @ grad),
-                                   rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(
+            got, np_Q(theta).T @ (-np_Z(theta).T @ grad), rtol=1e-12, atol=1e-14
+        )

@@ -49,8 +49,11 @@ def _saturating(s):
 
 
 def saturating_model(M, A3):
-    return rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(1.0, A3, K),
-                                   rbo.IsotropicFoundation(_saturating), rbo.FollowerMoment(M, K))
+    return rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(1.0, A3, K),
+        rbo.IsotropicFoundation(_saturating),
+        rbo.FollowerMoment(M, K),
+    )
 
 
 def saturating_theta_eq(M, A3):
@@ -95,7 +98,12 @@ def test_map_layout(saturating_map):
     assert ds["eigenvalues"].dtype == np.complex128
     assert ds["kind"].dtype == np.int8 and ds["equilibrium_status"].dtype == np.int8
     assert ds["kind"].attrs["flag_meanings"].split() == [
-        "asymptotically_stable", "marginally_stable", "divergence", "flutter", "undefined"]
+        "asymptotically_stable",
+        "marginally_stable",
+        "divergence",
+        "flutter",
+        "undefined",
+    ]
     assert ds["kind"].attrs["flag_values"] == [0, 1, 2, 3, 4]
     assert list(STABILITY_KIND_NAMES) == ds["kind"].attrs["flag_meanings"].split()
     assert ds["equilibrium_status"].attrs["flag_meanings"].split()[0] == "successful"
@@ -124,8 +132,9 @@ def test_map_failing_points_are_flagged_and_the_rest_completes(saturating_map):
             np.testing.assert_allclose(theta, _saturating_root(M) * KN, atol=1e-12)
             p = np.asarray(_spectrum(saturating_model(M, A3), jnp.asarray(theta)))
             _assert_same_spectra(pt["eigenvalues"].values, p, atol=1e-12)
-            np.testing.assert_array_equal(pt["eigenvalues"].values,
-                                          np.sort_complex(pt["eigenvalues"].values))
+            np.testing.assert_array_equal(
+                pt["eigenvalues"].values, np.sort_complex(pt["eigenvalues"].values)
+            )
             kind, a = rbo.classify(jnp.asarray(p))
             np.testing.assert_allclose(float(pt["spectral_abscissa"]), float(a), atol=1e-13)
             assert getattr(StabilityKind, STABILITY_KIND_NAMES[int(pt["kind"])]) == kind
@@ -137,8 +146,12 @@ def test_map_failing_points_are_flagged_and_the_rest_completes(saturating_map):
 @pytest.fixture(scope="module")
 def closed_form_maps():
     """theta_eq_fn path, in chunks of 4 (padded) and in a single chunk of 14."""
-    return {n: rbo.stability_map(saturating_model, SAT_AXES, theta_eq_fn=saturating_theta_eq,
-                                 chunk_size=n) for n in (4, 14)}
+    return {
+        n: rbo.stability_map(
+            saturating_model, SAT_AXES, theta_eq_fn=saturating_theta_eq, chunk_size=n
+        )
+        for n in (4, 14)
+    }
 
 
 def test_map_chunk_padding_equals_single_chunk(closed_form_maps):
@@ -147,8 +160,9 @@ def test_map_chunk_padding_equals_single_chunk(closed_form_maps):
     assert set(padded.data_vars) == set(one.data_vars)
     _assert_same_spectra(padded["eigenvalues"].values, one["eigenvalues"].values, atol=1e-14)
     for name in ("spectral_abscissa", "theta_eq"):
-        np.testing.assert_allclose(padded[name].values, one[name].values, rtol=0, atol=1e-14,
-                                   equal_nan=True, err_msg=name)
+        np.testing.assert_allclose(
+            padded[name].values, one[name].values, rtol=0, atol=1e-14, equal_nan=True, err_msg=name
+        )
     for name in ("kind", "equilibrium_status"):
         np.testing.assert_array_equal(padded[name].values, one[name].values, err_msg=name)
 
@@ -159,11 +173,13 @@ def test_map_closed_form_equilibrium_equals_newton(saturating_map, closed_form_m
     closed = closed_form_maps[14]
     ok = saturating_map["equilibrium_status"].values == 0
     assert ok.sum() == 8
-    np.testing.assert_allclose(closed["theta_eq"].values[ok],
-                               saturating_map["theta_eq"].values[ok], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(
+        closed["theta_eq"].values[ok], saturating_map["theta_eq"].values[ok], rtol=0, atol=1e-13
+    )
     assert np.all(np.isnan(closed["theta_eq"].values[~ok]))
-    _assert_same_spectra(closed["eigenvalues"].values[ok], saturating_map["eigenvalues"].values[ok],
-                         atol=1e-12)
+    _assert_same_spectra(
+        closed["eigenvalues"].values[ok], saturating_map["eigenvalues"].values[ok], atol=1e-12
+    )
     assert np.all(np.isnan(closed["eigenvalues"].values[~ok]))
     np.testing.assert_array_equal(closed["kind"].values, saturating_map["kind"].values)
 
@@ -177,8 +193,10 @@ A1, C_BEND, D_TORS = 1.0, 1.0, 2.0
 
 def damped_model(b, M):
     return rbo.RigidBodyOscillator(
-        rbo.transversely_isotropic_inertia(A1, 0.6, K), rbo.QuadraticFoundation(C_BEND, D_TORS, K),
-        (rbo.FollowerMoment(M, K), rbo.Friction(b)))
+        rbo.transversely_isotropic_inertia(A1, 0.6, K),
+        rbo.QuadraticFoundation(C_BEND, D_TORS, K),
+        (rbo.FollowerMoment(M, K), rbo.Friction(b)),
+    )
 
 
 def damped_theta_eq(b, M):
@@ -233,8 +251,11 @@ def test_abscissa_changes_sign_at_the_critical_load(critical):
 
 def nikolai_model(M, c, A3):
     """The Nikolai problem: quadratic foundation (4.50), follower moment (4.57), A1 = 1, d = 2."""
-    return rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(1.0, A3, K),
-                                   rbo.QuadraticFoundation(c, 2.0, K), rbo.FollowerMoment(M, K))
+    return rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(1.0, A3, K),
+        rbo.QuadraticFoundation(c, 2.0, K),
+        rbo.FollowerMoment(M, K),
+    )
 
 
 @pytest.mark.parametrize(
@@ -266,8 +287,9 @@ def test_stability_map_and_critical_load_bad_arguments():
     with pytest.raises(ValueError, match="non-finite"):
         rbo.critical_load(damped_model, {"b": [np.nan]}, "M", 1.0)
     with pytest.raises(TypeError, match="hashable"):
-        rbo.stability_map(lambda M: nikolai_model(M, 1.0, 0.6), {"M": [0.1]},
-                          max_steps=np.array([3, 4]))
+        rbo.stability_map(
+            lambda M: nikolai_model(M, 1.0, 0.6), {"M": [0.1]}, max_steps=np.array([3, 4])
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -294,8 +316,10 @@ def test_million_point_map_bounded_memory():
     rng = np.random.default_rng(69)
     for i, j in rng.integers(0, 1000, size=(50, 2)):
         M, c = axes["M"][i], axes["c"][j]
-        assert _match_error(ds["eigenvalues"].values[i, j],
-                            rbo.nikolai_spectrum(1.0, 0.6, c, 2.0, M)) <= 1e-10
+        assert (
+            _match_error(ds["eigenvalues"].values[i, j], rbo.nikolai_spectrum(1.0, 0.6, c, 2.0, M))
+            <= 1e-10
+        )
         np.testing.assert_allclose(ds["theta_eq"].values[i, j], (M / 2.0) * KN, atol=1e-12)
     flutter = STABILITY_KIND_NAMES.index("flutter")
     assert np.all(ds["kind"].values == flutter)  # no M = 0 on this axis: every point flutters

@@ -414,8 +414,12 @@ def test_inertia_not_spd_is_refused_inside_jit():
     theta, status = jax.jit(jax.vmap(lambda a: final(a, False)))(jnp.array([0.5, -0.5]))
     assert np.all(np.isfinite(np.asarray(theta[0]))) and np.all(np.isnan(np.asarray(theta[1])))
     from rbo_jax._enumeration import code
-    assert list(np.asarray(code(status))) == [int(code(rbo.SolveStatus.successful)),
-                                              int(code(rbo.SolveStatus.invalid_parameters))]
+
+    assert list(np.asarray(code(status))) == [
+        int(code(rbo.SolveStatus.successful)),
+        int(code(rbo.SolveStatus.invalid_parameters)),
+    ]
     ok, which, messages = RigidBodyOscillator(
-        jnp.diag(jnp.array([1.0, 1.0, 0.5])), QuadraticFoundation(1.0, 2.0, K)).parameter_status()
+        jnp.diag(jnp.array([1.0, 1.0, 0.5])), QuadraticFoundation(1.0, 2.0, K)
+    ).parameter_status()
     assert bool(ok) and any("positive definite" in m for m in messages)

@@ -62,17 +62,25 @@ def test_notebook_is_stored_without_outputs(name):
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_executes(name, monkeypatch):
     import nbclient  # test extra
+
     _check_kernel()
     nb = _read(name)
     monkeypatch.delenv("RBO_NOTEBOOK_FULL", raising=False)  # the default, small sizes
     client = nbclient.NotebookClient(
-        nb, timeout=300, kernel_name=KERNEL,
+        nb,
+        timeout=300,
+        kernel_name=KERNEL,
         resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
     )
     start = time.perf_counter()
     client.execute()  # raises CellExecutionError (with the traceback) if any cell fails
     elapsed = time.perf_counter() - start
     print(f"{name}: executed in {elapsed:.1f} s")
-    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-              if o.get("output_type") == "error"]
+    errors = [
+        o
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+        if o.get("output_type") == "error"
+    ]
     assert not errors, f"{name}: {errors[0].get('ename')}: {errors[0].get('evalue')}"

@@ -134,9 +134,7 @@ def _c_of(s):
 @pytest.fixture(scope="module")
 def simplest_trajectory():
     b = 0.08
-    model = RigidBodyOscillator(
-        A_SIMPLE * jnp.eye(3), IsotropicFoundation(_F), Friction(b)
-    )
+    model = RigidBodyOscillator(A_SIMPLE * jnp.eye(3), IsotropicFoundation(_F), Friction(b))
     theta0 = jnp.array([0.9, 0.2, -0.4])
     Omega0 = jnp.array([0.1, 0.8, 0.5])
     ts = jnp.linspace(0.0, 15.0, 301)
@@ -172,8 +170,11 @@ def test_integral_4_99_precession_rate(simplest_trajectory):
     n2 = np.sum(np.asarray(theta) ** 2, axis=1)
     psi_dot = (np.cross(np.asarray(theta), np.asarray(theta_dot)) @ e) / n2
     n = np.sqrt(n2)
-    expected = (1 - np.cos(n[0])) / (1 - np.cos(n)) * psi_dot[0] * np.exp(
-        -b * np.asarray(traj.ts) / A_SIMPLE
+    expected = (
+        (1 - np.cos(n[0]))
+        / (1 - np.cos(n))
+        * psi_dot[0]
+        * np.exp(-b * np.asarray(traj.ts) / A_SIMPLE)
     )
     assert abs(psi_dot[0]) > 0.1
     np.testing.assert_allclose(psi_dot, expected, rtol=1e-8)
@@ -195,14 +196,19 @@ def test_reduced_nutation_equation_4_101(simplest_trajectory):
     def rhs(t, y):
         x, v = y
         centrifugal = (
-            A * np.sin(x) / x * ((1 - np.cos(n[0])) / (1 - np.cos(x))) ** 2 * psi_dot0**2
+            A
+            * np.sin(x)
+            / x
+            * ((1 - np.cos(n[0])) / (1 - np.cos(x))) ** 2
+            * psi_dot0**2
             * np.exp(-2 * b * t / A)
         )
         return [v, -(b * v + (_c_of(x**2) - centrifugal) * x) / A]
 
     ts = np.asarray(traj.ts)
-    sol = solve_ivp(rhs, (ts[0], ts[-1]), [n[0], n_dot0], method="DOP853", t_eval=ts,
-                    rtol=1e-12, atol=1e-12)
+    sol = solve_ivp(
+        rhs, (ts[0], ts[-1]), [n[0], n_dot0], method="DOP853", t_eval=ts, rtol=1e-12, atol=1e-12
+    )
     assert sol.success
     assert np.ptp(n) > 0.1  # the nutation is not trivial
     np.testing.assert_allclose(n, sol.y[0], atol=1e-8)
@@ -221,7 +227,12 @@ def test_plane_oscillations_4_87():
     assert np.max(np.linalg.norm(np.cross(theta, n_axis), axis=1)) <= 1e-12
     sol = solve_ivp(
         lambda t, y: [y[1], -(b * y[1] + _c_of(y[0] ** 2) * y[0]) / A_SIMPLE],
-        (0.0, 12.0), [x0, v0], method="DOP853", t_eval=np.asarray(ts), rtol=1e-12, atol=1e-12,
+        (0.0, 12.0),
+        [x0, v0],
+        method="DOP853",
+        t_eval=np.asarray(ts),
+        rtol=1e-12,
+        atol=1e-12,
     )
     np.testing.assert_allclose(theta @ n_axis, sol.y[0], atol=1e-9)
 
@@ -319,7 +330,8 @@ def test_follower_equilibrium_4_62_stays_put():
     assert float(jnp.max(jnp.abs(traj.theta - theta_eq[None, :]))) <= 1e-13
     # a dead moment of the same size is not in equilibrium there
     th_dot, Om_dot = RigidBodyOscillator(
-        transversely_isotropic_inertia(A1, A3, K), QuadraticFoundation(c, d, K),
+        transversely_isotropic_inertia(A1, A3, K),
+        QuadraticFoundation(c, d, K),
         SemiTangentialMoment(M, K, 1.0, 0.0),
     ).vector_field(0.0, (theta_eq + jnp.array([0.1, 0.0, 0.0]), jnp.zeros(3)))
     assert float(jnp.max(jnp.abs(Om_dot))) > 1e-3

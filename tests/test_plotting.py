@@ -30,8 +30,10 @@ def damped_nikolai(M, b, A3):
     """The Nikolai problem (4.50), (4.57) with friction (4.84): stable below M ≈ 2b√(c/A1),
     flutter above."""
     return rbo.RigidBodyOscillator(
-        rbo.transversely_isotropic_inertia(1.0, A3, K), rbo.QuadraticFoundation(1.0, 2.0, K),
-        (rbo.FollowerMoment(M, K), rbo.Friction(b)))
+        rbo.transversely_isotropic_inertia(1.0, A3, K),
+        rbo.QuadraticFoundation(1.0, 2.0, K),
+        (rbo.FollowerMoment(M, K), rbo.Friction(b)),
+    )
 
 
 def theta_eq(M, b, A3):
@@ -40,8 +42,11 @@ def theta_eq(M, b, A3):
 
 @pytest.fixture(scope="module")
 def damped_map():
-    axes = {"M": np.linspace(0.0, 0.6, 13), "b": np.linspace(0.0, 0.3, 7),
-            "A3": np.array([0.6, 1.2])}
+    axes = {
+        "M": np.linspace(0.0, 0.6, 13),
+        "b": np.linspace(0.0, 0.3, 7),
+        "A3": np.array([0.6, 1.2]),
+    }
     return rbo.stability_map(damped_nikolai, axes, theta_eq_fn=theta_eq)
 
 
@@ -63,8 +68,10 @@ def test_stability_map_figure_with_boundary(damped_map, tmp_path):
     ax = plot_stability_map(damped_map, "M", "b", select={"A3": 0.6})
     meshes = [c for c in ax.collections if isinstance(c, QuadMesh)]
     assert len(meshes) == 1
-    np.testing.assert_array_equal(np.asarray(meshes[0].get_array()).ravel(),
-                                  damped_map["spectral_abscissa"].sel(A3=0.6).values.T.ravel())
+    np.testing.assert_array_equal(
+        np.asarray(meshes[0].get_array()).ravel(),
+        damped_map["spectral_abscissa"].sel(A3=0.6).values.T.ravel(),
+    )
     assert len(_contours(ax)) == 1
     assert ax.get_xlabel() == "M" and ax.get_ylabel() == "b"
     path = tmp_path / "map.png"
@@ -97,19 +104,24 @@ def test_root_locus_figure(damped_map, tmp_path):
     assert len(points) == 1
     offsets = points[0].get_offsets()
     assert offsets.shape == (13 * 6, 2)
-    np.testing.assert_array_equal(np.asarray(offsets)[:, 0],
-                                  line["eigenvalues"].values.real.ravel())
+    np.testing.assert_array_equal(
+        np.asarray(offsets)[:, 0], line["eigenvalues"].values.real.ravel()
+    )
     assert ax.get_xlabel() == "Re p" and ax.get_ylabel() == "Im p"
     path = tmp_path / "locus.png"
     ax.figure.savefig(path)
     assert path.stat().st_size > 1000
 
 
-@pytest.mark.parametrize("values, eigenvalues", [
-    (np.arange(3.0), np.zeros(3, complex)),           # 1-D eigenvalues
-    (np.arange(3.0), np.zeros((4, 6), complex)),      # wrong length
-    (np.arange(3.0), np.zeros((3, 6, 1), complex)),   # 3-D
-], ids=["1-D", "length", "3-D"])
+@pytest.mark.parametrize(
+    "values, eigenvalues",
+    [
+        (np.arange(3.0), np.zeros(3, complex)),  # 1-D eigenvalues
+        (np.arange(3.0), np.zeros((4, 6), complex)),  # wrong length
+        (np.arange(3.0), np.zeros((3, 6, 1), complex)),  # 3-D
+    ],
+    ids=["1-D", "length", "3-D"],
+)
 def test_root_locus_bad_shapes(values, eigenvalues):
     with pytest.raises(ValueError, match="shape"):
         plot_root_locus(values, eigenvalues)
@@ -124,6 +136,7 @@ def test_jax_arrays_are_accepted(damped_map):
 
 # --- bifurcation diagrams and Hopf boundaries, from small hand-built continuation results
 
+
 def _equilibria(stable, special=(("hopf", 0.23, 2),)):
     """A continue_equilibria-shaped Dataset: M = 0, 0.1, ..., 0.5 and θ = (0.1 M, 0, M/2)."""
     import xarray as xr
@@ -133,16 +146,21 @@ def _equilibria(stable, special=(("hopf", 0.23, 2),)):
     kinds, values, index = (list(v) for v in zip(*special)) if special else ([], [], [])
     nan = np.full(len(kinds), np.nan)
     return xr.Dataset(
-        {"M": ("point", M), "theta": (("point", "component"), theta),
-         "eigenvalues": (("point", "mode"), np.zeros((6, 6), complex)),
-         "spectral_abscissa": ("point", np.where(stable, -0.1, 0.1)),
-         "stable": ("point", np.asarray(stable)),
-         "special_type": ("special", np.array(kinds, dtype=str)),
-         "special_value": ("special", np.array(values, dtype=float)),
-         "special_index": ("special", np.array(index, dtype=int)),
-         "special_frequency": ("special", nan), "special_first_lyapunov": ("special", nan)},
+        {
+            "M": ("point", M),
+            "theta": (("point", "component"), theta),
+            "eigenvalues": (("point", "mode"), np.zeros((6, 6), complex)),
+            "spectral_abscissa": ("point", np.where(stable, -0.1, 0.1)),
+            "stable": ("point", np.asarray(stable)),
+            "special_type": ("special", np.array(kinds, dtype=str)),
+            "special_value": ("special", np.array(values, dtype=float)),
+            "special_index": ("special", np.array(index, dtype=int)),
+            "special_frequency": ("special", nan),
+            "special_first_lyapunov": ("special", nan),
+        },
         coords={"component": ["x", "y", "z"], "mode": np.arange(6)},
-        attrs={"parameter": "M", "stop_reason": "reached stop"})
+        attrs={"parameter": "M", "stop_reason": "reached stop"},
+    )
 
 
 def _cycles(M, amplitude, stable, parameter="M"):
@@ -154,22 +172,28 @@ def _cycles(M, amplitude, stable, parameter="M"):
     mu = np.full((n, 6), 0.5 + 0j)
     mu[0] = np.nan
     return xr.Dataset(
-        {parameter: ("point", np.asarray(M, float)), "period": ("point", np.full(n, 6.3)),
-         "amplitude": ("point", np.asarray(amplitude, float)),
-         "theta0": (("point", "component"), np.zeros((n, 3))),
-         "Omega0": (("point", "component"), np.zeros((n, 3))),
-         "multipliers": (("point", "index"), mu),
-         "trivial_multiplier_error": ("point", np.full(n, 1e-12)),
-         "stable": ("point", np.asarray(stable))},
+        {
+            parameter: ("point", np.asarray(M, float)),
+            "period": ("point", np.full(n, 6.3)),
+            "amplitude": ("point", np.asarray(amplitude, float)),
+            "theta0": (("point", "component"), np.zeros((n, 3))),
+            "Omega0": (("point", "component"), np.zeros((n, 3))),
+            "multipliers": (("point", "index"), mu),
+            "trivial_multiplier_error": ("point", np.full(n, 1e-12)),
+            "stable": ("point", np.asarray(stable)),
+        },
         coords={"component": ["x", "y", "z"], "index": np.arange(6)},
-        attrs={"parameter": parameter, "stop_reason": "max_points"})
+        attrs={"parameter": parameter, "stop_reason": "max_points"},
+    )
 
 
 def _branch_lines(ax):
     """The drawn branch segments (lines with a line style), as (style, x, y)."""
-    return [(ln.get_linestyle(), np.asarray(ln.get_xdata(), float),
-             np.asarray(ln.get_ydata(), float))
-            for ln in ax.get_lines() if ln.get_linestyle() in ("-", "--")]
+    return [
+        (ln.get_linestyle(), np.asarray(ln.get_xdata(), float), np.asarray(ln.get_ydata(), float))
+        for ln in ax.get_lines()
+        if ln.get_linestyle() in ("-", "--")
+    ]
 
 
 def _markers(ax):
@@ -195,7 +219,10 @@ def test_bifurcation_diagram_splits_the_branch_at_the_hopf_point(tmp_path):
     np.testing.assert_allclose([hopf.get_xdata()[0], hopf.get_ydata()[0]], [0.23, y_h])
     labels = ax.get_legend().get_texts()
     assert [t.get_text() for t in labels] == [
-        "stable equilibria", "unstable equilibria", "Hopf point (M = 0.23)"]
+        "stable equilibria",
+        "unstable equilibria",
+        "Hopf point (M = 0.23)",
+    ]
     assert ax.cycles_ax is None and len(ax.figure.axes) == 1
     ax.figure.savefig(tmp_path / "diagram.png")
     assert (tmp_path / "diagram.png").stat().st_size > 1000
@@ -262,11 +289,16 @@ def _hopf_curve(cs, bs):
     dims = ("c", "b")
     zeros = np.zeros_like(M)
     ds = xr.Dataset(
-        {"M": (dims, M), "frequency": (dims, zeros + 1.0), "first_lyapunov": (dims, zeros - 0.1),
-         "transversality": (dims, zeros + 0.25), "theta": (dims + ("component",),
-                                                           np.zeros(M.shape + (3,))),
-         "status": (dims, np.zeros(M.shape, np.int8))},
-        coords={"c": cs, "b": bs, "component": ["x", "y", "z"]})
+        {
+            "M": (dims, M),
+            "frequency": (dims, zeros + 1.0),
+            "first_lyapunov": (dims, zeros - 0.1),
+            "transversality": (dims, zeros + 0.25),
+            "theta": (dims + ("component",), np.zeros(M.shape + (3,))),
+            "status": (dims, np.zeros(M.shape, np.int8)),
+        },
+        coords={"c": cs, "b": bs, "component": ["x", "y", "z"]},
+    )
     ds["status"].attrs["flag_meanings"] = "successful not_converged"
     return ds
 
@@ -281,8 +313,9 @@ def test_hopf_boundary_over_the_sign_of_a_stability_map(damped_map):
     (mesh,) = [c for c in ax.collections if isinstance(c, QuadMesh)]
     a = damped_map["spectral_abscissa"].sel(A3=0.6).transpose("M", "b").values
     shown = np.asarray(mesh.get_array()).reshape(a.shape)
-    np.testing.assert_array_equal(shown, (a > 1e-9 * np.nanmax(np.abs(
-        damped_map["eigenvalues"].values))).astype(float))
+    np.testing.assert_array_equal(
+        shown, (a > 1e-9 * np.nanmax(np.abs(damped_map["eigenvalues"].values))).astype(float)
+    )
     assert 0 < shown.mean() < 1  # both signs shown
     (line,) = ax.get_lines()
     np.testing.assert_array_equal(line.get_xdata(), bs)
@@ -301,7 +334,9 @@ def test_hopf_boundary_over_the_sign_of_a_stability_map(damped_map):
     lines = ax.get_lines()
     assert len(lines) == 2 and not [c for c in ax.collections if isinstance(c, QuadMesh)]
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
-        "Hopf boundary (c = 0.5)", "Hopf boundary (c = 1)"]
+        "Hopf boundary (c = 0.5)",
+        "Hopf boundary (c = 1)",
+    ]
     assert np.isnan(lines[1].get_ydata()[-1])
 
 
@@ -317,6 +352,7 @@ def test_hopf_boundary_checks_its_input(damped_map):
 
 # --- lattices: space-time images and dispersion branches
 
+
 def _chain_trajectory(theta, Omega=None, shape=None):
     """A LatticeTrajectory of the given samples (T, N, 3), made by hand (nothing simulated)."""
     from rbo_jax import lattice as L
@@ -324,15 +360,21 @@ def _chain_trajectory(theta, Omega=None, shape=None):
 
     theta = jnp.asarray(theta)
     n = theta.shape[1]
-    body = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(1.0, 0.6, K),
-                                   rbo.QuadraticFoundation(1.0, 2.0, K))
+    body = rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(1.0, 0.6, K), rbo.QuadraticFoundation(1.0, 2.0, K)
+    )
     W = rbo.QuadraticFoundation(0.7, 0.3, K)
     lat = L.chain(n, body, W) if shape is None else L.grid(shape, body, W)
     return L.LatticeTrajectory(
-        ts=jnp.linspace(0.0, 2.0, theta.shape[0]), theta=theta,
+        ts=jnp.linspace(0.0, 2.0, theta.shape[0]),
+        theta=theta,
         Omega=jnp.zeros_like(theta) if Omega is None else jnp.asarray(Omega),
-        turns=jnp.zeros(theta.shape[:2], jnp.int32), lattice=lat,
-        status=SolveStatus.successful, num_steps=jnp.asarray(1), num_recentred=jnp.asarray(0))
+        turns=jnp.zeros(theta.shape[:2], jnp.int32),
+        lattice=lat,
+        status=SolveStatus.successful,
+        num_steps=jnp.asarray(1),
+        num_recentred=jnp.asarray(0),
+    )
 
 
 def _mesh(ax):
@@ -363,16 +405,20 @@ def test_space_time_image_of_a_chain(tmp_path):
     assert (tmp_path / "space_time.png").stat().st_size > 1000
 
     ax = plot_space_time(traj, "norm")
-    np.testing.assert_allclose(np.asarray(_mesh(ax).get_array()).reshape(T, n),
-                               np.linalg.norm(theta, axis=-1))
+    np.testing.assert_allclose(
+        np.asarray(_mesh(ax).get_array()).reshape(T, n), np.linalg.norm(theta, axis=-1)
+    )
     ax = plot_space_time(traj, 1, quantity="Omega", title="Omega_y")
     mesh = _mesh(ax)
     np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(T, n), Omega[..., 1])
     assert mesh.get_cmap().name.startswith("RdBu") and mesh.norm.vmin == -mesh.norm.vmax
     assert ax.get_title() == "Omega_y"
     ax = plot_space_time(traj, "z", wrap=True)
-    np.testing.assert_allclose(np.asarray(_mesh(ax).get_array()).reshape(T, n),
-                               np.angle(np.exp(1j * theta[..., 2])), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(_mesh(ax).get_array()).reshape(T, n),
+        np.angle(np.exp(1j * theta[..., 2])),
+        atol=1e-12,
+    )
     theta[-1] = np.inf  # samples after a failed solve
     fig, ax = plt.subplots()
     assert plot_space_time(_chain_trajectory(theta), ax=ax) is ax
@@ -389,8 +435,7 @@ def test_space_time_of_a_grid_row_and_bad_input():
         plot_space_time(traj)
     row = np.ravel_multi_index((1, np.arange(4)), (3, 4))
     ax = plot_space_time(traj, "x", sites=row)
-    np.testing.assert_allclose(np.asarray(_mesh(ax).get_array()).reshape(T, 4),
-                               theta[:, 4:8, 0])
+    np.testing.assert_allclose(np.asarray(_mesh(ax).get_array()).reshape(T, 4), theta[:, 4:8, 0])
     assert "selected" in ax.get_xlabel()
     with pytest.raises(ValueError, match="component"):
         plot_space_time(traj, "w", sites=row)
@@ -423,13 +468,17 @@ def test_dispersion_of_a_chain_matches_the_closed_form(tmp_path):
     panel (all Re = 0)."""
     from rbo_jax import lattice as L
 
-    body = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1_, A3_, K),
-                                   rbo.QuadraticFoundation(C_, D_, K))
+    body = rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(A1_, A3_, K), rbo.QuadraticFoundation(C_, D_, K)
+    )
     lat = L.chain(10, body, rbo.QuadraticFoundation(KB_, KT_, K))
     qs = np.linspace(-np.pi, np.pi, 21)
-    ax = plot_dispersion(lat, qs, theta_eq=np.zeros(3),  # at rest
-                         closed_form={"bending": lambda q: _branches(q)[:, 0],
-                                      "torsion": _branches(qs)[:, 1]})
+    ax = plot_dispersion(
+        lat,
+        qs,
+        theta_eq=np.zeros(3),  # at rest
+        closed_form={"bending": lambda q: _branches(q)[:, 0], "torsion": _branches(qs)[:, 1]},
+    )
     lines = _frequency_lines(ax)
     assert len(lines) == 3
     w = _branches(qs)
@@ -452,8 +501,7 @@ def _fluttering(qs):
     wave grows for cos q > 1/2 and for cos q < -1/2) and a decaying torsion wave."""
     w = _branches(qs)
     g = 0.1 * np.cos(qs)
-    up = np.stack([g - 0.05 + 1j * w[:, 0], -g - 0.05 + 1j * w[:, 0],
-                   -0.05 + 1j * w[:, 1]], 1)
+    up = np.stack([g - 0.05 + 1j * w[:, 0], -g - 0.05 + 1j * w[:, 0], -0.05 + 1j * w[:, 1]], 1)
     return np.concatenate([np.conj(up), up], 1)[:, ::-1]
 
 
@@ -474,9 +522,15 @@ def test_dispersion_growth_panel_and_flutter_bands():
 
     def bands(axes):
         spans = [p for p in axes.patches if isinstance(p, (Polygon, Rectangle))]
-        return sorted((min(x), max(x)) for x in (
-            np.asarray(p.get_xy())[:, 0] if isinstance(p, Polygon)
-            else [p.get_x(), p.get_x() + p.get_width()] for p in spans))
+        return sorted(
+            (min(x), max(x))
+            for x in (
+                np.asarray(p.get_xy())[:, 0]
+                if isinstance(p, Polygon)
+                else [p.get_x(), p.get_x() + p.get_width()]
+                for p in spans
+            )
+        )
 
     top = a - 0.05  # the largest growth rate; the bands end where it crosses 0 between samples
     ends = [qs[i] + (qs[i + 1] - qs[i]) * top[i] / (top[i] - top[i + 1]) for i in (3, 7)]
@@ -500,8 +554,7 @@ def test_dispersion_of_a_grid_path_and_bad_input():
     qs = np.concatenate([qs, np.stack([np.full(4, np.pi), np.linspace(0.0, np.pi, 5)[1:]], 1)])
     lam = 1j * _fluttering(qs[:, 0]).imag  # no growth
     ax = plot_dispersion(None, qs, eigenvalues=lam)
-    np.testing.assert_allclose(_frequency_lines(ax)[0].get_xdata(),
-                               np.pi / 4 * np.arange(9))
+    np.testing.assert_allclose(_frequency_lines(ax)[0].get_xdata(), np.pi / 4 * np.arange(9))
     assert "path" in ax.get_xlabel() and ax.growth_ax is None
     with pytest.raises(ValueError, match="eigenvalues must have shape"):
         plot_dispersion(None, qs, eigenvalues=lam[:, :3])
@@ -511,8 +564,10 @@ def test_dispersion_of_a_grid_path_and_bad_input():
         plot_dispersion(None, qs, eigenvalues=lam, closed_form=np.zeros(3))
     from rbo_jax import lattice as L
 
-    body = rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1_, A3_, K),
-                                   rbo.QuadraticFoundation(C_, D_, K))
+    body = rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(A1_, A3_, K), rbo.QuadraticFoundation(C_, D_, K)
+    )
     with pytest.raises(ValueError, match="one wavenumber per axis"):
-        plot_dispersion(L.grid((3, 3), body, rbo.QuadraticFoundation(KB_, KT_, K)),
-                        np.linspace(0.0, 1.0, 4))
+        plot_dispersion(
+            L.grid((3, 3), body, rbo.QuadraticFoundation(KB_, KT_, K)), np.linspace(0.0, 1.0, 4)
+        )

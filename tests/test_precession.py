@@ -80,8 +80,9 @@ def _case_model(name):
 
 def _rate_4_113(C, vartheta, A1, A3):
     """ψ̇ of (4.113): ψ̇² = C(ϑ², 0)ϑ / (sinϑ [A3(1 − cosϑ) + A1 cosϑ])."""
-    return np.sqrt(C * vartheta / (np.sin(vartheta) * (A3 * (1 - np.cos(vartheta))
-                                                        + A1 * np.cos(vartheta))))
+    return np.sqrt(
+        C * vartheta / (np.sin(vartheta) * (A3 * (1 - np.cos(vartheta)) + A1 * np.cos(vartheta)))
+    )
 
 
 @eqx.filter_jit
@@ -119,14 +120,16 @@ def test_rate_4_113_transversely_isotropic(A1, A3, vartheta):
     assert float(out["wrong_residual"]) > 1e-3 * float(pr.rate)
 
 
-@pytest.mark.parametrize("A, c, e, vartheta", [(1.3, 0.8, 0.0, 1.1), (0.7, 1.5, 0.1, 2.5),
-                                               (1.0, 2.0, -0.05, 0.4)])
+@pytest.mark.parametrize(
+    "A, c, e, vartheta", [(1.3, 0.8, 0.0, 1.1), (0.7, 1.5, 0.1, 2.5), (1.0, 2.0, -0.05, 0.4)]
+)
 def test_rate_4_106_isotropic(A, c, e, vartheta):
     """(4.106), A1 = A3 = A: ψ̇² = c(ϑ²)ϑ/(A sinϑ), c(θ²) = 2F'(θ²) (4.83)."""
     out = _precession(_isotropic_model(A, c, e), jnp.asarray(vartheta), k=K)
     c_theta = c + 4 * e * vartheta**2
-    np.testing.assert_allclose(float(out["pr"].rate),
-                               np.sqrt(c_theta * vartheta / (A * np.sin(vartheta))), rtol=1e-14)
+    np.testing.assert_allclose(
+        float(out["pr"].rate), np.sqrt(c_theta * vartheta / (A * np.sin(vartheta))), rtol=1e-14
+    )
     assert float(out["residual"]) <= 1e-14
     assert float(out["wrong_residual"]) > 1e-3
 
@@ -144,12 +147,14 @@ def test_regular_precession_refuses_what_4_113_excludes():
     """D ≠ 0 at k·θ = 0, an inertia not transversely isotropic about k (4.40), and an isotropic
     foundation without k are refused."""
     with pytest.raises(eqx.EquinoxRuntimeError, match="D"):
-        jax.block_until_ready(_precession(_transverse_model(1.0, 0.6, 0.5, 0.0, 0.5, r=0.2),
-                                          jnp.asarray(0.7)))
+        jax.block_until_ready(
+            _precession(_transverse_model(1.0, 0.6, 0.5, 0.0, 0.5, r=0.2), jnp.asarray(0.7))
+        )
     A = rbo.principal_inertia(jnp.array([1.0, 1.3, 0.6]), jnp.eye(3))
     with pytest.raises(eqx.EquinoxRuntimeError, match="transversely isotropic"):
-        jax.block_until_ready(_precession(_transverse_model(1.0, 0.6, 0.5, 0.0, 0.5, inertia=A),
-                                          jnp.asarray(0.7)))
+        jax.block_until_ready(
+            _precession(_transverse_model(1.0, 0.6, 0.5, 0.0, 0.5, inertia=A), jnp.asarray(0.7))
+        )
     with pytest.raises(TypeError, match="k="):
         rbo.regular_precession(_isotropic_model(1.0, 1.0), 0.7)
 
@@ -185,8 +190,9 @@ def test_variational_matrix_is_printed_system_after_4_118(A, c, vartheta):
     partly garbled; as transcribed here it agrees entry by entry), so the eigenvalues agree too."""
     out = _precession(_isotropic_model(A, c), jnp.asarray(vartheta), k=K)
     pr = out["pr"]
-    printed = _printed_system_after_4_118(A, c, vartheta, float(pr.rate), np.asarray(pr.p),
-                                          np.asarray(pr.omega0))
+    printed = _printed_system_after_4_118(
+        A, c, vartheta, float(pr.rate), np.asarray(pr.p), np.asarray(pr.omega0)
+    )
     J = np.asarray(out["J"])
     np.testing.assert_allclose(J, printed, rtol=0, atol=1e-14)
     assert np.abs(printed).max() > 0.5
@@ -231,11 +237,23 @@ def perturbed_precession(request):
         Omega0 = rbo.turn_tensor(theta0).T @ (pr.omega0 + dz[3:])
         traj = _simulate(model, theta0, Omega0, ts)
         x, w = _to_precessing_frame(traj.theta, traj.omega, ts, pr.rate)
-        res[label] = (np.asarray(traj.theta), np.concatenate(
-            [np.asarray(x - pr.theta0[None, :]), np.asarray(w - pr.omega0[None, :])], axis=1))
+        res[label] = (
+            np.asarray(traj.theta),
+            np.concatenate(
+                [np.asarray(x - pr.theta0[None, :]), np.asarray(w - pr.omega0[None, :])], axis=1
+            ),
+        )
     linear = np.stack([scipy.linalg.expm(J * t) @ z0 for t in np.asarray(ts)])
-    return dict(name=name, pr=pr, J=J, p=np.asarray(out["p"]), ts=np.asarray(ts), z0=z0,
-                res=res, linear=linear)
+    return dict(
+        name=name,
+        pr=pr,
+        J=J,
+        p=np.asarray(out["p"]),
+        ts=np.asarray(ts),
+        z0=z0,
+        res=res,
+        linear=linear,
+    )
 
 
 def test_simulated_precession_follows_4_110(perturbed_precession):
@@ -245,8 +263,9 @@ def test_simulated_precession_follows_4_110(perturbed_precession):
     pr, ts = d["pr"], d["ts"]
     theta, dev = d["res"]["exact"]
     expected = np.stack([np.asarray(pr.theta(t)) for t in ts])
-    np.testing.assert_allclose(theta, expected, rtol=0, atol=1e-8 if d["name"] == "unstable"
-                               else 1e-9)
+    np.testing.assert_allclose(
+        theta, expected, rtol=0, atol=1e-8 if d["name"] == "unstable" else 1e-9
+    )
     if d["name"] == "stable":
         assert np.abs(dev).max() <= 1e-9
 

@@ -85,9 +85,11 @@ def test_every_static_difference_is_a_new_program(store, change):
     _new_process()
     out = program(p, scale, y)
     assert len(TRACES) == 2 and len(list(store.iterdir())) == 2
-    np.testing.assert_allclose(np.asarray(out["a"]),
-                               np.asarray(p.x) * scale + np.sin(np.asarray(y, dtype=np.float64)),
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(out["a"]),
+        np.asarray(p.x) * scale + np.sin(np.asarray(y, dtype=np.float64)),
+        rtol=1e-6,
+    )
 
 
 def test_a_static_callable_is_traced_not_stored(store):
@@ -150,8 +152,11 @@ def test_a_new_environment_is_a_new_program(store, monkeypatch):
 @pytest.fixture
 def jax_cache_settings():
     """Restores JAX's cache settings and the store after a test that changes them."""
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-             "jax_persistent_cache_min_entry_size_bytes")
+    names = (
+        "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs",
+        "jax_persistent_cache_min_entry_size_bytes",
+    )
     saved = {n: getattr(jax.config, n) for n in names}
     saved_dir, saved_store = _cache._JAX_DIR, _cache.program_store()
     yield
@@ -227,8 +232,13 @@ def test_a_second_process_loads_the_solves_and_the_map_without_tracing(tmp_path)
     def run():
         env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
         env.update(JAX_PLATFORMS="cpu", JAX_LOG_COMPILES="1", RBO_JAX_COMPILATION_CACHE="off")
-        proc = subprocess.run([sys.executable, "-c", SECOND_PROCESS, str(tmp_path / "cache")],
-                              capture_output=True, text=True, env=env, timeout=600)
+        proc = subprocess.run(
+            [sys.executable, "-c", SECOND_PROCESS, str(tmp_path / "cache")],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
         assert proc.returncode == 0, proc.stderr[-3000:]
         return proc.stdout, proc.stderr
 
@@ -255,16 +265,36 @@ def _simulate_program_text(model, throw=False, **options):
     trusted = options.pop("trusted", True)
     ts = np.linspace(0.0, 1.0, 3)
     inputs = prepare_inputs(model, np.array([0.0, 0.0, 0.2]), np.zeros(3), ts, 1e-8, 1e-8, throw)
-    args = dict(t0=None, solver=None, rtol=1e-8, atol=1e-8, dt0=None, dtmin=None,
-                max_steps=100, adjoint=None, stepsize_controller=None, singular_tol=1e-3,
-                form="right", throw=throw, progress=False)
+    args = dict(
+        t0=None,
+        solver=None,
+        rtol=1e-8,
+        atol=1e-8,
+        dt0=None,
+        dtmin=None,
+        max_steps=100,
+        adjoint=None,
+        stepsize_controller=None,
+        singular_tol=1e-3,
+        form="right",
+        throw=throw,
+        progress=False,
+    )
     args.update(options)
     jax.clear_caches()  # trace again (the context is read at trace time)
-    with checked_inputs_trusted(trusted and simulate._trusted(
-            model, args["solver"], args["adjoint"], args["stepsize_controller"])):
+    with checked_inputs_trusted(
+        trusted
+        and simulate._trusted(model, args["solver"], args["adjoint"], args["stepsize_controller"])
+    ):
         return simulate._solve_compiled.lower(
-            model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype,
-            *args.values()).as_text()
+            model,
+            inputs.theta0,
+            inputs.Omega0,
+            inputs.ts,
+            inputs.bad_times,
+            inputs.dtype,
+            *args.values(),
+        ).as_text()
 
 
 def test_simulate_programs_hold_no_host_callback_where_the_inputs_are_checked():
@@ -279,11 +309,13 @@ def test_simulate_programs_hold_no_host_callback_where_the_inputs_are_checked():
     assert "callback" in _simulate_program_text(model, trusted=False)  # diffrax's checks
     for throw in (False, True):
         assert "callback" not in _simulate_program_text(model, throw=throw)
-    assert "callback" not in _simulate_program_text(model, dt0=0.01, solver=diffrax.Tsit5(),
-                                                    stepsize_controller=diffrax.ConstantStepSize())
+    assert "callback" not in _simulate_program_text(
+        model, dt0=0.01, solver=diffrax.Tsit5(), stepsize_controller=diffrax.ConstantStepSize()
+    )
     K = np.array([0.0, 0.0, 1.0])
-    semi = rbo_jax.RigidBodyOscillator(np.eye(3), rbo_jax.QuadraticFoundation(1.0, 1.0, K),
-                                       [rbo_jax.SemiTangentialMoment(0.1, K)])
+    semi = rbo_jax.RigidBodyOscillator(
+        np.eye(3), rbo_jax.QuadraticFoundation(1.0, 1.0, K), [rbo_jax.SemiTangentialMoment(0.1, K)]
+    )
     assert "callback" not in _simulate_program_text(semi, throw=False)  # NaN, not a raise
     assert "callback" in _simulate_program_text(semi, throw=True)  # (4.75)'s check is kept
 
@@ -301,14 +333,17 @@ def test_the_environment_variable_turns_the_cache_on_at_import(tmp_path):
     import subprocess
     import sys
 
-    code = ("import sys, jax, rbo_jax; from rbo_jax import _cache; "
-            "assert rbo_jax.enable_compilation_cache is _cache.enable_compilation_cache; "
-            "assert 'equinox' not in sys.modules; "
-            "print(_cache.program_store(), jax.config.jax_compilation_cache_dir)")
+    code = (
+        "import sys, jax, rbo_jax; from rbo_jax import _cache; "
+        "assert rbo_jax.enable_compilation_cache is _cache.enable_compilation_cache; "
+        "assert 'equinox' not in sys.modules; "
+        "print(_cache.program_store(), jax.config.jax_compilation_cache_dir)"
+    )
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     env.update(JAX_PLATFORMS="cpu", RBO_JAX_COMPILATION_CACHE=str(tmp_path))
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                          timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.split() == [str(tmp_path / "programs"), str(tmp_path)]
 
@@ -320,8 +355,9 @@ def test_a_sweep_with_a_host_callback_is_traced_as_usual(store):
     from rbo_jax.batch import _program
 
     def quantity(x):
-        y = jax.pure_callback(np.sin, jax.ShapeDtypeStruct((), jnp.float64), x,
-                              vmap_method="sequential")
+        y = jax.pure_callback(
+            np.sin, jax.ShapeDtypeStruct((), jnp.float64), x, vmap_method="sequential"
+        )
         return {"y": y, "z": 2.0 * x}
 
     axes = {"x": np.array([0.0, 0.5, 1.0])}
@@ -360,10 +396,12 @@ def test_small_programs_take_xla_options_at_the_top_level_only(monkeypatch):
     def check(small, program):
         np.testing.assert_allclose(jax.jit(small)(x, 2.0), expected, rtol=1e-15)
         np.testing.assert_allclose(jax.jit(lambda: small(x, 2.0))(), expected, rtol=1e-15)
-        np.testing.assert_allclose(jax.vmap(small, (0, None))(x[:, None], 2.0)[:, 0], expected,
-                                   rtol=1e-15)
+        np.testing.assert_allclose(
+            jax.vmap(small, (0, None))(x[:, None], 2.0)[:, 0], expected, rtol=1e-15
+        )
         exported = jax.export.export(jax.jit(lambda y: small(y, 2.0)))(
-            jax.ShapeDtypeStruct(x.shape, x.dtype))
+            jax.ShapeDtypeStruct(x.shape, x.dtype)
+        )
         np.testing.assert_allclose(exported.call(x), expected, rtol=1e-15)
         np.testing.assert_allclose(jax.jit(lambda: program(x, 2.0))(), expected, rtol=1e-15)
 

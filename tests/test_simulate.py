@@ -341,8 +341,9 @@ def test_eager_simulate_does_not_recompile_for_new_values(right_trajectory):
     assert counter.count == 0
     # the counter does count: a new tolerance is a new program
     with CompileCounter() as control:
-        jax.block_until_ready(simulate(make_model(c=1.2, b=0.1), theta0, Omega0, TS,
-                                       rtol=1e-11, atol=1e-11).theta)
+        jax.block_until_ready(
+            simulate(make_model(c=1.2, b=0.1), theta0, Omega0, TS, rtol=1e-11, atol=1e-11).theta
+        )
     assert control.count >= 1
 
 
@@ -510,10 +511,17 @@ def test_bad_arguments_are_refused():
         simulate(make_model(), jnp.zeros(2), OMEGA0, TS)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(t0=0.5), "t0 must not be after"), (dict(t0=np.nan), "t0 must be a finite"),
-    (dict(t0=np.zeros(2)), "t0 must be a finite scalar"), (dict(dt0=-0.1), "dt0 must be"),
-    (dict(dt0=0.0), "dt0 must be"), (dict(dt0=np.inf), "dt0 must be")])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(t0=0.5), "t0 must not be after"),
+        (dict(t0=np.nan), "t0 must be a finite"),
+        (dict(t0=np.zeros(2)), "t0 must be a finite scalar"),
+        (dict(dt0=-0.1), "dt0 must be"),
+        (dict(dt0=0.0), "dt0 must be"),
+        (dict(dt0=np.inf), "dt0 must be"),
+    ],
+)
 def test_bad_start_time_and_first_step_are_refused_on_the_host(kwargs, match):
     """diffrax's own checks of t0, dt0 and the sample times are host callbacks, which the
     compiled solve leaves out (so that JAX's cache and the program store keep it): simulate
@@ -528,8 +536,9 @@ def test_undefined_moment_direction_still_raises_in_the_compiled_solve():
     undefined (a half turn about an axis ⊥ k, l1 = l2), throw=True raises its message, and
     throw=False stops with a status."""
     k = np.array([0.0, 0.0, 1.0])
-    model = RigidBodyOscillator(np.eye(3), QuadraticFoundation(1.0, 2.0, k),
-                                [SemiTangentialMoment(1.0, k)])
+    model = RigidBodyOscillator(
+        np.eye(3), QuadraticFoundation(1.0, 2.0, k), [SemiTangentialMoment(1.0, k)]
+    )
     half_turn = np.array([0.0, np.pi, 0.0])
     with pytest.raises(Exception, match="direction of the moment"):
         jax.block_until_ready(simulate(model, half_turn, np.zeros(3), TS).theta)

@@ -74,17 +74,34 @@ class _Gyroscopic(eqx.Module):
         return self.gamma * jnp.cross(K, omega)
 
 
-def _potential_model(A1=1.0, A3=0.6, c=1.0, d=2.0, alpha=INF, beta=INF, *, dead=0.0,
-                     follower=0.0, semi=0.0, l1=1.0, l2=1.0, m=(0.0, 0.0, 0.0), e=0.0):
+def _potential_model(
+    A1=1.0,
+    A3=0.6,
+    c=1.0,
+    d=2.0,
+    alpha=INF,
+    beta=INF,
+    *,
+    dead=0.0,
+    follower=0.0,
+    semi=0.0,
+    l1=1.0,
+    l2=1.0,
+    m=(0.0, 0.0, 0.0),
+    e=0.0,
+):
     """One model structure for every velocity-independent case: the barrier foundation (4.49)
     (exactly (4.50) for alpha = beta = inf), a dead (4.75), a follower (4.57), a
     semi-tangential (4.75) moment and a potential load (4.52)."""
     return rbo.RigidBodyOscillator(
         rbo.transversely_isotropic_inertia(A1, A3, K),
         rbo.BarrierFoundation(c, d, alpha, beta, K),
-        (rbo.DeadMoment(dead, K), rbo.FollowerMoment(follower, K),
-         rbo.SemiTangentialMoment(semi, K, l1, l2),
-         rbo.PotentialLoad(_Potential(jnp.asarray(m, dtype=float), jnp.asarray(e, dtype=float)))),
+        (
+            rbo.DeadMoment(dead, K),
+            rbo.FollowerMoment(follower, K),
+            rbo.SemiTangentialMoment(semi, K, l1, l2),
+            rbo.PotentialLoad(_Potential(jnp.asarray(m, dtype=float), jnp.asarray(e, dtype=float))),
+        ),
     )
 
 
@@ -92,16 +109,23 @@ def _velocity_model(M=0.0, b=0.0, gamma=0.0, A1=1.0, A3=0.6, c=1.0, d=2.0):
     """One model structure for the velocity-dependent cases: the Nikolai problem (4.50), (4.57)
     with friction (4.84) and a gyroscopic torque."""
     return rbo.RigidBodyOscillator(
-        rbo.transversely_isotropic_inertia(A1, A3, K), rbo.QuadraticFoundation(c, d, K),
-        (rbo.FollowerMoment(M, K), rbo.Friction(b),
-         rbo.CallableLoad(_Gyroscopic(jnp.asarray(gamma)))),
+        rbo.transversely_isotropic_inertia(A1, A3, K),
+        rbo.QuadraticFoundation(c, d, K),
+        (
+            rbo.FollowerMoment(M, K),
+            rbo.Friction(b),
+            rbo.CallableLoad(_Gyroscopic(jnp.asarray(gamma))),
+        ),
     )
 
 
 def _nikolai_model(A1, A3, c, d, M):
     """The Nikolai problem as printed: quadratic foundation (4.50), follower moment (4.57)."""
-    return rbo.RigidBodyOscillator(rbo.transversely_isotropic_inertia(A1, A3, K),
-                                   rbo.QuadraticFoundation(c, d, K), rbo.FollowerMoment(M, K))
+    return rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(A1, A3, K),
+        rbo.QuadraticFoundation(c, d, K),
+        rbo.FollowerMoment(M, K),
+    )
 
 
 @jax.jit
@@ -141,8 +165,7 @@ def _barrier_axial_moment(x, c, d, alpha, beta):
 
 
 def _barrier_root(M, lo, hi):
-    return brentq(lambda x: _barrier_axial_moment(x, **BARRIER) - M, lo, hi, xtol=1e-15,
-                  rtol=1e-15)
+    return brentq(lambda x: _barrier_axial_moment(x, **BARRIER) - M, lo, hi, xtol=1e-15, rtol=1e-15)
 
 
 @pytest.mark.parametrize("M", [0.4, 0.9, -1.3])
@@ -232,8 +255,15 @@ def _nikolai_K(c, d, M):
     return c * (g**2 + M**2 / (4 * d**2)) - M**2 / (4 * d) + (1 - g) * g * d
 
 
-@pytest.mark.parametrize("A1, A3, c, d, M", [(1.0, 0.6, 1.0, 2.0, 0.3), (0.7, 1.5, 2.5, 0.8, -1.1),
-                                             (1.2, 1.2, 1.0, 3.0, 2.5), (1.0, 0.6, 1.0, 2.0, 0.0)])
+@pytest.mark.parametrize(
+    "A1, A3, c, d, M",
+    [
+        (1.0, 0.6, 1.0, 2.0, 0.3),
+        (0.7, 1.5, 2.5, 0.8, -1.1),
+        (1.2, 1.2, 1.0, 3.0, 2.5),
+        (1.0, 0.6, 1.0, 2.0, 0.0),
+    ],
+)
 def test_analytic_nikolai_spectrum_is_printed_polynomial_4_69(A1, A3, c, d, M):
     """rbo_jax.analytic.nikolai_spectrum solves the printed (4.69):
     (A1p² + K)² + M²/4 = 0 with K = c(g² + M²/4d²) − M²/4d + (1−g)gd, and A3p² + d = 0
@@ -260,8 +290,13 @@ def _nikolai_grid(params):
         model = _nikolai_model(A1, A3, c, d, M)
         theta_eq = (M / d) * K  # (4.62)
         sol = rbo.solve_equilibrium(model, jnp.array([0.2, -0.15, 0.5 * M / d + 0.1]))
-        return (rbo.linearize(model, theta_eq), rbo.spectrum(model, theta_eq),
-                rbo.fast_spectrum(model, theta_eq), sol.theta, sol.ok)
+        return (
+            rbo.linearize(model, theta_eq),
+            rbo.spectrum(model, theta_eq),
+            rbo.fast_spectrum(model, theta_eq),
+            sol.theta,
+            sol.ok,
+        )
 
     return jax.vmap(one)(params)
 
@@ -287,8 +322,9 @@ def test_linearize_is_printed_system_4_66_4_67(nikolai_grid):
     over the whole grid."""
     jac = nikolai_grid[0]
     for row, J in zip(_GRID, jac):
-        np.testing.assert_allclose(J, _printed_variational_matrix(*row), rtol=0, atol=1e-13,
-                                   err_msg=str(row))
+        np.testing.assert_allclose(
+            J, _printed_variational_matrix(*row), rtol=0, atol=1e-13, err_msg=str(row)
+        )
 
 
 def test_spectrum_and_fast_spectrum_match_4_69_on_a_grid(nikolai_grid):
@@ -418,6 +454,7 @@ def _loop_work(moment, center, radius, n=400):
     """Work ∮ M_ex·ω dt of a world-frame moment M_ex(Q) along a closed loop of turn-vectors
     θ(s) = center + radius·(cos s, 0.3 sin 2s, sin s), with Q(θ) and ω (Q̇Qᵀ = ω×) from scipy's
     rotations: zero for every loop iff the moment is conservative (4.21)-(4.23)."""
+
     def theta(s):
         return center + radius * np.array([np.cos(s), 0.3 * np.sin(2 * s), np.sin(s)])
 
@@ -426,8 +463,10 @@ def _loop_work(moment, center, radius, n=400):
     total = 0.0
     for si in s:
         Q = Rotation.from_rotvec(theta(si)).as_matrix()
-        dQ = (Rotation.from_rotvec(theta(si + h)).as_matrix()
-              - Rotation.from_rotvec(theta(si - h)).as_matrix()) / (2 * h)
+        dQ = (
+            Rotation.from_rotvec(theta(si + h)).as_matrix()
+            - Rotation.from_rotvec(theta(si - h)).as_matrix()
+        ) / (2 * h)
         W = dQ @ Q.T
         omega = np.array([W[2, 1], W[0, 2], W[1, 0]])
         total += moment(Q, theta(si)) @ omega
@@ -449,8 +488,11 @@ def test_semi_tangential_moment_is_not_conservative_off_the_axis():
     # the package's moment is the formula used here
     th = jnp.asarray(center)
     Q = Rotation.from_rotvec(center).as_matrix()
-    np.testing.assert_allclose(np.asarray(rbo.SemiTangentialMoment(1.0, K).moment(0.0, th, th)),
-                               (KN + Q @ KN) / np.linalg.norm(KN + Q @ KN), rtol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(rbo.SemiTangentialMoment(1.0, K).moment(0.0, th, th)),
+        (KN + Q @ KN) / np.linalg.norm(KN + Q @ KN),
+        rtol=1e-14,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -464,8 +506,9 @@ def _quadratic_eigenvalues(form):
     C = np.asarray(form.damping) + np.asarray(form.gyroscopic)
     Kf = np.asarray(form.stiffness) + np.asarray(form.circulatory)
     np.testing.assert_array_equal(np.asarray(form.full_stiffness), Kf)
-    comp = np.block([[np.zeros((3, 3)), np.eye(3)],
-                     [-np.linalg.solve(Mm, Kf), -np.linalg.solve(Mm, C)]])
+    comp = np.block(
+        [[np.zeros((3, 3)), np.eye(3)], [-np.linalg.solve(Mm, Kf), -np.linalg.solve(Mm, C)]]
+    )
     return np.linalg.eigvals(comp)
 
 
@@ -587,23 +630,28 @@ CLASSIFY_MODELS = {
     # name: (model, θ_eq, exact spectrum)
     # friction (4.84) without load: A1p² + bp + c = 0 (bending, twice), A3p² + bp + d = 0
     "asymptotically_stable": (
-        lambda: _velocity_model(b=0.2), jnp.zeros(3),
-        lambda: np.concatenate([np.roots([1.0, 0.2, 1.0]), np.roots([1.0, 0.2, 1.0]),
-                                np.roots([0.6, 0.2, 2.0])]),
+        lambda: _velocity_model(b=0.2),
+        jnp.zeros(3),
+        lambda: np.concatenate(
+            [np.roots([1.0, 0.2, 1.0]), np.roots([1.0, 0.2, 1.0]), np.roots([0.6, 0.2, 2.0])]
+        ),
     ),
     # (4.50) without load: ±i√(c/A1) (twice), ±i√(d/A3)
     "marginally_stable": (
-        lambda: _potential_model(), jnp.zeros(3),
+        lambda: _potential_model(),
+        jnp.zeros(3),
         lambda: np.array([1j, -1j, 1j, -1j, 1j * np.sqrt(2 / 0.6), -1j * np.sqrt(2 / 0.6)]),
     ),
     # isotropic ½cθ² (c = d = 1) with V = −½eθ², e = 1.6 > c: p² = (e − c)/A, real
     "divergence": (
-        lambda: _potential_model(A1=1.3, A3=1.3, c=1.0, d=1.0, e=1.6), jnp.zeros(3),
+        lambda: _potential_model(A1=1.3, A3=1.3, c=1.0, d=1.0, e=1.6),
+        jnp.zeros(3),
         lambda: np.repeat([np.sqrt(0.6 / 1.3), -np.sqrt(0.6 / 1.3)], 3),
     ),
     # follower moment M = 0.4 at θ = (M/d)k: (4.69)
     "flutter": (
-        lambda: _potential_model(follower=0.4), 0.2 * K,
+        lambda: _potential_model(follower=0.4),
+        0.2 * K,
         lambda: np.asarray(rbo.nikolai_spectrum(1.0, 0.6, 1.0, 2.0, 0.4)),
     ),
 }

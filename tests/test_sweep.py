@@ -53,7 +53,8 @@ try:
 except ImportError:  # zarr >= 3 needs Python >= 3.11; there sweeps run in memory only
     zarr = None
 needs_zarr = pytest.mark.skipif(
-    zarr is None, reason="the sweep store needs zarr >= 3, which needs Python >= 3.11")
+    zarr is None, reason="the sweep store needs zarr >= 3, which needs Python >= 3.11"
+)
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -63,19 +64,29 @@ CHUNK = 2  # every in-process Nikolai sweep uses it: one compiled program for al
 
 
 def _child_env(**extra) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "RBO_SWEEP_TEST_LOG",
-                                                           "RBO_SWEEP_TEST_SLEEP")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("XLA_FLAGS", "RBO_SWEEP_TEST_LOG", "RBO_SWEEP_TEST_SLEEP")
+    }
     env["JAX_ENABLE_X64"] = "1"
     env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(HERE), str(ROOT),
-                                                    os.environ.get("PYTHONPATH")) if p)
+    env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(HERE), str(ROOT), os.environ.get("PYTHONPATH")) if p
+    )
     env.update(extra)
     return env
 
 
 def _nikolai(**kwargs):
-    return sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims=NIKOLAI_DIMS,
-                 progress=False, **kwargs)
+    return sweep(
+        nikolai_abscissa,
+        NIKOLAI_AXES,
+        chunk_size=CHUNK,
+        dims=NIKOLAI_DIMS,
+        progress=False,
+        **kwargs,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -151,8 +162,9 @@ def test_one_compilation_serves_every_chunk(hook_log):
     again = _nikolai(devices=1)
     assert Chunks(nikolai_abscissa, space, tuple(jax.local_devices()[:1])).program is program
     # one call per chunk that holds a finite point (a chunk of NaN points only is not evaluated)
-    n_calls = sum(np.isfinite(space.points(space.slices(c))).all(axis=1).any()
-                  for c in range(space.n_chunks))
+    n_calls = sum(
+        np.isfinite(space.points(space.slices(c))).all(axis=1).any() for c in range(space.n_chunks)
+    )
     assert hook_log() == 2 * n_calls
     xr.testing.assert_identical(ds, again)
 
@@ -160,8 +172,13 @@ def test_one_compilation_serves_every_chunk(hook_log):
 def test_points_mode_matches_grid(nikolai):
     cs = np.array([2.0, 0.5, 1.0, 1.0, 0.5])
     Ms = np.array([0.4, 0.1, np.nan, 0.5, 0.2])
-    ds = sweep(nikolai_abscissa, points={"c": cs, "M": Ms}, chunk_size=CHUNK, dims=NIKOLAI_DIMS,
-               progress=False)
+    ds = sweep(
+        nikolai_abscissa,
+        points={"c": cs, "M": Ms},
+        chunk_size=CHUNK,
+        dims=NIKOLAI_DIMS,
+        progress=False,
+    )
     assert ds["abscissa"].dims == ("point",)
     np.testing.assert_array_equal(ds["c"].values, cs)
     np.testing.assert_array_equal(ds["M"].values, Ms)
@@ -177,8 +194,14 @@ def test_points_mode_matches_grid(nikolai):
 
 @pytest.mark.parametrize(
     "shape, size",
-    [((101, 41), 4096), ((5, 2000), 1500), ((1000, 3), 1024), ((7,), 3), ((3, 4, 5), 1),
-     ((2, 2), 99)],
+    [
+        ((101, 41), 4096),
+        ((5, 2000), 1500),
+        ((1000, 3), 1024),
+        ((7,), 3),
+        ((3, 4, 5), 1),
+        ((2, 2), 99),
+    ],
 )
 def test_chunk_shape_bounded_and_balanced(shape, size):
     c = _chunk_shape(shape, size)
@@ -202,11 +225,22 @@ def failing_simulation(alpha, th, wt, t1):
     """Body on the barrier foundation (4.49), c = d = 0.01, A = E, started at θ = th·e1 spinning
     about e1 with a transverse component wt: status from simulate(..., throw=False)."""
     model = rbo.RigidBodyOscillator(jnp.eye(3), rbo.BarrierFoundation(0.01, 0.01, alpha, 100.0, K))
-    traj = rbo.simulate(model, th * E1, jnp.stack([1.0, wt, 0.0]), jnp.linspace(0.0, 1.0, 5) * t1,
-                        rtol=1e-8, atol=1e-8, max_steps=256, throw=False)
+    traj = rbo.simulate(
+        model,
+        th * E1,
+        jnp.stack([1.0, wt, 0.0]),
+        jnp.linspace(0.0, 1.0, 5) * t1,
+        rtol=1e-8,
+        atol=1e-8,
+        max_steps=256,
+        throw=False,
+    )
     E = traj.energy
-    return {"theta": traj.theta[-1], "drift": jnp.max(jnp.abs(E - E[0])),
-            "num_steps": traj.num_steps}, traj.status
+    return {
+        "theta": traj.theta[-1],
+        "drift": jnp.max(jnp.abs(E - E[0])),
+        "num_steps": traj.num_steps,
+    }, traj.status
 
 
 def test_bad_points_get_their_status_and_the_others_complete():
@@ -219,8 +253,13 @@ def test_bad_points_get_their_status_and_the_others_complete():
         "nonfinite_input": (100.0, np.nan, 0.1, 1.0),
     }
     cols = np.array(list(cases.values())).T
-    ds = sweep(failing_simulation, points=dict(zip(("alpha", "th", "wt", "t1"), cols)),
-               chunk_size=8, dims={"theta": ["component"]}, progress=False)
+    ds = sweep(
+        failing_simulation,
+        points=dict(zip(("alpha", "th", "wt", "t1"), cols)),
+        chunk_size=8,
+        dims={"theta": ["component"]},
+        progress=False,
+    )
     names = ds["status"].attrs["flag_meanings"].split()
     assert [names[s] for s in ds["status"].values] == list(cases)
     assert [int(code(getattr(S, n))) for n in cases] == list(ds["status"].values)
@@ -257,16 +296,28 @@ def test_store_without_zarr_says_why(tmp_path, monkeypatch):
     and why, before computing anything; the in-memory sweep needs no zarr."""
     monkeypatch.setitem(sys.modules, "zarr", None)  # import zarr -> ImportError
     with pytest.raises(ImportError, match=r"needs zarr >= 3, which needs Python >= 3.11"):
-        sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims=NIKOLAI_DIMS,
-              store=tmp_path / "map.zarr", progress=False)
+        sweep(
+            nikolai_abscissa,
+            NIKOLAI_AXES,
+            chunk_size=CHUNK,
+            dims=NIKOLAI_DIMS,
+            store=tmp_path / "map.zarr",
+            progress=False,
+        )
     assert not (tmp_path / "map.zarr").exists()
 
 
 @needs_zarr
 def test_points_mode_store_is_labelled(tmp_path):
     pts = {"c": np.array([0.5, 1.0, 2.0]), "M": np.array([0.1, 0.2, 0.3])}
-    ds = sweep(nikolai_abscissa, points=pts, chunk_size=CHUNK, store=tmp_path / "p.zarr",
-               dims=NIKOLAI_DIMS, progress=False)
+    ds = sweep(
+        nikolai_abscissa,
+        points=pts,
+        chunk_size=CHUNK,
+        store=tmp_path / "p.zarr",
+        dims=NIKOLAI_DIMS,
+        progress=False,
+    )
     assert set(ds.coords) >= {"c", "M"} and ds["c"].dims == ("point",)
     np.testing.assert_array_equal(ds["M"].values, pts["M"])
 
@@ -279,13 +330,26 @@ def test_store_guards(tmp_path, nikolai):
         _nikolai(store=path)
     other = dict(NIKOLAI_AXES, M=NIKOLAI_AXES["M"] * 2)
     with pytest.raises(SweepError, match="values of 'M' differ"):
-        sweep(nikolai_abscissa, other, chunk_size=CHUNK, dims=NIKOLAI_DIMS, store=path,
-              resume=True, progress=False)
+        sweep(
+            nikolai_abscissa,
+            other,
+            chunk_size=CHUNK,
+            dims=NIKOLAI_DIMS,
+            store=path,
+            resume=True,
+            progress=False,
+        )
     with pytest.raises(SweepError, match="attribute 'run'"):
         _nikolai(store=path, resume=True, attrs={"run": 2})
     with pytest.raises(SweepError, match="variables"):
-        sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
-              progress=False)  # other dimension names: a different sweep
+        sweep(
+            nikolai_abscissa,
+            NIKOLAI_AXES,
+            chunk_size=CHUNK,
+            store=path,
+            resume=True,
+            progress=False,
+        )  # other dimension names: a different sweep
     with pytest.raises(ValueError, match="need a store"):
         _nikolai(resume=True)
     (tmp_path / "junk").mkdir()
@@ -324,13 +388,18 @@ def test_killed_sweep_resumes_to_an_identical_store(tmp_path, hook_log):
     store = tmp_path / "killed.zarr"
     done_dir = store / "_sweep" / "chunk_done" / "c"
     proc = subprocess.Popen(
-        [sys.executable, str(WORKER), "kill", str(store)], cwd=ROOT,
-        env=_child_env(RBO_SWEEP_TEST_SLEEP="0.4"), stdout=subprocess.PIPE,
+        [sys.executable, str(WORKER), "kill", str(store)],
+        cwd=ROOT,
+        env=_child_env(RBO_SWEEP_TEST_SLEEP="0.4"),
+        stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
     )
     try:
-        started = _wait_for(lambda: done_dir.exists() and
-                            sum(1 for p in done_dir.rglob("*") if p.is_file()) >= 3, proc, 180)
+        started = _wait_for(
+            lambda: done_dir.exists() and sum(1 for p in done_dir.rglob("*") if p.is_file()) >= 3,
+            proc,
+            180,
+        )
         proc.send_signal(signal.SIGKILL)
         out = proc.communicate(timeout=30)[0].decode()
     finally:
@@ -346,13 +415,26 @@ def test_killed_sweep_resumes_to_an_identical_store(tmp_path, hook_log):
     with pytest.raises(SweepError, match="incomplete"):
         open_sweep(store)
 
-    resumed = sweep(nikolai_abscissa, KILL_AXES, chunk_size=KILL_CHUNK, dims=NIKOLAI_DIMS,
-                    store=store, resume=True, progress=False)
+    resumed = sweep(
+        nikolai_abscissa,
+        KILL_AXES,
+        chunk_size=KILL_CHUNK,
+        dims=NIKOLAI_DIMS,
+        store=store,
+        resume=True,
+        progress=False,
+    )
     assert hook_log() == space.n_chunks - n_done  # only the missing chunks were computed
 
     fresh = tmp_path / "fresh.zarr"
-    uninterrupted = sweep(nikolai_abscissa, KILL_AXES, chunk_size=KILL_CHUNK, dims=NIKOLAI_DIMS,
-                          store=fresh, progress=False)
+    uninterrupted = sweep(
+        nikolai_abscissa,
+        KILL_AXES,
+        chunk_size=KILL_CHUNK,
+        dims=NIKOLAI_DIMS,
+        store=fresh,
+        progress=False,
+    )
     assert _store_files(store) == _store_files(fresh)
     xr.testing.assert_identical(resumed.load(), uninterrupted.load())
 
@@ -367,8 +449,11 @@ def test_four_local_devices_share_each_chunk(tmp_path):
     the 4 devices by shard_map, and the results equal a one-device sweep bitwise."""
     out = tmp_path / "report.json"
     res = subprocess.run(
-        [sys.executable, str(WORKER), "devices", str(out)], cwd=ROOT, capture_output=True,
-        env=_child_env(XLA_FLAGS="--xla_force_host_platform_device_count=4"), timeout=300,
+        [sys.executable, str(WORKER), "devices", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        env=_child_env(XLA_FLAGS="--xla_force_host_platform_device_count=4"),
+        timeout=300,
     )
     assert res.returncode == 0, res.stderr.decode()[-3000:]
     report = json.loads(out.read_text())
@@ -391,15 +476,26 @@ def test_two_processes_equal_one_process(tmp_path, hook_log):
     """Two processes on localhost (jax.distributed, gloo): each computes its share of the chunks
     (logged by the hook), the in-memory results are gathered and the store is written by both;
     both equal the one-process sweep exactly."""
-    reference = sweep(nikolai_abscissa, DIST_AXES, chunk_size=DIST_CHUNK, dims=NIKOLAI_DIMS,
-                      progress=False)
+    reference = sweep(
+        nikolai_abscissa, DIST_AXES, chunk_size=DIST_CHUNK, dims=NIKOLAI_DIMS, progress=False
+    )
     port, store, log = _free_port(), tmp_path / "two.zarr", tmp_path / "calls.log"
     procs = [
         subprocess.Popen(
-            [sys.executable, str(WORKER), "distributed", str(port), "2", str(i), str(store),
-             str(tmp_path / f"out{i}.pkl")],
-            cwd=ROOT, env=_child_env(RBO_SWEEP_TEST_LOG=str(log)),
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            [
+                sys.executable,
+                str(WORKER),
+                "distributed",
+                str(port),
+                "2",
+                str(i),
+                str(store),
+                str(tmp_path / f"out{i}.pkl"),
+            ],
+            cwd=ROOT,
+            env=_child_env(RBO_SWEEP_TEST_LOG=str(log)),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
         )
         for i in range(2)
     ]
@@ -422,8 +518,9 @@ def test_two_processes_equal_one_process(tmp_path, hook_log):
     xr.testing.assert_identical(open_sweep(store).load(), reference)
     calls = [line.split()[0] for line in log.read_text().splitlines()]
     space = make_space(DIST_AXES, None, DIST_CHUNK)
-    evaluated = sum(np.isfinite(space.points(space.slices(c))).all(axis=1).any()
-                    for c in range(space.n_chunks))
+    evaluated = sum(
+        np.isfinite(space.points(space.slices(c))).all(axis=1).any() for c in range(space.n_chunks)
+    )
     # two sweeps (in memory, stored); every evaluated chunk once, shared by the processes
     assert len(calls) == 2 * evaluated
     assert 0 < calls.count("0") < len(calls) and 0 < calls.count("1") < len(calls)
@@ -437,8 +534,14 @@ def test_two_processes_equal_one_process(tmp_path, hook_log):
 def test_progress_bar_and_quiet_mode(capsys):
     _nikolai()
     assert capsys.readouterr().err == ""
-    sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims=NIKOLAI_DIMS, progress=True,
-          desc="nikolai")
+    sweep(
+        nikolai_abscissa,
+        NIKOLAI_AXES,
+        chunk_size=CHUNK,
+        dims=NIKOLAI_DIMS,
+        progress=True,
+        desc="nikolai",
+    )
     err = capsys.readouterr().err
     assert "nikolai" in err and "15.0/15.0" in err and "pt/s" in err  # done/total, rate
     assert "nikolai: 15 points: 12 successful, 3 nonfinite_input" in err
@@ -457,8 +560,9 @@ def test_a_point_that_raises_is_flagged_and_the_rest_completes(tmp_path, chunk_s
     re-run in halves, the raising points get the status `error` with their message and
     coordinates, every other point is computed — whether the chunk holds 2 points or all 15."""
     path = tmp_path / f"err{chunk_size}.zarr"
-    ds = sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=chunk_size, store=path,
-               progress=False).load()
+    ds = sweep(
+        _raises_for_large_c, NIKOLAI_AXES, chunk_size=chunk_size, store=path, progress=False
+    ).load()
     flags = ds["status"].attrs["flag_meanings"].split()
     status = np.asarray(ds["status"].values)
     c, M = np.meshgrid(NIKOLAI_AXES["c"], NIKOLAI_AXES["M"], indexing="ij")
@@ -481,15 +585,23 @@ def test_retry_errors_recomputes_only_the_raising_points(tmp_path):
     quantity of the same outputs): the store then equals a fresh run's."""
     path = tmp_path / "retry.zarr"
     sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, progress=False)
-    kept = sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
-                 progress=False)
+    kept = sweep(
+        _raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True, progress=False
+    )
     assert status_counts(kept)["error"] == 4
 
     def fixed(c, M):
         return {"x": c + M}
 
-    retried = sweep(fixed, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
-                    retry_errors=True, progress=False).load()
+    retried = sweep(
+        fixed,
+        NIKOLAI_AXES,
+        chunk_size=CHUNK,
+        store=path,
+        resume=True,
+        retry_errors=True,
+        progress=False,
+    ).load()
     fresh = sweep(fixed, NIKOLAI_AXES, chunk_size=CHUNK, progress=False)
     assert status_counts(retried)["error"] == 0 and retried.attrs["errors"] == []
     np.testing.assert_array_equal(retried["x"].values, fresh["x"].values)
@@ -512,8 +624,9 @@ def test_one_writer_per_store_and_a_dead_owner_is_taken_over(tmp_path, capsys):
     lock.write_text(json.dumps(owner))
     with pytest.raises(SweepError, match=f"{path} is being written by process {os.getppid()}"):
         sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, progress=False)
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True).stdout.strip()
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
     lock.write_text(json.dumps({**owner, "pid": int(dead)}))
     sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, progress=False)
     assert "taking over the lock" in capsys.readouterr().err and not lock.exists()
@@ -535,15 +648,17 @@ def test_a_corrupted_chunk_is_reported_and_recomputed_on_resume(tmp_path, capsys
     files[1].write_bytes(files[1].read_bytes()[:5])
     with pytest.raises(SweepError, match="2 chunk\\(s\\) fail their checksum"):
         open_sweep(path)
-    sweep(_raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True,
-          progress=False)
+    sweep(
+        _raises_for_large_c, NIKOLAI_AXES, chunk_size=CHUNK, store=path, resume=True, progress=False
+    )
     assert capsys.readouterr().err.count("is recomputed") == 2
     assert _store_files(path) == _store_files(clean)
 
 
 def _store_files(path):
-    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()
+    }
 
 
 @pytest.mark.parametrize(
@@ -583,8 +698,9 @@ def test_dims_must_match_the_outputs():
     with pytest.raises(ValueError, match="does not return"):
         sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims={"q": ["x"]}, progress=False)
     with pytest.raises(ValueError, match="2 names for an output of shape \\(6,\\)"):
-        sweep(nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims={"p": ["a", "b"]},
-              progress=False)
+        sweep(
+            nikolai_abscissa, NIKOLAI_AXES, chunk_size=CHUNK, dims={"p": ["a", "b"]}, progress=False
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -648,17 +764,26 @@ def test_cli_sweep_writes_store_and_png_and_resumes(tmp_path, capsys):
     store, png = tmp_path / "small.zarr", tmp_path / "small.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     ds = open_sweep(store).load()
-    assert status_counts(ds) == {"successful": 12, "not_converged": 0, "singular_point": 0,
-                                 "domain_error": 0, "nonfinite": 0, "invalid_parameters": 0,
-                                 "nonfinite_input": 0, "error": 0}
+    assert status_counts(ds) == {
+        "successful": 12,
+        "not_converged": 0,
+        "singular_point": 0,
+        "domain_error": 0,
+        "nonfinite": 0,
+        "invalid_parameters": 0,
+        "nonfinite_input": 0,
+        "error": 0,
+    }
     assert ds["theta_eq"].dims == ("M", "b", "component")
     # Newton finds θ_eq = (M/d) k (4.62); without friction the spectrum there is (4.69).
-    np.testing.assert_allclose(ds["theta_eq"].values[..., 2], ds["M"].values[:, None] / 2.0
-                               * np.ones((1, 4)), atol=1e-12)
+    np.testing.assert_allclose(
+        ds["theta_eq"].values[..., 2], ds["M"].values[:, None] / 2.0 * np.ones((1, 4)), atol=1e-12
+    )
     for M in (0.2, 0.4):
         closed_form = float(jnp.max(jnp.real(rbo.nikolai_spectrum(1.0, 0.5, 1.0, 2.0, M))))
-        np.testing.assert_allclose(float(ds["spectral_abscissa"].sel(M=M, b=0.0)), closed_form,
-                                   rtol=1e-9)
+        np.testing.assert_allclose(
+            float(ds["spectral_abscissa"].sel(M=M, b=0.0)), closed_form, rtol=1e-9
+        )
     # conservative (M = 0, b = 0): marginally stable; friction without load: asymptotically
     kinds = ds["kind"].attrs["flag_meanings"].split()
     assert kinds[int(ds["kind"].sel(M=0.0, b=0.0))] == "marginally_stable"
@@ -723,32 +848,49 @@ def test_example_configs_are_valid(path):
 BAD_CONFIGS = [
     ("[sweep]\nquantity='x'", "exactly one of the tables [axes]"),
     (SMALL_CONFIG + "[solverr]\n", "unknown table [solverr] (did you mean [solver]?)"),
-    (SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 4\nchunks = 3"),
-     "[sweep]: unknown key 'chunks' (did you mean 'chunk_size'?)"),
-    (SMALL_CONFIG.replace('M = "M"', 'M = "MM"'),
-     "[model.loads][0] M: 'MM' is neither a number nor an axis name (axes: M, b)"),
+    (
+        SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 4\nchunks = 3"),
+        "[sweep]: unknown key 'chunks' (did you mean 'chunk_size'?)",
+    ),
+    (
+        SMALL_CONFIG.replace('M = "M"', 'M = "MM"'),
+        "[model.loads][0] M: 'MM' is neither a number nor an axis name (axes: M, b)",
+    ),
     (SMALL_CONFIG.replace('b = "b"', "b = 0.1"), "[axes] b: this axis is not used"),
     (SMALL_CONFIG.replace("c = 1.0", "c = -1.0"), "[model.foundation] c: must be > 0, got -1"),
     (SMALL_CONFIG.replace("c = 1.0", 'c = "M"'), "axis 'M' takes the value 0, but c must be > 0"),
-    (SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 'big'"),
-     "[sweep] chunk_size: must be an"),
+    (
+        SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 'big'"),
+        "[sweep] chunk_size: must be an",
+    ),
     (SMALL_CONFIG.replace("spectral_abscissa", "speed"), "[sweep] quantity: must be one of"),
     (SMALL_CONFIG.replace('"quadratic"', '"cubic"'), "[model.foundation] type: must be"),
     (SMALL_CONFIG.replace("num = 4", "num = 0"), "[axes] b.num: must be an integer >= 1"),
-    (SMALL_CONFIG + "[solver]\nt1 = 1.0\n",
-     "[solver]: is not used by quantity 'spectral_abscissa'"),
-    (SMALL_CONFIG.replace("spectral_abscissa", "final_state"),
-     "config: missing required key 'solver'"),
-    (SMALL_CONFIG.replace("spectral_abscissa", "energy_drift") + "[solver]\nrtol = 1e-8\n",
-     "[solver]: missing required key 't1'"),
-    (SMALL_CONFIG.replace("[axes]", "[points]").replace("b = { start = 0.0, stop = 0.3, num = 4 }",
-                                                        "b = [0.1, 0.2]"),
-     "[points]: every parameter needs the same number of values"),
+    (
+        SMALL_CONFIG + "[solver]\nt1 = 1.0\n",
+        "[solver]: is not used by quantity 'spectral_abscissa'",
+    ),
+    (
+        SMALL_CONFIG.replace("spectral_abscissa", "final_state"),
+        "config: missing required key 'solver'",
+    ),
+    (
+        SMALL_CONFIG.replace("spectral_abscissa", "energy_drift") + "[solver]\nrtol = 1e-8\n",
+        "[solver]: missing required key 't1'",
+    ),
+    (
+        SMALL_CONFIG.replace("[axes]", "[points]").replace(
+            "b = { start = 0.0, stop = 0.3, num = 4 }", "b = [0.1, 0.2]"
+        ),
+        "[points]: every parameter needs the same number of values",
+    ),
     (SMALL_CONFIG.replace("A1 = 1.0, ", ""), "[model.inertia]: missing required key 'A1'"),
     (SMALL_CONFIG.replace('output = "small.zarr"', "output = 3"), "[sweep] output: must be a path"),
     (SMALL_CONFIG + "plot = 'x'\n", "unknown key 'plot'"),
-    (SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 4\nplot = 'energy'"),
-     "[sweep] plot: must be an output of 'spectral_abscissa'"),
+    (
+        SMALL_CONFIG.replace("chunk_size = 4", "chunk_size = 4\nplot = 'energy'"),
+        "[sweep] plot: must be an output of 'spectral_abscissa'",
+    ),
     ("[sweep\n", "not valid TOML"),
 ]
 
@@ -842,8 +984,7 @@ def _toml_value(v) -> str:
     if isinstance(v, str):
         return _toml_string(v)
     if isinstance(v, float):
-        return "nan" if v != v else ("inf" if v == np.inf else "-inf" if v == -np.inf
-                                     else repr(v))
+        return "nan" if v != v else ("inf" if v == np.inf else "-inf" if v == -np.inf else repr(v))
     if isinstance(v, int):
         return str(v)
     if isinstance(v, list):
@@ -882,13 +1023,26 @@ def _fuzz_values():
     from hypothesis import strategies as st
 
     scalars = st.one_of(
-        st.booleans(), st.integers(-10**20, 10**20),
-        st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6),
-        st.sampled_from(["M", "c", "quadratic", "barrier", "follower", "simulate", ""]))
-    return st.recursive(scalars, lambda inner: st.one_of(
-        st.lists(inner, max_size=4), st.dictionaries(st.sampled_from(
-            ["type", "c", "d", "M", "b", "start", "stop", "num", "A1", "A3", "x"]), inner,
-            max_size=3)), max_leaves=6)
+        st.booleans(),
+        st.integers(-(10**20), 10**20),
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.text(max_size=6),
+        st.sampled_from(["M", "c", "quadratic", "barrier", "follower", "simulate", ""]),
+    )
+    return st.recursive(
+        scalars,
+        lambda inner: st.one_of(
+            st.lists(inner, max_size=4),
+            st.dictionaries(
+                st.sampled_from(
+                    ["type", "c", "d", "M", "b", "start", "stop", "num", "A1", "A3", "x"]
+                ),
+                inner,
+                max_size=3,
+            ),
+        ),
+        max_leaves=6,
+    )
 
 
 def test_fuzzed_configs_fail_with_a_config_error_naming_the_key(tmp_path):

@@ -13,8 +13,10 @@ import importlib.util
 
 from ..batch import SweepError
 
-MISSING = ("Dask is not installed (--scheduler and --workers run the sweep on it): "
-           "pip install 'rbo_jax[dask]'")
+MISSING = (
+    "Dask is not installed (--scheduler and --workers run the sweep on it): "
+    "pip install 'rbo_jax[dask]'"
+)
 #: Seconds to reach a scheduler before giving up (Dask's own default, 30 s, is for clusters
 #: whose scheduler may start late; a sweep's scheduler is already running).
 CONNECT_TIMEOUT_S = 20
@@ -36,8 +38,9 @@ def dask_client(scheduler: str | None = None, workers: int | None = None):
         return
     if scheduler is not None and workers is not None:
         raise ValueError("give a scheduler's address or a number of local workers, not both.")
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
-                                or workers < 1):
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
+    ):
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}.")
     if not dask_installed():
         raise SweepError(MISSING)
@@ -46,15 +49,20 @@ def dask_client(scheduler: str | None = None, workers: int | None = None):
     if workers is not None:
         # the dashboard on a free port: Dask's 8787 may be another cluster's (Dask then warns);
         # the sweep has its progress bar (a `dask scheduler` started by hand keeps 8787)
-        with distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                      dashboard_address=":0") as cluster, \
-                distributed.Client(cluster) as client:
+        with (
+            distributed.LocalCluster(
+                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0"
+            ) as cluster,
+            distributed.Client(cluster) as client,
+        ):
             yield client
         return
     try:
         client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
     except (OSError, TimeoutError, ValueError, TypeError) as e:
-        raise SweepError(f"cannot reach the Dask scheduler {scheduler!r}: "
-                         f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+        raise SweepError(
+            f"cannot reach the Dask scheduler {scheduler!r}: "
+            f"{str(e).splitlines()[0] if str(e) else type(e).__name__}"
+        ) from None
     with client:
         yield client

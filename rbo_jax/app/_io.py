@@ -79,8 +79,10 @@ def write_dataset(ds, path) -> None:
     if kind == ".nc":
         engine = netcdf_engine()
         if engine is None:
-            raise RuntimeError("writing .nc needs a netCDF engine for xarray: pip install "
-                               "netCDF4, h5netcdf or scipy; or write .zarr.")
+            raise RuntimeError(
+                "writing .nc needs a netCDF engine for xarray: pip install "
+                "netCDF4, h5netcdf or scipy; or write .zarr."
+            )
         with replacing(path) as tmp:
             _for_netcdf(ds).to_netcdf(tmp, engine=engine)
     elif kind == ".zarr":
@@ -97,17 +99,29 @@ def write_trajectory_csv(ds, path) -> None:
     """A trajectory Dataset (:meth:`rbo_jax.Trajectory.to_xarray`) as CSV: columns t,
     theta_x..z, Omega_x..z, energy."""
     t = np.asarray(ds["t"].values)
-    cols = [t, np.asarray(ds["theta"].values), np.asarray(ds["Omega"].values),
-            np.asarray(ds["energy"].values)]
+    cols = [
+        t,
+        np.asarray(ds["theta"].values),
+        np.asarray(ds["Omega"].values),
+        np.asarray(ds["energy"].values),
+    ]
     with replacing(path) as tmp:
-        np.savetxt(tmp, np.column_stack(cols), delimiter=",", comments="", fmt="%.17g",
-                   header="t,theta_x,theta_y,theta_z,Omega_x,Omega_y,Omega_z,energy")
+        np.savetxt(
+            tmp,
+            np.column_stack(cols),
+            delimiter=",",
+            comments="",
+            fmt="%.17g",
+            header="t,theta_x,theta_y,theta_z,Omega_x,Omega_y,Omega_z,energy",
+        )
 
 
 # the arrays a trajectory file may hold, all of real numbers
 TRAJECTORY_ARRAYS = ("t", "ts", "theta", "Q", "Omega", "omega", "theta0", "Omega0")
-_SIGNATURES = {".npz": (b"PK\x03\x04", b"PK\x05\x06"),  # a zip archive (numpy.savez)
-               ".nc": (b"CDF\x01", b"CDF\x02", b"CDF\x05", b"\x89HDF\r\n\x1a\n")}
+_SIGNATURES = {
+    ".npz": (b"PK\x03\x04", b"PK\x05\x06"),  # a zip archive (numpy.savez)
+    ".nc": (b"CDF\x01", b"CDF\x02", b"CDF\x05", b"\x89HDF\r\n\x1a\n"),
+}
 _FORMATS = {".npz": ".npz archive (numpy.savez)", ".nc": "netCDF file", ".zarr": "zarr store"}
 
 
@@ -130,8 +144,10 @@ def _check_container(path: Path, kind: str) -> None:
     if not head.startswith(_SIGNATURES[kind]):
         raise ValueError(f"not a {_FORMATS[kind]} (its first bytes are {head[:4]!r})")
     if head.startswith(b"\x89HDF") and netcdf_engine() not in ("netcdf4", "h5netcdf"):
-        raise ValueError("a netCDF 4 (HDF5) file, which needs the netCDF4 or h5netcdf package to "
-                         "be read (pip install netCDF4); 'rbo-jax simulate --out' writes netCDF 3")
+        raise ValueError(
+            "a netCDF 4 (HDF5) file, which needs the netCDF4 or h5netcdf package to "
+            "be read (pip install netCDF4); 'rbo-jax simulate --out' writes netCDF 3"
+        )
 
 
 def _read_arrays(path, kind: str) -> dict:
@@ -152,8 +168,9 @@ def _read_arrays(path, kind: str) -> dict:
         arrays = {name: np.asarray(ds[name].values) for name in ds.variables}
         if "reached" in arrays:  # samples after a solver failure are not observations
             keep = arrays["reached"].astype(bool)
-            arrays = {k: v[keep] if v.ndim and v.shape[0] == keep.size else v
-                      for k, v in arrays.items()}
+            arrays = {
+                k: v[keep] if v.ndim and v.shape[0] == keep.size else v for k, v in arrays.items()
+            }
     return arrays
 
 
@@ -183,6 +200,7 @@ def read_trajectory_file(path) -> dict:
         raise ValueError(f"not a readable {_FORMATS[kind]} ({_reason(e)})") from None
     for name in TRAJECTORY_ARRAYS:
         if name in arrays and arrays[name].dtype.kind not in "fiu":
-            raise ValueError(f"array {name!r} must hold real numbers, got dtype "
-                             f"{arrays[name].dtype}")
+            raise ValueError(
+                f"array {name!r} must hold real numbers, got dtype {arrays[name].dtype}"
+            )
     return arrays

@@ -87,8 +87,7 @@ def _problem(p: Path, directory: bool, make_parents: bool) -> str | None:
 
 def _temporary(path: Path, what: str) -> Path:
     """A hidden name beside ``path`` with the same suffix (writers choose formats by it)."""
-    return path.with_name(f".{path.stem}.{what}-{os.getpid()}-{secrets.token_hex(4)}"
-                          f"{path.suffix}")
+    return path.with_name(f".{path.stem}.{what}-{os.getpid()}-{secrets.token_hex(4)}{path.suffix}")
 
 
 def _remove(path: Path) -> None:

@@ -70,19 +70,32 @@ class Reader:
 
     def _axis(self, name: str, key: str, label: str, requirement: Requirement) -> Ref:
         if name not in self.axes:
-            self.fail(label, f"{name!r} is neither a number nor an axis name (axes: "
-                             f"{', '.join(self.axes) or 'none'}).")
+            self.fail(
+                label,
+                f"{name!r} is neither a number nor an axis name (axes: "
+                f"{', '.join(self.axes) or 'none'}).",
+            )
         self.used.add(name)
         values = np.asarray(self.axes[name], dtype=float)
         values = values[np.isfinite(values)]  # non-finite points are flagged by the sweep
         bad = values[~np.asarray(requirement.holds(values), dtype=bool)]
         if bad.size:
-            self.fail(label, f"axis {name!r} takes the value {bad[0]:g}, but {key} must be "
-                             f"{requirement.text}.")
+            self.fail(
+                label,
+                f"axis {name!r} takes the value {bad[0]:g}, but {key} must be {requirement.text}.",
+            )
         return Ref(name)
 
-    def number(self, table, key, where, *, default=None, requirement: Requirement = FINITE,
-               axis: bool = True):
+    def number(
+        self,
+        table,
+        key,
+        where,
+        *,
+        default=None,
+        requirement: Requirement = FINITE,
+        axis: bool = True,
+    ):
         """A number (checked against ``requirement``) or, if ``axis``, an axis name."""
         if key not in table:
             if default is None:
@@ -95,8 +108,9 @@ class Reader:
         if isinstance(v, str):
             self.fail(label, "must be a number, not an axis.")
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            self.fail(label, f"must be a number{' or an axis name' if axis else ''}, "
-                             f"got {_fmt(v)}.")
+            self.fail(
+                label, f"must be a number{' or an axis name' if axis else ''}, got {_fmt(v)}."
+            )
         v = float(v)
         if not bool(requirement.holds(np.asarray(v))):
             self.fail(label, f"must be {requirement.text}, got {_fmt(v)}.")
@@ -133,8 +147,9 @@ class Reader:
         if not isinstance(v, str) or not v:
             self.fail(f"{where} {key}", f"must be a non-empty string, got {v!r}.")
         if choices is not None and v not in choices:
-            self.fail(f"{where} {key}", f"must be one of {', '.join(map(repr, choices))}; "
-                                        f"got {v!r}.")
+            self.fail(
+                f"{where} {key}", f"must be one of {', '.join(map(repr, choices))}; got {v!r}."
+            )
         return v
 
 

@@ -80,8 +80,9 @@ class SweepConfig:
 
 def _axis_values(r: Reader, spec, where: str, grid: bool) -> np.ndarray:
     if isinstance(spec, list):
-        if not spec or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                               for x in spec):
+        if not spec or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in spec
+        ):
             r.fail(where, "must be a non-empty list of numbers.")
         return np.asarray(spec, dtype=np.float64)
     if not (isinstance(spec, Mapping) and grid):
@@ -106,8 +107,10 @@ def _axis_values(r: Reader, spec, where: str, grid: bool) -> np.ndarray:
 def _read_axes(cfg: Mapping) -> tuple[str, dict]:
     r = Reader()
     if ("axes" in cfg) == ("points" in cfg):
-        r.fail("config", "give exactly one of the tables [axes] (a grid) or [points] (a list of "
-                         "points).")
+        r.fail(
+            "config",
+            "give exactly one of the tables [axes] (a grid) or [points] (a list of points).",
+        )
     key = "axes" if "axes" in cfg else "points"
     table = cfg[key]
     if not isinstance(table, Mapping) or not table:
@@ -135,11 +138,13 @@ def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
                 r.fail(f"[{section}]", f"is not used by quantity {name!r}; remove it.")
         if name != "spectral_abscissa":
             if "classify_rtol" in eq:
-                r.fail("[equilibrium] classify_rtol",
-                       "is only used by quantity 'spectral_abscissa'.")
+                r.fail(
+                    "[equilibrium] classify_rtol", "is only used by quantity 'spectral_abscissa'."
+                )
             return Settings(theta_guess=guess)
-        crtol = r.number(eq, "classify_rtol", "[equilibrium]", default=1e-9, requirement=POSITIVE,
-                         axis=False)
+        crtol = r.number(
+            eq, "classify_rtol", "[equilibrium]", default=1e-9, requirement=POSITIVE, axis=False
+        )
         return Settings(theta_guess=guess, classify_rtol=crtol)
     if "classify_rtol" in eq:
         r.fail("[equilibrium] classify_rtol", "is only used by quantity 'spectral_abscissa'.")
@@ -150,21 +155,27 @@ def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
         r.fail("[equilibrium]", "is only used with [initial] about_equilibrium = true.")
     solver = r.table(cfg, "solver", "config", required=True)
     where = "[solver]"
-    r.keys(solver, ("t1", "rtol", "atol", "max_steps", "samples", "integrator"), where,
-           required=("t1",))
+    r.keys(
+        solver,
+        ("t1", "rtol", "atol", "max_steps", "samples", "integrator"),
+        where,
+        required=("t1",),
+    )
     if "samples" in solver and name == "final_state":
         r.fail(f"{where} samples", "is not used by quantity 'final_state' (it keeps t1 only).")
     return Settings(
         theta0=r.vector(init, "theta0", "[initial]", default=(0.0, 0.0, 0.0)),
         Omega0=r.vector(init, "Omega0", "[initial]", default=(0.0, 0.0, 0.0)),
-        about_equilibrium=about_eq, theta_guess=guess,
+        about_equilibrium=about_eq,
+        theta_guess=guess,
         t1=r.number(solver, "t1", where, requirement=POSITIVE),
         rtol=r.number(solver, "rtol", where, default=1e-8, requirement=POSITIVE, axis=False),
         atol=r.number(solver, "atol", where, default=1e-8, requirement=POSITIVE, axis=False),
         max_steps=r.integer(solver, "max_steps", where, default=100_000),
         samples=r.integer(solver, "samples", where, default=101, minimum=2),
-        integrator=r.string(solver, "integrator", where, default="fast_simulate",
-                            choices=INTEGRATORS),
+        integrator=r.string(
+            solver, "integrator", where, default="fast_simulate", choices=INTEGRATORS
+        ),
     )
 
 
@@ -186,11 +197,16 @@ def _parse_toml(path: Path) -> dict:
 
 def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
     sw = r.table(cfg, "sweep", "config", required=True)
-    r.keys(sw, ("quantity", "output", "chunk_size", "plot", "png"), "[sweep]",
-           required=("quantity", "output"))
+    r.keys(
+        sw,
+        ("quantity", "output", "chunk_size", "plot", "png"),
+        "[sweep]",
+        required=("quantity", "output"),
+    )
     if not isinstance(sw["quantity"], str) or sw["quantity"] not in QUANTITIES:
-        r.fail("[sweep] quantity", f"must be one of {', '.join(QUANTITIES)}; "
-                                   f"got {sw['quantity']!r}.")
+        r.fail(
+            "[sweep] quantity", f"must be one of {', '.join(QUANTITIES)}; got {sw['quantity']!r}."
+        )
     for k in ("output", "png"):
         if k in sw and (not isinstance(sw[k], str) or not sw[k]):
             r.fail(f"[sweep] {k}", f"must be a path (a string), got {sw[k]!r}.")
@@ -198,20 +214,28 @@ def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
     name = sw["quantity"]
     sw.setdefault("plot", DEFAULT_PLOT[name])
     if not isinstance(sw["plot"], str) or sw["plot"] not in OUTPUTS[name]:
-        r.fail("[sweep] plot", f"must be an output of {name!r}: {', '.join(OUTPUTS[name])}; "
-                               f"got {sw['plot']!r}.")
+        r.fail(
+            "[sweep] plot",
+            f"must be an output of {name!r}: {', '.join(OUTPUTS[name])}; got {sw['plot']!r}.",
+        )
     return sw
 
 
 def _read_lattice(r: Reader, cfg: Mapping, name: str) -> LatticeSpec | None:
     if name not in LATTICE:
         if "lattice" in cfg:
-            r.fail("[lattice]", f"is only used by the quantities {', '.join(LATTICE)}; "
-                                f"quantity {name!r} is of one body.")
+            r.fail(
+                "[lattice]",
+                f"is only used by the quantities {', '.join(LATTICE)}; "
+                f"quantity {name!r} is of one body.",
+            )
         return None
     if "lattice" not in cfg:
-        r.fail("config", f"missing required key 'lattice': quantity {name!r} needs a [lattice] "
-                         "table (kind, n or shape, periodic, kappa_b, kappa_t, q).")
+        r.fail(
+            "config",
+            f"missing required key 'lattice': quantity {name!r} needs a [lattice] "
+            "table (kind, n or shape, periodic, kappa_b, kappa_t, q).",
+        )
     return LatticeSpec.from_mapping(cfg["lattice"], reader=r)
 
 
@@ -220,8 +244,10 @@ def _check_table_names(cfg: Mapping):
         if k not in _TABLES:
             near = difflib.get_close_matches(k, _TABLES, n=1)
             hint = f" (did you mean [{near[0]}]?)" if near else ""
-            raise SpecError("config", f"unknown table [{k}]{hint}; allowed: "
-                                      f"{', '.join(f'[{a}]' for a in _TABLES)}.")
+            raise SpecError(
+                "config",
+                f"unknown table [{k}]{hint}; allowed: {', '.join(f'[{a}]' for a in _TABLES)}.",
+            )
 
 
 def load_config(path: str | os.PathLike) -> SweepConfig:
@@ -256,26 +282,48 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
         settings = _read_settings(r, cfg, name)
         unused = [n for n in values if n not in r.used]
         if unused:
-            r.fail(f"[{key}] {unused[0]}", "this axis is not used by any parameter; refer to it "
-                                           f"by name, e.g. c = \"{unused[0]}\" in "
-                                           "[model.foundation].")
+            r.fail(
+                f"[{key}] {unused[0]}",
+                "this axis is not used by any parameter; refer to it "
+                f'by name, e.g. c = "{unused[0]}" in '
+                "[model.foundation].",
+            )
     except SpecError as e:
         raise ConfigError(f"{path}: {e}") from None
     quantity, dims = make_quantity(name, model, settings, lattice)
     output = path.parent / sw["output"]
     png = path.parent / sw["png"] if "png" in sw else output.with_suffix(".png")
     return SweepConfig(
-        source=path, quantity_name=name, quantity=quantity,
-        axes=values if key == "axes" else None, points=values if key == "points" else None,
-        chunk_size=sw["chunk_size"], output=output, png=png, plot=sw["plot"], dims=dims,
-        canonical=json.dumps(cfg, sort_keys=True), model=model, lattice=lattice,
+        source=path,
+        quantity_name=name,
+        quantity=quantity,
+        axes=values if key == "axes" else None,
+        points=values if key == "points" else None,
+        chunk_size=sw["chunk_size"],
+        output=output,
+        png=png,
+        plot=sw["plot"],
+        dims=dims,
+        canonical=json.dumps(cfg, sort_keys=True),
+        model=model,
+        lattice=lattice,
     )
 
 
-def run_config(config: SweepConfig | str | os.PathLike, *, resume: bool = False,
-               overwrite: bool = False, progress: bool = True, output=None, png=None,
-               plot: bool = True, retry_errors: bool = False, scheduler: str | None = None,
-               workers: int | None = None, client=None):
+def run_config(
+    config: SweepConfig | str | os.PathLike,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = True,
+    output=None,
+    png=None,
+    plot: bool = True,
+    retry_errors: bool = False,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    client=None,
+):
     """Run a configured sweep (:func:`load_config`): write the store and, on process 0, the PNG
     of the map. ``output`` / ``png`` override the configured paths; ``retry_errors`` (with
     ``resume``) computes again the points of status ``error`` (:func:`rbo_jax.sweep`). On Dask
@@ -287,26 +335,40 @@ def run_config(config: SweepConfig | str | os.PathLike, *, resume: bool = False,
     out = Path(output) if output is not None else cfg.output
     if client is not None and (scheduler is not None or workers is not None):
         raise ValueError("give a client, a scheduler or workers, not several.")
-    with contextlib.nullcontext(client) if client is not None else \
-            dask_client(scheduler, workers) as client:
+    with (
+        contextlib.nullcontext(client)
+        if client is not None
+        else dask_client(scheduler, workers) as client
+    ):
         ds = sweep(
-            cfg.quantity, cfg.axes, points=cfg.points, chunk_size=cfg.chunk_size, store=out,
-            resume=resume, overwrite=overwrite, progress=progress, dims=cfg.dims,
+            cfg.quantity,
+            cfg.axes,
+            points=cfg.points,
+            chunk_size=cfg.chunk_size,
+            store=out,
+            resume=resume,
+            overwrite=overwrite,
+            progress=progress,
+            dims=cfg.dims,
             retry_errors=retry_errors,
             attrs={"quantity": cfg.quantity_name, "config": cfg.canonical},
-            desc=cfg.quantity_name, client=client,
+            desc=cfg.quantity_name,
+            client=client,
         )
     png_path = None
     if plot and jax.process_index() == 0:
-        png_path = Path(png) if png is not None else (
-            out.with_suffix(".png") if output is not None else cfg.png)
+        png_path = (
+            Path(png)
+            if png is not None
+            else (out.with_suffix(".png") if output is not None else cfg.png)
+        )
         plt = pyplot()
         fig, ax = plt.subplots(figsize=(6.4, 4.8))
         what = cfg.plot if cfg.plot == cfg.quantity_name else f"{cfg.quantity_name}: {cfg.plot}"
-        plot_sweep(ds, cfg.plot, ax=ax,
-                   title=f"{what}   ({summary_line(ds.attrs['status_counts'])})")
+        plot_sweep(
+            ds, cfg.plot, ax=ax, title=f"{what}   ({summary_line(ds.attrs['status_counts'])})"
+        )
         fig.tight_layout()
         save_figure(fig, png_path, dpi=120)  # whole or not at all
         plt.close(fig)
     return ds, png_path
-

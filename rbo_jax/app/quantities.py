@@ -42,9 +42,9 @@ QUANTITIES = {
     "max_deviation": "max_t |theta(t) - theta(0)| over `samples` times of simulate",
     "spectral_abscissa": "max Re p of the spectrum at the equilibrium (Newton from theta_guess)",
     "bloch_growth": "max Re lambda(q) of the Bloch waves of the [lattice] at its uniform "
-                    "equilibrium",
+    "equilibrium",
     "bloch_frequencies": "the three non-negative frequencies Im lambda(q) of the Bloch waves of "
-                         "the [lattice] (and bloch_growth)",
+    "the [lattice] (and bloch_growth)",
 }
 OUTPUTS = {
     "final_state": ("theta", "Omega", "num_steps"),
@@ -54,9 +54,14 @@ OUTPUTS = {
     "bloch_growth": ("bloch_growth", "theta_eq"),
     "bloch_frequencies": ("bloch_frequencies", "bloch_growth", "theta_eq"),
 }
-DEFAULT_PLOT = {"final_state": "theta", "energy_drift": "energy_drift",
-                "max_deviation": "max_deviation", "spectral_abscissa": "spectral_abscissa",
-                "bloch_growth": "bloch_growth", "bloch_frequencies": "bloch_frequencies"}
+DEFAULT_PLOT = {
+    "final_state": "theta",
+    "energy_drift": "energy_drift",
+    "max_deviation": "max_deviation",
+    "spectral_abscissa": "spectral_abscissa",
+    "bloch_growth": "bloch_growth",
+    "bloch_frequencies": "bloch_frequencies",
+}
 SIMULATION = ("final_state", "energy_drift", "max_deviation")
 LATTICE = ("bloch_growth", "bloch_frequencies")
 INTEGRATORS = {"fast_simulate": fast_simulate, "simulate": simulate}
@@ -80,8 +85,12 @@ class Settings:
 
 
 def _vector(xs, point):
-    return jnp.stack([jnp.asarray(point[x.name] if isinstance(x, Ref) else x,
-                                  dtype=jnp.result_type(float)) for x in xs])
+    return jnp.stack(
+        [
+            jnp.asarray(point[x.name] if isinstance(x, Ref) else x, dtype=jnp.result_type(float))
+            for x in xs
+        ]
+    )
 
 
 def _scalar(x, point):
@@ -105,8 +114,7 @@ def _bloch_quantity(name: str, spec: ModelSpec, lattice: LatticeSpec, s: Setting
 
     bloch.__name__ = name
     dims = {"theta_eq": ("component",)}
-    return bloch, dims | ({"bloch_frequencies": ("branch",)} if name == "bloch_frequencies"
-                          else {})
+    return bloch, dims | ({"bloch_frequencies": ("branch",)} if name == "bloch_frequencies" else {})
 
 
 def make_quantity(name: str, spec: ModelSpec, s: Settings, lattice: LatticeSpec | None = None):
@@ -117,10 +125,10 @@ def make_quantity(name: str, spec: ModelSpec, s: Settings, lattice: LatticeSpec 
     if name == "spectral_abscissa":
 
         def spectral_abscissa(**point):
-            r = equilibrium_stability(spec.build(point), _vector(s.theta_guess, point),
-                                      rtol=s.classify_rtol)
-            return {"spectral_abscissa": r.abscissa, "kind": r.kind, "theta_eq": r.theta}, \
-                r.status
+            r = equilibrium_stability(
+                spec.build(point), _vector(s.theta_guess, point), rtol=s.classify_rtol
+            )
+            return {"spectral_abscissa": r.abscissa, "kind": r.kind, "theta_eq": r.theta}, r.status
 
         return spectral_abscissa, {"theta_eq": ("component",)}
 
@@ -132,9 +140,16 @@ def make_quantity(name: str, spec: ModelSpec, s: Settings, lattice: LatticeSpec 
             th0 = jnp.where(sol.ok, sol.theta + th0, jnp.nan)  # no equilibrium: nonfinite_input
         n = 2 if name == "final_state" else s.samples
         ts = jnp.linspace(0.0, 1.0, n) * _scalar(s.t1, point)
-        traj = INTEGRATORS[s.integrator](model, th0, _vector(s.Omega0, point), ts,
-                                         max_steps=s.max_steps, rtol=s.rtol, atol=s.atol,
-                                         throw=False)
+        traj = INTEGRATORS[s.integrator](
+            model,
+            th0,
+            _vector(s.Omega0, point),
+            ts,
+            max_steps=s.max_steps,
+            rtol=s.rtol,
+            atol=s.atol,
+            throw=False,
+        )
         if name == "final_state":
             values = {"theta": traj.theta[-1], "Omega": traj.Omega[-1]}
         elif name == "energy_drift":

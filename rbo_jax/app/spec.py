@@ -63,8 +63,16 @@ from ..loads import DeadMoment, FollowerMoment, Friction, SemiTangentialMoment
 from ..model import RigidBodyOscillator
 from ._reader import Reader, Ref, SpecError
 
-__all__ = ["ModelSpec", "LatticeSpec", "Term", "Ref", "SpecError", "FOUNDATIONS", "LOADS",
-           "LATTICES"]
+__all__ = [
+    "ModelSpec",
+    "LatticeSpec",
+    "Term",
+    "Ref",
+    "SpecError",
+    "FOUNDATIONS",
+    "LOADS",
+    "LATTICES",
+]
 
 Value = float | Ref
 
@@ -89,31 +97,51 @@ class _Kind:
 FOUNDATIONS = {
     "quadratic": _Kind(
         (_Param("c", POSITIVE, "bending stiffness"), _Param("d", POSITIVE, "torsional stiffness")),
-        lambda v, k: QuadraticFoundation(v["c"], v["d"], k), "(4.50)"),
+        lambda v, k: QuadraticFoundation(v["c"], v["d"], k),
+        "(4.50)",
+    ),
     "barrier": _Kind(
-        (_Param("c", POSITIVE, "bending stiffness"), _Param("d", POSITIVE, "torsional stiffness"),
-         _Param("alpha", POSITIVE_OR_INF, "bending barrier"),
-         _Param("beta", POSITIVE_OR_INF, "torsion barrier")),
-        lambda v, k: BarrierFoundation(v["c"], v["d"], v["alpha"], v["beta"], k), "(4.49)"),
-    "cosine": _Kind((_Param("c", NONNEGATIVE, "stiffness"),),
-                    lambda v, k: CosineFoundation(v["c"]), "(section 4.2.3)"),
+        (
+            _Param("c", POSITIVE, "bending stiffness"),
+            _Param("d", POSITIVE, "torsional stiffness"),
+            _Param("alpha", POSITIVE_OR_INF, "bending barrier"),
+            _Param("beta", POSITIVE_OR_INF, "torsion barrier"),
+        ),
+        lambda v, k: BarrierFoundation(v["c"], v["d"], v["alpha"], v["beta"], k),
+        "(4.49)",
+    ),
+    "cosine": _Kind(
+        (_Param("c", NONNEGATIVE, "stiffness"),),
+        lambda v, k: CosineFoundation(v["c"]),
+        "(section 4.2.3)",
+    ),
     "none": _Kind((), lambda v, k: ZeroFoundation(), "(U = 0)"),
 }
 LOADS = {
-    "follower": _Kind((_Param("M", FINITE, "follower moment"),),
-                      lambda v, k: FollowerMoment(v["M"], k), "(4.57)"),
-    "dead": _Kind((_Param("M", FINITE, "dead moment"),), lambda v, k: DeadMoment(v["M"], k),
-                  "(4.75)"),
+    "follower": _Kind(
+        (_Param("M", FINITE, "follower moment"),), lambda v, k: FollowerMoment(v["M"], k), "(4.57)"
+    ),
+    "dead": _Kind(
+        (_Param("M", FINITE, "dead moment"),), lambda v, k: DeadMoment(v["M"], k), "(4.75)"
+    ),
     "semi_tangential": _Kind(
-        (_Param("M", FINITE, "moment"), _Param("l1", FINITE, "dead part", 1.0),
-         _Param("l2", FINITE, "follower part", 1.0)),
-        lambda v, k: SemiTangentialMoment(v["M"], k, v["l1"], v["l2"]), "(4.75)"),
-    "friction": _Kind((_Param("b", NONNEGATIVE, "friction coefficient"),),
-                      lambda v, k: Friction(v["b"]), "(4.84)"),
+        (
+            _Param("M", FINITE, "moment"),
+            _Param("l1", FINITE, "dead part", 1.0),
+            _Param("l2", FINITE, "follower part", 1.0),
+        ),
+        lambda v, k: SemiTangentialMoment(v["M"], k, v["l1"], v["l2"]),
+        "(4.75)",
+    ),
+    "friction": _Kind(
+        (_Param("b", NONNEGATIVE, "friction coefficient"),), lambda v, k: Friction(v["b"]), "(4.84)"
+    ),
 }
 _INERTIA = {
-    "transversely_isotropic": (_Param("A1", POSITIVE, "transverse moment of inertia"),
-                               _Param("A3", POSITIVE, "axial moment of inertia")),
+    "transversely_isotropic": (
+        _Param("A1", POSITIVE, "transverse moment of inertia"),
+        _Param("A3", POSITIVE, "axial moment of inertia"),
+    ),
     "principal": (_Param("moments", POSITIVE, "principal moments of inertia"),),
 }
 
@@ -158,11 +186,16 @@ def _read_term(r: Reader, table: Mapping, kinds: Mapping[str, _Kind], where: str
         r.fail(f"{where} type", f"must be one of {', '.join(map(repr, kinds))}; got {kind!r}.")
     spec = kinds[kind]
     names = [p.name for p in spec.params]
-    r.keys(table, ("type", *names), where,
-           required=[p.name for p in spec.params if p.default is None])
-    return Term(kind, tuple((p.name, r.number(table, p.name, where, default=p.default,
-                                              requirement=p.requirement))
-                            for p in spec.params))
+    r.keys(
+        table, ("type", *names), where, required=[p.name for p in spec.params if p.default is None]
+    )
+    return Term(
+        kind,
+        tuple(
+            (p.name, r.number(table, p.name, where, default=p.default, requirement=p.requirement))
+            for p in spec.params
+        ),
+    )
 
 
 def _read_inertia(r: Reader, model: Mapping, where: str) -> Term:
@@ -170,12 +203,17 @@ def _read_inertia(r: Reader, model: Mapping, where: str) -> Term:
     where = f"{where[:-1]}.inertia]"
     if "moments" in table:
         r.keys(table, ("moments",), where)
-        return Term("principal", (("moments", r.vector(table, "moments", where,
-                                                        requirement=POSITIVE)),))
+        return Term(
+            "principal", (("moments", r.vector(table, "moments", where, requirement=POSITIVE)),)
+        )
     r.keys(table, ("A1", "A3", "moments"), where, required=("A1", "A3"))
-    return Term("transversely_isotropic",
-                tuple((p.name, r.number(table, p.name, where, requirement=p.requirement))
-                      for p in _INERTIA["transversely_isotropic"]))
+    return Term(
+        "transversely_isotropic",
+        tuple(
+            (p.name, r.number(table, p.name, where, requirement=p.requirement))
+            for p in _INERTIA["transversely_isotropic"]
+        ),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,15 +228,25 @@ class ModelSpec:
     axis: tuple[Any, Any, Any] = (0.0, 0.0, 1.0)
 
     @classmethod
-    def from_mapping(cls, table: Mapping, *, axes: Mapping[str, np.ndarray] | None = None,
-                     where: str = "[model]", reader: Reader | None = None) -> ModelSpec:
+    def from_mapping(
+        cls,
+        table: Mapping,
+        *,
+        axes: Mapping[str, np.ndarray] | None = None,
+        where: str = "[model]",
+        reader: Reader | None = None,
+    ) -> ModelSpec:
         """Read and validate the table form; ``axes`` are the sweep axes parameters may name
         (checked value by value). Raises :class:`SpecError` naming the key."""
         r = reader if reader is not None else Reader(axes)
         if not isinstance(table, Mapping):
             r.fail(where, f"must be a table, got {type(table).__name__}.")
-        r.keys(table, ("axis", "inertia", "foundation", "loads"), where,
-               required=("inertia", "foundation"))
+        r.keys(
+            table,
+            ("axis", "inertia", "foundation", "loads"),
+            where,
+            required=("inertia", "foundation"),
+        )
         axis = r.vector(table, "axis", where, default=(0.0, 0.0, 1.0))
         if all(isinstance(x, float) for x in axis) and not any(axis):
             r.fail(f"{where} axis", "must be a nonzero vector, got [0, 0, 0].")
@@ -208,16 +256,19 @@ class ModelSpec:
         if isinstance(terms, list):
             if not terms:
                 r.fail(f"{where} foundation", "must be a table or a non-empty list of tables.")
-            foundation = tuple(_read_term(r, t, FOUNDATIONS, f"{fwhere}[{i}]")
-                               for i, t in enumerate(terms))
+            foundation = tuple(
+                _read_term(r, t, FOUNDATIONS, f"{fwhere}[{i}]") for i, t in enumerate(terms)
+            )
         else:
             foundation = (_read_term(r, terms, FOUNDATIONS, fwhere),)
         loads = table.get("loads", [])
         if not isinstance(loads, list):
-            r.fail(f"{where} loads",
-                   'must be a list of tables, e.g. [{ type = "follower", M = 0.5 }].')
-        loads = tuple(_read_term(r, t, LOADS, f"{where[:-1]}.loads][{i}]")
-                      for i, t in enumerate(loads))
+            r.fail(
+                f"{where} loads", 'must be a list of tables, e.g. [{ type = "follower", M = 0.5 }].'
+            )
+        loads = tuple(
+            _read_term(r, t, LOADS, f"{where[:-1]}.loads][{i}]") for i, t in enumerate(loads)
+        )
         return cls(inertia, foundation, loads, axis)
 
     def to_mapping(self) -> dict:
@@ -226,8 +277,7 @@ class ModelSpec:
         out = {"axis": _plain(self.axis), "inertia": {n: _plain(v) for n, v in self.inertia.params}}
         terms = [{"type": t.type, **{n: _plain(v) for n, v in t.params}} for t in self.foundation]
         out["foundation"] = terms[0] if len(terms) == 1 else terms
-        out["loads"] = [{"type": t.type, **{n: _plain(v) for n, v in t.params}}
-                        for t in self.loads]
+        out["loads"] = [{"type": t.type, **{n: _plain(v) for n, v in t.params}} for t in self.loads]
         return out
 
     def parameters(self) -> tuple[str, ...]:
@@ -260,11 +310,14 @@ class ModelSpec:
             A = principal_inertia(v["moments"], jnp.eye(3))
         else:
             A = transversely_isotropic_inertia(v["A1"], v["A3"], k)
-        terms = [FOUNDATIONS[t.type].build({n: _resolve(x, point) for n, x in t.params}, k)
-                 for t in self.foundation]
+        terms = [
+            FOUNDATIONS[t.type].build({n: _resolve(x, point) for n, x in t.params}, k)
+            for t in self.foundation
+        ]
         foundation = terms[0] if len(terms) == 1 else sum(terms[1:], terms[0])
-        loads = [LOADS[t.type].build({n: _resolve(x, point) for n, x in t.params}, k)
-                 for t in self.loads]
+        loads = [
+            LOADS[t.type].build({n: _resolve(x, point) for n, x in t.params}, k) for t in self.loads
+        ]
         return RigidBodyOscillator(A, foundation, loads)
 
     def describe(self) -> str:
@@ -283,16 +336,20 @@ class ModelSpec:
         else:
             parts = [f"{params(self.inertia)} (4.40)"]
         parts.append(f"k = ({g(tuple(self.axis))})")
-        parts += [f"{t.type} foundation {FOUNDATIONS[t.type].equation} {params(t)}".rstrip()
-                  for t in self.foundation]
+        parts += [
+            f"{t.type} foundation {FOUNDATIONS[t.type].equation} {params(t)}".rstrip()
+            for t in self.foundation
+        ]
         loads = [f"{t.type} {LOADS[t.type].equation} {params(t)}" for t in self.loads]
         parts.append("loads: " + ("; ".join(loads) if loads else "none"))
         return "; ".join(parts)
 
 
 LATTICES = ("chain", "grid")
-_SPEC_FORM = ("expected chain:N, grid:NxM or grid:NxMxK, optionally followed by :free (free "
-              "ends instead of periodic), e.g. chain:64 or grid:16x16:free")
+_SPEC_FORM = (
+    "expected chain:N, grid:NxM or grid:NxMxK, optionally followed by :free (free "
+    "ends instead of periodic), e.g. chain:64 or grid:16x16:free"
+)
 
 
 def _sizes(text: str) -> list[int]:
@@ -324,8 +381,12 @@ class LatticeSpec:
         ``rbo-jax simulate --lattice``) as the table form (``kind``, ``n`` or ``shape``,
         ``periodic``); the sizes are checked by :meth:`from_mapping`. Raises ``ValueError``."""
         parts = text.strip().split(":")
-        if parts[0] not in LATTICES or len(parts) not in (2, 3) or parts[-1] == "" or (
-                len(parts) == 3 and parts[2] != "free"):
+        if (
+            parts[0] not in LATTICES
+            or len(parts) not in (2, 3)
+            or parts[-1] == ""
+            or (len(parts) == 3 and parts[2] != "free")
+        ):
             raise ValueError(_SPEC_FORM)
         sizes = _sizes(parts[1])
         if (parts[0] == "chain") != (len(sizes) == 1) or len(sizes) > 3:
@@ -335,15 +396,25 @@ class LatticeSpec:
         return table
 
     @classmethod
-    def from_mapping(cls, table: Mapping, *, axes: Mapping[str, np.ndarray] | None = None,
-                     where: str = "[lattice]", reader: Reader | None = None) -> LatticeSpec:
+    def from_mapping(
+        cls,
+        table: Mapping,
+        *,
+        axes: Mapping[str, np.ndarray] | None = None,
+        where: str = "[lattice]",
+        reader: Reader | None = None,
+    ) -> LatticeSpec:
         """Read and validate the table form (module docstring); ``axes`` as in
         :meth:`ModelSpec.from_mapping`. Raises :class:`SpecError` naming the key."""
         r = reader if reader is not None else Reader(axes)
         if not isinstance(table, Mapping):
             r.fail(where, f"must be a table, got {type(table).__name__}.")
-        r.keys(table, ("kind", "n", "shape", "periodic", "kappa_b", "kappa_t", "q"), where,
-               required=("kind",))
+        r.keys(
+            table,
+            ("kind", "n", "shape", "periodic", "kappa_b", "kappa_t", "q"),
+            where,
+            required=("kind",),
+        )
         kind = r.string(table, "kind", where, choices=LATTICES)
         wrong, right = ("shape", "n") if kind == "chain" else ("n", "shape")
         if wrong in table:
@@ -354,21 +425,32 @@ class LatticeSpec:
             shape = (r.integer(table, "n", where, default=None, minimum=2),)
         else:
             v = table.get("shape")
-            if not (isinstance(v, list) and len(v) in (2, 3) and all(
-                    isinstance(x, int) and not isinstance(x, bool) and x >= 2 for x in v)):
-                r.fail(f"{where} shape", f"must be a list of 2 or 3 integers >= 2 (the sites "
-                                         f"along each axis of the grid), got {v!r}.")
+            if not (
+                isinstance(v, list)
+                and len(v) in (2, 3)
+                and all(isinstance(x, int) and not isinstance(x, bool) and x >= 2 for x in v)
+            ):
+                r.fail(
+                    f"{where} shape",
+                    f"must be a list of 2 or 3 integers >= 2 (the sites "
+                    f"along each axis of the grid), got {v!r}.",
+                )
             shape = tuple(v)
         periodic = r.boolean(table, "periodic", where, default=True)
-        kappa = [r.number(table, key, where, default=1.0, requirement=POSITIVE)
-                 for key in ("kappa_b", "kappa_t")]
+        kappa = [
+            r.number(table, key, where, default=1.0, requirement=POSITIVE)
+            for key in ("kappa_b", "kappa_t")
+        ]
         if kind == "chain":
             q = (r.number(table, "q", where, default=0.0),)
         elif "q" in table:
             v = table["q"]
             if not isinstance(v, list) or len(v) != len(shape):
-                r.fail(f"{where} q", f"a grid needs one wavenumber per axis: a list of "
-                                     f"{len(shape)} numbers or axis names, got {v!r}.")
+                r.fail(
+                    f"{where} q",
+                    f"a grid needs one wavenumber per axis: a list of "
+                    f"{len(shape)} numbers or axis names, got {v!r}.",
+                )
             q = tuple(r.number({"q": x}, "q", where) for x in v)
         else:
             q = (0.0,) * len(shape)
@@ -378,8 +460,14 @@ class LatticeSpec:
         """The table form: ``from_mapping`` of it gives this spec back."""
         size = {"n": self.shape[0]} if self.kind == "chain" else {"shape": list(self.shape)}
         q = _plain(self.q[0]) if self.kind == "chain" else [_plain(x) for x in self.q]
-        return {"kind": self.kind, **size, "periodic": self.periodic,
-                "kappa_b": _plain(self.kappa_b), "kappa_t": _plain(self.kappa_t), "q": q}
+        return {
+            "kind": self.kind,
+            **size,
+            "periodic": self.periodic,
+            "kappa_b": _plain(self.kappa_b),
+            "kappa_t": _plain(self.kappa_t),
+            "q": q,
+        }
 
     def parameters(self) -> tuple[str, ...]:
         """The names of the sweep axes the lattice refers to (not the body's)."""
@@ -399,8 +487,9 @@ class LatticeSpec:
         if missing:
             raise KeyError(f"LatticeSpec.build: no value for the parameter(s) {missing}.")
         k = _resolve(tuple(model.axis), point)
-        coupling = QuadraticFoundation(_resolve(self.kappa_b, point),
-                                       _resolve(self.kappa_t, point), k)
+        coupling = QuadraticFoundation(
+            _resolve(self.kappa_b, point), _resolve(self.kappa_t, point), k
+        )
         body = model.build(point)
         if self.kind == "chain":
             return chain(self.shape[0], body, coupling, periodic=self.periodic)
@@ -419,8 +508,13 @@ class LatticeSpec:
         def g(x):
             return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
 
-        where = (f"chain of {self.shape[0]} bodies" if self.kind == "chain" else
-                 f"{'x'.join(map(str, self.shape))} grid of {math.prod(self.shape)} bodies")
+        where = (
+            f"chain of {self.shape[0]} bodies"
+            if self.kind == "chain"
+            else f"{'x'.join(map(str, self.shape))} grid of {math.prod(self.shape)} bodies"
+        )
         ends = "periodic" if self.periodic else "free ends"
-        return (f"{where} ({ends}); coupling: quadratic foundation (4.50) of the relative turn, "
-                f"kappa_b = {g(self.kappa_b)}, kappa_t = {g(self.kappa_t)}")
+        return (
+            f"{where} ({ends}); coupling: quadratic foundation (4.50) of the relative turn, "
+            f"kappa_b = {g(self.kappa_b)}, kappa_t = {g(self.kappa_t)}"
+        )

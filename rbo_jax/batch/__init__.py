@@ -3,11 +3,14 @@ hosts, resumable — and the stability maps built on it. See :mod:`rbo_jax.batch
 
 from .. import _lazy
 
-__getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
-    "._engine": ("sweep",),
-    "._errors": ("SweepError",),
-    "._maps": ("STABILITY_KIND_NAMES", "critical_load", "stability_map"),
-    "._output": ("status_counts", "summary_line"),
-    "._space": ("POINT_DIM",),
-    "._store": ("open_sweep",),
-})
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    {  # loaded on first use
+        "._engine": ("sweep",),
+        "._errors": ("SweepError",),
+        "._maps": ("STABILITY_KIND_NAMES", "critical_load", "stability_map"),
+        "._output": ("status_counts", "summary_line"),
+        "._space": ("POINT_DIM",),
+        "._store": ("open_sweep",),
+    },
+)

@@ -69,9 +69,13 @@ class Chunks:
         return status, {v.name: np.asarray(values[v.name])[:m] for v in self.spec.variables}
 
     def _empty(self, m: int, code: int):
-        return (np.full(m, code, np.int32),
-                {v.name: np.full((m,) + v.shape, fill_value(v.dtype), v.dtype)
-                 for v in self.spec.variables})
+        return (
+            np.full(m, code, np.int32),
+            {
+                v.name: np.full((m,) + v.shape, fill_value(v.dtype), v.dtype)
+                for v in self.spec.variables
+            },
+        )
 
     def isolate(self, pts: np.ndarray, error: Exception | None = None):
         """(status, values, {index: message}) of ``pts``; a part that raises is split in halves
@@ -143,8 +147,11 @@ class Chunks:
             result = self.postprocess(result)
         where = np.flatnonzero(valid)
         result["errors"] = [
-            {"point": dict(zip(self.space.names, pts[where[i]].tolist())),
-             "index": [int(x) for x in np.unravel_index(where[i], block_shape)], "message": msg}
+            {
+                "point": dict(zip(self.space.names, pts[where[i]].tolist())),
+                "index": [int(x) for x in np.unravel_index(where[i], block_shape)],
+                "message": msg,
+            }
             for i, msg in sorted(errors.items())
         ]
         for e in result["errors"]:  # the index within the whole space, not the chunk
@@ -172,8 +179,7 @@ class Chunks:
 
     def recompute(self, points: np.ndarray):
         """(status, values, errors) of arbitrary finite points (``retry_errors``), in batches."""
-        outs = [self.isolate(points[i:i + self.batch])
-                for i in range(0, len(points), self.batch)]
+        outs = [self.isolate(points[i : i + self.batch]) for i in range(0, len(points), self.batch)]
         status = np.concatenate([o[0] for o in outs]).astype(np.int8)
         values = {k: np.concatenate([o[1][k] for o in outs]) for k in outs[0][1]}
         errors, offset = {}, 0

@@ -72,11 +72,14 @@ _KEEP = 4  # jobs (their traced Chunks) kept per worker process
 def check_devices(devices):
     """With a client, ``devices`` counts each worker's local devices (``None``: all of them);
     device objects belong to this process and cannot be sent."""
-    if devices is None or (isinstance(devices, (int, np.integer))
-                           and not isinstance(devices, bool) and devices >= 1):
+    if devices is None or (
+        isinstance(devices, (int, np.integer)) and not isinstance(devices, bool) and devices >= 1
+    ):
         return None if devices is None else int(devices)
-    raise ValueError("with client=..., devices must be None (all of each worker's local devices) "
-                     f"or a number of them, got {devices!r}.")
+    raise ValueError(
+        "with client=..., devices must be None (all of each worker's local devices) "
+        f"or a number of them, got {devices!r}."
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,10 +104,10 @@ class _Job:
             store = _cache.program_store()
             if store is None or store != Path(self.cache_dir) / "programs":
                 _cache.enable_compilation_cache(self.cache_dir)
-        space = Space(self.names, {n: np.empty(0) for n in self.names}, self.grid,
-                      self.chunk_shape)
-        return Chunks(self.quantity, space, local_devices(self.devices), self.dims,
-                      self.postprocess)
+        space = Space(self.names, {n: np.empty(0) for n in self.names}, self.grid, self.chunk_shape)
+        return Chunks(
+            self.quantity, space, local_devices(self.devices), self.dims, self.postprocess
+        )
 
 
 # -- the worker's side ----------------------------------------------------------------------
@@ -148,15 +151,24 @@ class DaskChunks:
 
         space = chunks.space
         store = _cache.program_store()
-        job = _Job(quantity, space.names, space.grid, space.chunk_shape, dims, postprocess,
-                   devices, {name: getattr(jax.config, name) for name in _programs._FLAGS},
-                   None if store is None else str(store.parent))
+        job = _Job(
+            quantity,
+            space.names,
+            space.grid,
+            space.chunk_shape,
+            dims,
+            postprocess,
+            devices,
+            {name: getattr(jax.config, name) for name in _programs._FLAGS},
+            None if store is None else str(store.parent),
+        )
         try:
             self.blob = cloudpickle.dumps(job)
         except Exception as e:  # a lock, an open file, a C object in the quantity's closure
-            raise TypeError("client=...: the quantity (and postprocess) must be picklable to "
-                            f"run on Dask workers; cloudpickle failed: {type(e).__name__}: {e}"
-                            ) from e
+            raise TypeError(
+                "client=...: the quantity (and postprocess) must be picklable to "
+                f"run on Dask workers; cloudpickle failed: {type(e).__name__}: {e}"
+            ) from e
         self.token = hashlib.blake2b(self.blob, digest_size=16).hexdigest()
         self.client, self.space = client, space
         self._threads, self._checked = 0, -math.inf
@@ -187,15 +199,26 @@ class DaskChunks:
                     return
                 slices = space.slices(cid)
                 future = self.client.submit(
-                    compute_chunk, self.token, self.blob, cid, slices, space.points(slices),
-                    key=f"rbo_jax-sweep-chunk-{run_id}-{cid}", pure=False, retries=0)
+                    compute_chunk,
+                    self.token,
+                    self.blob,
+                    cid,
+                    slices,
+                    space.points(slices),
+                    key=f"rbo_jax-sweep-chunk-{run_id}-{cid}",
+                    pure=False,
+                    retries=0,
+                )
                 submitted[future.key] = (cid, slices, future)
                 done.add(future)
 
         self._in_flight()  # asks the scheduler how many worker threads it has
         if bar is not None and self._threads == 0:
-            print(f"rbo_jax.sweep: no Dask worker yet; waiting for workers of "
-                  f"{self.client.scheduler.address}.", file=sys.stderr)
+            print(
+                f"rbo_jax.sweep: no Dask worker yet; waiting for workers of "
+                f"{self.client.scheduler.address}.",
+                file=sys.stderr,
+            )
         try:
             top_up()
             for future, result in done:
@@ -208,7 +231,8 @@ class DaskChunks:
                         f"chunk {cid} was lost with every worker that ran it ({e}); the "
                         "quantity probably ends its process (memory, a crash in native code). "
                         "The chunks already written are kept: fix the cause and resume the "
-                        "sweep (resume=True, CLI --resume).") from None
+                        "sweep (resume=True, CLI --resume)."
+                    ) from None
                 consume(cid, slices, result)
                 if bar is not None:
                     bar.update(math.prod(sl.stop - sl.start for sl in slices))

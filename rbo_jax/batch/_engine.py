@@ -72,8 +72,9 @@ def _check_attrs(attrs) -> dict:
     return attrs
 
 
-def _open_store(path: Path, space: Space, spec: OutputSpec, attrs, resume, overwrite,
-                hosts: Hosts) -> tuple[Space, list[int]]:
+def _open_store(
+    path: Path, space: Space, spec: OutputSpec, attrs, resume, overwrite, hosts: Hosts
+) -> tuple[Space, list[int]]:
     """Process 0 prepares the store, every process reads the chunks still missing."""
     error = None
     if hosts.index == 0:
@@ -99,8 +100,11 @@ def _progress_bar(progress, space: Space, mine, hosts: Hosts, desc: str):
         return None
     from tqdm.auto import tqdm
 
-    n_mine = (None if mine is None  # taken one at a time: not known beforehand
-              else sum(int(math.prod(s.stop - s.start for s in space.slices(c))) for c in mine))
+    n_mine = (
+        None
+        if mine is None  # taken one at a time: not known beforehand
+        else sum(int(math.prod(s.stop - s.start for s in space.slices(c))) for c in mine)
+    )
     label = desc if hosts.count == 1 else f"{desc} [process {hosts.index}/{hosts.count}]"
     return tqdm(total=n_mine, desc=label, unit="pt", unit_scale=True, dynamic_ncols=True)
 
@@ -122,8 +126,10 @@ def _run_chunks(chunks: Chunks | DaskChunks, mine, consume, bar, hosts: Hosts, p
     if error is not None:
         raise error
     if failed:
-        raise SweepError(f"process(es) {failed} failed (see their errors); "
-                         + ("resume the sweep to finish it." if path else ""))
+        raise SweepError(
+            f"process(es) {failed} failed (see their errors); "
+            + ("resume the sweep to finish it." if path else "")
+        )
 
 
 def _run_shares(chunks: Chunks, mine, writer, bar, hosts: Hosts, path: Path, space: Space):
@@ -145,13 +151,17 @@ def _run_shares(chunks: Chunks, mine, writer, bar, hosts: Hosts, path: Path, spa
     if error is not None:
         raise error
     if failed:
-        raise SweepError(f"process(es) {failed} failed (see their errors); resume the sweep to "
-                         "finish it.")
+        raise SweepError(
+            f"process(es) {failed} failed (see their errors); resume the sweep to finish it."
+        )
     lost = [i for i in range(hosts.count) if i not in alive]
     if lost and hosts.index == 0:
         left = _store.missing_chunks(_store.open_group(path, "r"), space)
-        print(f"rbo_jax.sweep: process(es) {lost} of {hosts.count} lost (no heartbeat); "
-              f"process 0 computes the {len(left)} chunk(s) they left", file=sys.stderr)
+        print(
+            f"rbo_jax.sweep: process(es) {lost} of {hosts.count} lost (no heartbeat); "
+            f"process 0 computes the {len(left)} chunk(s) they left",
+            file=sys.stderr,
+        )
         chunks.run(left, writer, None)
 
 
@@ -161,8 +171,9 @@ MEMORY_SHARE = 0.5
 
 def _check_memory(space: Space, spec: OutputSpec):
     """Refuse, before any work, an in-memory result larger than half the physical memory."""
-    per_point = 1 + sum(int(np.prod(v.shape, dtype=np.int64)) * np.dtype(v.dtype).itemsize
-                        for v in spec.variables)
+    per_point = 1 + sum(
+        int(np.prod(v.shape, dtype=np.int64)) * np.dtype(v.dtype).itemsize for v in spec.variables
+    )
     need = space.n_points * per_point
     try:
         total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
@@ -172,7 +183,8 @@ def _check_memory(space: Space, spec: OutputSpec):
         raise SweepError(
             f"the results of {space.n_points:,} points need {need / 2**30:.1f} GiB in memory, more "
             f"than {MEMORY_SHARE:.0%} of this machine's {total / 2**30:.1f} GiB: give a store "
-            "(store=PATH, written chunk by chunk) or a smaller grid.")
+            "(store=PATH, written chunk by chunk) or a smaller grid."
+        )
 
 
 class _InMemory:
@@ -207,21 +219,39 @@ def _retry_errors(chunks: Chunks, path: Path, spec: OutputSpec, space: Space):
         return
     grid = space.grid
     names = space.names
-    pts = (np.stack([space.values[n][where[:, i]] for i, n in enumerate(names)], axis=1) if grid
-           else np.stack([space.values[n][where[:, 0]] for n in names], axis=1))
+    pts = (
+        np.stack([space.values[n][where[:, i]] for i, n in enumerate(names)], axis=1)
+        if grid
+        else np.stack([space.values[n][where[:, 0]] for n in names], axis=1)
+    )
     new_status, values, errors = chunks.recompute(pts)
     index = tuple(where.T)
     for v in spec.variables:
         group[v.name].vindex[index] = values[v.name].astype(v.dtype)
     group["status"].vindex[index] = new_status
-    chunk_of = [int(np.ravel_multi_index(tuple(i // c for i, c in zip(w, space.chunk_shape)),
-                                         space.chunk_grid)) for w in where]
+    chunk_of = [
+        int(
+            np.ravel_multi_index(
+                tuple(i // c for i, c in zip(w, space.chunk_shape)), space.chunk_grid
+            )
+        )
+        for w in where
+    ]
     for cid in sorted(set(chunk_of)):
-        records = [e for e in _store.errors_of_chunk(group, space, cid)
-                   if tuple(e["index"]) not in {tuple(int(x) for x in w) for w in where}]
-        records += [{"point": dict(zip(names, pts[i].tolist())),
-                     "index": [int(x) for x in where[i]], "message": msg}
-                    for i, msg in errors.items() if chunk_of[i] == cid]
+        records = [
+            e
+            for e in _store.errors_of_chunk(group, space, cid)
+            if tuple(e["index"]) not in {tuple(int(x) for x in w) for w in where}
+        ]
+        records += [
+            {
+                "point": dict(zip(names, pts[i].tolist())),
+                "index": [int(x) for x in where[i]],
+                "message": msg,
+            }
+            for i, msg in errors.items()
+            if chunk_of[i] == cid
+        ]
         _store.rewrite_chunk_record(group, space, spec, cid, records)
 
 
@@ -325,30 +355,37 @@ def sweep(
         space = _store.resumed_layout(path, space)
     hosts = Hosts()
     if client is not None and hosts.count > 1:
-        raise ValueError("client=... (Dask) and jax.distributed are exclusive: run the sweep in "
-                         "one process, the cluster's workers compute its chunks.")
+        raise ValueError(
+            "client=... (Dask) and jax.distributed are exclusive: run the sweep in "
+            "one process, the cluster's workers compute its chunks."
+        )
     chunks = Chunks(quantity, space, local, dims, postprocess)  # traced now, compiled later
     spec = chunks.spec
-    runner = chunks if client is None else DaskChunks(client, chunks, quantity, dims,
-                                                      postprocess, devices)
+    runner = (
+        chunks
+        if client is None
+        else DaskChunks(client, chunks, quantity, dims, postprocess, devices)
+    )
     if path is None:
         _check_memory(space, spec)
         consume = _InMemory(space, spec, hosts)
-        _run_chunks(runner, hosts.share(list(range(space.n_chunks))), consume,
-                    _progress_bar(progress, space, hosts.share(list(range(space.n_chunks))),
-                                  hosts, desc), hosts, path)
+        mine = hosts.share(list(range(space.n_chunks)))
+        bar = _progress_bar(progress, space, mine, hosts, desc)
+        _run_chunks(runner, mine, consume, bar, hosts, path)
         if hosts.count > 1:
             hosts.gather(consume.arrays, consume.kept, list(range(space.n_chunks)), space, spec)
         ds = dataset(space, spec, consume.arrays, {**attrs, "errors": consume.errors})
     else:
         lock = StoreLock(path) if hosts.index == 0 else contextlib.nullcontext()
         with lock:
-            space, missing = _open_store(path, space, spec, attrs, resume or retry_errors,
-                                         overwrite, hosts)
+            space, missing = _open_store(
+                path, space, spec, attrs, resume or retry_errors, overwrite, hosts
+            )
             if hosts.count > 1:
                 bar = _progress_bar(progress, space, None, hosts, desc)
-                _run_shares(runner, hosts.take(missing), _store.Writer(path, spec), bar, hosts,
-                            path, space)
+                _run_shares(
+                    runner, hosts.take(missing), _store.Writer(path, spec), bar, hosts, path, space
+                )
             else:
                 mine = hosts.share(missing)
                 bar = _progress_bar(progress, space, mine, hosts, desc)

@@ -65,8 +65,9 @@ class Hosts:
     def report(self, failed: bool):
         """Tell process 0, through the key-value store, whether this process's share failed."""
         if self.count > 1:
-            self._client().key_value_set(f"{self.prefix}/failed/{self.index}", str(int(failed)),
-                                         allow_overwrite=True)
+            self._client().key_value_set(
+                f"{self.prefix}/failed/{self.index}", str(int(failed)), allow_overwrite=True
+            )
 
     def failed(self, alive: list[int]) -> list[int]:
         """The live processes that reported a failure (after :meth:`report` and :meth:`live`)."""
@@ -114,8 +115,7 @@ class Hosts:
         while (i := client.key_value_increment(f"{self.prefix}/next", 1) - 1) < len(chunk_ids):
             yield chunk_ids[i]
 
-    def gather(self, arrays: dict, kept: dict, missing: list[int], space: Space,
-               spec: OutputSpec):
+    def gather(self, arrays: dict, kept: dict, missing: list[int], space: Space, spec: OutputSpec):
         """Assemble into ``arrays`` the chunks computed by every process (``kept`` holds this
         process's results by chunk id)."""
         from jax.experimental import multihost_utils

@@ -57,8 +57,9 @@ def _alive(owner: dict) -> bool | None:
 
 
 def _describe(owner: dict) -> str:
-    return (f"process {owner.get('pid')} on host {owner.get('host')} (since "
-            f"{owner.get('since', '?')})")
+    return (
+        f"process {owner.get('pid')} on host {owner.get('host')} (since {owner.get('since', '?')})"
+    )
 
 
 class StoreLock:
@@ -73,9 +74,12 @@ class StoreLock:
 
     def _create(self) -> bool:
         self.file.parent.mkdir(parents=True, exist_ok=True)
-        owner = {"host": socket.gethostname(), "pid": os.getpid(),
-                 "start": _process_start(os.getpid()),
-                 "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+        owner = {
+            "host": socket.gethostname(),
+            "pid": os.getpid(),
+            "start": _process_start(os.getpid()),
+            "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+        }
         try:
             fd = os.open(self.file, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
@@ -102,10 +106,14 @@ class StoreLock:
             if alive or (alive is None and age < STALE_S):
                 raise SweepError(
                     f"the store {store} is being written by {_describe(owner)}; one writer per "
-                    "store (wait for it to finish, or write to another store).")
+                    "store (wait for it to finish, or write to another store)."
+                )
             why = "no longer runs" if alive is False else f"sent no heartbeat for {age:.0f} s"
-            print(f"rbo_jax.sweep: taking over the lock of {store}: its owner, "
-                  f"{_describe(owner)}, {why}.", file=sys.stderr)
+            print(
+                f"rbo_jax.sweep: taking over the lock of {store}: its owner, "
+                f"{_describe(owner)}, {why}.",
+                file=sys.stderr,
+            )
             self.file.unlink(missing_ok=True)
         self._thread = threading.Thread(target=self._beat, daemon=True)
         self._thread.start()

@@ -60,8 +60,9 @@ def _point_stability(model_fn, theta_eq_fn, guess, rtol, fast, eq_items, point):
     theta_eq = None
     if theta_eq_fn is not None:
         theta_eq = _as_vector(theta_eq_fn(**point), "theta_eq_fn(...)")
-    return equilibrium_stability(model, jnp.asarray(guess), theta_eq=theta_eq, rtol=rtol,
-                                 fast=fast, **dict(eq_items))
+    return equilibrium_stability(
+        model, jnp.asarray(guess), theta_eq=theta_eq, rtol=rtol, fast=fast, **dict(eq_items)
+    )
 
 
 def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
@@ -71,8 +72,12 @@ def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
 
     def stability(**point):
         r = _point_stability(model_fn, theta_eq_fn, guess, rtol, fast, eq_items, point)
-        values = {"eigenvalues": r.eigenvalues, "spectral_abscissa": r.abscissa, "kind": r.kind,
-                  "theta_eq": r.theta}
+        values = {
+            "eigenvalues": r.eigenvalues,
+            "spectral_abscissa": r.abscissa,
+            "kind": r.kind,
+            "theta_eq": r.theta,
+        }
         return values, r.status
 
     return stability
@@ -130,12 +135,28 @@ def stability_map(
     per-point status) and ``theta_eq``.
     """
     axes = _check_axes(axes)
-    quantity = _map_quantity(model_fn, theta_eq_fn, _guess(theta_guess), float(rtol), bool(fast),
-                             _items(equilibrium_kwargs))
-    ds = sweep(quantity, axes, chunk_size=chunk_size, store=store, resume=resume,
-               overwrite=overwrite, progress=progress, devices=devices,
-               dims={"eigenvalues": ("mode",), "theta_eq": ("component",)},
-               attrs={"classify_rtol": rtol}, desc="stability map", postprocess=_sort_eigenvalues)
+    quantity = _map_quantity(
+        model_fn,
+        theta_eq_fn,
+        _guess(theta_guess),
+        float(rtol),
+        bool(fast),
+        _items(equilibrium_kwargs),
+    )
+    ds = sweep(
+        quantity,
+        axes,
+        chunk_size=chunk_size,
+        store=store,
+        resume=resume,
+        overwrite=overwrite,
+        progress=progress,
+        devices=devices,
+        dims={"eigenvalues": ("mode",), "theta_eq": ("component",)},
+        attrs={"classify_rtol": rtol},
+        desc="stability map",
+        postprocess=_sort_eigenvalues,
+    )
     ds = ds.rename({"status": "equilibrium_status"})
     ds = ds.assign_coords(mode=np.arange(6), component=["x", "y", "z"])
     ds["kind"].attrs["long_name"] = "stability classification (Lyapunov's first method)"
@@ -143,15 +164,22 @@ def stability_map(
     return ds
 
 
-def _critical_quantity(model_fn, theta_eq_fn, guess, rtol, eq_items, load, load_min, load_max,
-                       n_scan, n_bisect):
+def _critical_quantity(
+    model_fn, theta_eq_fn, guess, rtol, eq_items, load, load_min, load_max, n_scan, n_bisect
+):
     def critical(**point):
         def unstable(value):
-            return is_unstable(_point_stability(model_fn, theta_eq_fn, guess, rtol, True,
-                                                eq_items, {**point, load: value}))
+            return is_unstable(
+                _point_stability(
+                    model_fn, theta_eq_fn, guess, rtol, True, eq_items, {**point, load: value}
+                )
+            )
 
-        return {"critical": critical_value(unstable, load_min, load_max, n_scan=n_scan,
-                                           n_bisect=n_bisect)}
+        return {
+            "critical": critical_value(
+                unstable, load_min, load_max, n_scan=n_scan, n_bisect=n_bisect
+            )
+        }
 
     return critical
 
@@ -191,8 +219,17 @@ def critical_load(
         raise ValueError(f"{load!r} is the searched parameter; it cannot also be an axis.")
     if not load_max > load_min:
         raise ValueError(f"load_max ({load_max}) must exceed load_min ({load_min}).")
-    quantity = _critical_quantity(model_fn, theta_eq_fn, _guess(theta_guess), float(rtol),
-                                  _items(equilibrium_kwargs), load, float(load_min),
-                                  float(load_max), int(n_scan), int(n_bisect))
+    quantity = _critical_quantity(
+        model_fn,
+        theta_eq_fn,
+        _guess(theta_guess),
+        float(rtol),
+        _items(equilibrium_kwargs),
+        load,
+        float(load_min),
+        float(load_max),
+        int(n_scan),
+        int(n_bisect),
+    )
     ds = sweep(quantity, axes, chunk_size=chunk_size, progress=progress, desc=f"critical {load}")
     return ds["critical"].drop_attrs().rename(f"critical_{load}")

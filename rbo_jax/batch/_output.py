@@ -68,8 +68,11 @@ class Variable:
     def attrs(self) -> dict:
         if self.flags is None:
             return {}
-        return {"flag_values": list(range(len(self.flags))),
-                "flag_meanings": " ".join(self.flags), "enumeration": self.enum}
+        return {
+            "flag_values": list(range(len(self.flags))),
+            "flag_meanings": " ".join(self.flags),
+            "enumeration": self.enum,
+        }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,8 +109,14 @@ class OutputSpec:
     @classmethod
     def from_description(cls, d) -> OutputSpec:
         variables = tuple(
-            Variable(v["name"], tuple(v["shape"]), v["dtype"], tuple(v["dims"]),
-                     None if v["flags"] is None else tuple(v["flags"]), v["enum"])
+            Variable(
+                v["name"],
+                tuple(v["shape"]),
+                v["dtype"],
+                tuple(v["dims"]),
+                None if v["flags"] is None else tuple(v["flags"]),
+                v["enum"],
+            )
             for v in d["variables"]
         )
         return cls(variables, tuple(d["status_flags"]), d["status_enumeration"])
@@ -164,29 +173,36 @@ def encode_output(values, status):
     return codes, jnp.asarray(s).astype(jnp.int32)
 
 
-def make_output_spec(structure: dict, space: Space,
-                     dims: Mapping[str, Sequence[str]] | None) -> OutputSpec:
+def make_output_spec(
+    structure: dict, space: Space, dims: Mapping[str, Sequence[str]] | None
+) -> OutputSpec:
     """Names the per-point dimensions of the outputs; checks names against the parameters."""
     dims = dict(dims or {})
     values = structure["values"]
     unknown = set(dims) - set(values)
     if unknown:
-        raise ValueError(f"dims names outputs {sorted(unknown)} that the quantity does not return "
-                         f"(it returns {sorted(values)}).")
+        raise ValueError(
+            f"dims names outputs {sorted(unknown)} that the quantity does not return "
+            f"(it returns {sorted(values)})."
+        )
     variables, dim_sizes = [], {}
     for name, (shape, dtype, flags, enum_label) in values.items():
         if name in space.names or name in space.dims or name == "status":
             raise ValueError(f"quantity output {name!r} clashes with a parameter or reserved name.")
         vdims = tuple(dims.get(name, tuple(f"{name}_dim{j}" for j in range(len(shape)))))
         if len(vdims) != len(shape):
-            raise ValueError(f"dims[{name!r}] = {list(vdims)} has {len(vdims)} names for an output "
-                             f"of shape {shape} per point.")
+            raise ValueError(
+                f"dims[{name!r}] = {list(vdims)} has {len(vdims)} names for an output "
+                f"of shape {shape} per point."
+            )
         for dname, size in zip(vdims, shape):
             if dname in space.dims or dname in space.names:
                 raise ValueError(f"dims[{name!r}]: {dname!r} is already a parameter dimension.")
             if dim_sizes.setdefault(dname, size) != size:
-                raise ValueError(f"dimension {dname!r} has sizes {dim_sizes[dname]} and {size} in "
-                                 "different outputs.")
+                raise ValueError(
+                    f"dimension {dname!r} has sizes {dim_sizes[dname]} and {size} in "
+                    "different outputs."
+                )
         variables.append(Variable(name, shape, dtype, vdims, flags, enum_label))
     status_names, status_enum = structure["status"]
     for extra in (NONFINITE, ERROR):

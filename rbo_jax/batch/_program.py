@@ -55,8 +55,9 @@ class Program:
     left to compute compiles nothing). ``traced`` is a traced jitted function, or the jitted call
     of a program from the program store (:mod:`rbo_jax._programs`), compiled the same way."""
 
-    def __init__(self, traced, sharding: NamedSharding, batch: int, structure: dict,
-                 strategy: str, x=None):
+    def __init__(
+        self, traced, sharding: NamedSharding, batch: int, structure: dict, strategy: str, x=None
+    ):
         self.traced, self.sharding, self.batch = traced, sharding, batch
         self.structure = structure  # the output structure recorded while tracing
         self.strategy = strategy  # "shard_map", or "jit" for what shard_map cannot trace
@@ -80,10 +81,13 @@ def _functions(quantity, names, devices, batch):
     batched = jax.vmap(point_function(quantity, names, record))
     # check_vma=False: the body has no collectives, and user quantities may hold callbacks or
     # custom rules that the varying-manual-axes checker does not know.
-    sharded = jax.shard_map(batched, mesh=mesh, in_specs=P(BATCH_AXIS),
-                            out_specs=P(BATCH_AXIS), check_vma=False)
-    functions = {"shard_map": jax.jit(sharded),
-                 "jit": jax.jit(batched, in_shardings=sharding, out_shardings=sharding)}
+    sharded = jax.shard_map(
+        batched, mesh=mesh, in_specs=P(BATCH_AXIS), out_specs=P(BATCH_AXIS), check_vma=False
+    )
+    functions = {
+        "shard_map": jax.jit(sharded),
+        "jit": jax.jit(batched, in_shardings=sharding, out_shardings=sharding),
+    }
     return x, sharding, record, functions
 
 
@@ -109,8 +113,18 @@ def _store_key(quantity, names, devices, batch) -> str | None:
     text = stable_text(quantity)
     if text is None:
         return None
-    return _programs.program_key(repr(("rbo_jax.batch chunk", text, names, batch,
-                                       str(jnp.result_type(float)), devices[0].platform)))
+    return _programs.program_key(
+        repr(
+            (
+                "rbo_jax.batch chunk",
+                text,
+                names,
+                batch,
+                str(jnp.result_type(float)),
+                devices[0].platform,
+            )
+        )
+    )
 
 
 def _stored_program(key, x, sharding, record, functions, batch) -> Program | None:

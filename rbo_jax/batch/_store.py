@@ -63,16 +63,18 @@ def consolidate(path: Path):
 
 def descriptor(space: Space, spec: OutputSpec) -> dict:
     """The store's own layout (attribute ``rbo_jax.sweep``): what resuming must match."""
-    return to_json({
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "mode": "grid" if space.grid else "points",
-        "names": list(space.names),
-        "dims": list(space.dims),
-        "shape": list(space.shape),
-        "chunk_shape": list(space.chunk_shape),
-        **spec.describe(),
-    })
+    return to_json(
+        {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "mode": "grid" if space.grid else "points",
+            "names": list(space.names),
+            "dims": list(space.dims),
+            "shape": list(space.shape),
+            "chunk_shape": list(space.chunk_shape),
+            **spec.describe(),
+        }
+    )
 
 
 def read_descriptor(group, path) -> dict:
@@ -80,8 +82,10 @@ def read_descriptor(group, path) -> dict:
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise SweepError(f"{path} is not an rbo_jax sweep store (no {FORMAT!r} attribute).")
     if d.get("format_version") != FORMAT_VERSION:
-        raise SweepError(f"{path}: sweep store format {d.get('format_version')} is not supported "
-                         f"(this rbo_jax writes {FORMAT_VERSION}).")
+        raise SweepError(
+            f"{path}: sweep store format {d.get('format_version')} is not supported "
+            f"(this rbo_jax writes {FORMAT_VERSION})."
+        )
     return d
 
 
@@ -96,35 +100,76 @@ def _create(path: Path, space: Space, spec: OutputSpec, attrs: dict):
     config = {"write_empty_chunks": True}
     for n in space.names:
         if space.grid:
-            a = group.create_array(n, shape=space.values[n].shape, dtype="float64",
-                                   chunks=space.values[n].shape, dimension_names=[n],
-                                   fill_value=np.nan, config=config)
+            a = group.create_array(
+                n,
+                shape=space.values[n].shape,
+                dtype="float64",
+                chunks=space.values[n].shape,
+                dimension_names=[n],
+                fill_value=np.nan,
+                config=config,
+            )
         else:
-            a = group.create_array(n, shape=space.shape, dtype="float64", chunks=space.chunk_shape,
-                                   dimension_names=[POINT_DIM], fill_value=np.nan, config=config)
+            a = group.create_array(
+                n,
+                shape=space.shape,
+                dtype="float64",
+                chunks=space.chunk_shape,
+                dimension_names=[POINT_DIM],
+                fill_value=np.nan,
+                config=config,
+            )
         a[...] = space.values[n]
     point_coords = {} if space.grid else {"coordinates": " ".join(space.names)}
     for v in spec.variables:
         group.create_array(
-            v.name, shape=space.shape + v.shape, dtype=v.dtype, chunks=space.chunk_shape + v.shape,
-            dimension_names=list(space.dims + v.dims), fill_value=fill_value(v.dtype),
-            attributes=to_json({**v.attrs(), **point_coords}), config=config,
+            v.name,
+            shape=space.shape + v.shape,
+            dtype=v.dtype,
+            chunks=space.chunk_shape + v.shape,
+            dimension_names=list(space.dims + v.dims),
+            fill_value=fill_value(v.dtype),
+            attributes=to_json({**v.attrs(), **point_coords}),
+            config=config,
         )
     group.create_array(
-        "status", shape=space.shape, dtype="int8", chunks=space.chunk_shape,
-        dimension_names=list(space.dims), fill_value=-1,
-        attributes=to_json({**spec.status_attrs(), **point_coords}), config=config,
+        "status",
+        shape=space.shape,
+        dtype="int8",
+        chunks=space.chunk_shape,
+        dimension_names=list(space.dims),
+        fill_value=-1,
+        attributes=to_json({**spec.status_attrs(), **point_coords}),
+        config=config,
     )
     meta = group.create_group(META)
-    meta.create_array("chunk_done", shape=space.chunk_grid, dtype="uint8",
-                      chunks=(1,) * len(space.chunk_grid), fill_value=0, compressors=None,
-                      config=config)
-    meta.create_array("checksum", shape=space.chunk_grid, dtype="uint64",
-                      chunks=(1,) * len(space.chunk_grid), fill_value=0, compressors=None,
-                      config=config)
+    meta.create_array(
+        "chunk_done",
+        shape=space.chunk_grid,
+        dtype="uint8",
+        chunks=(1,) * len(space.chunk_grid),
+        fill_value=0,
+        compressors=None,
+        config=config,
+    )
+    meta.create_array(
+        "checksum",
+        shape=space.chunk_grid,
+        dtype="uint64",
+        chunks=(1,) * len(space.chunk_grid),
+        fill_value=0,
+        compressors=None,
+        config=config,
+    )
     # the error records of a chunk (JSON text; "" when none raised), one file per chunk
-    meta.create_array("errors", shape=space.chunk_grid, dtype=str,
-                      chunks=(1,) * len(space.chunk_grid), fill_value="", config=config)
+    meta.create_array(
+        "errors",
+        shape=space.chunk_grid,
+        dtype=str,
+        chunks=(1,) * len(space.chunk_grid),
+        fill_value="",
+        config=config,
+    )
     group.attrs.update(to_json({**attrs, FORMAT: descriptor(space, spec)}))
     consolidate(path)
     return group
@@ -144,8 +189,10 @@ def check_compatible(group, path, space: Space, spec: OutputSpec, attrs: dict) -
             raise SweepError(f"cannot resume {path}: the values of {n!r} differ from the store's.")
     for k, v in to_json(attrs).items():
         if group.attrs.get(k) != v:
-            raise SweepError(f"cannot resume {path}: attribute {k!r} differs from the store's "
-                             "(e.g. a different configuration).")
+            raise SweepError(
+                f"cannot resume {path}: attribute {k!r} differs from the store's "
+                "(e.g. a different configuration)."
+            )
     return stored
 
 
@@ -192,8 +239,7 @@ def prepare(path: Path, space, spec, attrs, resume, overwrite) -> Space:
             _remove_partial_files(path)
             bad = corrupted_chunks(group, space, spec, _done_chunks(group, space))
             for cid, why in sorted(bad.items()):
-                print(f"rbo_jax.sweep: {path}: chunk {cid} is recomputed: {why}.",
-                      file=sys.stderr)
+                print(f"rbo_jax.sweep: {path}: chunk {cid} is recomputed: {why}.", file=sys.stderr)
             mark_missing(group, space, bad)
             return space
     _create(path, space, spec, attrs)
@@ -229,8 +275,9 @@ class Writer:
             self.arrays[name][slices] = result[name]
         index = np.unravel_index(cid, self.done.shape)
         self.errors[index] = json.dumps(result["errors"]) if result.get("errors") else ""
-        self.sums[index] = np.uint64(checksum(
-            np.asarray(result[n], dtype=self.arrays[n].dtype) for n in self.names))
+        self.sums[index] = np.uint64(
+            checksum(np.asarray(result[n], dtype=self.arrays[n].dtype) for n in self.names)
+        )
         # The marker last: a chunk counts as done only once all its data is on disk.
         self.done[index] = 1
 
@@ -285,8 +332,9 @@ def finalize(path: Path):
     group = open_group(path, "r+")
     d = read_descriptor(group, path)
     status = np.asarray(group["status"][...])
-    group.attrs.update(to_json({"status_counts": counts(status, d["status_flags"]),
-                                "errors": errors(path)}))
+    group.attrs.update(
+        to_json({"status_counts": counts(status, d["status_flags"]), "errors": errors(path)})
+    )
     consolidate(path)
 
 
@@ -315,15 +363,20 @@ def open_sweep(path, *, allow_incomplete: bool = False, verify: bool = True):
     space = space_from_store(group, d)
     missing = missing_chunks(group, space)
     if missing and not allow_incomplete:
-        raise SweepError(f"{path} is incomplete: {len(missing)} of {space.n_chunks} chunks "
-                         "missing; finish it with sweep(..., store=path, resume=True).")
+        raise SweepError(
+            f"{path} is incomplete: {len(missing)} of {space.n_chunks} chunks "
+            "missing; finish it with sweep(..., store=path, resume=True)."
+        )
     if verify:
-        bad = corrupted_chunks(group, space, OutputSpec.from_description(d),
-                               _done_chunks(group, space))
+        bad = corrupted_chunks(
+            group, space, OutputSpec.from_description(d), _done_chunks(group, space)
+        )
         if bad:
             detail = "; ".join(f"chunk {c}: {why}" for c, why in sorted(bad.items())[:5])
-            raise SweepError(f"{path}: {len(bad)} chunk(s) fail their checksum ({detail}); "
-                             "resume the sweep (resume=True, CLI --resume) to recompute them.")
+            raise SweepError(
+                f"{path}: {len(bad)} chunk(s) fail their checksum ({detail}); "
+                "resume the sweep (resume=True, CLI --resume) to recompute them."
+            )
     # Stores written before rbo_jax consolidated their metadata are read without it.
     consolidated = group.metadata.consolidated_metadata is not None
     ds = xr.open_zarr(str(path), consolidated=consolidated, chunks=None, zarr_format=3)

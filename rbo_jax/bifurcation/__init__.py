@@ -6,10 +6,13 @@ a Hopf point (:mod:`._cycles`) and the Hopf boundary in two parameters (:mod:`._
 
 from .. import _lazy
 
-__getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
-    "._hopf": ("HopfPoint", "HopfStatus", "first_lyapunov_coefficient", "hopf_point"),
-    "._orbit": ("OrbitStatus", "PeriodicOrbit", "floquet_multipliers", "periodic_orbit"),
-    "._equilibria": ("continue_equilibria",),
-    "._cycles": ("continue_limit_cycles",),
-    "._curve": ("continue_hopf",),
-})
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    {  # loaded on first use
+        "._hopf": ("HopfPoint", "HopfStatus", "first_lyapunov_coefficient", "hopf_point"),
+        "._orbit": ("OrbitStatus", "PeriodicOrbit", "floquet_multipliers", "periodic_orbit"),
+        "._equilibria": ("continue_equilibria",),
+        "._cycles": ("continue_limit_cycles",),
+        "._curve": ("continue_hopf",),
+    },
+)

@@ -45,8 +45,7 @@ def _curve(static, t, p, guess, values, theta_guess):
         n2 = v[0] @ v[0] + v[1] @ v[1]
         w_new = jnp.concatenate([v[0], v[1]]) / n2  # w^H v = 1 at the new solution
         status = jnp.where(alive, raw.status, _NOT_CONVERGED)
-        carry = (jnp.where(good, raw.u, u), jnp.where(good, w_new, w), good,
-                 jnp.zeros((), bool))
+        carry = (jnp.where(good, raw.u, u), jnp.where(good, w_new, w), good, jnp.zeros((), bool))
         return carry, finish(raw._replace(status=status.astype(raw.status.dtype)))
 
     init = (jnp.zeros(17, dtype), jnp.zeros(12, dtype), jnp.ones((), bool), jnp.ones((), bool))
@@ -95,8 +94,11 @@ def continue_hopf(
 
     from .. import _enumeration as enum
 
-    others = {str(k): jnp.asarray(v, dtype=jnp.result_type(float))
-              for k, v in params.items() if k not in (parameter, along)}
+    others = {
+        str(k): jnp.asarray(v, dtype=jnp.result_type(float))
+        for k, v in params.items()
+        if k not in (parameter, along)
+    }
     batch = _batched(others)
     for name in others:
         if jnp.ndim(others[name]) > 1 or (jnp.ndim(others[name]) == 1 and others[name].size == 0):
@@ -110,12 +112,19 @@ def continue_hopf(
     def run(**point):
         names = tuple(point) + (along,)
         shapes = tuple(jnp.shape(v) for v in point.values()) + ((),)
-        static = Static(canonical(model_fn), canonical(theta_eq_fn), parameter, names, shapes,
-                        float(rtol), float(atol), int(max_steps))
+        static = Static(
+            canonical(model_fn),
+            canonical(theta_eq_fn),
+            parameter,
+            names,
+            shapes,
+            float(rtol),
+            float(atol),
+            int(max_steps),
+        )
         parts = [jnp.ravel(v) for v in point.values()]
         p = jnp.concatenate(parts) if parts else jnp.zeros(0, values.dtype)
-        return _curve_jit(static, jnp.asarray(t, dtype=values.dtype), p, guess, values,
-                          theta_guess)
+        return _curve_jit(static, jnp.asarray(t, dtype=values.dtype), p, guess, values, theta_guess)
 
     fn = run
     for name in reversed(batch):

@@ -60,8 +60,7 @@ def _system(model_fn, parameter, others, solver, u, g, x_ref, tau, u_k, s):
 
 
 @functools.partial(jit, small=True)
-def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref, tol,
-             max_newton):
+def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref, tol, max_newton):
     g = flat_field(_build(model_fn, _point(others, parameter, alpha_ref)))(x_ref)
     g = g / jnp.linalg.norm(g)
 
@@ -123,8 +122,11 @@ def continue_limit_cycles(
 
     if not bool(hopf.ok):
         raise ValueError("continue_limit_cycles needs a successful Hopf point (hopf.ok).")
-    others = {str(k): jnp.asarray(v, dtype=jnp.result_type(float))
-              for k, v in params.items() if k != parameter}
+    others = {
+        str(k): jnp.asarray(v, dtype=jnp.result_type(float))
+        for k, v in params.items()
+        if k != parameter
+    }
     solver = dict(rtol=float(rtol), atol=float(atol), max_steps=100_000)
     x_h = jnp.concatenate([hopf.theta, jnp.zeros(3)])
     d = jnp.real(hopf.eigenvector)
@@ -137,8 +139,19 @@ def continue_limit_cycles(
     bar = _bar(progress, max_points)
     model_fn = canonical(model_fn)  # a new but identical function: the same program
     while len(rows) < max_points:
-        u, ok, k, mu, amp = _correct(model_fn, parameter, others, solver, u_k, tau,
-                                     jnp.asarray(s), x_ref, alpha_ref, float(tol), 12)
+        u, ok, k, mu, amp = _correct(
+            model_fn,
+            parameter,
+            others,
+            solver,
+            u_k,
+            tau,
+            jnp.asarray(s),
+            x_ref,
+            alpha_ref,
+            float(tol),
+            12,
+        )
         if not bool(ok):
             s *= 0.5
             if s < s_min:
@@ -167,8 +180,9 @@ def _dataset(xr, parameter, rows, reason):
     U = np.stack([np.asarray(u) for u, _, _ in rows])
     mu = np.stack([np.asarray(m) for _, m, _ in rows])
     trivial = np.array([abs(complex(split_multipliers(jnp.asarray(m))[0]) - 1) for m in mu])
-    others = np.array([np.max(np.abs(np.asarray(split_multipliers(jnp.asarray(m))[1])))
-                       for m in mu])
+    others = np.array(
+        [np.max(np.abs(np.asarray(split_multipliers(jnp.asarray(m))[1]))) for m in mu]
+    )
     return xr.Dataset(
         {
             parameter: ("point", U[:, 7]),

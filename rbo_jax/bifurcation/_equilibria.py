@@ -133,28 +133,41 @@ def continue_equilibria(
     """
     import xarray as xr
 
-    others = {str(k): jnp.asarray(v, dtype=jnp.result_type(float))
-              for k, v in params.items() if k != parameter}
+    others = {
+        str(k): jnp.asarray(v, dtype=jnp.result_type(float))
+        for k, v in params.items()
+        if k != parameter
+    }
     guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
     if not (ds > 0 and ds_min > 0 and ds_max >= ds):
         raise ValueError(f"need 0 < ds <= ds_max and ds_min > 0, got {ds}, {ds_max}, {ds_min}.")
-    sol = solve_equilibrium(_build(model_fn, _point(others, parameter, jnp.asarray(start))),
-                            guess)
+    sol = solve_equilibrium(_build(model_fn, _point(others, parameter, jnp.asarray(start))), guess)
     if not bool(sol.ok):
-        raise ValueError(f"no equilibrium found at {parameter} = {start} from theta_guess: "
-                         f"{sol.status.__class__.__name__}.{_name(sol.status)}.")
+        raise ValueError(
+            f"no equilibrium found at {parameter} = {start} from theta_guess: "
+            f"{sol.status.__class__.__name__}.{_name(sol.status)}."
+        )
     u = jnp.concatenate([sol.theta, jnp.asarray([start], dtype=sol.theta.dtype)])
     direction = 1.0 if stop >= start else -1.0
     model_fn = canonical(model_fn)  # a new but identical function: the same program
-    u, _, _, tau, bp, p = _step(model_fn, parameter, t, others, u,
-                                jnp.array([0.0, 0.0, 0.0, direction]), jnp.asarray(0.0), tol,
-                                20)
+    u, _, _, tau, bp, p = _step(
+        model_fn,
+        parameter,
+        t,
+        others,
+        u,
+        jnp.array([0.0, 0.0, 0.0, direction]),
+        jnp.asarray(0.0),
+        tol,
+        20,
+    )
     rows, special = [(u, p)], []
     reason = "max_points"
     bar = _progress(progress, max_points)
     while len(rows) < max_points:
-        v, ok, k, tau_new, bp_new, p_new = _step(model_fn, parameter, t, others, u, tau,
-                                                 jnp.asarray(ds), tol, 20)
+        v, ok, k, tau_new, bp_new, p_new = _step(
+            model_fn, parameter, t, others, u, tau, jnp.asarray(ds), tol, 20
+        )
         if not bool(ok):
             ds *= 0.5
             if ds < ds_min:

@@ -190,12 +190,17 @@ def finish(raw: Raw) -> HopfPoint:
     status = enum.from_code(HopfStatus, raw.status)
     good = raw.status == enum.code(HopfStatus.successful)
     return HopfPoint(
-        value=_nan_unless(good, u[3]), frequency=_nan_unless(good, jnp.abs(omega)),
-        theta=_nan_unless(good, u[:3]), eigenvector=_nan_unless(good, q),
+        value=_nan_unless(good, u[3]),
+        frequency=_nan_unless(good, jnp.abs(omega)),
+        theta=_nan_unless(good, u[:3]),
+        eigenvector=_nan_unless(good, q),
         adjoint=_nan_unless(good, raw.adjoint),
         transversality=_nan_unless(good, raw.transversality),
-        first_lyapunov=_nan_unless(good, raw.first_lyapunov), residual=raw.residual,
-        num_steps=raw.num_steps, status=status)
+        first_lyapunov=_nan_unless(good, raw.first_lyapunov),
+        residual=raw.residual,
+        num_steps=raw.num_steps,
+        status=status,
+    )
 
 
 def _is_traced(tree) -> bool:
@@ -278,13 +283,31 @@ def hopf_point(
     others = {str(k): v for k, v in params.items() if k != parameter}
     guess = _scalar(guess, dtype)
     if jnp.shape(guess) != ():
-        raise ValueError(f"guess must be a scalar value of {parameter!r}, got shape "
-                         f"{jnp.shape(guess)}.")
-    theta_guess = (np.zeros(3, dtype) if theta_guess is None
-                   else _as_vector(theta_guess, "theta_guess"))
+        raise ValueError(
+            f"guess must be a scalar value of {parameter!r}, got shape {jnp.shape(guess)}."
+        )
+    theta_guess = (
+        np.zeros(3, dtype) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
+    )
     names, shapes, p = flat_parameters(others)
-    static = Static(canonical(model_fn), canonical(theta_eq_fn), parameter, names, shapes,
-                    float(rtol), float(atol), int(max_steps))
-    raw = solution(static, p, guess, theta_guess, _scalar(t, dtype), np.zeros(17, dtype),
-                   np.zeros(12, dtype), np.asarray(False))
+    static = Static(
+        canonical(model_fn),
+        canonical(theta_eq_fn),
+        parameter,
+        names,
+        shapes,
+        float(rtol),
+        float(atol),
+        int(max_steps),
+    )
+    raw = solution(
+        static,
+        p,
+        guess,
+        theta_guess,
+        _scalar(t, dtype),
+        np.zeros(17, dtype),
+        np.zeros(12, dtype),
+        np.asarray(False),
+    )
     return finish(raw)

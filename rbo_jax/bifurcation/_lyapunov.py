@@ -30,8 +30,13 @@ import jax.numpy as jnp
 
 from ._field import jets
 
-__all__ = ["STAGE_TWO_ROWS", "first_lyapunov_coefficient", "from_stage_two", "stage_one",
-           "stage_two_rows"]
+__all__ = [
+    "STAGE_TWO_ROWS",
+    "first_lyapunov_coefficient",
+    "from_stage_two",
+    "stage_one",
+    "stage_two_rows",
+]
 
 STAGE_TWO_ROWS = 10
 
@@ -49,8 +54,18 @@ def stage_two_rows(a, b, h11, h20):
     """The ``(STAGE_TWO_ROWS, 3, n)`` directions of stage two (module docstring)."""
     c, d = jnp.real(h20), jnp.imag(h20)
     z = jnp.zeros_like(a)
-    rows = [(a, h11, z), (b, h11, z), (a, c, z), (b, d, z), (a, d, z), (b, c, z),
-            (a, a, a), (a, b, b), (a, a, b), (b, b, b)]
+    rows = [
+        (a, h11, z),
+        (b, h11, z),
+        (a, c, z),
+        (b, d, z),
+        (a, d, z),
+        (b, c, z),
+        (a, a, a),
+        (a, b, b),
+        (a, a, b),
+        (b, b, b),
+    ]
     return jnp.stack([jnp.stack(r) for r in rows])
 
 
@@ -73,8 +88,7 @@ def first_lyapunov_coefficient(F, x0, omega, q, p):
     J = jax.jacfwd(F)(x0)
     a, b = jnp.real(q).astype(x0.dtype), jnp.imag(q).astype(x0.dtype)
     z = jnp.zeros_like(a)
-    _, _, D2, _ = jets(F, x0, jnp.stack([jnp.stack(r) for r in ((a, a, z), (b, b, z),
-                                                                 (a, b, z))]))
+    _, _, D2, _ = jets(F, x0, jnp.stack([jnp.stack(r) for r in ((a, a, z), (b, b, z), (a, b, z))]))
     h11, h20 = stage_one(J, omega, D2[0], D2[1], D2[2])
     _, _, D2, D3 = jets(F, x0, stage_two_rows(a, b, h11, h20))
     return from_stage_two(p, omega, D2, D3)

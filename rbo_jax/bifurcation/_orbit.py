@@ -38,8 +38,15 @@ from ..model import RigidBodyOscillator
 from ..trajectory import SolveStatus
 from ._field import flat_field
 
-__all__ = ["OrbitStatus", "PeriodicOrbit", "flow", "monodromy", "floquet_multipliers",
-           "periodic_orbit", "split_multipliers"]
+__all__ = [
+    "OrbitStatus",
+    "PeriodicOrbit",
+    "flow",
+    "monodromy",
+    "floquet_multipliers",
+    "periodic_orbit",
+    "split_multipliers",
+]
 
 
 class OrbitStatus(eqx.Enumeration):
@@ -97,15 +104,22 @@ def _sorted(mu):
     return mu[jnp.argsort(-jnp.abs(mu))]
 
 
-def flow(model: RigidBodyOscillator, x0, period, *, rtol=1e-10, atol=1e-10,
-         max_steps=100_000):
+def flow(model: RigidBodyOscillator, x0, period, *, rtol=1e-10, atol=1e-10, max_steps=100_000):
     r"""$(\varphi_T(x_0), ok)$: the flat state $[\theta, \Omega]$ after time ``period`` from
     ``x0`` by :func:`rbo_jax.fast_simulate` (``throw=False``), and whether the solve succeeded.
     Forward-mode differentiable in ``x0`` and the model's parameters."""
     T = jnp.asarray(period, dtype=x0.dtype)
     T = jnp.where(T > 0, T, 1.0)  # a non-positive period is flagged by the callers
-    traj = fast_simulate(model, x0[:3], x0[3:], jnp.stack([jnp.zeros_like(T), T]), rtol=rtol,
-                         atol=atol, max_steps=max_steps, throw=False)
+    traj = fast_simulate(
+        model,
+        x0[:3],
+        x0[3:],
+        jnp.stack([jnp.zeros_like(T), T]),
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        throw=False,
+    )
     return jnp.concatenate([traj.theta[-1], traj.Omega[-1]]), traj.status == SolveStatus.successful
 
 
@@ -126,8 +140,9 @@ def _state(theta0, Omega0):
 
 
 @functools.partial(jit, small=True)
-def floquet_multipliers(model: RigidBodyOscillator, theta0, Omega0, period, *, rtol=1e-10,
-                        atol=1e-10, max_steps=100_000) -> Complex[Array, "6"]:
+def floquet_multipliers(
+    model: RigidBodyOscillator, theta0, Omega0, period, *, rtol=1e-10, atol=1e-10, max_steps=100_000
+) -> Complex[Array, "6"]:
     r"""The six Floquet multipliers of the periodic orbit through $(\theta_0, \Omega_0)$ with
     period $T$: the eigenvalues of the monodromy matrix $\partial\varphi_T/\partial x_0$ (module
     docstring), sorted by decreasing modulus. NaN if the integration over one period fails.
@@ -135,8 +150,9 @@ def floquet_multipliers(model: RigidBodyOscillator, theta0, Omega0, period, *, r
     For a regular precession (4.110)–(4.113), $T = 2\pi/\dot\psi$ and the multipliers are
     $e^{\lambda T}$ for the exponents $\lambda$ of :func:`rbo_jax.precession_spectrum`.
     """
-    M, _, ok = monodromy(model, _state(theta0, Omega0), period, rtol=rtol, atol=atol,
-                         max_steps=max_steps)
+    M, _, ok = monodromy(
+        model, _state(theta0, Omega0), period, rtol=rtol, atol=atol, max_steps=max_steps
+    )
     mu = _sorted(jnp.linalg.eigvals(M))
     return jnp.where(ok, mu, jnp.full_like(mu, jnp.nan))
 
@@ -195,9 +211,18 @@ def _shoot(model, x_ref, period, tol, max_newton, rtol, atol, max_steps):
 _shoot_program = program(_shoot, small=True)  # XLA's options for small programs
 
 
-def periodic_orbit(model: RigidBodyOscillator, theta0, Omega0, period, *, tol=1e-9,
-                   max_newton: int = 20, rtol=1e-11, atol=1e-11,
-                   max_steps=100_000) -> PeriodicOrbit:
+def periodic_orbit(
+    model: RigidBodyOscillator,
+    theta0,
+    Omega0,
+    period,
+    *,
+    tol=1e-9,
+    max_newton: int = 20,
+    rtol=1e-11,
+    atol=1e-11,
+    max_steps=100_000,
+) -> PeriodicOrbit:
     r"""The periodic orbit near $(\theta_0, \Omega_0)$ with period near ``period``, by shooting
     (module docstring): Newton's method for the initial state and the period with the phase
     condition, ``max_newton`` iterations at most, until the shooting residual and the correction
@@ -210,8 +235,15 @@ def periodic_orbit(model: RigidBodyOscillator, theta0, Omega0, period, *, tol=1e
     """
     x_ref = _state(theta0, Omega0)
     period = period if isinstance(period, jax.core.Tracer) else np.asarray(period, x_ref.dtype)
-    x, T, mu, residual, k, code = _shoot_program(model, x_ref, period, tol, max_newton, rtol,
-                                                 atol, max_steps)
-    return PeriodicOrbit(theta0=x[:3], Omega0=x[3:], period=T, multipliers=mu,
-                         residual=residual, num_steps=k,
-                         status=enum.from_code(OrbitStatus, code))
+    x, T, mu, residual, k, code = _shoot_program(
+        model, x_ref, period, tol, max_newton, rtol, atol, max_steps
+    )
+    return PeriodicOrbit(
+        theta0=x[:3],
+        Omega0=x[3:],
+        period=T,
+        multipliers=mu,
+        residual=residual,
+        num_steps=k,
+        status=enum.from_code(OrbitStatus, code),
+    )

@@ -91,7 +91,7 @@ def unpack_parameters(names, shapes, p) -> dict:
     out, i = {}, 0
     for name, shape in zip(names, shapes):
         n = int(np.prod(shape, dtype=int))
-        out[name] = p[i:i + n].reshape(shape)
+        out[name] = p[i : i + n].reshape(shape)
         i += n
     return out
 
@@ -119,14 +119,21 @@ def _system(u, w, f0, D1, D2, n_p):
     Fa, Jvr, Jvi = D1[6], D1[7], D1[11]
     Hr, Hi = D2[7:11].T, D2[11:15].T
     B = D2[15:18]
-    Fp = D1[18:18 + n_p].T
-    Hrp, Hip = D2[18 + n_p:18 + 2 * n_p].T, D2[18 + 2 * n_p:18 + 3 * n_p].T
-    r = jnp.concatenate([f0[3:], Jvr + omega * vi, Jvi - omega * vr,
-                         jnp.stack([wr @ vr + wi @ vi - 1.0, wr @ vi - wi @ vr])])
+    Fp = D1[18 : 18 + n_p].T
+    Hrp, Hip = D2[18 + n_p : 18 + 2 * n_p].T, D2[18 + 2 * n_p : 18 + 3 * n_p].T
+    r = jnp.concatenate(
+        [
+            f0[3:],
+            Jvr + omega * vi,
+            Jvi - omega * vr,
+            jnp.stack([wr @ vr + wi @ vi - 1.0, wr @ vi - wi @ vr]),
+        ]
+    )
     I6 = jnp.eye(6, dtype=u.dtype)
     z3 = jnp.zeros((3, 6), u.dtype)
-    col_theta_alpha = jnp.concatenate([
-        jnp.concatenate([J[3:, :3], Fa[3:, None]], axis=1), Hr, Hi, jnp.zeros((2, 4), u.dtype)])
+    col_theta_alpha = jnp.concatenate(
+        [jnp.concatenate([J[3:, :3], Fa[3:, None]], axis=1), Hr, Hi, jnp.zeros((2, 4), u.dtype)]
+    )
     col_omega = jnp.concatenate([jnp.zeros(3, u.dtype), vi, -vr, jnp.zeros(2, u.dtype)])
     cols_vr = jnp.concatenate([z3, J, -omega * I6, wr[None], -wi[None]])
     cols_vi = jnp.concatenate([z3, omega * I6, J, wi[None], wr[None]])
@@ -196,17 +203,29 @@ class _Problem:
     def initial_state(self, u, w, warm, theta_eq) -> dict:
         dtype, cdtype, i32 = self.dtype, np.result_type(self.dtype, np.complex64), jnp.int32
         state = dict(
-            phase=jnp.where(warm, NEWTON, EQUILIBRIUM).astype(i32), k=jnp.asarray(0, i32),
-            u=u, w=w, status=jnp.asarray(_code(HopfStatus.successful), i32),
-            steps=jnp.asarray(0, i32), Ju=jnp.zeros((17, 17), dtype),
-            Jp=jnp.zeros((17, self.n_p), dtype), J=jnp.zeros((6, 6), dtype),
-            residual=jnp.asarray(jnp.inf, dtype), h11=jnp.zeros(6, dtype),
-            h20=jnp.zeros(6, cdtype), adjoint=jnp.zeros(6, cdtype), dtheta=jnp.zeros(3, dtype),
+            phase=jnp.where(warm, NEWTON, EQUILIBRIUM).astype(i32),
+            k=jnp.asarray(0, i32),
+            u=u,
+            w=w,
+            status=jnp.asarray(_code(HopfStatus.successful), i32),
+            steps=jnp.asarray(0, i32),
+            Ju=jnp.zeros((17, 17), dtype),
+            Jp=jnp.zeros((17, self.n_p), dtype),
+            J=jnp.zeros((6, 6), dtype),
+            residual=jnp.asarray(jnp.inf, dtype),
+            h11=jnp.zeros(6, dtype),
+            h20=jnp.zeros(6, cdtype),
+            adjoint=jnp.zeros(6, cdtype),
+            dtheta=jnp.zeros(3, dtype),
             first_lyapunov=jnp.asarray(jnp.nan, dtype),
-            transversality=jnp.asarray(jnp.nan, dtype), theta_eq=theta_eq,
-            row=jnp.asarray(0, i32), f0=jnp.zeros(6, dtype),
-            D1=jnp.zeros((self.n_rows, 6), dtype), D2=jnp.zeros((self.n_rows, 6), dtype),
-            D3=jnp.zeros((self.n_rows, 6), dtype))
+            transversality=jnp.asarray(jnp.nan, dtype),
+            theta_eq=theta_eq,
+            row=jnp.asarray(0, i32),
+            f0=jnp.zeros(6, dtype),
+            D1=jnp.zeros((self.n_rows, 6), dtype),
+            D2=jnp.zeros((self.n_rows, 6), dtype),
+            D3=jnp.zeros((self.n_rows, 6), dtype),
+        )
         return {key: jnp.asarray(v) for key, v in state.items()}
 
     def directions(self, s):
@@ -218,11 +237,16 @@ class _Problem:
         ext = jnp.zeros(m - 6, dtype)
         a, b, h11 = (jnp.concatenate([v, ext]) for v in (a, b, s["h11"]))
         h20 = jnp.concatenate([s["h20"], ext.astype(s["h20"].dtype)])
-        delta = jnp.concatenate([s["dtheta"], jnp.zeros(3, dtype), jnp.ones(1, dtype),
-                                 jnp.zeros(self.n_p, dtype)])
+        delta = jnp.concatenate(
+            [s["dtheta"], jnp.zeros(3, dtype), jnp.ones(1, dtype), jnp.zeros(self.n_p, dtype)]
+        )
         z = jnp.zeros(m, dtype)
-        two = jnp.concatenate([stage_two_rows(a, b, h11, h20),
-                               jnp.stack([jnp.stack([delta, a, z]), jnp.stack([delta, b, z])])])
+        two = jnp.concatenate(
+            [
+                stage_two_rows(a, b, h11, h20),
+                jnp.stack([jnp.stack([delta, a, z]), jnp.stack([delta, b, z])]),
+            ]
+        )
         two = jnp.concatenate([two, jnp.zeros((self.n_rows - two.shape[0], 3, m), dtype)])
         return jnp.where(s["phase"] == LYAPUNOV, two, newton)
 
@@ -236,16 +260,26 @@ class _Problem:
         finite = jnp.all(jnp.isfinite(theta))
         good = done & finite & (distance_to_singularity(theta) > 1e-6)
         failed = ~finite | (done & ~good) | (~done & (k >= self.max_steps))
-        new = {**s, "u": jnp.concatenate([theta, s["u"][3:]]), "theta_eq": theta,
-               "phase": jnp.where(done, START, EQUILIBRIUM), "k": jnp.where(done, 0, k)}
+        new = {
+            **s,
+            "u": jnp.concatenate([theta, s["u"][3:]]),
+            "theta_eq": theta,
+            "phase": jnp.where(done, START, EQUILIBRIUM),
+            "k": jnp.where(done, 0, k),
+        }
         return _select(failed, _stop(new, HopfStatus.equilibrium_failed), new)
 
     def start(self, s, f0, D1, D2, D3):
         """The eigenvalue pair to follow, at the equilibrium."""
         found, omega, v = _pick_pair(D1[:6].T)
         u = jnp.concatenate([s["u"][:4], omega[None], jnp.real(v), jnp.imag(v)])
-        new = {**s, "u": u, "w": jnp.concatenate([jnp.real(v), jnp.imag(v)]),
-               "phase": jnp.asarray(NEWTON), "k": jnp.asarray(0)}
+        new = {
+            **s,
+            "u": u,
+            "w": jnp.concatenate([jnp.real(v), jnp.imag(v)]),
+            "phase": jnp.asarray(NEWTON),
+            "k": jnp.asarray(0),
+        }
         return _select(found, new, _stop(s, HopfStatus.no_oscillatory_pair))
 
     def newton(self, s, f0, D1, D2, D3):
@@ -267,8 +301,18 @@ class _Problem:
         h11, h20 = stage_one(J, omega, B[0] / n**2, B[1] / n**2, sign * B[2] / n**2)
         adjoint = _adjoint_vector(J, omega, jax.lax.complex(a, b))
         dtheta = -jnp.linalg.solve(J[3:, :3], Fa[3:])
-        return {**s, "Ju": Ju, "Jp": Jp, "J": J, "residual": jnp.max(jnp.abs(r)), "h11": h11,
-                "h20": h20, "adjoint": adjoint, "dtheta": dtheta, "phase": jnp.asarray(LYAPUNOV)}
+        return {
+            **s,
+            "Ju": Ju,
+            "Jp": Jp,
+            "J": J,
+            "residual": jnp.max(jnp.abs(r)),
+            "h11": h11,
+            "h20": h20,
+            "adjoint": adjoint,
+            "dtheta": dtheta,
+            "phase": jnp.asarray(LYAPUNOV),
+        }
 
     def lyapunov(self, s, f0, D1, D2, D3):
         r"""$\ell_1$ and the transversality
@@ -288,16 +332,26 @@ class _Problem:
         t = self.directions(s)[row]
         f0, d1, d2, d3 = jet(self.field, y, t[0], t[1], t[2])
         put = jax.lax.dynamic_update_index_in_dim
-        s = {**s, "f0": f0, "D1": put(s["D1"], d1, row, 0), "D2": put(s["D2"], d2, row, 0),
-             "D3": put(s["D3"], d3, row, 0)}
+        s = {
+            **s,
+            "f0": f0,
+            "D1": put(s["D1"], d1, row, 0),
+            "D2": put(s["D2"], d2, row, 0),
+            "D3": put(s["D3"], d3, row, 0),
+        }
         counts = jnp.asarray([7, 7, self.n_rows, self.n_rows, STAGE_TWO_ROWS + 2], jnp.int32)
         last = row + 1 >= counts[jnp.minimum(s["phase"], LYAPUNOV)]
         steps = (self.equilibrium, self.start, self.newton, self.final, self.lyapunov)
-        branches = [lambda s, f=f: _typed({**f(s, s["f0"], s["D1"], s["D2"], s["D3"]),
-                                           "row": jnp.asarray(0)}, s) for f in steps]
+        branches = [
+            lambda s, f=f: _typed(
+                {**f(s, s["f0"], s["D1"], s["D2"], s["D3"]), "row": jnp.asarray(0)}, s
+            )
+            for f in steps
+        ]
         branches.append(lambda s: {**s, "row": s["row"] + 1})
-        return jax.lax.switch(jnp.where(last, jnp.minimum(s["phase"], LYAPUNOV), len(steps)),
-                              branches, s)
+        return jax.lax.switch(
+            jnp.where(last, jnp.minimum(s["phase"], LYAPUNOV), len(steps)), branches, s
+        )
 
     def status(self, s, alpha0, warm):
         """The loop's status, checked at the solution (frequency, singular sphere, parameters)
@@ -317,8 +371,23 @@ def _stop(s, status):
     return {**s, "phase": jnp.asarray(DONE), "status": jnp.asarray(_code(status))}
 
 
-def hopf_program(model_fn, theta_eq_fn, parameter, names, shapes, rtol, atol, max_steps, p,
-                 alpha0, theta0, t, u0, w0, warm):
+def hopf_program(
+    model_fn,
+    theta_eq_fn,
+    parameter,
+    names,
+    shapes,
+    rtol,
+    atol,
+    max_steps,
+    p,
+    alpha0,
+    theta0,
+    t,
+    u0,
+    w0,
+    warm,
+):
     r"""The Hopf point (module docstring) of ``model_fn`` in ``parameter`` with the other
     parameters ``names`` (shapes ``shapes``) flattened into ``p``, from ``alpha0`` and the
     equilibrium guess ``theta0`` (``theta_eq_fn``: its closed form, refined by Newton), or
@@ -333,11 +402,21 @@ def hopf_program(model_fn, theta_eq_fn, parameter, names, shapes, rtol, atol, ma
         theta_start = _as_vector(theta_eq_fn(**problem.point(alpha0)), "theta_eq_fn(...)")
         theta_start = theta_start.astype(dtype)
     cold = jnp.concatenate([theta_start, alpha0[None], jnp.zeros(13, dtype)])
-    state = problem.initial_state(jnp.where(warm, u0, cold),
-                                  jnp.where(warm, w0, jnp.zeros(12, dtype)), warm, theta_start)
+    state = problem.initial_state(
+        jnp.where(warm, u0, cold), jnp.where(warm, w0, jnp.zeros(12, dtype)), warm, theta_start
+    )
     s = jax.lax.while_loop(lambda s: s["phase"] < DONE, problem.body, state)
-    return (s["u"], s["Ju"], s["Jp"], s["residual"], s["steps"], problem.status(s, alpha0, warm),
-            s["adjoint"], s["first_lyapunov"], s["transversality"])
+    return (
+        s["u"],
+        s["Ju"],
+        s["Jp"],
+        s["residual"],
+        s["steps"],
+        problem.status(s, alpha0, warm),
+        s["adjoint"],
+        s["first_lyapunov"],
+        s["transversality"],
+    )
 
 
 def _select(pred, a, b):

@@ -65,8 +65,11 @@ def _integrator(cfg: Config):
     def _rule(axis_size, in_batched, problem, y0, ts):
         p_batched, y_batched, ts_batched = in_batched
         if ts_batched:  # every trajectory has its own times: lockstep per-trajectory loops
-            axes = (jax.tree_util.tree_map(lambda b: 0 if b else None, p_batched),
-                    0 if y_batched else None, 0)
+            axes = (
+                jax.tree_util.tree_map(lambda b: 0 if b else None, p_batched),
+                0 if y_batched else None,
+                0,
+            )
             return jax.vmap(one, in_axes=axes)(problem, y0, ts), (True, True, True)
         if not y_batched:
             y0 = jnp.broadcast_to(y0, (axis_size, 6))
@@ -82,13 +85,22 @@ def _integrator(cfg: Config):
         if not isinstance(dts, SymbolicZero) or jax.tree_util.tree_leaves(static):
             # derivatives w.r.t. the times (or a problem with non-float arrays): JAX's JVP of
             # the loop
-            return jax.jvp(one, primals, jax.tree_util.tree_map(
-                _instantiate, tangents, is_leaf=lambda t: isinstance(t, SymbolicZero)))
-        d_dyn = eqx.filter(jax.tree_util.tree_map(_instantiate, dproblem, is_leaf=lambda t:
-                                                  isinstance(t, SymbolicZero)),
-                           jax.tree_util.tree_map(eqx.is_inexact_array, problem))
+            return jax.jvp(
+                one,
+                primals,
+                jax.tree_util.tree_map(
+                    _instantiate, tangents, is_leaf=lambda t: isinstance(t, SymbolicZero)
+                ),
+            )
+        d_dyn = eqx.filter(
+            jax.tree_util.tree_map(
+                _instantiate, dproblem, is_leaf=lambda t: isinstance(t, SymbolicZero)
+            ),
+            jax.tree_util.tree_map(eqx.is_inexact_array, problem),
+        )
         samples, code, nacc, dsamples = _tangent_solver(cfg, static)(
-            dyn, y0, ts, d_dyn, _instantiate(dy0))
+            dyn, y0, ts, d_dyn, _instantiate(dy0)
+        )
         zero = np.zeros((), jax.dtypes.float0)
         return (samples, code, nacc), (dsamples, zero, zero)
 
@@ -124,13 +136,18 @@ def _tangent_solver(cfg: Config, static):
         primal_batched = any(jax.tree_util.tree_leaves(in_batched[:3]))
         if primal_batched:
             axes = jax.tree_util.tree_map(lambda b: 0 if b else None, tuple(in_batched))
-            return jax.vmap(one_direction, in_axes=axes)(dyn, y0, ts, d_dyn, dy0), \
-                (True, True, True, True)
+            return jax.vmap(one_direction, in_axes=axes)(dyn, y0, ts, d_dyn, dy0), (
+                True,
+                True,
+                True,
+                True,
+            )
         d_dyn, dy0 = jax.tree_util.tree_map(
             lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
-            (d_dyn, dy0), tuple(in_batched[3:]))
-        return solve_one_tangents(dyn, static, y0, ts, cfg, d_dyn, dy0), \
-            (False, False, False, True)
+            (d_dyn, dy0),
+            tuple(in_batched[3:]),
+        )
+        return solve_one_tangents(dyn, static, y0, ts, cfg, d_dyn, dy0), (False, False, False, True)
 
     return solver
 
@@ -205,11 +222,14 @@ def fast_simulate(
     try:
         cfg = Config(float(rtol), float(atol), int(max_steps), float(singular_tol))
     except (TypeError, jax.errors.ConcretizationTypeError):
-        raise TypeError("fast_simulate: rtol, atol, max_steps and singular_tol must be Python "
-                        "numbers (they are compiled in); use simulate for traced tolerances.")
+        raise TypeError(
+            "fast_simulate: rtol, atol, max_steps and singular_tol must be Python "
+            "numbers (they are compiled in); use simulate for traced tolerances."
+        )
     if not (cfg.rtol > 0 and cfg.atol > 0 and cfg.max_steps >= 1 and cfg.singular_tol > 0):
-        raise ValueError(f"fast_simulate: need rtol, atol, singular_tol > 0 and max_steps >= 1, "
-                         f"got {cfg}.")
+        raise ValueError(
+            f"fast_simulate: need rtol, atol, singular_tol > 0 and max_steps >= 1, got {cfg}."
+        )
     inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
     theta, Omega, code, nacc = _run(cfg, model, throw, inputs.theta0, inputs.Omega0, inputs.ts)
     status = enum.from_code(SolveStatus, code)

@@ -86,8 +86,8 @@ def _sparse_rows(rows):
     coefs = np.zeros((len(rows), width))
     for s, row in enumerate(rows):
         nz = [(j, a) for j, a in enumerate(row) if a != 0.0]
-        cols[s, :len(nz)] = [j for j, _ in nz]
-        coefs[s, :len(nz)] = [a for _, a in nz]
+        cols[s, : len(nz)] = [j for j, _ in nz]
+        coefs[s, : len(nz)] = [a for _, a in nz]
     return cols, coefs
 
 
@@ -170,7 +170,7 @@ def controller(err, h_abs, rejected):
     """(accept, next |h|) as ``RungeKutta._step_impl``."""
     accept = err < 1.0
     safe = jnp.where(err == 0.0, 1.0, err)
-    factor = SAFETY * safe ** ERROR_EXPONENT
+    factor = SAFETY * safe**ERROR_EXPONENT
     grow = jnp.where(err == 0.0, MAX_FACTOR, jnp.minimum(factor, MAX_FACTOR))
     grow = jnp.where(rejected, jnp.minimum(grow, 1.0), grow)
     shrink = jnp.where(factor > MIN_FACTOR, factor, MIN_FACTOR)  # max(0.2, nan) = 0.2
@@ -214,8 +214,11 @@ def initial_step(f, t0, y0, t_bound, rtol, atol, total=_identity, size=1):
     h0, d1 = first_guess(f0)
     d2 = _rms([(a - b) / s for a, b, s in zip(f1, f0, scale)]) / h0
     tiny = (d1 <= 1e-15) & (d2 <= 1e-15)
-    h1 = jnp.where(tiny, jnp.maximum(1e-6, h0 * 1e-3),
-                   (0.01 / jnp.where(tiny, 1.0, jnp.maximum(d1, d2))) ** INITIAL_EXPONENT)
+    h1 = jnp.where(
+        tiny,
+        jnp.maximum(1e-6, h0 * 1e-3),
+        (0.01 / jnp.where(tiny, 1.0, jnp.maximum(d1, d2))) ** INITIAL_EXPONENT,
+    )
     return f0, lax.stop_gradient(jnp.minimum(jnp.minimum(100 * h0, h1), interval))
 
 
@@ -237,8 +240,11 @@ def interpolant(K, y_old, y_new, f_old, f_new, h, sums=dense_sums):
     linear in (K, y_old, y_new, f_old, f_new) for a given step h."""
     n = len(y_old)
     dy = tuple(y_new[i] - y_old[i] for i in range(n))
-    F = [dy, tuple(h * f_old[i] - dy[i] for i in range(n)),
-         tuple(2 * dy[i] - h * (f_new[i] + f_old[i]) for i in range(n))]
+    F = [
+        dy,
+        tuple(h * f_old[i] - dy[i] for i in range(n)),
+        tuple(2 * dy[i] - h * (f_new[i] + f_old[i]) for i in range(n)),
+    ]
     DK = [sums(K, i) for i in range(n)]
     for r in range(4):
         F.append(tuple(h * DK[i][r] for i in range(n)))

@@ -24,9 +24,17 @@ from ..model import RightForm
 from ..trajectory import TRANSVERSE_TOL, SolveStatus, transverse_fraction
 from ._dop853 import Store
 
-_CODE = {name: int(enum.code(getattr(SolveStatus, name))) for name in (
-    "successful", "max_steps_reached", "step_size_collapse", "singular_point", "domain_error",
-    "nonfinite_state")}
+_CODE = {
+    name: int(enum.code(getattr(SolveStatus, name)))
+    for name in (
+        "successful",
+        "max_steps_reached",
+        "step_size_collapse",
+        "singular_point",
+        "domain_error",
+        "nonfinite_state",
+    )
+}
 
 
 def code(name: str) -> int:
@@ -58,8 +66,9 @@ class Problem(eqx.Module):
         near = distance_to_singularity(theta) < singular_tol
         n, n_old = _norm(theta), _norm(jnp.stack(y_old[:3]))
         two_pi = 2.0 * math.pi
-        crossed = ((jnp.floor(n / two_pi) != jnp.floor(n_old / two_pi))
-                   & (jnp.maximum(n, n_old) >= math.pi))
+        crossed = (jnp.floor(n / two_pi) != jnp.floor(n_old / two_pi)) & (
+            jnp.maximum(n, n_old) >= math.pi
+        )
         transverse = transverse_fraction(theta, Omega) > TRANSVERSE_TOL
         finite = jnp.all(jnp.isfinite(jnp.stack(y_new)))
         outside = ~(self.rhs.model.domain_margin(theta) > 0)

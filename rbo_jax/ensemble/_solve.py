@@ -58,13 +58,21 @@ def _initial(f, failure, t0, y0, t_bound, cfg: Config):
     shape = jnp.shape(y0[0])
     failed = failure(y0, y0, cfg.singular_tol)
     status = jnp.where(failed == code("successful"), RUNNING, failed).astype(jnp.int32)
-    return dict(t=jnp.full(shape, t0), y=tuple(y0), f=tuple(f0), h=h,
-                rej=jnp.zeros(shape, bool), status=jnp.broadcast_to(status, shape),
-                nacc=jnp.zeros(shape, jnp.int32), natt=jnp.zeros(shape, jnp.int32))
+    return dict(
+        t=jnp.full(shape, t0),
+        y=tuple(y0),
+        f=tuple(f0),
+        h=h,
+        rej=jnp.zeros(shape, bool),
+        status=jnp.broadcast_to(status, shape),
+        nacc=jnp.zeros(shape, jnp.int32),
+        natt=jnp.zeros(shape, jnp.int32),
+    )
 
 
-def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stages,
-            wants_dense=None):
+def attempt(
+    f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stages, wants_dense=None
+):
     """One step attempt for every running lane (``RungeKutta._step_impl`` unrolled by one
     attempt). Returns the new state and what the dense output needs. ``stages``: the
     Runge–Kutta map, :func:`._dop853.stages` or one that also pushes tangents through it.
@@ -87,18 +95,23 @@ def attempt(f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stage
     go = running & ~too_small
     commit = go & accept
     natt = st["natt"] + go.astype(jnp.int32)
-    new = dict(t=jnp.where(commit, t_new, t),
-               y=tuple(jnp.where(commit, a, b) for a, b in zip(y_new, y)),
-               f=tuple(jnp.where(commit, a, b) for a, b in zip(D.slope(K, D.NS), f0)),
-               h=jnp.where(go, h_next, h_abs), rej=(go & ~accept) | (~go & rej),
-               nacc=st["nacc"] + commit.astype(jnp.int32), natt=natt)
+    new = dict(
+        t=jnp.where(commit, t_new, t),
+        y=tuple(jnp.where(commit, a, b) for a, b in zip(y_new, y)),
+        f=tuple(jnp.where(commit, a, b) for a, b in zip(D.slope(K, D.NS), f0)),
+        h=jnp.where(go, h_next, h_abs),
+        rej=(go & ~accept) | (~go & rej),
+        nacc=st["nacc"] + commit.astype(jnp.int32),
+        natt=natt,
+    )
     status = jnp.where(running & too_small, code("step_size_collapse"), status)
     status = jnp.where(commit & (t_new >= t_bound), code("successful"), status)
     status = jnp.where(running & ~jnp.isfinite(err), code("nonfinite_state"), status)
     failed = failure(y, y_new, cfg.singular_tol)
     status = jnp.where(commit & (failed != code("successful")), failed, status)
-    new["status"] = jnp.where((status == RUNNING) & (natt >= cfg.max_steps),
-                              code("max_steps_reached"), status)
+    new["status"] = jnp.where(
+        (status == RUNNING) & (natt >= cfg.max_steps), code("max_steps_reached"), status
+    )
     return new, (commit, t, y, y_new, K, h)
 
 
@@ -150,17 +163,22 @@ def _emit(step, ts, idx, out, t_new, write, sampler):
             out = write(out, idx, mask, value(idx))
             return idx + mask.astype(jnp.int32), out
 
-        return lax.while_loop(lambda c: jnp.any(_pending(c[0], ts, commit, t_new)), body,
-                              (idx, out))
+        return lax.while_loop(
+            lambda c: jnp.any(_pending(c[0], ts, commit, t_new)), body, (idx, out)
+        )
 
-    return lax.cond(jnp.any(_pending(idx, ts, commit, t_new)), with_samples, lambda a: a,
-                    (idx, out))
+    return lax.cond(
+        jnp.any(_pending(idx, ts, commit, t_new)), with_samples, lambda a: a, (idx, out)
+    )
 
 
 def _one(x):
     """A run-time 1.0 that XLA cannot fold (from the data, finite or not)."""
-    leaves = [jnp.ravel(v)[0] for v in jax.tree_util.tree_leaves(x)
-              if jnp.issubdtype(jnp.result_type(v), jnp.floating) and jnp.size(v)]
+    leaves = [
+        jnp.ravel(v)[0]
+        for v in jax.tree_util.tree_leaves(x)
+        if jnp.issubdtype(jnp.result_type(v), jnp.floating) and jnp.size(v)
+    ]
     s = sum(jnp.where(jnp.isfinite(v), v, 0.0) for v in leaves)
     return lax.stop_gradient(s * 0.0 + 1.0)
 
@@ -180,14 +198,15 @@ def solve_one(problem: Problem, y0, ts, cfg: Config):
 
         def body(c):
             st, idx, out = c
-            st, step = attempt(f, problem.failure, st, t_bound, cfg, store,
-                               wants_dense=sample_ahead(idx, ts))
-            idx, out = _emit(step, ts, idx, out, st["t"], write,
-                             dense_sampler(step, ts, st["t"]))
+            st, step = attempt(
+                f, problem.failure, st, t_bound, cfg, store, wants_dense=sample_ahead(idx, ts)
+            )
+            idx, out = _emit(step, ts, idx, out, st["t"], write, dense_sampler(step, ts, st["t"]))
             return st, idx, out
 
-        st, _, out = lax.while_loop(lambda c: c[0]["status"] == RUNNING, body,
-                                    (st, jnp.ones((), jnp.int32), out))
+        st, _, out = lax.while_loop(
+            lambda c: c[0]["status"] == RUNNING, body, (st, jnp.ones((), jnp.int32), out)
+        )
     return out, st["status"], st["nacc"]
 
 
@@ -195,15 +214,17 @@ def _gather(pool, batched, ids):
     """The problems ``ids`` of the pool, in lane layout (batch last). Leaves may be NumPy arrays
     (``jax.vmap`` without ``jit`` passes batched NumPy input as it is): indexed as JAX arrays."""
     picked = jax.tree_util.tree_map(lambda x, b: jnp.asarray(x)[ids] if b else x, pool, batched)
-    return jax.tree_util.tree_map(lambda x, b: jnp.moveaxis(x, 0, -1) if b else x, picked,
-                                  batched)
+    return jax.tree_util.tree_map(lambda x, b: jnp.moveaxis(x, 0, -1) if b else x, picked, batched)
 
 
 def _put(lanes_tree, new_tree, batched, slots):
     """Write the lane-layout ``new_tree`` into the lanes ``slots`` (out of range: dropped)."""
     return jax.tree_util.tree_map(
-        lambda a, v, b: a.at[..., slots].set(v, mode="drop") if b else a, lanes_tree, new_tree,
-        batched)
+        lambda a, v, b: a.at[..., slots].set(v, mode="drop") if b else a,
+        lanes_tree,
+        new_tree,
+        batched,
+    )
 
 
 class _Lanes:
@@ -234,13 +255,16 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, store):
     sl = jnp.where(ok, slots, B)
     done = jnp.where(ok, c["tid"][jnp.minimum(slots, B - 1)], N)
     c = dict(c)
-    c["status_out"] = c["status_out"].at[done].set(c["st"]["status"][jnp.minimum(slots, B - 1)],
-                                                   mode="drop")
-    c["nacc_out"] = c["nacc_out"].at[done].set(c["st"]["nacc"][jnp.minimum(slots, B - 1)],
-                                               mode="drop")
+    c["status_out"] = (
+        c["status_out"].at[done].set(c["st"]["status"][jnp.minimum(slots, B - 1)], mode="drop")
+    )
+    c["nacc_out"] = (
+        c["nacc_out"].at[done].set(c["st"]["nacc"][jnp.minimum(slots, B - 1)], mode="drop")
+    )
     problem = _gather(pool, batched, gid)
-    st = _initial(fns.f(problem), fns.failure(problem), ts[0], tuple(v[gid] for v in y0),
-                  ts[-1], cfg)
+    st = _initial(
+        fns.f(problem), fns.failure(problem), ts[0], tuple(v[gid] for v in y0), ts[-1], cfg
+    )
     c["st"] = jax.tree_util.tree_map(lambda a, v: a.at[sl].set(v, mode="drop"), c["st"], st)
     c["problem"] = _put(c["problem"], problem, batched, sl)
     c["tid"] = c["tid"].at[sl].set(gid, mode="drop")
@@ -265,16 +289,31 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
         # the 1000-lane program 3.2-3.3 -> 2.5-2.6 s, measured side by side)
         problem = _gather(pool, batched, jnp.zeros(B, jnp.int32))
         zero = jnp.zeros(B, ts.dtype)
-        st = dict(t=jnp.full(B, ts[0]), y=(zero,) * 6, f=(zero,) * 6, h=zero,
-                  rej=jnp.zeros(B, bool), status=jnp.full(B, code("successful"), jnp.int32),
-                  nacc=jnp.zeros(B, jnp.int32), natt=jnp.zeros(B, jnp.int32))
+        st = dict(
+            t=jnp.full(B, ts[0]),
+            y=(zero,) * 6,
+            f=(zero,) * 6,
+            h=zero,
+            rej=jnp.zeros(B, bool),
+            status=jnp.full(B, code("successful"), jnp.int32),
+            nacc=jnp.zeros(B, jnp.int32),
+            natt=jnp.zeros(B, jnp.int32),
+        )
         first_ok = fns.failure(to_lanes(pool, batched))(y0, y0, cfg.singular_tol) == code(
-            "successful")
+            "successful"
+        )
         y_first = jnp.where(first_ok[:, None], jnp.stack(y0, -1), jnp.inf)
         out = jnp.full((N, nts, 6), jnp.inf, dtype=ts.dtype).at[:, 0].set(y_first)
-        c = dict(st=st, problem=problem, tid=jnp.full(B, N, jnp.int32),
-                 idx=jnp.ones(B, jnp.int32), out=out, next=jnp.asarray(0, jnp.int32),
-                 status_out=jnp.zeros(N, jnp.int32), nacc_out=jnp.zeros(N, jnp.int32))
+        c = dict(
+            st=st,
+            problem=problem,
+            tid=jnp.full(B, N, jnp.int32),
+            idx=jnp.ones(B, jnp.int32),
+            out=out,
+            next=jnp.asarray(0, jnp.int32),
+            status_out=jnp.zeros(N, jnp.int32),
+            nacc_out=jnp.zeros(N, jnp.int32),
+        )
 
         def wants_refill(c):
             n_idle = jnp.sum(c["st"]["status"] != RUNNING)
@@ -283,23 +322,33 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
         def body(c):
             # first the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
             # in the first iteration)
-            c = lax.while_loop(wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg,
-                                                               fns, R, store), c)
+            c = lax.while_loop(
+                wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R, store), c
+            )
             c = dict(c)
-            st, step = attempt(fns.f(c["problem"]), fns.failure(c["problem"]), c["st"], ts[-1],
-                               cfg, store, wants_dense=sample_ahead(c["idx"], ts))
+            st, step = attempt(
+                fns.f(c["problem"]),
+                fns.failure(c["problem"]),
+                c["st"],
+                ts[-1],
+                cfg,
+                store,
+                wants_dense=sample_ahead(c["idx"], ts),
+            )
             tid = c["tid"]
 
             def write(out, idx, mask, values):
                 return out.at[jnp.where(mask, tid, N), idx].set(values, mode="drop")
 
-            c["idx"], c["out"] = _emit(step, ts, c["idx"], c["out"], st["t"], write,
-                                       dense_sampler(step, ts, st["t"]))
+            c["idx"], c["out"] = _emit(
+                step, ts, c["idx"], c["out"], st["t"], write, dense_sampler(step, ts, st["t"])
+            )
             c["st"] = st
             return c
 
-        c = lax.while_loop(lambda c: jnp.any(c["st"]["status"] == RUNNING) | (c["next"] < N),
-                           body, c)
+        c = lax.while_loop(
+            lambda c: jnp.any(c["st"]["status"] == RUNNING) | (c["next"] < N), body, c
+        )
     status = c["status_out"].at[c["tid"]].set(c["st"]["status"], mode="drop")
     nacc = c["nacc_out"].at[c["tid"]].set(c["st"]["nacc"], mode="drop")
     return c["out"], status, nacc

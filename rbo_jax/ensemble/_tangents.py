@@ -66,8 +66,10 @@ def _fill(f_jvp, t, h, y, dy, slopes, first, last):
         ys = tuple(y[i] + _dot(A[s], K[i]) * h for i in range(6))
         dys = tuple(dy[i] + _dot(A[s], dK[i]) * h for i in range(6))
         k, dk = f_jvp(t + C[s] * h, ys, dys)
-        return (tuple(K[i].at[s].set(k[i]) for i in range(6)),
-                tuple(dK[i].at[:, s].set(dk[i]) for i in range(6)))
+        return (
+            tuple(K[i].at[s].set(k[i]) for i in range(6)),
+            tuple(dK[i].at[:, s].set(dk[i]) for i in range(6)),
+        )
 
     return lax.fori_loop(first, last, body, slopes)
 
@@ -97,15 +99,19 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
     t_bound, nts, nk = ts[-1], ts.shape[0], dy0.shape[0]
 
     def f_jvp(t, y, dy):
-        return _jvp_k(lambda d, y: traced_once(eqx.combine(d, static), store)(t, y),
-                      (dyn, y), (d_dyn, dy))
+        return _jvp_k(
+            lambda d, y: traced_once(eqx.combine(d, static), store)(t, y), (dyn, y), (d_dyn, dy)
+        )
 
     with storing(store):
         f = traced_once(problem, store)
         st = _initial(f, problem.failure, ts[0], tuple(y0), t_bound, cfg)
         first = st["status"] == RUNNING
-        out = jnp.full((nts, 6), jnp.inf, dtype=ts.dtype).at[0].set(
-            jnp.where(first, jnp.stack(y0), jnp.inf))
+        out = (
+            jnp.full((nts, 6), jnp.inf, dtype=ts.dtype)
+            .at[0]
+            .set(jnp.where(first, jnp.stack(y0), jnp.inf))
+        )
         dout = jnp.zeros((nk, nts, 6), ts.dtype).at[:, 0].set(jnp.where(first, dy0, 0.0))
 
         def write(outs, idx, mask, values):
@@ -118,27 +124,34 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
             y_old, kept = st["y"], {}
 
             def stages(_, t, y, f0, h, store, last):
-                slopes = (tuple(jnp.zeros(N, ts.dtype).at[0].set(v) for v in f0),
-                          tuple(jnp.zeros((nk, N), ts.dtype).at[:, 0].set(v) for v in df))
-                K, dK = kept["slopes"] = _fill(f_jvp, t, h, y, dy, slopes,
-                                               jnp.where(started, 1, 0), last)
+                slopes = (
+                    tuple(jnp.zeros(N, ts.dtype).at[0].set(v) for v in f0),
+                    tuple(jnp.zeros((nk, N), ts.dtype).at[:, 0].set(v) for v in df),
+                )
+                K, dK = kept["slopes"] = _fill(
+                    f_jvp, t, h, y, dy, slopes, jnp.where(started, 1, 0), last
+                )
                 kept["dy_new"] = tuple(dy[i] + _dot(_A[T.N_STAGES], dK[i]) * h for i in range(6))
                 y_new = tuple(y[i] + _dot(_A[T.N_STAGES], K[i]) * h for i in range(6))
                 return y_new, K
 
-            st, step = attempt(f, problem.failure, st, t_bound, cfg, store, stages,
-                               sample_ahead(idx, ts))
+            st, step = attempt(
+                f, problem.failure, st, t_bound, cfg, store, stages, sample_ahead(idx, ts)
+            )
             commit, t_old, _, y_new, _, h = step
             (K, dK), dy_new = kept["slopes"], kept["dy_new"]
             dK0, dK12 = (tuple(d[:, j] for d in dK) for j in (0, T.N_STAGES))
 
             def sampler():
-                F = D.interpolant(K, y_old, y_new, D.slope(K, 0), D.slope(K, T.N_STAGES), h,
-                                  _by_column)
+                F = D.interpolant(
+                    K, y_old, y_new, D.slope(K, 0), D.slope(K, T.N_STAGES), h, _by_column
+                )
                 dF = D.interpolant(dK, dy, dy_new, dK0, dK12, h, _by_column)
                 dstep = (commit, t_old, dy, dy_new, None, h)
-                return lambda i: (_sample(F, step, ts, i, st["t"]),
-                                  _sample(dF, dstep, ts, i, st["t"]))
+                return lambda i: (
+                    _sample(F, step, ts, i, st["t"]),
+                    _sample(dF, dstep, ts, i, st["t"]),
+                )
 
             idx, outs = _emit(step, ts, idx, outs, st["t"], write, sampler)
             dy = tuple(jnp.where(commit, a, b) for a, b in zip(dy_new, dy))
@@ -147,7 +160,8 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
 
         zeros = tuple(jnp.zeros(nk, ts.dtype) for _ in range(6))
         st, _, (out, dout), _, _, _ = lax.while_loop(
-            lambda c: c[0]["status"] == RUNNING, body,
-            (st, jnp.ones((), jnp.int32), (out, dout), _components(dy0), zeros,
-             jnp.asarray(False)))
+            lambda c: c[0]["status"] == RUNNING,
+            body,
+            (st, jnp.ones((), jnp.int32), (out, dout), _components(dy0), zeros, jnp.asarray(False)),
+        )
     return out, st["status"], st["nacc"], dout

@@ -43,8 +43,11 @@ L-BFGS), ``_fit`` (:func:`fit`, :class:`FitResult`).
 
 from .. import _lazy
 
-__getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
-    "._data": ("TrajectoryData",),
-    "._fit": ("FitResult", "fit"),
-    "._residuals": ("residuals",),
-})
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    {  # loaded on first use
+        "._data": ("TrajectoryData",),
+        "._fit": ("FitResult", "fit"),
+        "._residuals": ("residuals",),
+    },
+)

@@ -45,9 +45,11 @@ def _times(ts) -> np.ndarray:
     back = np.flatnonzero(np.diff(ts) <= 0)
     if back.size:
         i = int(back[0]) + 1
-        raise ValueError(f"ts must be strictly increasing (sort the samples): sample {i} "
-                         f"(t = {ts[i]:g}) does not come after sample {i - 1} "
-                         f"(t = {ts[i - 1]:g}).")
+        raise ValueError(
+            f"ts must be strictly increasing (sort the samples): sample {i} "
+            f"(t = {ts[i]:g}) does not come after sample {i - 1} "
+            f"(t = {ts[i - 1]:g})."
+        )
     return ts
 
 
@@ -58,8 +60,10 @@ def _observations(ts, given: dict, weights_given: dict):
         raise ValueError("give the attitude either as theta or as Q, not both.")
     if all(x is None for x in given.values()):
         raise ValueError("nothing observed: give at least one of theta, Q, omega, Omega.")
-    arrays = {name: None if given[name] is None else _host_array(given[name], name, tail, n)
-              for name, tail in _OBSERVED}
+    arrays = {
+        name: None if given[name] is None else _host_array(given[name], name, tail, n)
+        for name, tail in _OBSERVED
+    }
     weights = {}
     for name, obs in _WEIGHTS:
         w = weights_given[name]
@@ -161,16 +165,38 @@ class TrajectoryData(eqx.Module):
     sigma_omega: float | None = eqx.field(static=True)
     sigma_Omega: float | None = eqx.field(static=True)
 
-    def __init__(self, ts, *, theta=None, Q=None, omega=None, Omega=None, theta0=None,
-                 Omega0=None, t0=None, theta_weight=None, omega_weight=None, Omega_weight=None,
-                 sigma_theta=None, sigma_omega=None, sigma_Omega=None):
+    def __init__(
+        self,
+        ts,
+        *,
+        theta=None,
+        Q=None,
+        omega=None,
+        Omega=None,
+        theta0=None,
+        Omega0=None,
+        t0=None,
+        theta_weight=None,
+        omega_weight=None,
+        Omega_weight=None,
+        sigma_theta=None,
+        sigma_omega=None,
+        sigma_Omega=None,
+    ):
         ts = _times(ts)
         arrays, weights = _observations(
-            ts, {"theta": theta, "Q": Q, "omega": omega, "Omega": Omega},
-            {"theta_weight": theta_weight, "omega_weight": omega_weight,
-             "Omega_weight": Omega_weight})
-        sigmas = {name: _sigma(name, s) for name, s in
-                  zip(_SIGMAS, (sigma_theta, sigma_omega, sigma_Omega))}
+            ts,
+            {"theta": theta, "Q": Q, "omega": omega, "Omega": Omega},
+            {
+                "theta_weight": theta_weight,
+                "omega_weight": omega_weight,
+                "Omega_weight": Omega_weight,
+            },
+        )
+        sigmas = {
+            name: _sigma(name, s)
+            for name, s in zip(_SIGMAS, (sigma_theta, sigma_omega, sigma_Omega))
+        }
         theta0, Omega0 = _initial_state(arrays, weights, theta0, Omega0)
         if t0 is None:
             t0 = ts[0]
@@ -186,9 +212,11 @@ class TrajectoryData(eqx.Module):
         self.ts, self.theta0, self.Omega0 = j(ts), j(theta0), j(Omega0)
         self.t0 = j(np.asarray(float(t0)))
         self.theta, self.Q, self.omega, self.Omega = (
-            j(arrays[k]) for k in ("theta", "Q", "omega", "Omega"))
+            j(arrays[k]) for k in ("theta", "Q", "omega", "Omega")
+        )
         self.theta_weight, self.omega_weight, self.Omega_weight = (
-            j(weights[k]) for k in ("theta_weight", "omega_weight", "Omega_weight"))
+            j(weights[k]) for k in ("theta_weight", "omega_weight", "Omega_weight")
+        )
         self.sigma_theta, self.sigma_omega, self.sigma_Omega = (sigmas[k] for k in _SIGMAS)
 
     @property
@@ -204,9 +232,18 @@ class TrajectoryData(eqx.Module):
             return None if x is None else np.asarray(x)[keep]
 
         return TrajectoryData(
-            np.asarray(self.ts)[keep], theta=cut(self.theta), Q=cut(self.Q), omega=cut(self.omega),
-            Omega=cut(self.Omega), theta0=self.theta0, Omega0=self.Omega0, t0=self.t0,
-            theta_weight=cut(self.theta_weight), omega_weight=cut(self.omega_weight),
-            Omega_weight=cut(self.Omega_weight), sigma_theta=self.sigma_theta,
-            sigma_omega=self.sigma_omega, sigma_Omega=self.sigma_Omega,
+            np.asarray(self.ts)[keep],
+            theta=cut(self.theta),
+            Q=cut(self.Q),
+            omega=cut(self.omega),
+            Omega=cut(self.Omega),
+            theta0=self.theta0,
+            Omega0=self.Omega0,
+            t0=self.t0,
+            theta_weight=cut(self.theta_weight),
+            omega_weight=cut(self.omega_weight),
+            Omega_weight=cut(self.Omega_weight),
+            sigma_theta=self.sigma_theta,
+            sigma_omega=self.sigma_omega,
+            sigma_Omega=self.sigma_Omega,
         )

@@ -71,17 +71,30 @@ class FitResult(eqx.Module):
         n_cov = self.covariance.shape[0]
         labels = names + [f"initial_state_{i}" for i in range(n_cov - values.size)]
         ds = xr.Dataset(
-            {"estimate": ("parameter", values, {"long_name": "fitted value"}),
-             "stderr": ("parameter", errors,
-                        {"long_name": "Gauss-Newton standard error, s^2 (J^T J)^-1"}),
-             "covariance": (("parameter_all", "parameter_all_2"), self.covariance),
-             "loss_history": ("iteration", np.asarray(self.loss_history),
-                              {"long_name": "1/2 sum r^2 of the whitened residuals"})},
+            {
+                "estimate": ("parameter", values, {"long_name": "fitted value"}),
+                "stderr": (
+                    "parameter",
+                    errors,
+                    {"long_name": "Gauss-Newton standard error, s^2 (J^T J)^-1"},
+                ),
+                "covariance": (("parameter_all", "parameter_all_2"), self.covariance),
+                "loss_history": (
+                    "iteration",
+                    np.asarray(self.loss_history),
+                    {"long_name": "1/2 sum r^2 of the whitened residuals"},
+                ),
+            },
             coords={"parameter": names, "parameter_all": labels, "parameter_all_2": labels},
         )
-        ds.attrs.update(converged=int(self.converged), message=self.message,
-                        num_steps=int(self.num_steps), residual_rms=float(self.residual_rms),
-                        wall_time=float(self.wall_time), **attrs)
+        ds.attrs.update(
+            converged=int(self.converged),
+            message=self.message,
+            num_steps=int(self.num_steps),
+            residual_rms=float(self.residual_rms),
+            wall_time=float(self.wall_time),
+            **attrs,
+        )
         return ds
 
 
@@ -99,11 +112,15 @@ def _as_data_list(data) -> list[TrajectoryData]:
 
 def _check_options(optimizer, horizons, max_steps, solve_max_steps):
     if optimizer not in OPTIMIZERS:
-        raise ValueError(f"optimizer must be one of {', '.join(map(repr, OPTIMIZERS))}, "
-                         f"got {optimizer!r}.")
+        raise ValueError(
+            f"optimizer must be one of {', '.join(map(repr, OPTIMIZERS))}, got {optimizer!r}."
+        )
     horizons = tuple(float(h) for h in horizons)
-    if not horizons or any(not (0 < h <= 1) for h in horizons) or list(horizons) != sorted(
-            horizons):
+    if (
+        not horizons
+        or any(not (0 < h <= 1) for h in horizons)
+        or list(horizons) != sorted(horizons)
+    ):
         raise ValueError(f"horizons must be increasing fractions in (0, 1], got {horizons}.")
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
@@ -118,12 +135,15 @@ def _integrator(integrator, optimizer) -> str:
     if integrator is None:
         return "fast_simulate" if optimizer in LEAST_SQUARES else "simulate"
     if integrator not in INTEGRATORS:
-        raise ValueError(f"integrator must be one of {', '.join(map(repr, INTEGRATORS))}, got "
-                         f"{integrator!r}.")
+        raise ValueError(
+            f"integrator must be one of {', '.join(map(repr, INTEGRATORS))}, got {integrator!r}."
+        )
     if integrator == "fast_simulate" and optimizer not in LEAST_SQUARES:
-        raise ValueError(f"optimizer {optimizer!r} needs reverse-mode gradients, which "
-                         "fast_simulate does not have: use integrator='simulate' (the default "
-                         "for it) or a least-squares optimizer.")
+        raise ValueError(
+            f"optimizer {optimizer!r} needs reverse-mode gradients, which "
+            "fast_simulate does not have: use integrator='simulate' (the default "
+            "for it) or a least-squares optimizer."
+        )
     return integrator
 
 
@@ -168,8 +188,9 @@ def _covariance(u, model, datas, spec: Spec):
         note = "; J^T J is singular: the parameters are not identifiable from these data"
     se_flat = np.sqrt(np.clip(np.diag(cov), 0.0, np.inf))
     offsets = np.cumsum([0] + [int(np.size(x)) for x in natural])  # parameters come first in u
-    se = tuple(se_flat[offsets[i]:offsets[i + 1]].reshape(np.shape(v))
-               for i, v in enumerate(natural))
+    se = tuple(
+        se_flat[offsets[i] : offsets[i + 1]].reshape(np.shape(v)) for i, v in enumerate(natural)
+    )
     return r, cov, se, note
 
 
@@ -189,12 +210,29 @@ def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, v
         )
         if optimizer in LEAST_SQUARES:
             u, steps, converged, message = run_least_squares(
-                functools.partial(_evaluate, model=model, datas=stage, spec=spec), u, optimizer,
-                options["tol"], options["max_steps"], history, bar, verbose)
+                functools.partial(_evaluate, model=model, datas=stage, spec=spec),
+                u,
+                optimizer,
+                options["tol"],
+                options["max_steps"],
+                history,
+                bar,
+                verbose,
+            )
         else:
             u, steps, converged, message = run_optax(
-                u, model, stage, spec, optimizer, options["learning_rate"],
-                options["max_steps"], options["tol"], history, bar, verbose)
+                u,
+                model,
+                stage,
+                spec,
+                optimizer,
+                options["learning_rate"],
+                options["max_steps"],
+                options["tol"],
+                history,
+                bar,
+                verbose,
+            )
         total += steps
     return u, total, converged, message
 
@@ -253,11 +291,16 @@ def fit(
     horizons = _check_options(optimizer, horizons, max_steps, solve_max_steps)
     integrator = _integrator(integrator, optimizer)
     values = _selected(model, params)
-    spec = Spec(paths=leaf_paths(model, values),
-                transforms=resolve_transforms(values, transforms),
-                fit_initial_state=bool(fit_initial_state), rtol=float(solve_rtol),
-                atol=float(solve_atol), forward=optimizer in LEAST_SQUARES,
-                max_solver_steps=int(solve_max_steps), integrator=integrator)
+    spec = Spec(
+        paths=leaf_paths(model, values),
+        transforms=resolve_transforms(values, transforms),
+        fit_initial_state=bool(fit_initial_state),
+        rtol=float(solve_rtol),
+        atol=float(solve_atol),
+        forward=optimizer in LEAST_SQUARES,
+        max_solver_steps=int(solve_max_steps),
+        integrator=integrator,
+    )
     u = {"p": tuple(transform(n, v) for n, v in zip(spec.transforms, values))}
     if fit_initial_state:
         u["x0"] = tuple((d.theta0, d.Omega0) for d in datas)
@@ -269,9 +312,17 @@ def fit(
         bar = tqdm(total=max_steps * len(horizons), desc="fit", unit="it")
     try:
         u, steps, converged, message = _stages(
-            u, model, datas, spec, horizons, optimizer,
-            {"tol": tol, "max_steps": max_steps, "learning_rate": learning_rate}, history, bar,
-            verbose)
+            u,
+            model,
+            datas,
+            spec,
+            horizons,
+            optimizer,
+            {"tol": tol, "max_steps": max_steps, "learning_rate": learning_rate},
+            history,
+            bar,
+            verbose,
+        )
     finally:
         if bar is not None:
             bar.close()
@@ -282,9 +333,15 @@ def fit(
         for d, (th0, Om0) in zip(datas, states)
     )
     return FitResult(
-        model=fitted_model, params=tuple(np.asarray(v) for v in natural), stderr=se,
-        covariance=cov, initial_states=init_states, loss_history=np.asarray(history),
-        num_steps=int(steps), converged=bool(converged), message=message + note,
+        model=fitted_model,
+        params=tuple(np.asarray(v) for v in natural),
+        stderr=se,
+        covariance=cov,
+        initial_states=init_states,
+        loss_history=np.asarray(history),
+        num_steps=int(steps),
+        converged=bool(converged),
+        message=message + note,
         residual_rms=float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
         wall_time=time.perf_counter() - start,
     )

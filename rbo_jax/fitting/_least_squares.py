@@ -20,8 +20,7 @@ def log(history, loss, bar, verbose):
         print(f"iteration {len(history)}: loss = {float(loss):.6e}")
 
 
-def run_least_squares(evaluate, u, optimizer, tol, max_steps, history, bar=None,
-                      verbose=False):
+def run_least_squares(evaluate, u, optimizer, tol, max_steps, history, bar=None, verbose=False):
     r"""Levenberg–Marquardt (Madsen, Nielsen & Tingleff 2004, Alg. 3.16, with Marquardt's
     diagonal scaling) or damped Gauss–Newton (step halving), iterated on the host around one
     compiled program ``evaluate(u) -> (residuals, Jacobian as a tree like u)`` (for a fit,
@@ -91,9 +90,14 @@ def run_least_squares(evaluate, u, optimizer, tol, max_steps, history, bar=None,
             stalled += 1
         log(history, F, bar, verbose)
         if stalled >= _PATIENCE:
-            return unflatten_like(x, u), steps, True, (
-                f"converged (no relative decrease of the loss above tol in {_PATIENCE} steps: a "
-                "minimum, possibly local, or the noise floor of the ODE solves)"
+            return (
+                unflatten_like(x, u),
+                steps,
+                True,
+                (
+                    f"converged (no relative decrease of the loss above tol in {_PATIENCE} steps: "
+                    "a minimum, possibly local, or the noise floor of the ODE solves)"
+                ),
             )
     return (
         unflatten_like(x, u),

@@ -13,8 +13,9 @@ from ._least_squares import log
 from ._residuals import loss, loss_and_grad
 
 
-def run_optax(u, model, datas, spec, optimizer, learning_rate, max_steps, tol, history, bar,
-               verbose):
+def run_optax(
+    u, model, datas, spec, optimizer, learning_rate, max_steps, tol, history, bar, verbose
+):
     opt = optax.adam(learning_rate) if optimizer == "adam" else optax.lbfgs()
     state = opt.init(u)
 
@@ -28,8 +29,14 @@ def run_optax(u, model, datas, spec, optimizer, learning_rate, max_steps, tol, h
 
     def _update(u, state, value, grad, model, datas):
         if optimizer == "lbfgs":
-            updates, state = opt.update(grad, state, u, value=value, grad=grad,
-                                        value_fn=lambda v: loss(v, model, datas, spec))
+            updates, state = opt.update(
+                grad,
+                state,
+                u,
+                value=value,
+                grad=grad,
+                value_fn=lambda v: loss(v, model, datas, spec),
+            )
         else:
             updates, state = opt.update(grad, state, u)
         return optax.apply_updates(u, updates), state

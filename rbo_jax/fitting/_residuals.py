@@ -25,9 +25,18 @@ __all__ = ["residuals", "Spec", "TRANSFORMS", "INTEGRATORS"]
 INTEGRATORS = ("fast_simulate", "simulate")
 
 
-def residuals(model: RigidBodyOscillator, data: TrajectoryData, theta0=None, Omega0=None, *,
-              rtol=1e-10, atol=1e-10, adjoint=None, max_steps=100_000,
-              integrator: str = "simulate") -> jax.Array:
+def residuals(
+    model: RigidBodyOscillator,
+    data: TrajectoryData,
+    theta0=None,
+    Omega0=None,
+    *,
+    rtol=1e-10,
+    atol=1e-10,
+    adjoint=None,
+    max_steps=100_000,
+    integrator: str = "simulate",
+) -> jax.Array:
     """The whitened residual vector of one trajectory (see the package docstring).
 
     ``integrator``: ``"simulate"`` (diffrax; ``adjoint`` chooses how it is differentiated,
@@ -36,12 +45,24 @@ def residuals(model: RigidBodyOscillator, data: TrajectoryData, theta0=None, Ome
     theta0 = data.theta0 if theta0 is None else theta0
     Omega0 = data.Omega0 if Omega0 is None else Omega0
     if integrator == "simulate":
-        traj = simulate(model, theta0, Omega0, data.ts, t0=data.t0, rtol=rtol, atol=atol,
-                        adjoint=adjoint, max_steps=max_steps, throw=False)
+        traj = simulate(
+            model,
+            theta0,
+            Omega0,
+            data.ts,
+            t0=data.t0,
+            rtol=rtol,
+            atol=atol,
+            adjoint=adjoint,
+            max_steps=max_steps,
+            throw=False,
+        )
     elif integrator == "fast_simulate":
         if adjoint is not None:
-            raise ValueError("fast_simulate is differentiated in forward mode only: adjoint "
-                             "must be None (use integrator='simulate' for an adjoint).")
+            raise ValueError(
+                "fast_simulate is differentiated in forward mode only: adjoint "
+                "must be None (use integrator='simulate' for an adjoint)."
+            )
         traj = _fast_trajectory(model, theta0, Omega0, data, rtol, atol, max_steps)
     else:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}.")
@@ -72,14 +93,21 @@ def _fast_trajectory(model, theta0, Omega0, data: TrajectoryData, rtol, atol, ma
     at_start = t0 >= ts[0]  # TrajectoryData refuses t0 > ts[0]
     between = (ts[0] + ts[1]) / 2 if ts.shape[0] > 1 else ts[0] + 1.0
     times = jnp.concatenate([t0[None], jnp.where(at_start, between, ts[0])[None], ts[1:]])
-    traj = fast_simulate(model, theta0, Omega0, times, rtol=rtol, atol=atol,
-                         max_steps=max_steps, throw=False)
+    traj = fast_simulate(
+        model, theta0, Omega0, times, rtol=rtol, atol=atol, max_steps=max_steps, throw=False
+    )
 
     def pick(x):
         return jnp.concatenate([jnp.where(at_start, x[0], x[1])[None], x[2:]])
 
-    return Trajectory(ts=ts, theta=pick(traj.theta), Omega=pick(traj.Omega), model=model,
-                      status=traj.status, num_steps=traj.num_steps)
+    return Trajectory(
+        ts=ts,
+        theta=pick(traj.theta),
+        Omega=pick(traj.Omega),
+        model=model,
+        status=traj.status,
+        num_steps=traj.num_steps,
+    )
 
 
 TRANSFORMS = {
@@ -184,11 +212,22 @@ def stack_residuals(model, datas, states, spec: Spec):
         adjoint = None  # forward mode only (custom_jvp)
     else:
         adjoint = diffrax.ForwardMode() if spec.forward else diffrax.RecursiveCheckpointAdjoint()
-    return jnp.concatenate([
-        residuals(model, d, th0, Om0, rtol=spec.rtol, atol=spec.atol, adjoint=adjoint,
-                  max_steps=spec.max_solver_steps, integrator=spec.integrator)
-        for d, (th0, Om0) in zip(datas, states)
-    ])
+    return jnp.concatenate(
+        [
+            residuals(
+                model,
+                d,
+                th0,
+                Om0,
+                rtol=spec.rtol,
+                atol=spec.atol,
+                adjoint=adjoint,
+                max_steps=spec.max_solver_steps,
+                integrator=spec.integrator,
+            )
+            for d, (th0, Om0) in zip(datas, states)
+        ]
+    )
 
 
 def residual_vector(u, model, datas, spec: Spec):
@@ -233,7 +272,7 @@ def unflatten_like(flat, tree):
     out, i = [], 0
     for x in leaves:
         n = int(np.size(x))
-        out.append(jnp.asarray(flat[i:i + n].reshape(np.shape(x)), dtype=jnp.result_type(float)))
+        out.append(jnp.asarray(flat[i : i + n].reshape(np.shape(x)), dtype=jnp.result_type(float)))
         i += n
     return jax.tree_util.tree_unflatten(treedef, out)
 
@@ -256,4 +295,3 @@ def transform_derivative(name, x):
     if name == "softplus":
         return 1.0 / -np.expm1(-x)
     return np.ones_like(x)
-

@@ -11,14 +11,29 @@ DOP853 (:mod:`._integrate`), diffrax, or a symplectic Lie-group splitting (:mod:
 
 from .. import _lazy
 
-__getattr__, __dir__, __all__ = _lazy.attach(__name__, {  # loaded on first use
-    "._lattice": ("Lattice", "chain", "grid"),
-    "._field": ("body_moments", "coupling_energy", "coupling_moments", "energy_gradient",
-                "kinetic_moment", "relative_turns", "total_energy"),
-    "._simulate": ("simulate",),
-    "._trajectory": ("LatticeTrajectory",),
-    "._dispersion": ("bloch_blocks", "bloch_matrix", "dispersion", "group_velocity",
-                     "uniform_equilibrium"),
-    "._waves": ("breather", "kink", "twist"),
-    "._fit": ("LatticeFit", "fit_dispersion", "fit_field"),
-})
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    {  # loaded on first use
+        "._lattice": ("Lattice", "chain", "grid"),
+        "._field": (
+            "body_moments",
+            "coupling_energy",
+            "coupling_moments",
+            "energy_gradient",
+            "kinetic_moment",
+            "relative_turns",
+            "total_energy",
+        ),
+        "._simulate": ("simulate",),
+        "._trajectory": ("LatticeTrajectory",),
+        "._dispersion": (
+            "bloch_blocks",
+            "bloch_matrix",
+            "dispersion",
+            "group_velocity",
+            "uniform_equilibrium",
+        ),
+        "._waves": ("breather", "kink", "twist"),
+        "._fit": ("LatticeFit", "fit_dispersion", "fit_field"),
+    },
+)

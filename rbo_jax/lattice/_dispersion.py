@@ -38,20 +38,24 @@ from ..stability import solve_equilibrium
 from ._field import rates, right_forms
 from ._lattice import Lattice
 
-__all__ = ["bloch_blocks", "bloch_matrix", "dispersion", "group_velocity",
-           "uniform_equilibrium"]
+__all__ = ["bloch_blocks", "bloch_matrix", "dispersion", "group_velocity", "uniform_equilibrium"]
 
 
 def _require_grid(lattice: Lattice, what: str):
     if not isinstance(lattice, Lattice):
-        raise TypeError(f"lattice.{what}: expected a rbo_jax.lattice.Lattice, got "
-                        f"{type(lattice).__name__}.")
+        raise TypeError(
+            f"lattice.{what}: expected a rbo_jax.lattice.Lattice, got {type(lattice).__name__}."
+        )
     if not lattice.is_grid:
-        raise ValueError(f"lattice.{what}: Bloch waves need a chain or grid (translation "
-                         "invariance); a lattice from an edge list has none.")
+        raise ValueError(
+            f"lattice.{what}: Bloch waves need a chain or grid (translation "
+            "invariance); a lattice from an edge list has none."
+        )
     if lattice.per_site:
-        raise ValueError(f"lattice.{what}: Bloch waves need the same body on every site; this "
-                         "lattice has per-site parameters.")
+        raise ValueError(
+            f"lattice.{what}: Bloch waves need the same body on every site; this "
+            "lattice has per-site parameters."
+        )
 
 
 def uniform_equilibrium(lattice: Lattice, theta_guess=None):
@@ -94,15 +98,15 @@ def _converged_jvp(primals, tangents):
 
 def _cell(lattice: Lattice) -> Lattice:
     """The same bodies and coupling on a periodic cell of 3 sites per axis."""
-    return Lattice(lattice.body, lattice.coupling, (3,) * lattice.ndim,
-                   (True,) * lattice.ndim)
+    return Lattice(lattice.body, lattice.coupling, (3,) * lattice.ndim, (True,) * lattice.ndim)
 
 
 def _offsets(ndim: int) -> np.ndarray:
     """The offset of every site of the 3-per-axis cell from site 0: -1, 0, 1 per axis
     (``(3**ndim, ndim)``, row-major like the sites)."""
-    return np.array([[(i + 1) % 3 - 1 for i in idx]
-                     for idx in itertools.product(range(3), repeat=ndim)])
+    return np.array(
+        [[(i + 1) % 3 - 1 for i in idx] for idx in itertools.product(range(3), repeat=ndim)]
+    )
 
 
 def bloch_blocks(lattice: Lattice, theta_eq=None):
@@ -120,8 +124,9 @@ def bloch_blocks(lattice: Lattice, theta_eq=None):
         th_dot, Om_dot = rates(cell, forms, 0.0, y[:3], y[3:])
         return jnp.concatenate([th_dot[:, 0], Om_dot[:, 0]])
 
-    y_eq = jnp.concatenate([jnp.broadcast_to(theta_eq[:, None], (3, n)),
-                            jnp.zeros((3, n), theta_eq.dtype)])
+    y_eq = jnp.concatenate(
+        [jnp.broadcast_to(theta_eq[:, None], (3, n)), jnp.zeros((3, n), theta_eq.dtype)]
+    )
     J = jax.jacfwd(field0)(y_eq)  # (6, 6, n)
     return jnp.moveaxis(J, -1, 0), jnp.asarray(_offsets(lattice.ndim))
 
@@ -133,8 +138,10 @@ def bloch_matrix(lattice: Lattice, q, theta_eq=None, blocks=None):
     J, d = bloch_blocks(lattice, theta_eq) if blocks is None else blocks
     q = jnp.atleast_1d(jnp.asarray(q)).astype(J.dtype)
     if q.shape != (d.shape[1],):
-        raise ValueError(f"lattice.bloch_matrix: q needs one wavenumber per axis "
-                         f"({d.shape[1]}), got shape {q.shape}.")
+        raise ValueError(
+            f"lattice.bloch_matrix: q needs one wavenumber per axis "
+            f"({d.shape[1]}), got shape {q.shape}."
+        )
     phase = jnp.exp(lax.complex(jnp.zeros((), q.dtype), d.astype(q.dtype) @ q))
     return jnp.einsum("k,kij->ij", phase, lax.complex(J, jnp.zeros_like(J)))
 

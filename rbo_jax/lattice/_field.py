@@ -35,9 +35,20 @@ from ..model import RightForm
 from ..trajectory import TRANSVERSE_TOL, transverse_fraction
 from ._lattice import Lattice
 
-__all__ = ["body_moments", "coupling_energy", "coupling_moments", "energy_gradient",
-           "kinetic_moment", "rates", "recentre",
-           "right_forms", "site_energy", "total_energy", "relative_turns", "transverse"]
+__all__ = [
+    "body_moments",
+    "coupling_energy",
+    "coupling_moments",
+    "energy_gradient",
+    "kinetic_moment",
+    "rates",
+    "recentre",
+    "right_forms",
+    "site_energy",
+    "total_energy",
+    "relative_turns",
+    "transverse",
+]
 
 TWO_PI = 2.0 * math.pi
 
@@ -81,8 +92,9 @@ def _pairs(lattice: Lattice, theta):
     for axis, periodic in enumerate(lattice.periodic):
         wn = jnp.roll(wg, -1, axis=axis)
         vn = jnp.roll(vg, -1, axis=axis + 1)
-        phi = _relative((jnp.ravel(wg), jnp.reshape(vg, (3, -1))),
-                        (jnp.ravel(wn), jnp.reshape(vn, (3, -1))))
+        phi = _relative(
+            (jnp.ravel(wg), jnp.reshape(vg, (3, -1))), (jnp.ravel(wn), jnp.reshape(vn, (3, -1)))
+        )
         weight = None
         if not periodic:  # the pair (last, first) along this axis is not coupled
             idx = jnp.arange(shape[axis]).reshape((-1,) + (1,) * (len(shape) - axis - 1))
@@ -135,6 +147,7 @@ def coupling_moments(lattice: Lattice, theta):
     only is internal: the total kinetic moment is kept). The same moments as
     $-Z(\theta_i)\cdot\partial U_W/\partial\theta_i$ of the coupling energy (tested), without
     differentiating the quaternion logarithm."""
+
     def per_pair(phi):
         turn = Turn(phi)
         g = lattice.coupling.gradient(phi)
@@ -146,8 +159,9 @@ def coupling_moments(lattice: Lattice, theta):
         on_i, on_j = _per_body(per_pair, pairs[0][0])
         i, j = lattice.edges[:, 0], lattice.edges[:, 1]
         n = theta.shape[1]
-        seg = jax.vmap(lambda x, idx: jax.ops.segment_sum(x, idx, num_segments=n),
-                       in_axes=(0, None))
+        seg = jax.vmap(
+            lambda x, idx: jax.ops.segment_sum(x, idx, num_segments=n), in_axes=(0, None)
+        )
         return seg(on_i, i) + seg(on_j, j)
     shape = lattice.shape
     for axis, (phi, weight) in enumerate(pairs):
@@ -173,7 +187,8 @@ def right_forms(lattice: Lattice, throw: bool = False) -> RightForm:
     if not lattice.per_site:
         return lattice.body.right_form(throw)
     return jax.vmap(lambda b: b.right_form(throw), in_axes=(lattice.body_axes(),))(
-        lattice.site_bodies())
+        lattice.site_bodies()
+    )
 
 
 def rates(lattice: Lattice, forms: RightForm, t, theta, Omega):
@@ -181,8 +196,9 @@ def rates(lattice: Lattice, forms: RightForm, t, theta, Omega):
     foundation's gradient and the couplings' moments (:func:`coupling_moments`), which together
     are $-Z(\theta_i)\cdot\partial U/\partial\theta_i$ of the total energy."""
     moments = coupling_moments(lattice, theta)
-    axes = jax.tree_util.tree_map(lambda x: 0 if lattice.per_site and eqx.is_array(x) else None,
-                                  forms)
+    axes = jax.tree_util.tree_map(
+        lambda x: 0 if lattice.per_site and eqx.is_array(x) else None, forms
+    )
 
     def one(f, th, Om, m):
         return f.rates(t, th, Om, f.model.foundation.gradient(th), m)
@@ -200,6 +216,7 @@ def body_moments(lattice: Lattice, theta):
 def kinetic_moment(lattice: Lattice, theta, Omega):
     r"""The total kinetic moment $\sum_i Q(\theta_i)\cdot A_i\cdot\Omega_i$ (4.44), conserved
     when no foundation and no load acts (Kelvin's medium: the couplings are internal)."""
+
     def one(b, th, Om):
         return Turn(th).rotate(matvec3(b.inertia, Om))
 

@@ -46,15 +46,17 @@ def _start(params: Mapping[str, float]):
     values = {k: np.asarray(v, dtype=float) for k, v in params.items()}
     bad = [k for k, v in values.items() if v.shape != () or not (np.isfinite(v) and v > 0)]
     if bad:
-        raise ValueError("lattice fit: the starting values must be finite numbers > 0 (they "
-                         "are fitted as logarithms), got "
-                         + ", ".join(f"{k}={params[k]!r}" for k in bad) + ".")
+        raise ValueError(
+            "lattice fit: the starting values must be finite numbers > 0 (they "
+            "are fitted as logarithms), got " + ", ".join(f"{k}={params[k]!r}" for k in bad) + "."
+        )
     return {k: jnp.log(jnp.asarray(v)) for k, v in values.items()}
 
 
 @functools.partial(jit, small=True)
 def _residuals_and_jacobian(residuals, u, data):
     """The one compiled program of a lattice fit (per ``residuals`` function and data shapes)."""
+
     def both(v):
         r = residuals(v, data)
         return r, r
@@ -67,12 +69,17 @@ def _solve(residuals, u0, data, tol, max_steps) -> LatticeFit:
     def evaluate(u):
         return _residuals_and_jacobian(residuals, u, data)
 
-    u, steps, converged, message = run_least_squares(evaluate, u0, "levenberg_marquardt", tol,
-                                                     max_steps, [])
+    u, steps, converged, message = run_least_squares(
+        evaluate, u0, "levenberg_marquardt", tol, max_steps, []
+    )
     r = np.asarray(evaluate(u)[0])
-    return LatticeFit(params={k: float(np.exp(v)) for k, v in u.items()},
-                      rms=jnp.asarray(np.sqrt(np.mean(r * r))), num_steps=int(steps),
-                      converged=bool(converged), message=message)
+    return LatticeFit(
+        params={k: float(np.exp(v)) for k, v in u.items()},
+        rms=jnp.asarray(np.sqrt(np.mean(r * r))),
+        num_steps=int(steps),
+        converged=bool(converged),
+        message=message,
+    )
 
 
 def _dispersion_residuals(lattice_fn, u, data):
@@ -91,9 +98,17 @@ def _field_residuals(lattice_fn, options, u, data):
     return jnp.ravel(jnp.where(mask, traj.theta - target, 0.0))
 
 
-def fit_dispersion(lattice_fn: Callable, params: Mapping[str, float], q, omega, *,
-                   branches=None, theta_eq=None, tol: float = 1e-12,
-                   max_steps: int = 100) -> LatticeFit:
+def fit_dispersion(
+    lattice_fn: Callable,
+    params: Mapping[str, float],
+    q,
+    omega,
+    *,
+    branches=None,
+    theta_eq=None,
+    tol: float = 1e-12,
+    max_steps: int = 100,
+) -> LatticeFit:
     r"""Fit ``params`` (name -> starting value > 0) so that the lattice ``lattice_fn(**params)``
     has the measured frequencies ``omega`` at the wavevectors ``q``.
 
@@ -113,21 +128,41 @@ def fit_dispersion(lattice_fn: Callable, params: Mapping[str, float], q, omega, 
     omega = np.asarray(omega, dtype=float)
     omega = omega[:, None] if omega.ndim == 1 else omega
     if omega.ndim != 2 or omega.shape[0] != q.shape[0]:
-        raise ValueError(f"lattice.fit_dispersion: omega needs one row per wavevector "
-                         f"({q.shape[0]}), got shape {omega.shape}.")
+        raise ValueError(
+            f"lattice.fit_dispersion: omega needs one row per wavevector "
+            f"({q.shape[0]}), got shape {omega.shape}."
+        )
     branches = np.arange(omega.shape[1]) if branches is None else np.asarray(branches)
     if branches.shape != (omega.shape[1],) or np.any((branches < 0) | (branches > 2)):
-        raise ValueError(f"lattice.fit_dispersion: branches must give one index in 0..2 per "
-                         f"column of omega ({omega.shape[1]}), got {branches!r}.")
+        raise ValueError(
+            f"lattice.fit_dispersion: branches must give one index in 0..2 per "
+            f"column of omega ({omega.shape[1]}), got {branches!r}."
+        )
     measured = np.isfinite(omega)
-    data = (q, jnp.asarray(np.where(measured, omega, 0.0)), jnp.asarray(measured),
-            jnp.asarray(branches), None if theta_eq is None else jnp.asarray(theta_eq))
-    return _solve(jax.tree_util.Partial(_dispersion_residuals, lattice_fn), u0, data, tol,
-                  max_steps)
+    data = (
+        q,
+        jnp.asarray(np.where(measured, omega, 0.0)),
+        jnp.asarray(measured),
+        jnp.asarray(branches),
+        None if theta_eq is None else jnp.asarray(theta_eq),
+    )
+    return _solve(
+        jax.tree_util.Partial(_dispersion_residuals, lattice_fn), u0, data, tol, max_steps
+    )
 
 
-def fit_field(lattice_fn: Callable, params: Mapping[str, float], ts, theta, theta0, Omega0, *,
-              tol: float = 1e-12, max_steps: int = 100, **simulate_options) -> LatticeFit:
+def fit_field(
+    lattice_fn: Callable,
+    params: Mapping[str, float],
+    ts,
+    theta,
+    theta0,
+    Omega0,
+    *,
+    tol: float = 1e-12,
+    max_steps: int = 100,
+    **simulate_options,
+) -> LatticeFit:
     r"""Fit ``params`` (name -> starting value > 0) so that the motion of
     ``lattice_fn(**params)`` from ``(theta0, Omega0)`` matches the recorded turn-vectors
     ``theta`` (``(T, N, 3)``, NaN where not recorded) at the times ``ts``: a space-time field.
@@ -139,9 +174,13 @@ def fit_field(lattice_fn: Callable, params: Mapping[str, float], ts, theta, thet
     theta = np.asarray(theta, dtype=float)
     measured = np.isfinite(theta)
     options = tuple(sorted((dict(rtol=1e-10, atol=1e-12) | dict(simulate_options)).items()))
-    data = (jnp.asarray(ts, dtype=jnp.result_type(float)),
-            jnp.asarray(np.where(measured, theta, 0.0)), jnp.asarray(measured),
-            jnp.asarray(theta0, dtype=jnp.result_type(float)),
-            jnp.asarray(Omega0, dtype=jnp.result_type(float)))
-    return _solve(jax.tree_util.Partial(_field_residuals, lattice_fn, options), u0, data, tol,
-                  max_steps)
+    data = (
+        jnp.asarray(ts, dtype=jnp.result_type(float)),
+        jnp.asarray(np.where(measured, theta, 0.0)),
+        jnp.asarray(measured),
+        jnp.asarray(theta0, dtype=jnp.result_type(float)),
+        jnp.asarray(Omega0, dtype=jnp.result_type(float)),
+    )
+    return _solve(
+        jax.tree_util.Partial(_field_residuals, lattice_fn, options), u0, data, tol, max_steps
+    )

@@ -81,16 +81,18 @@ class Problem(eqx.Module):
         y_old, y_new = lax.stop_gradient((tuple(y_old), tuple(y_new)))
         theta = jnp.stack(y_new[:3])
         n, n_old = _norm(theta), _norm(jnp.stack(y_old[:3]))
-        crossed = ((jnp.floor(n / TWO_PI) != jnp.floor(n_old / TWO_PI))
-                   & (jnp.maximum(n, n_old) >= math.pi))
+        crossed = (jnp.floor(n / TWO_PI) != jnp.floor(n_old / TWO_PI)) & (
+            jnp.maximum(n, n_old) >= math.pi
+        )
         singular = crossed
         if not cfg.recenter:
             near = jax.vmap(distance_to_singularity, in_axes=1)(theta) < cfg.singular_tol
             singular = singular | near
         moving = transverse(theta, jnp.stack(y_new[3:]))
         bodies = self.lattice.site_bodies()
-        margin = jax.vmap(lambda b, th: b.domain_margin(th),
-                          in_axes=(self.lattice.body_axes(), 1))(bodies, theta)
+        margin = jax.vmap(lambda b, th: b.domain_margin(th), in_axes=(self.lattice.body_axes(), 1))(
+            bodies, theta
+        )
         finite = jnp.all(jnp.isfinite(jnp.stack(y_new)))
         status = jnp.where(jnp.any(~(margin > 0)), code("domain_error"), code("successful"))
         status = jnp.where(jnp.any(singular & moving), code("singular_point"), status)
@@ -118,8 +120,9 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
     last = jnp.where(dense, D.N_EXT, D.NS + 1)
     f_start = tuple(jnp.where(c["first"] == 0, jnp.zeros_like(v), v) for v in f0)
     y_new, K = D.stages(problem.f, t, y, f_start, h, store, last, first=c["first"])
-    err = lax.stop_gradient(D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol,
-                                         total=jnp.sum, size=N))
+    err = lax.stop_gradient(
+        D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol, total=jnp.sum, size=N)
+    )
     accept, h_next = D.controller(err, h_abs, rej)
     go = ~too_small
     commit = go & accept
@@ -132,14 +135,16 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
         tout = tout.at[jnp.where(mask, i, nts)].set(turns, mode="drop")
         return out, tout
 
-    c["idx"], (c["out"], c["turns_out"]) = _emit(step, ts, idx, (c["out"], c["turns_out"]),
-                                                 t_new, write, dense_sampler(step, ts, t_new))
+    c["idx"], (c["out"], c["turns_out"]) = _emit(
+        step, ts, idx, (c["out"], c["turns_out"]), t_new, write, dense_sampler(step, ts, t_new)
+    )
     status = jnp.where(too_small, code("step_size_collapse"), c["status"])
     status = jnp.where(~jnp.isfinite(err), code("nonfinite_state"), status)
     failed = problem.failure(y, y_new, cfg)
     status = jnp.where(commit & (failed != code("successful")), failed, status)
-    status = jnp.where(commit & (t_new >= t_bound) & (status == RUNNING), code("successful"),
-                       status)
+    status = jnp.where(
+        commit & (t_new >= t_bound) & (status == RUNNING), code("successful"), status
+    )
     y_next = tuple(jnp.where(commit, a, b) for a, b in zip(y_new, y))
     # the next first slope: K[12] at the new point, or K[0] (the slope at (t, y)) after a reject
     f_next = tuple(jnp.where(commit, a, b) for a, b in zip(D.slope(K, D.NS), D.slope(K, 0)))
@@ -152,11 +157,20 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
         c["nrec"] = c["nrec"] + jnp.where(moved, jnp.sum(k > 0), 0).astype(jnp.int32)
         first_next = jnp.where(moved, 0, first_next)  # the state changed: a new first slope
     natt = c["natt"] + go.astype(jnp.int32)
-    status = jnp.where((status == RUNNING) & (natt >= cfg.max_steps), code("max_steps_reached"),
-                       status)
-    c.update(t=jnp.where(commit, t_new, t), y=y_next, f=f_next, h=jnp.where(go, h_next, h_abs),
-             rej=go & ~accept, status=status, nacc=c["nacc"] + commit.astype(jnp.int32),
-             natt=natt, first=first_next)
+    status = jnp.where(
+        (status == RUNNING) & (natt >= cfg.max_steps), code("max_steps_reached"), status
+    )
+    c.update(
+        t=jnp.where(commit, t_new, t),
+        y=y_next,
+        f=f_next,
+        h=jnp.where(go, h_next, h_abs),
+        rej=go & ~accept,
+        status=status,
+        nacc=c["nacc"] + commit.astype(jnp.int32),
+        natt=natt,
+        first=first_next,
+    )
     return c
 
 
@@ -169,19 +183,38 @@ def solve(problem: Problem, y0, ts, cfg: Config):
     N, nts = y0[0].shape[0], ts.shape[0]
     store = D.Store(_one((problem.lattice, y0, ts)))
     with storing(store):
-        f0, h0 = D.initial_step(problem.f, ts[0], y0, ts[-1], cfg.rtol, cfg.atol, total=jnp.sum,
-                                size=N)
+        f0, h0 = D.initial_step(
+            problem.f, ts[0], y0, ts[-1], cfg.rtol, cfg.atol, total=jnp.sum, size=N
+        )
         failed = problem.failure(y0, y0, cfg)
         status0 = jnp.where(failed == code("successful"), RUNNING, failed).astype(jnp.int32)
         status0 = jnp.where(nts == 1, code("successful"), status0)
         first = jnp.where(status0 == RUNNING, jnp.stack(y0, -1), jnp.inf)
         out = jnp.full((nts, N, 6), jnp.inf, dtype=ts.dtype).at[0].set(first)
         zero = jnp.asarray(0, jnp.int32)
-        c = dict(t=ts[0], y=y0, f=tuple(f0), h=h0, rej=jnp.asarray(False), status=status0,
-                 nacc=zero, natt=zero, idx=jnp.asarray(1, jnp.int32), out=out,
-                 turns=jnp.zeros(N, jnp.int32), turns_out=jnp.zeros((nts, N), jnp.int32),
-                 first=jnp.asarray(1, jnp.int32), nrec=zero)
-        c = lax.while_loop(lambda c: c["status"] == RUNNING,
-                           lambda c: _attempt(problem, c, ts, cfg, store), c)
-    return dict(samples=c["out"], turns=c["turns_out"], status=c["status"], num_steps=c["nacc"],
-                num_recentred=c["nrec"])
+        c = dict(
+            t=ts[0],
+            y=y0,
+            f=tuple(f0),
+            h=h0,
+            rej=jnp.asarray(False),
+            status=status0,
+            nacc=zero,
+            natt=zero,
+            idx=jnp.asarray(1, jnp.int32),
+            out=out,
+            turns=jnp.zeros(N, jnp.int32),
+            turns_out=jnp.zeros((nts, N), jnp.int32),
+            first=jnp.asarray(1, jnp.int32),
+            nrec=zero,
+        )
+        c = lax.while_loop(
+            lambda c: c["status"] == RUNNING, lambda c: _attempt(problem, c, ts, cfg, store), c
+        )
+    return dict(
+        samples=c["out"],
+        turns=c["turns_out"],
+        status=c["status"],
+        num_steps=c["nacc"],
+        num_recentred=c["nrec"],
+    )

@@ -47,21 +47,27 @@ def _check_body(body, shape) -> bool:
     """Whether ``body`` holds per-site parameters (every array leaf with leading axes
     ``shape``), else one body for every site; anything else is refused."""
     if not isinstance(body, RigidBodyOscillator):
-        raise TypeError(f"lattice: body must be a RigidBodyOscillator (one for every site, or one "
-                        f"whose parameters carry the lattice's shape {shape} in front, e.g. built "
-                        f"with jax.vmap), got {type(body).__name__}.")
+        raise TypeError(
+            f"lattice: body must be a RigidBodyOscillator (one for every site, or one "
+            f"whose parameters carry the lattice's shape {shape} in front, e.g. built "
+            f"with jax.vmap), got {type(body).__name__}."
+        )
     inertia_shape = tuple(np.shape(body.inertia))
     if inertia_shape == (3, 3):
         return False
     if inertia_shape != tuple(shape) + (3, 3):
-        raise ValueError(f"lattice: body.inertia must have shape (3, 3) (one body for every "
-                         f"site) or {tuple(shape) + (3, 3)} (per-site bodies of the lattice's "
-                         f"shape {tuple(shape)}), got {inertia_shape}.")
+        raise ValueError(
+            f"lattice: body.inertia must have shape (3, 3) (one body for every "
+            f"site) or {tuple(shape) + (3, 3)} (per-site bodies of the lattice's "
+            f"shape {tuple(shape)}), got {inertia_shape}."
+        )
     for leaf in jax.tree_util.tree_leaves(eqx.filter(body, eqx.is_array)):
-        if tuple(np.shape(leaf))[:len(shape)] != tuple(shape):
-            raise ValueError(f"lattice: per-site bodies need every parameter with leading axes "
-                             f"{tuple(shape)} (build them with jax.vmap); a leaf has shape "
-                             f"{tuple(np.shape(leaf))}.")
+        if tuple(np.shape(leaf))[: len(shape)] != tuple(shape):
+            raise ValueError(
+                f"lattice: per-site bodies need every parameter with leading axes "
+                f"{tuple(shape)} (build them with jax.vmap); a leaf has shape "
+                f"{tuple(np.shape(leaf))}."
+            )
     return True
 
 
@@ -88,9 +94,11 @@ class Lattice(eqx.Module):
         if not shape or any(n < 1 for n in shape):
             raise ValueError(f"lattice: the shape must be positive integers, got {shape}.")
         if not isinstance(coupling, AbstractFoundation):
-            raise TypeError(f"lattice: coupling must be an rbo_jax foundation of the relative "
-                            f"turn (e.g. QuadraticFoundation(kappa_b, kappa_t, k)), got "
-                            f"{type(coupling).__name__}.")
+            raise TypeError(
+                f"lattice: coupling must be an rbo_jax foundation of the relative "
+                f"turn (e.g. QuadraticFoundation(kappa_b, kappa_t, k)), got "
+                f"{type(coupling).__name__}."
+            )
         self.per_site = _check_body(body, shape)
         self.body = body
         self.coupling = coupling
@@ -109,8 +117,11 @@ class Lattice(eqx.Module):
         e = np.asarray(edges) if not _is_traced(edges) else edges
         if _is_traced(e):
             raise TypeError("lattice: edges must be concrete (a NumPy or JAX array of indices).")
-        n = int(np.shape(body.inertia)[0]) if np.ndim(body.inertia) == 3 else (
-            int(np.max(e)) + 1 if np.size(e) else 1)
+        n = (
+            int(np.shape(body.inertia)[0])
+            if np.ndim(body.inertia) == 3
+            else (int(np.max(e)) + 1 if np.size(e) else 1)
+        )
         return cls(body, coupling, (n,), (False,), edges=e)
 
     @property
@@ -134,13 +145,14 @@ class Lattice(eqx.Module):
             return self.body
         n, k = self.size, len(self.shape)
         return jax.tree_util.tree_map(
-            lambda x: jnp.reshape(x, (n,) + jnp.shape(x)[k:]) if eqx.is_array(x) else x,
-            self.body)
+            lambda x: jnp.reshape(x, (n,) + jnp.shape(x)[k:]) if eqx.is_array(x) else x, self.body
+        )
 
     def body_axes(self):
         """``in_axes`` of ``jax.vmap`` over the sites for :meth:`site_bodies`."""
         return jax.tree_util.tree_map(
-            lambda x: 0 if (self.per_site and eqx.is_array(x)) else None, self.body)
+            lambda x: 0 if (self.per_site and eqx.is_array(x)) else None, self.body
+        )
 
     def site(self, i: int = 0) -> RigidBodyOscillator:
         """The body at flat site index ``i`` (a single :class:`RigidBodyOscillator`)."""
@@ -161,14 +173,18 @@ class Lattice(eqx.Module):
 def _check_edges(edges, n: int):
     e = np.asarray(edges)
     if e.ndim != 2 or e.shape[1] != 2 or not np.issubdtype(e.dtype, np.integer):
-        raise ValueError(f"lattice: edges must be an integer array of shape (E, 2), got "
-                         f"{e.dtype} {e.shape}.")
+        raise ValueError(
+            f"lattice: edges must be an integer array of shape (E, 2), got {e.dtype} {e.shape}."
+        )
     if e.size and (e.min() < 0 or e.max() >= n):
-        raise ValueError(f"lattice: edges must index the {n} sites 0 … {n - 1}, got indices "
-                         f"{int(e.min())} … {int(e.max())}.")
+        raise ValueError(
+            f"lattice: edges must index the {n} sites 0 … {n - 1}, got indices "
+            f"{int(e.min())} … {int(e.max())}."
+        )
     if np.any(e[:, 0] == e[:, 1]):
-        raise ValueError("lattice: an edge couples a body to itself; every edge needs two "
-                         "different sites.")
+        raise ValueError(
+            "lattice: an edge couples a body to itself; every edge needs two different sites."
+        )
     return jax.device_put(e.astype(np.int32))
 
 
@@ -181,20 +197,23 @@ def chain(n: int, body, coupling, *, periodic: bool = True) -> Lattice:
     return Lattice(body, coupling, (int(n),), (periodic,))
 
 
-def grid(shape: Sequence[int], body, coupling, *, periodic: bool | Sequence[bool] = True
-         ) -> Lattice:
+def grid(
+    shape: Sequence[int], body, coupling, *, periodic: bool | Sequence[bool] = True
+) -> Lattice:
     r"""A square (2-D) or cubic (3-D) grid of bodies, each coupled to its nearest neighbour along
     every axis; ``periodic`` for every axis or one flag per axis (free ends otherwise). Sites in
     row-major order (C order: the last axis fastest). ``body``: as :func:`chain`, per-site
     parameters with leading axes ``shape``."""
     shape = tuple(int(n) for n in shape)
     if len(shape) not in (1, 2, 3) or any(n < 2 for n in shape):
-        raise ValueError(f"lattice.grid: shape must have 1, 2 or 3 axes of at least 2 sites, "
-                         f"got {shape}.")
+        raise ValueError(
+            f"lattice.grid: shape must have 1, 2 or 3 axes of at least 2 sites, got {shape}."
+        )
     if isinstance(periodic, (bool, np.bool_)):
         periodic = (bool(periodic),) * len(shape)
     periodic = tuple(bool(p) for p in periodic)
     if len(periodic) != len(shape):
-        raise ValueError(f"lattice.grid: periodic needs one flag per axis ({len(shape)}), got "
-                         f"{periodic}.")
+        raise ValueError(
+            f"lattice.grid: periodic needs one flag per axis ({len(shape)}), got {periodic}."
+        )
     return Lattice(body, coupling, shape, periodic)

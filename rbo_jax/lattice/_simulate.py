@@ -49,9 +49,11 @@ def _state(x, lattice: Lattice, name: str, dtype):
     a = x if traced else np.asarray(x)
     n = lattice.size
     if tuple(a.shape) not in ((n, 3), tuple(lattice.shape) + (3,)):
-        raise ValueError(f"lattice.simulate: {name} must have shape ({n}, 3) or "
-                         f"{tuple(lattice.shape) + (3,)} (one vector per body), got "
-                         f"{tuple(a.shape)}.")
+        raise ValueError(
+            f"lattice.simulate: {name} must have shape ({n}, 3) or "
+            f"{tuple(lattice.shape) + (3,)} (one vector per body), got "
+            f"{tuple(a.shape)}."
+        )
     if not traced:
         if np.iscomplexobj(a):
             raise TypeError(f"lattice.simulate: {name} must be real.")
@@ -64,8 +66,8 @@ def _state(x, lattice: Lattice, name: str, dtype):
 def _cast(lattice: Lattice, dtype):
     """The lattice with its float leaves in ``dtype`` (integers, the edges, kept)."""
     return jax.tree_util.tree_map(
-        lambda x: x.astype(dtype) if eqx.is_inexact_array(x) and x.dtype != dtype else x,
-        lattice)
+        lambda x: x.astype(dtype) if eqx.is_inexact_array(x) and x.dtype != dtype else x, lattice
+    )
 
 
 def _parameters_ok(lattice: Lattice):
@@ -76,7 +78,8 @@ def _parameters_ok(lattice: Lattice):
         return np.bool_(True)
     if lattice.per_site:
         ok = jax.vmap(lambda b: b.parameter_status()[0], in_axes=(lattice.body_axes(),))(
-            lattice.site_bodies())
+            lattice.site_bodies()
+        )
         ok = jnp.all(ok)
     else:
         ok = lattice.body.parameter_status()[0]
@@ -104,25 +107,39 @@ def _diffrax(lattice, theta0, Omega0, ts, solver, rtol, atol, max_steps, singula
 
     cond = jax.tree_util.Partial(_near_singular, lattice, jnp.asarray(singular_tol, ts.dtype))
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(field), diffrax.Dopri8() if solver is None else solver,
-        t0=ts[0], t1=ts[-1], dt0=None, y0=(theta0, Omega0), saveat=diffrax.SaveAt(ts=ts),
+        diffrax.ODETerm(field),
+        diffrax.Dopri8() if solver is None else solver,
+        t0=ts[0],
+        t1=ts[-1],
+        dt0=None,
+        y0=(theta0, Omega0),
+        saveat=diffrax.SaveAt(ts=ts),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-        event=diffrax.Event(cond_fn=[cond]), max_steps=max_steps, throw=False)
+        event=diffrax.Event(cond_fn=[cond]),
+        max_steps=max_steps,
+        throw=False,
+    )
     status = _status_from_solution(sol, ("singular_point",))
     theta, Omega = sol.ys
     samples = jnp.concatenate([theta, Omega], axis=1).transpose(0, 2, 1)
     samples = jnp.where(jnp.isfinite(samples), samples, jnp.inf)
     turns = jnp.zeros((ts.shape[0], theta0.shape[1]), jnp.int32)
-    return (samples, turns, enum.code(status), sol.stats["num_accepted_steps"],
-            jnp.asarray(0, jnp.int32))
+    return (
+        samples,
+        turns,
+        enum.code(status),
+        sol.stats["num_accepted_steps"],
+        jnp.asarray(0, jnp.int32),
+    )
 
 
 def _splitting(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin):
     samples, turns, steps = split(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin)
     finite = jnp.all(jnp.isfinite(samples))
-    status = jnp.where(finite, enum.code(SolveStatus.successful),
-                       enum.code(SolveStatus.nonfinite_state))
+    status = jnp.where(
+        finite, enum.code(SolveStatus.successful), enum.code(SolveStatus.nonfinite_state)
+    )
     return samples, turns, status.astype(jnp.int32), steps, jnp.sum(turns[-1] > 0)
 
 
@@ -132,37 +149,104 @@ _TRACED = {"dop853": _dop853, "diffrax": _diffrax, "splitting": _splitting}
 # 3.4 s, run time +20 %; of 10 000: 5.5 -> 4.0 s but +15 % run time, so large lattices keep
 # XLA's defaults).
 SMALL = 1024
-_PROGRAMS = {(name, small): program(fn, small=small) for name, fn in _TRACED.items()
-             for small in (False, True)}
+_PROGRAMS = {
+    (name, small): program(fn, small=small)
+    for name, fn in _TRACED.items()
+    for small in (False, True)
+}
 
 
-def _config(lattice, method, rtol, atol, max_steps, singular_tol, recenter, recenter_margin,
-            dt) -> Config:
+def _config(
+    lattice, method, rtol, atol, max_steps, singular_tol, recenter, recenter_margin, dt
+) -> Config:
     """The checked settings of :func:`simulate` (a clear error naming the bad one)."""
     if not isinstance(lattice, Lattice):
-        raise TypeError(f"lattice.simulate: lattice must be a rbo_jax.lattice.Lattice, got "
-                        f"{type(lattice).__name__}.")
+        raise TypeError(
+            f"lattice.simulate: lattice must be a rbo_jax.lattice.Lattice, got "
+            f"{type(lattice).__name__}."
+        )
     if method not in METHODS:
         raise ValueError(f"lattice.simulate: method must be one of {METHODS}, got {method!r}.")
     try:
-        cfg = Config(float(rtol), float(atol), int(max_steps), float(singular_tol),
-                     bool(recenter), float(recenter_margin))
+        cfg = Config(
+            float(rtol),
+            float(atol),
+            int(max_steps),
+            float(singular_tol),
+            bool(recenter),
+            float(recenter_margin),
+        )
     except (TypeError, jax.errors.ConcretizationTypeError):
-        raise TypeError("lattice.simulate: rtol, atol, max_steps, singular_tol and "
-                        "recenter_margin must be Python numbers (they are compiled in).") from None
-    if not (cfg.rtol > 0 and cfg.atol > 0 and cfg.max_steps >= 1 and cfg.singular_tol > 0
-            and 0 < cfg.recenter_margin < math.pi):
-        raise ValueError(f"lattice.simulate: need rtol, atol, singular_tol > 0, max_steps >= 1 "
-                         f"and 0 < recenter_margin < pi, got {cfg}.")
+        raise TypeError(
+            "lattice.simulate: rtol, atol, max_steps, singular_tol and "
+            "recenter_margin must be Python numbers (they are compiled in)."
+        ) from None
+    if not (
+        cfg.rtol > 0
+        and cfg.atol > 0
+        and cfg.max_steps >= 1
+        and cfg.singular_tol > 0
+        and 0 < cfg.recenter_margin < math.pi
+    ):
+        raise ValueError(
+            f"lattice.simulate: need rtol, atol, singular_tol > 0, max_steps >= 1 "
+            f"and 0 < recenter_margin < pi, got {cfg}."
+        )
     if method == "splitting":
         if dt is None or _is_traced(dt) or not (float(dt) > 0 and math.isfinite(float(dt))):
-            raise ValueError(f"lattice.simulate: method='splitting' needs a step dt > 0 (a "
-                             f"number), got {dt!r}.")
+            raise ValueError(
+                f"lattice.simulate: method='splitting' needs a step dt > 0 (a number), got {dt!r}."
+            )
         if lattice.body.loads:
-            raise ValueError("lattice.simulate: method='splitting' integrates conservative "
-                             "lattices (no loads: its kicks are the gradient of the foundations "
-                             "and couplings); use method='dop853' or 'diffrax' with loads.")
+            raise ValueError(
+                "lattice.simulate: method='splitting' integrates conservative "
+                "lattices (no loads: its kicks are the gradient of the foundations "
+                "and couplings); use method='dop853' or 'diffrax' with loads."
+            )
     return cfg
+
+
+def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype):
+    """The arguments of the method's program."""
+    if method == "dop853":
+        args = (lattice, theta0, Omega0, ts, cfg)
+    elif method == "diffrax":
+        args = (
+            lattice,
+            theta0,
+            Omega0,
+            ts,
+            solver,
+            cfg.rtol,
+            cfg.atol,
+            cfg.max_steps,
+            cfg.singular_tol,
+            adjoint,
+        )
+    else:
+        # dt traced: one program for every step size
+        args = (
+            lattice,
+            theta0,
+            Omega0,
+            ts,
+            jnp.asarray(dt, dtype),
+            cfg.recenter,
+            cfg.recenter_margin,
+        )
+    return args
+
+
+def _trusted(lattice, method, solver, adjoint) -> bool:
+    """Whether diffrax's own input checks may be left out (rbo_jax checked the inputs, and the
+    lattice, solver and adjoint are library code): :func:`checked_inputs_trusted`."""
+    return (
+        library_code_only(lattice)
+        and method == "diffrax"
+        and all(
+            x is None or type(x).__module__.split(".")[0] == "diffrax" for x in (solver, adjoint)
+        )
+    )
 
 
 def simulate(
@@ -211,13 +295,15 @@ def simulate(
     ``turns`` (T, N), ``energy`` (T,), ``status``. jit-, vmap- (ensembles of lattices) and
     forward-mode differentiable (all methods; ``"diffrax"`` also reverse mode).
     """
-    cfg = _config(lattice, method, rtol, atol, max_steps, singular_tol, recenter,
-                  recenter_margin, dt)
+    cfg = _config(
+        lattice, method, rtol, atol, max_steps, singular_tol, recenter, recenter_margin, dt
+    )
     ts = check_times(ts, throw)
     params = jax.tree_util.tree_leaves(eqx.filter(lattice, eqx.is_inexact_array))
     if dtype is None:
-        dtype = _common_float_dtype(ts, *params, *(x for x in (theta0, Omega0)
-                                                   if hasattr(x, "dtype")))
+        dtype = _common_float_dtype(
+            ts, *params, *(x for x in (theta0, Omega0) if hasattr(x, "dtype"))
+        )
     dtype = jax.dtypes.canonicalize_dtype(dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
         raise TypeError(f"lattice.simulate: dtype must be a float type, got {dtype}.")
@@ -228,21 +314,11 @@ def simulate(
     warn_if_float32(dtype, rtol, atol)
     ok = _parameters_ok(lattice)
 
-    if method == "dop853":
-        args = (lattice, theta0, Omega0, ts, cfg)
-    elif method == "diffrax":
-        args = (lattice, theta0, Omega0, ts, solver, cfg.rtol, cfg.atol, cfg.max_steps,
-                cfg.singular_tol, adjoint)
-    else:
-        # dt traced: one program for every step size
-        args = (lattice, theta0, Omega0, ts, jnp.asarray(dt, dtype), cfg.recenter,
-                cfg.recenter_margin)
+    args = _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype)
     if any(_is_traced(x) for x in jax.tree_util.tree_leaves(args)):
         out = _TRACED[method](*args)
     else:
-        trusted = library_code_only(lattice) and method == "diffrax" and all(
-            x is None or type(x).__module__.split(".")[0] == "diffrax" for x in (solver, adjoint))
-        with checked_inputs_trusted(trusted):
+        with checked_inputs_trusted(_trusted(lattice, method, solver, adjoint)):
             out = _PROGRAMS[method, lattice.size < SMALL](*args)
     samples, turns, code, num_steps, num_recentred = out
     status = enum.from_code(SolveStatus, code)
@@ -252,5 +328,13 @@ def simulate(
     theta, Omega = samples[..., :3], samples[..., 3:]
     if throw and (_is_traced(enum.code(status)) or enum.name(status) != "successful"):
         theta = status.error_if(theta, status != SolveStatus.successful)
-    return LatticeTrajectory(ts=ts, theta=theta, Omega=Omega, turns=turns, lattice=lattice,
-                             status=status, num_steps=num_steps, num_recentred=num_recentred)
+    return LatticeTrajectory(
+        ts=ts,
+        theta=theta,
+        Omega=Omega,
+        turns=turns,
+        lattice=lattice,
+        status=status,
+        num_steps=num_steps,
+        num_recentred=num_recentred,
+    )

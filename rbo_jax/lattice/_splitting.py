@@ -66,8 +66,11 @@ def _continue(theta_p, theta_old):
     n2 = dot3(theta_p, theta_p)
     tiny = n2 < 1e-24
     o2 = dot3(theta_old, theta_old)
-    axis = jnp.where(tiny, theta_old / jnp.sqrt(jnp.where(o2 > 0, o2, 1.0)),
-                     theta_p / jnp.sqrt(jnp.where(tiny, 1.0, n2)))
+    axis = jnp.where(
+        tiny,
+        theta_old / jnp.sqrt(jnp.where(o2 > 0, o2, 1.0)),
+        theta_p / jnp.sqrt(jnp.where(tiny, 1.0, n2)),
+    )
     along = jnp.sqrt(jnp.where(tiny, 0.0, n2))
     m = jnp.round((dot3(axis, theta_old) - along) / TWO_PI)
     return theta_p + (TWO_PI * m) * axis
@@ -79,8 +82,7 @@ def _rotate(v, axis, angle):
     return c * v + s * cross3(axis, v) + (1.0 - c) * dot3(axis, v) * axis
 
 
-def split(lattice: Lattice, theta0, Omega0, ts, dt: float, recenter: bool,
-          recenter_margin: float):
+def split(lattice: Lattice, theta0, Omega0, ts, dt: float, recenter: bool, recenter_margin: float):
     """Samples at ``ts`` from ``(theta0, Omega0)`` (``(3, N)`` each) with steps of at most
     ``dt`` (every interval between samples in equal steps): ``(samples (T, N, 6), turns (T, N),
     steps)``."""
@@ -103,6 +105,7 @@ def split(lattice: Lattice, theta0, Omega0, ts, dt: float, recenter: bool,
 
     def free(k, tau, q, Pi):
         """The exact flow of T_k over tau: the turn about the principal axis d_k."""
+
         def one(a_, d_, w, v, P):
             axis = d_[:, k]
             alpha = tau * dot3(axis, P) / a_[k]

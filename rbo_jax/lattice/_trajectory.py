@@ -89,19 +89,40 @@ class LatticeTrajectory(eqx.Module):
 
         vec = ("t", "site", "component")
         data = {
-            "theta": (vec, np.asarray(self.theta), {"long_name": "turn-vector theta (4.1)",
-                                                    "units": "rad"}),
-            "Omega": (vec, np.asarray(self.Omega),
-                      {"long_name": "right (body-frame) angular velocity Omega",
-                       "units": "rad s-1"}),
-            "turns": (("t", "site"), np.asarray(self.turns),
-                      {"long_name": "re-centrings of the turn-vector by 2 pi k"}),
-            "energy": ("t", np.asarray(self.energy),
-                       {"long_name": "total mechanical energy", "units": "J"}),
+            "theta": (
+                vec,
+                np.asarray(self.theta),
+                {"long_name": "turn-vector theta (4.1)", "units": "rad"},
+            ),
+            "Omega": (
+                vec,
+                np.asarray(self.Omega),
+                {"long_name": "right (body-frame) angular velocity Omega", "units": "rad s-1"},
+            ),
+            "turns": (
+                ("t", "site"),
+                np.asarray(self.turns),
+                {"long_name": "re-centrings of the turn-vector by 2 pi k"},
+            ),
+            "energy": (
+                "t",
+                np.asarray(self.energy),
+                {"long_name": "total mechanical energy", "units": "J"},
+            ),
         }
-        ds = xr.Dataset(data, coords={"t": ("t", np.asarray(self.ts), {"units": "s"}),
-                                      "site": np.arange(self.lattice.size),
-                                      "component": ["x", "y", "z"]})
-        ds.attrs.update(status=self.status_name, message=self.message,
-                        num_steps=int(self.num_steps), shape=list(self.lattice.shape), **attrs)
+        ds = xr.Dataset(
+            data,
+            coords={
+                "t": ("t", np.asarray(self.ts), {"units": "s"}),
+                "site": np.arange(self.lattice.size),
+                "component": ["x", "y", "z"],
+            },
+        )
+        ds.attrs.update(
+            status=self.status_name,
+            message=self.message,
+            num_steps=int(self.num_steps),
+            shape=list(self.lattice.shape),
+            **attrs,
+        )
         return ds

@@ -32,16 +32,27 @@ def _states(phi, dphi, k):
     return np.asarray(phi)[:, None] * k, np.asarray(dphi)[:, None] * k
 
 
-def kink(n: int, c: float, kappa: float, A3: float, *, x0: float, v: float = 0.0,
-         k=(0.0, 0.0, 1.0), anti: bool = False):
+def kink(
+    n: int,
+    c: float,
+    kappa: float,
+    A3: float,
+    *,
+    x0: float,
+    v: float = 0.0,
+    k=(0.0, 0.0, 1.0),
+    anti: bool = False,
+):
     r"""``(theta0 (n, 3), Omega0 (n, 3))`` of the sine-Gordon kink (module docstring) centred at
     site ``x0`` moving at ``v`` sites per unit time ($|v| < s = \sqrt{\kappa/A_3}$): the turn
     rises by $2\pi$ along the chain (falls, with ``anti``). For plane rotations about ``k``,
     $\Omega = \dot\varphi\,k$."""
     s = np.sqrt(kappa / A3)
     if not abs(v) < s:
-        raise ValueError(f"lattice.kink: |v| must be below the speed of sound s = "
-                         f"sqrt(kappa/A3) = {s:g}, got {v!r}.")
+        raise ValueError(
+            f"lattice.kink: |v| must be below the speed of sound s = "
+            f"sqrt(kappa/A3) = {s:g}, got {v!r}."
+        )
     width = np.sqrt(kappa / c) * np.sqrt(1.0 - (v / s) ** 2)
     xi = (np.arange(n) - x0) / width
     sign = -1.0 if anti else 1.0
@@ -50,8 +61,7 @@ def kink(n: int, c: float, kappa: float, A3: float, *, x0: float, v: float = 0.0
     return _states(phi, dphi, k)
 
 
-def breather(n: int, c: float, kappa: float, A3: float, *, x0: float, mu: float,
-             k=(0.0, 0.0, 1.0)):
+def breather(n: int, c: float, kappa: float, A3: float, *, x0: float, mu: float, k=(0.0, 0.0, 1.0)):
     r"""``(theta0, Omega0)`` of the sine-Gordon breather (module docstring) at rest at site
     ``x0``, at $t = 0$ (all turns zero, the velocities at their largest), $0 < \mu < \pi/2$:
     frequency $\sqrt{c/A_3}\cos\mu$, amplitude $4\arctan(\tan\mu)$ = $4\mu$ at the centre."""

@@ -7,5 +7,13 @@ from ._common import pyplot
 from ._lattice import plot_dispersion, plot_space_time
 from ._maps import plot_root_locus, plot_stability_map, plot_sweep
 
-__all__ = ["plot_stability_map", "plot_root_locus", "plot_sweep", "plot_bifurcation_diagram",
-           "plot_hopf_boundary", "plot_space_time", "plot_dispersion", "pyplot"]
+__all__ = [
+    "plot_stability_map",
+    "plot_root_locus",
+    "plot_sweep",
+    "plot_bifurcation_diagram",
+    "plot_hopf_boundary",
+    "plot_space_time",
+    "plot_dispersion",
+    "pyplot",
+]

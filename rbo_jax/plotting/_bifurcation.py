@@ -7,7 +7,7 @@ import numpy as np
 from ._common import pyplot
 from ._maps import _unstable_level
 
-__all__ = ['plot_bifurcation_diagram', 'plot_hopf_boundary']
+__all__ = ["plot_bifurcation_diagram", "plot_hopf_boundary"]
 
 
 _SPECIAL_STYLE = {  # type: (marker, colour, label)
@@ -20,8 +20,10 @@ _SPECIAL_STYLE = {  # type: (marker, colour, label)
 def _branch_parameter(ds) -> str:
     name = ds.attrs.get("parameter")
     if name is None or name not in ds.data_vars:
-        raise ValueError("not a continuation result: attrs['parameter'] must name its parameter "
-                         "variable (rbo_jax.continue_equilibria / continue_limit_cycles).")
+        raise ValueError(
+            "not a continuation result: attrs['parameter'] must name its parameter "
+            "variable (rbo_jax.continue_equilibria / continue_limit_cycles)."
+        )
     return name
 
 
@@ -58,8 +60,14 @@ def _draw_runs(ax, runs, colour, what):
     labelled = set()
     for xs, ys, stable in runs:
         label = f"{'stable' if stable else 'unstable'} {what}"
-        ax.plot(xs, ys, "-" if stable else "--", color=colour, lw=1.8 if stable else 1.2,
-                label=None if label in labelled else label)
+        ax.plot(
+            xs,
+            ys,
+            "-" if stable else "--",
+            color=colour,
+            lw=1.8 if stable else 1.2,
+            label=None if label in labelled else label,
+        )
         labelled.add(label)
 
 
@@ -68,8 +76,11 @@ def _equilibrium_y(ds, component):
     if component is None:
         return np.linalg.norm(theta, axis=1), r"$|\theta|$ of the equilibrium"
     names = [str(c) for c in ds["component"].values]
-    index = component if isinstance(component, (int, np.integer)) else (
-        names.index(component) if component in names else None)
+    index = (
+        component
+        if isinstance(component, (int, np.integer))
+        else (names.index(component) if component in names else None)
+    )
     if index is None or not 0 <= index < theta.shape[1]:
         raise ValueError(f"component must be None, one of {names} or an index, got {component!r}.")
     return theta[:, index], rf"$\theta_{names[index]}$ of the equilibrium"
@@ -81,8 +92,9 @@ def _special_points(ds, x, y):
     if "special_type" not in ds:
         return []
     out = []
-    for kind, value, i in zip(ds["special_type"].values, ds["special_value"].values,
-                              ds["special_index"].values):
+    for kind, value, i in zip(
+        ds["special_type"].values, ds["special_value"].values, ds["special_index"].values
+    ):
         i = int(min(max(i, 0), len(x) - 2)) if len(x) > 1 else 0
         if len(x) > 1 and x[i + 1] != x[i]:
             w = float(np.clip((value - x[i]) / (x[i + 1] - x[i]), 0.0, 1.0))
@@ -92,8 +104,9 @@ def _special_points(ds, x, y):
     return out
 
 
-def plot_bifurcation_diagram(equilibria, cycles=None, *, ax=None, component=None,
-                             title: str | None = None):
+def plot_bifurcation_diagram(
+    equilibria, cycles=None, *, ax=None, component=None, title: str | None = None
+):
     r"""Bifurcation diagram of a :func:`rbo_jax.continue_equilibria` result: the equilibrium
     branch, $|\theta|$ (or the ``component`` ``"x"``, ``"y"``, ``"z"`` or 0–2 of θ) against the
     parameter, solid where ``stable`` and dashed where not, with its special points (Hopf
@@ -118,8 +131,15 @@ def plot_bifurcation_diagram(equilibria, cycles=None, *, ax=None, component=None
     labelled = set()
     for kind, value, yv, _ in specials:
         marker, colour, label = _SPECIAL_STYLE.get(kind, ("X", "k", kind))
-        ax.plot([value], [yv], marker=marker, color=colour, ms=8, ls="none",
-                label=None if kind in labelled else f"{label} ({name} = {value:.5g})")
+        ax.plot(
+            [value],
+            [yv],
+            marker=marker,
+            color=colour,
+            ms=8,
+            ls="none",
+            label=None if kind in labelled else f"{label} ({name} = {value:.5g})",
+        )
         labelled.add(kind)
     ax.set_xlabel(name)
     ax.set_ylabel(ylabel)
@@ -136,8 +156,10 @@ def plot_bifurcation_diagram(equilibria, cycles=None, *, ax=None, component=None
 
 def _draw_cycles(ax, cycles, name, specials):
     if _branch_parameter(cycles) != name:
-        raise ValueError(f"the cycles were continued in {_branch_parameter(cycles)!r}, the "
-                         f"equilibria in {name!r}.")
+        raise ValueError(
+            f"the cycles were continued in {_branch_parameter(cycles)!r}, the "
+            f"equilibria in {name!r}."
+        )
     twin = ax.twinx()
     xc = np.asarray(cycles[name].values, dtype=float)
     amp = np.asarray(cycles["amplitude"].values, dtype=float)
@@ -156,13 +178,16 @@ def _hopf_curve_names(curve):
     known = {"frequency", "first_lyapunov", "transversality", "theta", "status"}
     names = [n for n in curve.data_vars if n not in known]
     if len(names) != 1 or "status" not in curve:
-        raise ValueError("not a continue_hopf result: expected one critical-value variable, "
-                         f"'frequency', ..., 'status'; got {sorted(curve.data_vars)}.")
+        raise ValueError(
+            "not a continue_hopf result: expected one critical-value variable, "
+            f"'frequency', ..., 'status'; got {sorted(curve.data_vars)}."
+        )
     return names[0], curve[names[0]].dims[-1]
 
 
-def plot_hopf_boundary(curve, stability_map=None, *, ax=None, select: dict | None = None,
-                       title: str | None = None):
+def plot_hopf_boundary(
+    curve, stability_map=None, *, ax=None, select: dict | None = None, title: str | None = None
+):
     r"""The flutter boundary of a :func:`rbo_jax.continue_hopf` result: the critical value of
     its parameter (y) against the second parameter (x), one line per value of its batch axes,
     drawn over the sign of a :func:`rbo_jax.stability_map` dataset's spectral abscissa (blue:
@@ -184,11 +209,19 @@ def plot_hopf_boundary(curve, stability_map=None, *, ax=None, select: dict | Non
     xs = np.asarray(da[along].values, dtype=float)
     vals = np.asarray(da.transpose(*batch, along).values, dtype=float).reshape(-1, xs.size)
     grids = np.meshgrid(*[np.asarray(da[d].values) for d in batch], indexing="ij")
-    tags = [", ".join(f"{d} = {g.ravel()[i]:.4g}" for d, g in zip(batch, grids))
-            for i in range(vals.shape[0])]
+    tags = [
+        ", ".join(f"{d} = {g.ravel()[i]:.4g}" for d, g in zip(batch, grids))
+        for i in range(vals.shape[0])
+    ]
     for i, row in enumerate(vals):
-        ax.plot(xs, row, "-", color="k" if len(vals) == 1 else f"C{i % 10}", lw=2,
-                label="Hopf boundary" + (f" ({tags[i]})" if tags[i] else ""))
+        ax.plot(
+            xs,
+            row,
+            "-",
+            color="k" if len(vals) == 1 else f"C{i % 10}",
+            lw=2,
+            label="Hopf boundary" + (f" ({tags[i]})" if tags[i] else ""),
+        )
     ax.set_xlabel(along)
     ax.set_ylabel(f"critical {parameter}")
     ax.legend(fontsize=8)
@@ -206,15 +239,31 @@ def _draw_sign(plt, ax, ds, x, y, select):
     missing = [d for d in (x, y) if d not in da.dims]
     extra = [d for d in da.dims if d not in (x, y)]
     if missing or extra:
-        raise ValueError(f"the stability map needs the axes {x!r} and {y!r} and values for the "
-                         f"others (select=...): missing {missing}, unselected {extra}.")
+        raise ValueError(
+            f"the stability map needs the axes {x!r} and {y!r} and values for the "
+            f"others (select=...): missing {missing}, unselected {extra}."
+        )
     vals = np.asarray(da.transpose(y, x).values, dtype=float)
     sign = np.where(np.isfinite(vals), (vals > _unstable_level(ds)).astype(float), np.nan)
     cmap = ListedColormap(["#cfe0f3", "#f6cfc9"]).with_extremes(bad="0.85")
-    ax.pcolormesh(np.asarray(da[x].values, float), np.asarray(da[y].values, float),
-                  np.ma.masked_invalid(sign), cmap=cmap, vmin=0.0, vmax=1.0, shading="auto")
+    ax.pcolormesh(
+        np.asarray(da[x].values, float),
+        np.asarray(da[y].values, float),
+        np.ma.masked_invalid(sign),
+        cmap=cmap,
+        vmin=0.0,
+        vmax=1.0,
+        shading="auto",
+    )
     from matplotlib.patches import Patch
 
-    ax.add_artist(ax.legend(handles=[Patch(color="#cfe0f3", label="stable (map)"),
-                                     Patch(color="#f6cfc9", label="unstable (map)")],
-                            fontsize=8, loc="lower right"))
+    ax.add_artist(
+        ax.legend(
+            handles=[
+                Patch(color="#cfe0f3", label="stable (map)"),
+                Patch(color="#f6cfc9", label="unstable (map)"),
+            ],
+            fontsize=8,
+            loc="lower right",
+        )
+    )

@@ -11,8 +11,7 @@ import numpy as np
 from .._programs import jit
 from ._common import pyplot
 
-__all__ = ['plot_space_time', 'plot_dispersion']
-
+__all__ = ["plot_space_time", "plot_dispersion"]
 
 
 _COMPONENTS = {"x": 0, "y": 1, "z": 2}
@@ -29,18 +28,27 @@ def _space_time_values(traj, component, quantity, sites, wrap):
     lattice = traj.lattice
     if sites is None:
         if lattice.ndim != 1:
-            raise ValueError(f"a space-time image draws the sites along one axis: this lattice "
-                             f"has the shape {lattice.shape}; pick them with sites=..., e.g. a "
-                             f"row of the grid, sites=np.ravel_multi_index((i, np.arange("
-                             f"{lattice.shape[-1]})), {lattice.shape}).")
+            raise ValueError(
+                f"a space-time image draws the sites along one axis: this lattice "
+                f"has the shape {lattice.shape}; pick them with sites=..., e.g. a "
+                f"row of the grid, sites=np.ravel_multi_index((i, np.arange("
+                f"{lattice.shape[-1]})), {lattice.shape})."
+            )
         sites = np.arange(lattice.size)
         xlabel = "site n"
     else:
         sites = np.asarray(sites)
-        if sites.ndim != 1 or sites.size == 0 or not np.issubdtype(sites.dtype, np.integer) \
-                or sites.min() < 0 or sites.max() >= lattice.size:
-            raise ValueError(f"sites must be a non-empty 1-D array of site indices 0 … "
-                             f"{lattice.size - 1} (row-major), got {sites!r}.")
+        if (
+            sites.ndim != 1
+            or sites.size == 0
+            or not np.issubdtype(sites.dtype, np.integer)
+            or sites.min() < 0
+            or sites.max() >= lattice.size
+        ):
+            raise ValueError(
+                f"sites must be a non-empty 1-D array of site indices 0 … "
+                f"{lattice.size - 1} (row-major), got {sites!r}."
+            )
         xlabel = "position along the selected sites"
     vec = np.asarray(getattr(traj, quantity), dtype=float)[:, sites, :]
     symbol, units, what = _QUANTITY_LABELS[quantity]
@@ -48,10 +56,12 @@ def _space_time_values(traj, component, quantity, sites, wrap):
         vals, label = np.linalg.norm(vec, axis=-1), rf"$|{symbol}|$ ({units}), {what}"
     else:
         index = _COMPONENTS.get(component, component)
-        if not isinstance(index, (int, np.integer)) or isinstance(index, bool) \
-                or not 0 <= index < 3:
-            raise ValueError(f"component must be 'x', 'y', 'z', 0–2 or 'norm', got "
-                             f"{component!r}.")
+        if (
+            not isinstance(index, (int, np.integer))
+            or isinstance(index, bool)
+            or not 0 <= index < 3
+        ):
+            raise ValueError(f"component must be 'x', 'y', 'z', 0–2 or 'norm', got {component!r}.")
         name = "xyz"[index]
         vals, label = vec[..., index], rf"${symbol}_{name}$ ({units}), {what}"
     if wrap:
@@ -61,8 +71,17 @@ def _space_time_values(traj, component, quantity, sites, wrap):
     return vals, label, xlabel
 
 
-def plot_space_time(traj, component="z", *, quantity: str = "theta", sites=None, wrap=False,
-                    ax=None, cmap: str | None = None, title: str | None = None):
+def plot_space_time(
+    traj,
+    component="z",
+    *,
+    quantity: str = "theta",
+    sites=None,
+    wrap=False,
+    ax=None,
+    cmap: str | None = None,
+    title: str | None = None,
+):
     r"""Space-time image of one quantity of a :class:`rbo_jax.lattice.LatticeTrajectory`: the
     sites of a chain along x, the sample times along y, the value in colour.
 
@@ -88,8 +107,14 @@ def plot_space_time(traj, component="z", *, quantity: str = "theta", sites=None,
     if diverging:
         kw = {"vmin": -vmax, "vmax": vmax}
     colours = plt.get_cmap(cmap or ("RdBu_r" if diverging else "viridis"))
-    mesh = ax.pcolormesh(np.arange(vals.shape[1]), ts, np.ma.masked_invalid(vals),
-                         cmap=colours.with_extremes(bad="0.8"), shading="auto", **kw)
+    mesh = ax.pcolormesh(
+        np.arange(vals.shape[1]),
+        ts,
+        np.ma.masked_invalid(vals),
+        cmap=colours.with_extremes(bad="0.8"),
+        shading="auto",
+        **kw,
+    )
     plt.colorbar(mesh, ax=ax, label=label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("time t (s)")
@@ -124,16 +149,20 @@ def _dispersion_data(lattice, qs, eigenvalues, theta_eq):
     every wavevector (for a real Bloch matrix, the upper half of the conjugate pairs)."""
     qs = np.asarray(qs, dtype=float)
     if qs.ndim not in (1, 2) or qs.shape[0] < 1:
-        raise ValueError(f"qs must be (Q,) wavenumbers of a chain or (Q, dim) wavevectors, got "
-                         f"shape {qs.shape}.")
+        raise ValueError(
+            f"qs must be (Q,) wavenumbers of a chain or (Q, dim) wavevectors, got shape {qs.shape}."
+        )
     if eigenvalues is None:
         if lattice is None:
             raise ValueError("plot_dispersion needs a lattice or its eigenvalues=...")
         ndim = getattr(lattice, "ndim", None)
-        if ndim is not None and (qs.ndim == 1 and ndim != 1 or qs.ndim == 2
-                                 and qs.shape[1] != ndim):
-            raise ValueError(f"qs needs one wavenumber per axis of the lattice ({ndim}): shape "
-                             f"(Q,) for a chain, (Q, {ndim}) for a grid; got {qs.shape}.")
+        if ndim is not None and (
+            qs.ndim == 1 and ndim != 1 or qs.ndim == 2 and qs.shape[1] != ndim
+        ):
+            raise ValueError(
+                f"qs needs one wavenumber per axis of the lattice ({ndim}): shape "
+                f"(Q,) for a chain, (Q, {ndim}) for a grid; got {qs.shape}."
+            )
         import jax.numpy as jnp
 
         q = jnp.asarray(qs if qs.ndim == 2 else qs[:, None])
@@ -141,8 +170,10 @@ def _dispersion_data(lattice, qs, eigenvalues, theta_eq):
         eigenvalues = _lattice_eigenvalues(_canonical_cell(lattice), q, eq)
     lam = np.asarray(eigenvalues)
     if lam.shape != (qs.shape[0], 6):
-        raise ValueError(f"eigenvalues must have shape (len(qs), 6) = ({qs.shape[0]}, 6) (the "
-                         f"six of rbo_jax.lattice.dispersion per wavevector), got {lam.shape}.")
+        raise ValueError(
+            f"eigenvalues must have shape (len(qs), 6) = ({qs.shape[0]}, 6) (the "
+            f"six of rbo_jax.lattice.dispersion per wavevector), got {lam.shape}."
+        )
     order = np.argsort(lam.imag, axis=1, kind="stable")[:, 3:]
     branches = np.take_along_axis(lam, order, axis=1)
     if qs.ndim == 1:
@@ -156,22 +187,59 @@ def _closed_form_curves(closed_form, qs, n):
     or a mapping label -> either)."""
     if closed_form is None:
         return []
-    items = closed_form.items() if isinstance(closed_form, Mapping) else [("closed form",
-                                                                           closed_form)]
+    items = (
+        closed_form.items() if isinstance(closed_form, Mapping) else [("closed form", closed_form)]
+    )
     out = []
     for label, f in items:
         vals = np.asarray(f(np.asarray(qs, dtype=float)) if callable(f) else f, dtype=float)
         vals = vals[:, None] if vals.ndim == 1 else vals
         if vals.ndim != 2 or vals.shape[0] != n:
-            raise ValueError(f"the closed form {label!r} must give (Q,) or (Q, B) frequencies "
-                             f"for the {n} wavevectors, got shape {vals.shape}.")
+            raise ValueError(
+                f"the closed form {label!r} must give (Q,) or (Q, B) frequencies "
+                f"for the {n} wavevectors, got shape {vals.shape}."
+            )
         out.append((str(label), vals))
     return out
 
 
-def plot_dispersion(lattice, qs, *, ax=None, eigenvalues=None, closed_form=None,
-                    growth: bool | None = None, growth_ax=None, theta_eq=None,
-                    title: str | None = None):
+def _plot_frequencies(ax, x, branches, curves):
+    """The three frequency branches Im lambda(q) and the closed-form curves."""
+    style = "o-" if x.shape[0] <= 40 else "-"
+    for i in range(3):
+        ax.plot(
+            x,
+            branches[:, i].imag,
+            style,
+            color="C0",
+            ms=3,
+            lw=1.5,
+            label=r"$\mathrm{Im}\,\lambda(q)$, Bloch matrix" if i == 0 else None,
+        )
+    for j, (label, vals) in enumerate(curves):
+        for b in range(vals.shape[1]):
+            ax.plot(
+                x,
+                vals[:, b],
+                "--",
+                color="k" if j == 0 else f"C{j + 2}",
+                lw=1.2,
+                label=label if b == 0 else None,
+            )
+
+
+def plot_dispersion(
+    lattice,
+    qs,
+    *,
+    ax=None,
+    eigenvalues=None,
+    closed_form=None,
+    growth: bool | None = None,
+    growth_ax=None,
+    theta_eq=None,
+    title: str | None = None,
+):
     r"""The dispersion branches of a chain or grid (:func:`rbo_jax.lattice.dispersion`): the
     frequencies $\omega = \mathrm{Im}\,\lambda(q)$ of the Bloch matrix $B(q)$ against the
     wavenumber, and the growth rates $\mathrm{Re}\,\lambda(q)$ in a second panel or on a second
@@ -207,22 +275,21 @@ def plot_dispersion(lattice, qs, *, ax=None, eigenvalues=None, closed_form=None,
         growth = bool(np.max(np.abs(re)) > 1e-9 * scale)
     panel = ax is None and growth and growth_ax is None  # a panel below, made here
     if panel:
-        _, (ax, growth_ax) = plt.subplots(2, 1, figsize=(6, 6), sharex=True,
-                                          gridspec_kw={"height_ratios": (2, 1)},
-                                          layout="constrained")
+        _, (ax, growth_ax) = plt.subplots(
+            2,
+            1,
+            figsize=(6, 6),
+            sharex=True,
+            gridspec_kw={"height_ratios": (2, 1)},
+            layout="constrained",
+        )
     elif ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
     twin = growth and growth_ax is None
     if twin:
         growth_ax = ax.twinx()
+    _plot_frequencies(ax, x, branches, curves)
     style = "o-" if x.shape[0] <= 40 else "-"
-    for i in range(3):
-        ax.plot(x, branches[:, i].imag, style, color="C0", ms=3, lw=1.5,
-                label=r"$\mathrm{Im}\,\lambda(q)$, Bloch matrix" if i == 0 else None)
-    for j, (label, vals) in enumerate(curves):
-        for b in range(vals.shape[1]):
-            ax.plot(x, vals[:, b], "--", color="k" if j == 0 else f"C{j + 2}", lw=1.2,
-                    label=label if b == 0 else None)
     excess = np.max(re, axis=1) - 1e-9 * scale
     targets = [ax] + ([growth_ax] if growth and not twin else [])
     if np.any(excess > 0):
@@ -237,8 +304,15 @@ def plot_dispersion(lattice, qs, *, ax=None, eigenvalues=None, closed_form=None,
         # frequency (the two bending waves under a follower moment) swap their order in Im
         rates = -np.sort(-re, axis=1)
         for i in range(3):
-            growth_ax.plot(x, rates[:, i], style, color="C3", ms=3, lw=1.2,
-                           label=r"$\mathrm{Re}\,\lambda(q)$, sorted" if i == 0 else None)
+            growth_ax.plot(
+                x,
+                rates[:, i],
+                style,
+                color="C3",
+                ms=3,
+                lw=1.2,
+                label=r"$\mathrm{Re}\,\lambda(q)$, sorted" if i == 0 else None,
+            )
         growth_ax.axhline(0.0, color="k", lw=0.8)
         growth_ax.set_ylabel(r"growth rate $\mathrm{Re}\,\lambda$ (1/s)", color="C3")
         growth_ax.set_xlabel(xlabel)
@@ -261,5 +335,11 @@ def _shade_band(ax, x, excess):
     for n, (start, stop) in enumerate(zip(edges[::2], edges[1::2])):
         lo = x[start] if start == 0 else crossing(start - 1, start)
         hi = x[stop - 1] if stop == len(x) else crossing(stop - 1, stop)
-        ax.axvspan(lo, hi, color="C3", alpha=0.12, lw=0,
-                   label="flutter band (some Re λ > 0)" if n == 0 else None)
+        ax.axvspan(
+            lo,
+            hi,
+            color="C3",
+            alpha=0.12,
+            lw=0,
+            label="flutter band (some Re λ > 0)" if n == 0 else None,
+        )

@@ -9,11 +9,19 @@ import numpy as np
 from ..batch import POINT_DIM, status_counts, summary_line
 from ._common import pyplot
 
-__all__ = ['plot_stability_map', 'plot_root_locus', 'plot_sweep']
+__all__ = ["plot_stability_map", "plot_root_locus", "plot_sweep"]
 
 
-def plot_stability_map(ds, x: str, y: str, *, ax=None, select: dict | None = None,
-                       cmap: str = "RdBu_r", title: str | None = None):
+def plot_stability_map(
+    ds,
+    x: str,
+    y: str,
+    *,
+    ax=None,
+    select: dict | None = None,
+    cmap: str = "RdBu_r",
+    title: str | None = None,
+):
     r"""Spectral abscissa max Re p over two axes of a :func:`rbo_jax.stability_map` dataset, with
     the stability boundary (the contour where max Re p crosses the classification tolerance).
 
@@ -55,8 +63,15 @@ def _unstable_level(ds) -> float:
     return float(ds.attrs.get("classify_rtol", 1e-9)) * (scale if np.isfinite(scale) else 1.0)
 
 
-def plot_root_locus(values, eigenvalues, *, ax=None, label: str = "parameter",
-                    cmap: str = "viridis", title: str | None = None):
+def plot_root_locus(
+    values,
+    eigenvalues,
+    *,
+    ax=None,
+    label: str = "parameter",
+    cmap: str = "viridis",
+    title: str | None = None,
+):
     """Root locus: eigenvalues p (n, m) in the complex plane, coloured by the parameter values
     (n,). Returns the Axes."""
     plt = pyplot()
@@ -158,8 +173,16 @@ def _plot_grid(plt, ax, ds, vals, label, x, y, select):
     ax.set_ylabel(y)
 
 
-def plot_sweep(ds, variable: str | None = None, *, x: str | None = None, y: str | None = None,
-               select: Mapping[str, float] | None = None, ax=None, title: str | None = None):
+def plot_sweep(
+    ds,
+    variable: str | None = None,
+    *,
+    x: str | None = None,
+    y: str | None = None,
+    select: Mapping[str, float] | None = None,
+    ax=None,
+    title: str | None = None,
+):
     """Draw one variable of a :func:`rbo_jax.sweep` result; points whose status is not
     ``successful`` are left blank (grey). Vector-valued outputs are drawn by their norm.
 

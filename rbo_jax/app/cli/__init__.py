@@ -63,9 +63,14 @@ def build_parser() -> argparse.ArgumentParser:
         "model.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for name, func in [("demo", demo), ("reproduce", reproduce_command),
-                       ("sweep", sweep_command), ("simulate", simulate_command),
-                       ("stability-map", stability_map_command), ("fit", fit_command)]:
+    for name, func in [
+        ("demo", demo),
+        ("reproduce", reproduce_command),
+        ("sweep", sweep_command),
+        ("simulate", simulate_command),
+        ("stability-map", stability_map_command),
+        ("fit", fit_command),
+    ]:
         add_command(sub, name, func)
     return parser
 

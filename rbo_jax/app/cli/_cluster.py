@@ -8,8 +8,11 @@ import argparse
 from .._cluster import MISSING, dask_installed
 from ._common import Failure
 
-_JAX_DISTRIBUTED = (("--coordinator", "coordinator"), ("--num-processes", "num_processes"),
-                    ("--process-id", "process_id"))
+_JAX_DISTRIBUTED = (
+    ("--coordinator", "coordinator"),
+    ("--num-processes", "num_processes"),
+    ("--process-id", "process_id"),
+)
 
 
 def check_cluster_options(args: argparse.Namespace) -> None:
@@ -20,14 +23,18 @@ def check_cluster_options(args: argparse.Namespace) -> None:
     if scheduler is None and workers is None:
         return
     if scheduler is not None and workers is not None:
-        raise Failure("--scheduler and --workers exclude each other: connect to a running Dask "
-                      "scheduler, or start a local cluster of N workers.")
+        raise Failure(
+            "--scheduler and --workers exclude each other: connect to a running Dask "
+            "scheduler, or start a local cluster of N workers."
+        )
     ours = "--scheduler" if scheduler is not None else "--workers"
     theirs = [flag for flag, name in _JAX_DISTRIBUTED if getattr(args, name, None) is not None]
     if theirs:
-        raise Failure(f"{ours} (Dask) and {', '.join(theirs)} (jax.distributed) exclude each "
-                      "other: one process with a Dask cluster computes the chunks, or several "
-                      "jax.distributed processes do.")
+        raise Failure(
+            f"{ours} (Dask) and {', '.join(theirs)} (jax.distributed) exclude each "
+            "other: one process with a Dask cluster computes the chunks, or several "
+            "jax.distributed processes do."
+        )
     if workers is not None and workers < 1:
         raise Failure(f"--workers must be >= 1, got {workers}.")
     if scheduler is not None and not scheduler.strip():

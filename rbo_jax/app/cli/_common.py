@@ -28,7 +28,8 @@ def floats(text: str) -> tuple[float, ...]:
         return tuple(float(x) for x in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"expected comma-separated numbers such as 0.1,0,-0.2, got {text!r}") from None
+            f"expected comma-separated numbers such as 0.1,0,-0.2, got {text!r}"
+        ) from None
 
 
 def horizons(text: str) -> tuple[float, ...]:
@@ -36,7 +37,8 @@ def horizons(text: str) -> tuple[float, ...]:
     values = floats(text)
     if any(not 0.0 < h <= 1.0 for h in values) or list(values) != sorted(values):
         raise argparse.ArgumentTypeError(
-            f"expected increasing fractions in (0, 1] such as 0.2,0.5,1, got {text!r}")
+            f"expected increasing fractions in (0, 1] such as 0.2,0.5,1, got {text!r}"
+        )
     return values
 
 
@@ -57,21 +59,29 @@ def grid(text: str):
                 raise ValueError
             if n > MAX_AXIS:
                 raise argparse.ArgumentTypeError(
-                    f"at most {MAX_AXIS:,} values per axis, got {n:,} in {text!r}")
+                    f"at most {MAX_AXIS:,} values per axis, got {n:,} in {text!r}"
+                )
             values = np.linspace(float(start), float(stop), n)
         else:
             values = np.asarray([float(x) for x in text.split(",")])
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected a value (0.5), a list (0.1,0.2,0.5) or start:stop:num with num >= 1 "
-            f"(-0.8:0.8:41), got {text!r}") from None
+            f"(-0.8:0.8:41), got {text!r}"
+        ) from None
     if not np.all(np.isfinite(values)):
         raise argparse.ArgumentTypeError(f"values must be finite, got {text!r}")
     return values
 
 
-def check_output(path: str, option: str, allowed: tuple[str, ...] | None = None, *,
-                 directory: bool | None = None, make_parents: bool = False) -> str:
+def check_output(
+    path: str,
+    option: str,
+    allowed: tuple[str, ...] | None = None,
+    *,
+    directory: bool | None = None,
+    make_parents: bool = False,
+) -> str:
     """An output path checked before any work (exit status 2 naming ``option``): its format
     by the suffix (``allowed``), and that it can be written (:func:`output_problem`). A
     ``.zarr`` output is a folder unless ``directory`` says otherwise. Returns the suffix."""
@@ -94,8 +104,12 @@ def check_number(value, option: str, *, minimum=None, above=None, maximum=None) 
         bounds.append(f"> {above:g}")
     if maximum is not None:
         bounds.append(f"<= {maximum:g}")
-    ok = math.isfinite(value) and (minimum is None or value >= minimum) and \
-        (above is None or value > above) and (maximum is None or value <= maximum)
+    ok = (
+        math.isfinite(value)
+        and (minimum is None or value >= minimum)
+        and (above is None or value > above)
+        and (maximum is None or value <= maximum)
+    )
     if not ok:
         need = "finite" + ("".join(f" and {b}" for b in bounds) if bounds else "")
         shown = f"{value:g}" if isinstance(value, float) else str(value)
@@ -110,8 +124,7 @@ MAX_COUNT = 2**31 - 1
 def check_count(value: int, option: str, minimum: int = 1) -> None:
     """An integer option between ``minimum`` and :data:`MAX_COUNT` (exit status 2)."""
     if not minimum <= value <= MAX_COUNT:
-        raise Failure(f"{option} must be an integer from {minimum} to {MAX_COUNT}, got "
-                      f"{value}.")
+        raise Failure(f"{option} must be an integer from {minimum} to {MAX_COUNT}, got {value}.")
 
 
 def check_state(value, option: str) -> None:
@@ -120,8 +133,9 @@ def check_state(value, option: str) -> None:
         return
     text = ",".join(f"{x:g}" for x in value)
     if len(value) != 3:
-        raise Failure(f"{option} must have shape (3,) (three components X,Y,Z), got "
-                      f"{len(value)}: {text}.")
+        raise Failure(
+            f"{option} must have shape (3,) (three components X,Y,Z), got {len(value)}: {text}."
+        )
     if not all(math.isfinite(x) for x in value):
         raise Failure(f"{option} must be finite, got {text}.")
 
@@ -129,8 +143,11 @@ def check_state(value, option: str) -> None:
 def check_suffix(path: str, allowed: tuple[str, ...], option: str) -> str:
     ext = suffix(path)
     if ext not in allowed:
-        raise Failure(f"{option} {path}: unknown format {ext or '(no suffix)'!r}; use "
-                      + " or ".join(allowed) + ".")
+        raise Failure(
+            f"{option} {path}: unknown format {ext or '(no suffix)'!r}; use "
+            + " or ".join(allowed)
+            + "."
+        )
     return ext
 
 
@@ -149,8 +166,12 @@ def table(header: list[str], rows: list[list[float]]) -> str:
     out = ["  ".join(h.rjust(w) for h, w in zip(header, widths))]
     out.append("  ".join("-" * w for w in widths))
     for r in rows:
-        out.append("  ".join(f"{v:{w}.4e}" if isinstance(v, float) else str(v).rjust(w)
-                             for v, w in zip(r, widths)))
+        out.append(
+            "  ".join(
+                f"{v:{w}.4e}" if isinstance(v, float) else str(v).rjust(w)
+                for v, w in zip(r, widths)
+            )
+        )
     return "\n".join(out)
 
 
@@ -161,8 +182,10 @@ def pyplot_or_fail(command: str):
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise Failure(f"--plot needs matplotlib, which is not installed (pip install "
-                      f"'rbo_jax[plot]'); run {command} without --plot.") from None
+        raise Failure(
+            f"--plot needs matplotlib, which is not installed (pip install "
+            f"'rbo_jax[plot]'); run {command} without --plot."
+        ) from None
     return plt
 
 
@@ -180,21 +203,34 @@ def model_table(args: argparse.Namespace) -> tuple[dict, dict]:
     if args.principal is not None and (args.A1 is not None or args.A3 is not None):
         raise Failure("--principal replaces --A1 and --A3: give one or the other.")
     if args.foundation == "barrier" and (args.alpha is None or args.beta is None):
-        raise Failure("--foundation barrier needs --alpha and --beta (the barriers of (4.49); "
-                      "'inf' switches one off).")
+        raise Failure(
+            "--foundation barrier needs --alpha and --beta (the barriers of (4.49); "
+            "'inf' switches one off)."
+        )
     if args.foundation != "barrier" and (args.alpha is not None or args.beta is not None):
-        raise Failure(f"--alpha and --beta belong to --foundation barrier (4.49); the "
-                      f"{args.foundation} foundation has no barriers.")
-    options = {"[model] axis": "--axis", "[model.inertia] A1": "--A1",
-               "[model.inertia] A3": "--A3", "[model.inertia] moments": "--principal"}
+        raise Failure(
+            f"--alpha and --beta belong to --foundation barrier (4.49); the "
+            f"{args.foundation} foundation has no barriers."
+        )
+    options = {
+        "[model] axis": "--axis",
+        "[model.inertia] A1": "--A1",
+        "[model.inertia] A3": "--A3",
+        "[model.inertia] moments": "--principal",
+    }
     if args.principal is not None:
         inertia = {"moments": list(args.principal)}
     else:
-        inertia = {"A1": 1.0 if args.A1 is None else args.A1,
-                   "A3": 0.6 if args.A3 is None else args.A3}
+        inertia = {
+            "A1": 1.0 if args.A1 is None else args.A1,
+            "A3": 0.6 if args.A3 is None else args.A3,
+        }
     foundation = {"type": args.foundation}
-    foundation |= {"quadratic": {"c": args.c, "d": args.d}, "barrier": {"c": args.c, "d": args.d},
-                   "cosine": {"c": args.c}}.get(args.foundation, {})
+    foundation |= {
+        "quadratic": {"c": args.c, "d": args.d},
+        "barrier": {"c": args.c, "d": args.d},
+        "cosine": {"c": args.c},
+    }.get(args.foundation, {})
     if args.foundation == "barrier":
         foundation |= {"alpha": args.alpha, "beta": args.beta}
     options |= {f"[model.foundation] {n}": f"--{n}" for n in ("c", "d", "alpha", "beta")}
@@ -203,8 +239,12 @@ def model_table(args: argparse.Namespace) -> tuple[dict, dict]:
         if getattr(args, option) is not None:
             options[f"[model.loads][{len(loads)}] {key}"] = f"--{option}"
             loads.append({"type": option, key: getattr(args, option)})
-    return {"axis": list(args.axis), "inertia": inertia, "foundation": foundation,
-            "loads": loads}, options
+    return {
+        "axis": list(args.axis),
+        "inertia": inertia,
+        "foundation": foundation,
+        "loads": loads,
+    }, options
 
 
 def model_spec(table_: dict, options: dict, axes=None) -> ModelSpec:

@@ -48,22 +48,33 @@ def check_options(args: argparse.Namespace) -> bool:
     given = (args.coordinator, args.num_processes, args.process_id)
     if all(x is None for x in given):
         if args.heartbeat_timeout is not None:
-            raise Failure("--heartbeat-timeout belongs to a multi-process run (--coordinator, "
-                          "--num-processes, --process-id).")
+            raise Failure(
+                "--heartbeat-timeout belongs to a multi-process run (--coordinator, "
+                "--num-processes, --process-id)."
+            )
         return False
     if any(x is None for x in given):
         raise Failure("--coordinator, --num-processes and --process-id go together.")
     host, sep, port = args.coordinator.strip().rpartition(":")
     host = host[1:-1] if host.startswith("[") and host.endswith("]") else host  # [IPv6]
-    if (not sep or not host or not re.fullmatch(r"[A-Za-z0-9._:-]+", host)
-            or not port.isdigit() or not 1 <= int(port) <= 65535):
-        raise Failure(f"--coordinator {args.coordinator!r}: expected HOST:PORT, the address of "
-                      "process 0, e.g. localhost:12345 or node01:12345.")
+    if (
+        not sep
+        or not host
+        or not re.fullmatch(r"[A-Za-z0-9._:-]+", host)
+        or not port.isdigit()
+        or not 1 <= int(port) <= 65535
+    ):
+        raise Failure(
+            f"--coordinator {args.coordinator!r}: expected HOST:PORT, the address of "
+            "process 0, e.g. localhost:12345 or node01:12345."
+        )
     if args.num_processes < 1:
         raise Failure(f"--num-processes must be at least 1, got {args.num_processes}.")
     if not 0 <= args.process_id < args.num_processes:
-        raise Failure(f"--process-id must lie in 0..{args.num_processes - 1} (--num-processes "
-                      f"{args.num_processes}), got {args.process_id}.")
+        raise Failure(
+            f"--process-id must lie in 0..{args.num_processes - 1} (--num-processes "
+            f"{args.num_processes}), got {args.process_id}."
+        )
     if args.heartbeat_timeout is not None and args.heartbeat_timeout < 1:
         raise Failure(f"--heartbeat-timeout must be at least 1 s, got {args.heartbeat_timeout}.")
     return True
@@ -79,14 +90,20 @@ def _lost_process(log: str, count: int) -> str:
     found = re.search(r"stopped sending heartbeats\):\s*([\d,\s]+)", log)
     if found:
         ids = [int(x) for x in re.findall(r"\d+", found.group(1))]
-        return (f"process {', '.join(map(str, ids))} of {count} was lost (no heartbeat); process 0 "
-                "could not go on without it")
-    if re.search(r"Failed to send RPC to coordination service|Socket closed|"
-                 r"failed to connect to all addresses|leader task", log):
+        return (
+            f"process {', '.join(map(str, ids))} of {count} was lost (no heartbeat); process 0 "
+            "could not go on without it"
+        )
+    if re.search(
+        r"Failed to send RPC to coordination service|Socket closed|"
+        r"failed to connect to all addresses|leader task",
+        log,
+    ):
         return f"process 0 of {count}, which coordinates the run, was lost"
     tail = [line for line in log.splitlines() if re.match(r"[EF]\d{4} ", line)]
     return "JAX's distributed runtime ended this process" + (
-        f" ({tail[-1].split('] ', 1)[-1][:200]})" if tail else "")
+        f" ({tail[-1].split('] ', 1)[-1][:200]})" if tail else ""
+    )
 
 
 def _release_lock(store: Path, pid: int):
@@ -128,17 +145,26 @@ def supervise(args: argparse.Namespace, store: Path) -> int:
     name = signal.Signals(-rc).name
     if -rc in (signal.SIGINT, signal.SIGTERM):
         return 128 - rc
-    what = (_lost_process(log, args.num_processes) if -rc == signal.SIGABRT
-            else f"process {args.process_id} was killed ({name})")
+    what = (
+        _lost_process(log, args.num_processes)
+        if -rc == signal.SIGABRT
+        else f"process {args.process_id} was killed ({name})"
+    )
     from ._sweep_store import _chunks_done, resume_command
 
     _release_lock(store, child.pid)
     counts = _chunks_done(store)
-    kept = (f"{counts[0]} of {counts[1]} chunks are kept in {store}" if counts is not None
-            else f"nothing was written to {store}")
+    kept = (
+        f"{counts[0]} of {counts[1]} chunks are kept in {store}"
+        if counts is not None
+        else f"nothing was written to {store}"
+    )
     one = argparse.Namespace(argv=single_process_argv(args.argv))
-    print(f"rbo-jax sweep: error: {what}; {kept}; finish the sweep with: {resume_command(one)} "
-          "(or all processes again with --resume)", file=sys.stderr)
+    print(
+        f"rbo-jax sweep: error: {what}; {kept}; finish the sweep with: {resume_command(one)} "
+        "(or all processes again with --resume)",
+        file=sys.stderr,
+    )
     return 1
 
 
@@ -170,15 +196,21 @@ def initialize(args: argparse.Namespace):
     os.dup2(log, 2)
     os.close(log)
     sys.stderr.flush()
-    sys.stderr = io.TextIOWrapper(io.FileIO(terminal, "w", closefd=True), write_through=True,
-                                  line_buffering=True)
+    sys.stderr = io.TextIOWrapper(
+        io.FileIO(terminal, "w", closefd=True), write_through=True, line_buffering=True
+    )
     jax.config.update("jax_enable_recoverability", True)
     heartbeat = HEARTBEAT_S if args.heartbeat_timeout is None else args.heartbeat_timeout
     try:
-        jax.distributed.initialize(coordinator_address=args.coordinator.strip(),
-                                   num_processes=args.num_processes, process_id=args.process_id,
-                                   heartbeat_timeout_seconds=int(heartbeat))
+        jax.distributed.initialize(
+            coordinator_address=args.coordinator.strip(),
+            num_processes=args.num_processes,
+            process_id=args.process_id,
+            heartbeat_timeout_seconds=int(heartbeat),
+        )
     except Exception as e:  # JAX's message names the address; say what to check
-        raise Failure(f"could not join the run at --coordinator {args.coordinator} as process "
-                      f"{args.process_id} of {args.num_processes}: {str(e).splitlines()[0][:300]}",
-                      code=1) from None
+        raise Failure(
+            f"could not join the run at --coordinator {args.coordinator} as process "
+            f"{args.process_id} of {args.num_processes}: {str(e).splitlines()[0][:300]}",
+            code=1,
+        ) from None

@@ -58,8 +58,9 @@ def _default_description() -> str:
     from .._outputs import WRITTEN
 
     if WRITTEN:
-        return (f"kept {', '.join(WRITTEN)} (complete); the rest was not written; run the "
-                "command again")
+        return (
+            f"kept {', '.join(WRITTEN)} (complete); the rest was not written; run the command again"
+        )
     return "nothing was written (outputs are written whole, at the end); run the command again"
 
 
@@ -146,7 +147,6 @@ def install() -> None:
     signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
     for s in _SIGNALS:
         signal.signal(s, _ignore)
-    threading.Thread(target=_watch, args=(read_fd,), name="rbo-jax-interrupt",
-                     daemon=True).start()
+    threading.Thread(target=_watch, args=(read_fd,), name="rbo-jax-interrupt", daemon=True).start()
     os.register_at_fork(after_in_child=_in_child)
     _state["installed"] = True

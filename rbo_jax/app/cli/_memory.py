@@ -48,5 +48,7 @@ def check_memory(need: float, what: str, way_out: str) -> None:
     total = physical_memory()
     if total is None or need <= SHARE * total:
         return
-    raise Failure(f"{what}: needs about {need / 2**30:,.1f} GiB of memory, more than "
-                  f"{SHARE:.0%} of this machine's {total / 2**30:.1f} GiB; {way_out}.")
+    raise Failure(
+        f"{what}: needs about {need / 2**30:,.1f} GiB of memory, more than "
+        f"{SHARE:.0%} of this machine's {total / 2**30:.1f} GiB; {way_out}."
+    )

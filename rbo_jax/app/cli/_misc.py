@@ -37,29 +37,44 @@ def demo(args: argparse.Namespace) -> int:
 
     k = jnp.array([0.0, 0.0, 1.0])
     n = args.samples
-    model = RigidBodyOscillator(transversely_isotropic_inertia(1.0, 0.6, k),
-                                BarrierFoundation(c=1.0, d=2.0, alpha=2.0, beta=1.5, k=k))
+    model = RigidBodyOscillator(
+        transversely_isotropic_inertia(1.0, 0.6, k),
+        BarrierFoundation(c=1.0, d=2.0, alpha=2.0, beta=1.5, k=k),
+    )
     start = time.perf_counter()
-    traj = simulate(model, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]),
-                    jnp.linspace(0.0, args.t1, n))
+    traj = simulate(
+        model,
+        jnp.array([0.8, -0.3, 0.5]),
+        jnp.array([0.2, 1.1, -0.7]),
+        jnp.linspace(0.0, args.t1, n),
+    )
     elapsed = time.perf_counter() - start
     E = np.asarray(traj.energy)
-    rows = [[float(t), float(np.linalg.norm(th)), float(th[2]), float(e), float((e - E[0]) / E[0])]
-            for t, th, e in zip(np.asarray(traj.ts), np.asarray(traj.theta), E)]
+    rows = [
+        [float(t), float(np.linalg.norm(th)), float(th[2]), float(e), float((e - E[0]) / E[0])]
+        for t, th, e in zip(np.asarray(traj.ts), np.asarray(traj.theta), E)
+    ]
     print("1) Rigid body oscillator on the barrier foundation (4.49), A1 = 1, A3 = 0.6,")
     print("   c = 1, d = 2, alpha = 2, beta = 1.5; right form (4.55)-(4.56), Dopri8, rtol 1e-10")
     print(table(["t", "|theta|", "k.theta", "K + U", "rel. drift"], rows))
-    print(f"   {int(traj.num_steps)} steps, {elapsed:.2f} s including compilation; "
-          f"max |energy drift| = {np.max(np.abs((E - E[0]) / E[0])):.2e}\n")
+    print(
+        f"   {int(traj.num_steps)} steps, {elapsed:.2f} s including compilation; "
+        f"max |energy drift| = {np.max(np.abs((E - E[0]) / E[0])):.2e}\n"
+    )
 
     c, d, M = 1.0, 2.0, 0.4
     theta_eq = nikolai_equilibrium(M, d, k)
-    traj = simulate(nikolai_model(M, c, d, A1=1.0, A3=0.6, k=k),
-                    theta_eq + jnp.array([1e-6, 0.0, 0.0]), jnp.zeros(3),
-                    jnp.linspace(0.0, 4 * args.t1, n))
+    traj = simulate(
+        nikolai_model(M, c, d, A1=1.0, A3=0.6, k=k),
+        theta_eq + jnp.array([1e-6, 0.0, 0.0]),
+        jnp.zeros(3),
+        jnp.linspace(0.0, 4 * args.t1, n),
+    )
     dev = np.asarray(traj.theta) - np.asarray(theta_eq)
-    rows = [[float(t), float(np.linalg.norm(dv[:2])), float(dv[2])]
-            for t, dv in zip(np.asarray(traj.ts), dev)]
+    rows = [
+        [float(t), float(np.linalg.norm(dv[:2])), float(dv[2])]
+        for t, dv in zip(np.asarray(traj.ts), dev)
+    ]
     print(f"2) Nikolai problem (4.57)-(4.62): follower moment M = {M}, c = {c}, d = {d};")
     print("   start 1e-6 rad off the equilibrium theta = (M/d) k. The bending deviation grows,")
     print("   although the linearised theory (4.74) predicts bounded oscillations.")
@@ -79,8 +94,10 @@ def reproduce_command(args: argparse.Namespace) -> int:
     print()
     for c in checks:
         print(f"  {'pass' if c.passed else 'FAIL'}  {c.section:<{width}}  {c.quantity}  [{c.ours}]")
-    print(f"\n{len(checks) - len(failed)} of {len(checks)} checks passed; report: "
-          f"{args.out}/report.md")
+    print(
+        f"\n{len(checks) - len(failed)} of {len(checks)} checks passed; report: "
+        f"{args.out}/report.md"
+    )
     return 1 if failed else 0
 
 
@@ -108,8 +125,10 @@ def sweep_command(args: argparse.Namespace) -> int:
         matplotlib.use("Agg")
         plot = not args.no_plot
     except ImportError:
-        print("rbo-jax sweep: matplotlib is not installed, no PNG (pip install 'rbo_jax[plot]').",
-              file=sys.stderr)
+        print(
+            "rbo-jax sweep: matplotlib is not installed, no PNG (pip install 'rbo_jax[plot]').",
+            file=sys.stderr,
+        )
         plot = False
     store = check_paths(args, cfg, plot)  # store and PNG writable
     if multi_process and not _distributed.supervised():
@@ -118,10 +137,17 @@ def sweep_command(args: argparse.Namespace) -> int:
     if multi_process:
         _distributed.initialize(args)
     try:
-        ds, png = run_config(cfg, resume=args.resume or args.retry_errors,
-                             overwrite=args.overwrite, progress=not args.quiet,
-                             output=args.output, plot=plot, retry_errors=args.retry_errors,
-                             scheduler=args.scheduler, workers=args.workers)
+        ds, png = run_config(
+            cfg,
+            resume=args.resume or args.retry_errors,
+            overwrite=args.overwrite,
+            progress=not args.quiet,
+            output=args.output,
+            plot=plot,
+            retry_errors=args.retry_errors,
+            scheduler=args.scheduler,
+            workers=args.workers,
+        )
     except (FileExistsError, SweepError) as e:
         print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
         return 2
@@ -129,7 +155,9 @@ def sweep_command(args: argparse.Namespace) -> int:
     counts = status_counts(ds)
     failed = {k: v for k, v in counts.items() if v and k != "successful"}
     if jax.process_index() == 0 and (not args.quiet or failed):
-        print(f"{cfg.quantity_name}: {sum(counts.values())} points -> {out}"
-              + (f", map {png}" if png else ""))
+        print(
+            f"{cfg.quantity_name}: {sum(counts.values())} points -> {out}"
+            + (f", map {png}" if png else "")
+        )
         print("  status: " + ", ".join(f"{k} {v}" for k, v in counts.items() if v))
     return 0

@@ -15,8 +15,14 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-_TYPES = {"float": float, "int": int, "str": str, "floats": floats, "grid": grid,
-          "horizons": horizons}
+_TYPES = {
+    "float": float,
+    "int": int,
+    "str": str,
+    "floats": floats,
+    "grid": grid,
+    "horizons": horizons,
+}
 
 
 class Parser(argparse.ArgumentParser):
@@ -24,8 +30,7 @@ class Parser(argparse.ArgumentParser):
     then where the help is) instead of the usage text and the error, exit status 2."""
 
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} "
-                     f"--help)\n")
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
 
 
 @functools.cache
@@ -67,7 +72,8 @@ def add_group(parser, name: str, **fmt) -> None:
     if "title" in spec:
         description = spec.get("description")
         group = parser.add_argument_group(
-            spec["title"], wrap(description.format(**fmt)) if description else None)
+            spec["title"], wrap(description.format(**fmt)) if description else None
+        )
     if spec.get("exclusive"):
         group = group.add_mutually_exclusive_group(required=True)
     for option in spec["options"]:
@@ -84,8 +90,13 @@ def add_command(sub, name: str, func) -> argparse.ArgumentParser:
     epilog = spec.get("epilog")
     if spec.get("negative"):
         epilog = (epilog + "\n\n" if epilog else "") + wrap(common["negative"])
-    p = sub.add_parser(name, help=spec["help"], description=description, epilog=epilog,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        name,
+        help=spec["help"],
+        description=description,
+        epilog=epilog,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     for group in spec["groups"]:
         add_group(p, group, model_role=spec.get("model_role", ""))
     p.set_defaults(func=func)

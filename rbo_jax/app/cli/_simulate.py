@@ -50,9 +50,12 @@ def check_solve_options(args) -> None:
 
 def check_samples_memory(samples: int, per_sample: float, fixed: float = 0.0) -> None:
     """Refuse a number of samples whose trajectory does not fit in memory (exit status 2)."""
-    check_memory(fixed + samples * per_sample, f"--samples {samples}",
-                 "give fewer samples (--samples N: the printed and written times; the solver's "
-                 "accuracy does not depend on them)")
+    check_memory(
+        fixed + samples * per_sample,
+        f"--samples {samples}",
+        "give fewer samples (--samples N: the printed and written times; the solver's "
+        "accuracy does not depend on them)",
+    )
 
 
 def _check_options(args):
@@ -60,8 +63,7 @@ def _check_options(args):
         check_output(args.out, "--out", OUT_SUFFIXES)
     check_solve_options(args)
     if args.progress and args.integrator != "simulate" and args.lattice is None:
-        raise Failure("--progress needs --integrator simulate (fast_simulate has no progress "
-                      "bar).")
+        raise Failure("--progress needs --integrator simulate (fast_simulate has no progress bar).")
     if args.lattice is None:
         check_samples_memory(args.samples, BYTES_PER_SAMPLE)
 
@@ -77,10 +79,13 @@ def _initial_state(args, model):
     if args.about_equilibrium:
         sol = solve_equilibrium(model, jnp.zeros(3))
         if not bool(sol.ok):
-            raise Failure("no equilibrium for --about-equilibrium: "
-                          f"{EquilibriumStatus[sol.status]}", code=1)
-        print(f"equilibrium theta_eq = {np.asarray(sol.theta).tolist()} (Newton from 0, "
-              f"|moment| = {float(sol.residual):.1e}); theta0 = theta_eq + --theta0")
+            raise Failure(
+                f"no equilibrium for --about-equilibrium: {EquilibriumStatus[sol.status]}", code=1
+            )
+        print(
+            f"equilibrium theta_eq = {np.asarray(sol.theta).tolist()} (Newton from 0, "
+            f"|moment| = {float(sol.residual):.1e}); theta0 = theta_eq + --theta0"
+        )
         theta0 = sol.theta + theta0
     return theta0, Omega0
 
@@ -92,11 +97,31 @@ def _print_table(ds, max_rows):
     reached = ds["reached"].values
     relative = bool(np.isfinite(E[0]) and E[0] != 0)
     drift = (E - E[0]) / (abs(E[0]) if relative else 1.0)
-    rows = [[float(t[i]), float(np.linalg.norm(theta[i])), *map(float, theta[i]), float(E[i]),
-             float(drift[i])] for i in _spread(list(np.flatnonzero(reached)), max_rows)]
+    rows = [
+        [
+            float(t[i]),
+            float(np.linalg.norm(theta[i])),
+            *map(float, theta[i]),
+            float(E[i]),
+            float(drift[i]),
+        ]
+        for i in _spread(list(np.flatnonzero(reached)), max_rows)
+    ]
     if rows:
-        print(table(["t", "|theta|", "theta_x", "theta_y", "theta_z", "K + U",
-                     "rel. drift" if relative else "drift"], rows))
+        print(
+            table(
+                [
+                    "t",
+                    "|theta|",
+                    "theta_x",
+                    "theta_y",
+                    "theta_z",
+                    "K + U",
+                    "rel. drift" if relative else "drift",
+                ],
+                rows,
+            )
+        )
         if len(rows) < int(reached.sum()):
             print(f"   ({len(rows)} of {int(reached.sum())} samples shown; --max-rows)")
     max_drift = float(np.max(np.abs(drift[reached]))) if reached.any() else float("nan")
@@ -125,11 +150,28 @@ def simulate_command(args: argparse.Namespace) -> int:
     ts = jnp.linspace(0.0, args.t1, args.samples)
     start = time.perf_counter()
     if args.integrator == "simulate":
-        traj = simulate(model, theta0, Omega0, ts, rtol=args.rtol, atol=args.atol,
-                        max_steps=args.max_steps, throw=False, progress=args.progress)
+        traj = simulate(
+            model,
+            theta0,
+            Omega0,
+            ts,
+            rtol=args.rtol,
+            atol=args.atol,
+            max_steps=args.max_steps,
+            throw=False,
+            progress=args.progress,
+        )
     else:
-        traj = fast_simulate(model, theta0, Omega0, ts, rtol=args.rtol, atol=args.atol,
-                             max_steps=args.max_steps, throw=False)
+        traj = fast_simulate(
+            model,
+            theta0,
+            Omega0,
+            ts,
+            rtol=args.rtol,
+            atol=args.atol,
+            max_steps=args.max_steps,
+            throw=False,
+        )
     ds = traj.to_xarray(model=spec.describe(), command="rbo-jax " + " ".join(args.argv))
     elapsed = time.perf_counter() - start
     drift = _print_table(ds, args.max_rows)
@@ -138,9 +180,11 @@ def simulate_command(args: argparse.Namespace) -> int:
             write_trajectory_csv(ds, args.out)
         else:
             write_dataset(ds, args.out)
-    print(f"   {int(traj.num_steps)} steps, status: {traj.status_name}, {drift}, "
-          f"wall time {elapsed:.2f} s (compilation included)"
-          + (f"; trajectory -> {args.out}" if args.out else ""))
+    print(
+        f"   {int(traj.num_steps)} steps, status: {traj.status_name}, {drift}, "
+        f"wall time {elapsed:.2f} s (compilation included)"
+        + (f"; trajectory -> {args.out}" if args.out else "")
+    )
     if not bool(traj.ok):
         reached = ds["reached"].values
         last = ds["t"].values[reached][-1] if reached.any() else None

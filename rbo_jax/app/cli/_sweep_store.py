@@ -34,12 +34,17 @@ def check_paths(args: argparse.Namespace, cfg, plot: bool) -> Path:
     out = Path(text)
     if plot:
         png = png_path(args, cfg)
-        where = ("the map (PNG) of --output" if args.output is not None else
-                 f"[sweep] png (in {cfg.source})" if png != cfg.output.with_suffix(".png") else
-                 f"the map (PNG) of [sweep] output (in {cfg.source})")
+        where = (
+            "the map (PNG) of --output"
+            if args.output is not None
+            else f"[sweep] png (in {cfg.source})"
+            if png != cfg.output.with_suffix(".png")
+            else f"the map (PNG) of [sweep] output (in {cfg.source})"
+        )
         if png.resolve() == out.resolve():
-            raise Failure(f"{where} {png}: the store's own path; give the store another "
-                          "suffix (e.g. .zarr).")
+            raise Failure(
+                f"{where} {png}: the store's own path; give the store another suffix (e.g. .zarr)."
+            )
         check_output(str(png), where, make_parents=png.parent == out.parent)
     return out
 

@@ -28,8 +28,13 @@ from ._precession import precession
 __all__ = ["Check", "run_reproduction"]
 
 
-def run_reproduction(out: str = "out", *, quick: bool = False, figures: bool = True,
-                     log: Callable[[str], None] = print) -> list[Check]:
+def run_reproduction(
+    out: str = "out",
+    *,
+    quick: bool = False,
+    figures: bool = True,
+    log: Callable[[str], None] = print,
+) -> list[Check]:
     """Run every reproduction check, write ``out/report.md`` (and PNG figures), return checks."""
     os.makedirs(out, exist_ok=True)
     plt = None
@@ -47,8 +52,10 @@ def run_reproduction(out: str = "out", *, quick: bool = False, figures: bool = T
         ("regular precession (4.7)", lambda: precession(out, plt)),
         ("fitting", fitting),
         ("bifurcations: Hopf points, continuation", lambda: bifurcation(out, plt, quick)),
-        ("lattices of bodies (4.8): waves, kink, Kelvin's medium",
-         lambda: lattice(out, plt, quick)),
+        (
+            "lattices of bodies (4.8): waves, kink, Kelvin's medium",
+            lambda: lattice(out, plt, quick),
+        ),
     ]
     checks: list[Check] = []
     for i, (name, fn) in enumerate(steps, 1):
@@ -71,14 +78,17 @@ def _write_report(out, checks, elapsed, quick, figures):
         "refer to its section 4, read as docs/readings.md of the rbo_jax repository says.",
         "",
         f"{sum(c.passed for c in checks)} of {len(checks)} checks passed in {elapsed:.1f} s"
-        + (" (quick mode)" if quick else "") + ".",
+        + (" (quick mode)" if quick else "")
+        + ".",
         "",
         "| section | quantity | paper | ours | error | tolerance | |",
         "|---|---|---|---|---|---|---|",
     ]
     for c in checks:
-        lines.append(f"| {c.section} | {c.quantity} | {c.paper} | {c.ours} | {c.error:.2e} | "
-                     f"{c.tolerance:.0e} | {'pass' if c.passed else '**FAIL**'} |")
+        lines.append(
+            f"| {c.section} | {c.quantity} | {c.paper} | {c.ours} | {c.error:.2e} | "
+            f"{c.tolerance:.0e} | {'pass' if c.passed else '**FAIL**'} |"
+        )
     if figures:
         lines += ["", "## Figures", ""]
         for name, caption in [
@@ -86,18 +96,26 @@ def _write_report(out, checks, elapsed, quick, figures):
             ("map_M_A3.png", "Stability map over (M, A3/A1), c/d = 1"),
             ("root_locus.png", "Root locus against the follower moment M"),
             ("nikolai_growth.png", "Simulated growth vs max Re p of (4.69)"),
-            ("simplest_oscillator.png",
-             "Simplest oscillator: (4.99), (4.101) and the Euler-angle equations"),
+            (
+                "simplest_oscillator.png",
+                "Simplest oscillator: (4.99), (4.101) and the Euler-angle equations",
+            ),
             ("precession_growth.png", "Unstable regular precession vs its rotating-frame spectrum"),
-            ("bifurcation_diagram.png",
-             "Bifurcation diagram of the Nikolai problem with friction: equilibria, Hopf point "
-             "and (full run) the limit cycles"),
+            (
+                "bifurcation_diagram.png",
+                "Bifurcation diagram of the Nikolai problem with friction: equilibria, Hopf point "
+                "and (full run) the limit cycles",
+            ),
             ("hopf_boundary.png", "Flutter boundary by continue_hopf over the stability map"),
-            ("lattice_dispersion.png",
-             "Chain of bodies: Bloch branches at rest against the closed forms; the flutter "
-             "band of Nikolai bodies with friction"),
-            ("lattice_kink.png", "Space-time image of a moving sine-Gordon kink on a ring of "
-             "bodies, with x0 + vt"),
+            (
+                "lattice_dispersion.png",
+                "Chain of bodies: Bloch branches at rest against the closed forms; the flutter "
+                "band of Nikolai bodies with friction",
+            ),
+            (
+                "lattice_kink.png",
+                "Space-time image of a moving sine-Gordon kink on a ring of bodies, with x0 + vt",
+            ),
         ]:
             if os.path.exists(os.path.join(out, name)):
                 lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]

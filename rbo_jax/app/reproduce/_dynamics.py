@@ -26,8 +26,9 @@ def _gauss_legendre(t1, n_int, n_nodes=8):
 def balance_and_energy() -> list[Check]:
     A1, A3, M, l1, l2 = 1.0, 0.6, 0.35, 1.0, 0.4
     load = SemiTangentialMoment(M, K, l1, l2)
-    model = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K),
-                                BarrierFoundation(1.0, 1.7, 1.8, 1.4, K), load)
+    model = RigidBodyOscillator(
+        transversely_isotropic_inertia(A1, A3, K), BarrierFoundation(1.0, 1.7, 1.8, 1.4, K), load
+    )
     T = 8.0
     nodes, weights = _gauss_legendre(T, 16)
     ts = jnp.asarray(np.concatenate([[0.0], nodes, [T]]))
@@ -36,20 +37,34 @@ def balance_and_energy() -> list[Check]:
     G = A1 * (traj.omega - traj.Omega) @ K + (A1 - A3) * (traj.Omega @ K) * (1 - cv)
     rhs = np.asarray(jax.vmap(load.gamma)(traj.theta) * M * (l1 - l2) * (1 - cv))[1:-1]
     lhs, integral = float(G[-1] - G[0]), float(np.sum(weights * rhs))
-    checks = [Check("4.5 (4.78)",
-                    "Δ[A1(ω−Ω)·k + (A1−A3)(k·Ω)(1−cosϑ)] over t ∈ [0, 8], "
-                    "barrier (4.49), l1=1, l2=0.4",
-                    f"∫γM(l1−l2)(1−cosϑ)dt = {integral:.10f}", f"{lhs:.10f}",
-                    abs(lhs - integral) / abs(integral), 1e-8)]
-    free = RigidBodyOscillator(transversely_isotropic_inertia(A1, A3, K),
-                               BarrierFoundation(1.0, 2.0, 2.0, 1.5, K))
+    checks = [
+        Check(
+            "4.5 (4.78)",
+            "Δ[A1(ω−Ω)·k + (A1−A3)(k·Ω)(1−cosϑ)] over t ∈ [0, 8], barrier (4.49), l1=1, l2=0.4",
+            f"∫γM(l1−l2)(1−cosϑ)dt = {integral:.10f}",
+            f"{lhs:.10f}",
+            abs(lhs - integral) / abs(integral),
+            1e-8,
+        )
+    ]
+    free = RigidBodyOscillator(
+        transversely_isotropic_inertia(A1, A3, K), BarrierFoundation(1.0, 2.0, 2.0, 1.5, K)
+    )
     ts = jnp.linspace(0.0, 200 * np.pi, 401)
-    E = np.asarray(simulate(free, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts,
-                            **TIGHT).energy)
+    E = np.asarray(
+        simulate(free, jnp.array([0.8, -0.3, 0.5]), jnp.array([0.2, 1.1, -0.7]), ts, **TIGHT).energy
+    )
     drift = float(np.max(np.abs(E - E[0])) / abs(E[0]))
-    checks.append(Check("4.3, (4.124)",
-                        "relative energy drift K + U over 100 periods (barrier foundation)",
-                        "0 (conserved)", f"{drift:.2e}", drift, 1e-9))
+    checks.append(
+        Check(
+            "4.3, (4.124)",
+            "relative energy drift K + U over 100 periods (barrier foundation)",
+            "0 (conserved)",
+            f"{drift:.2e}",
+            drift,
+            1e-9,
+        )
+    )
     return checks
 
 
@@ -78,26 +93,48 @@ def _simplest_integrals():
     pred = (1 - np.cos(n[0])) / (1 - np.cos(n)) * psi_dot[0] * np.exp(-b * t / A)
     err99 = np.max(np.abs(psi_dot / pred - 1))
     checks = [
-        Check("4.6 (4.94)", "ω − Ω − (ω0 − Ω0)e^{−bt/A}, relative", "0", f"{err94:.2e}", err94,
-              1e-8),
+        Check(
+            "4.6 (4.94)", "ω − Ω − (ω0 − Ω0)e^{−bt/A}, relative", "0", f"{err94:.2e}", err94, 1e-8
+        ),
         Check("4.6 (4.96)", "max |θ(t)·e|", "0", f"{err96:.2e}", err96, 1e-8),
-        Check("4.6 (4.99)", "ψ̇ vs (1−cosθ0)/(1−cosθ) ψ̇0 e^{−bt/A}, relative", "0",
-              f"{err99:.2e}", err99, 1e-8),
+        Check(
+            "4.6 (4.99)",
+            "ψ̇ vs (1−cosθ0)/(1−cosθ) ψ̇0 e^{−bt/A}, relative",
+            "0",
+            f"{err99:.2e}",
+            err99,
+            1e-8,
+        ),
     ]
     # (4.101): reduced nutation equation, integrated independently
     ndot0 = theta[0] @ th_dot[0] / n[0]
 
     def rhs(tt, y):
         x, v = y
-        cen = (A * np.sin(x) / x * ((1 - np.cos(n[0])) / (1 - np.cos(x))) ** 2 * psi_dot[0] ** 2
-               * np.exp(-2 * b * tt / A))
+        cen = (
+            A
+            * np.sin(x)
+            / x
+            * ((1 - np.cos(n[0])) / (1 - np.cos(x))) ** 2
+            * psi_dot[0] ** 2
+            * np.exp(-2 * b * tt / A)
+        )
         return [v, -(b * v + (c_of(x * x) - cen) * x) / A]
 
-    sol = solve_ivp(rhs, (0, t[-1]), [n[0], ndot0], method="DOP853", t_eval=t, rtol=1e-12,
-                    atol=1e-12)
+    sol = solve_ivp(
+        rhs, (0, t[-1]), [n[0], ndot0], method="DOP853", t_eval=t, rtol=1e-12, atol=1e-12
+    )
     err101 = float(np.max(np.abs(sol.y[0] - n)))
-    checks.append(Check("4.6 (4.101)", "|θ(t)| of the 3-D solution vs the reduced equation (scipy)",
-                        "solution of (4.101)", f"max |Δθ| = {err101:.2e}", err101, 1e-8))
+    checks.append(
+        Check(
+            "4.6 (4.101)",
+            "|θ(t)| of the 3-D solution vs the reduced equation (scipy)",
+            "solution of (4.101)",
+            f"max |Δθ| = {err101:.2e}",
+            err101,
+            1e-8,
+        )
+    )
     return checks, (A, b, c_of, t, theta, n, ndot0, psi_dot, pred, e)
 
 
@@ -107,8 +144,9 @@ def _euler_angles(state, out, plt) -> Check:
     from scipy.integrate import solve_ivp
 
     A, b, c_of, t, theta, n, ndot0, psi_dot, pred, e = state
-    psi = np.arctan2(np.cross(theta[0] / n[0], theta / n[:, None]) @ e,
-                     theta @ theta[0] / (n * n[0]))
+    psi = np.arctan2(
+        np.cross(theta[0] / n[0], theta / n[:, None]) @ e, theta @ theta[0] / (n * n[0])
+    )
     psi = np.unwrap(psi)
 
     def euler(tt, y):
@@ -119,9 +157,14 @@ def _euler_angles(state, out, plt) -> Check:
     y0 = [n[0], ndot0, 0.0, psi_dot[0] * (1 - np.cos(n[0]))]
     sol = solve_ivp(euler, (0, t[-1]), y0, method="DOP853", t_eval=t, rtol=1e-12, atol=1e-12)
     err_e = float(max(np.max(np.abs(sol.y[0] - n)), np.max(np.abs(sol.y[2] - psi))))
-    check = Check("4.6.3 (4.88)-(4.92)",
-                  "Euler-angle equations (special solution φ = −ψ) vs turn-vector solution: "
-                  "θ(t), ψ(t)", "same motion", f"max |Δ| = {err_e:.2e}", err_e, 1e-8)
+    check = Check(
+        "4.6.3 (4.88)-(4.92)",
+        "Euler-angle equations (special solution φ = −ψ) vs turn-vector solution: θ(t), ψ(t)",
+        "same motion",
+        f"max |Δ| = {err_e:.2e}",
+        err_e,
+        1e-8,
+    )
     if plt is not None:
         fig, axs = plt.subplots(1, 2, figsize=(10, 3.8))
         axs[0].plot(t, n, label="|θ| turn-vector solution")

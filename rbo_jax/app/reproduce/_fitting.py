@@ -24,13 +24,22 @@ def fitting() -> list[Check]:
     Q = simulate(true, th0, Om0, ts, **TIGHT).turn_tensor
     eta = sigma * jax.random.normal(jax.random.PRNGKey(7), (ts.shape[0], 3))
     Q_obs = jax.vmap(lambda e, q: turn_tensor(e) @ q)(eta, Q)
-    res = fit(RigidBodyOscillator(A, QuadraticFoundation(1.3, 1.4, K)),
-              TrajectoryData(ts, Q=Q_obs, theta0=th0, Omega0=Om0, sigma_theta=sigma),
-              lambda m: (m.foundation.c, m.foundation.d))
+    res = fit(
+        RigidBodyOscillator(A, QuadraticFoundation(1.3, 1.4, K)),
+        TrajectoryData(ts, Q=Q_obs, theta0=th0, Omega0=Om0, sigma_theta=sigma),
+        lambda m: (m.foundation.c, m.foundation.d),
+    )
     checks = []
     for name, truth, val, se in zip(("c", "d"), (1.0, 2.0), res.params, res.stderr):
         z = abs(float(val) - truth) / float(se)
-        checks.append(Check("fitting",
-                            f"{name} from noisy attitudes (σ = 1e-3 rad), start 30 % off",
-                            f"{truth}", f"{float(val):.5f} ± {float(se):.1e}", z, 3.0))
+        checks.append(
+            Check(
+                "fitting",
+                f"{name} from noisy attitudes (σ = 1e-3 rad), start 30 % off",
+                f"{truth}",
+                f"{float(val):.5f} ± {float(se):.1e}",
+                z,
+                3.0,
+            )
+        )
     return checks

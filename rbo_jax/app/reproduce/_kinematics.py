@@ -40,20 +40,23 @@ def kinematics(n: int) -> list[Check]:
         Qphps = turn_tensor(ph) @ turn_tensor(ps)
         cos_t, vec = composition_invariants(ph, ps)
         t2 = jnp.clip(0.5 * (jnp.trace(Qphps) - 1.0), -1.0, 1.0)
-        vinv = 0.5 * jnp.stack([Qphps[2, 1] - Qphps[1, 2], Qphps[0, 2] - Qphps[2, 0],
-                                Qphps[1, 0] - Qphps[0, 1]])
+        vinv = 0.5 * jnp.stack(
+            [Qphps[2, 1] - Qphps[1, 2], Qphps[0, 2] - Qphps[2, 0], Qphps[1, 0] - Qphps[0, 1]]
+        )
         t = jnp.dot(th, th)
-        return jnp.stack([
-            jnp.max(jnp.abs(Q @ Q.T - eye)),                      # (4.27)
-            jnp.max(jnp.abs(Q @ th - th)),                        # (4.8)
-            jnp.max(jnp.abs(Z @ Zi - eye)),                       # (4.11)/(4.20)
-            # det Z, rel.; 2(1 − cos θ) written as 4 sin²(θ/2), free of cancellation at small θ
-            jnp.abs(integrating_tensor_det(th) * 4 * jnp.sin(0.5 * jnp.sqrt(t)) ** 2 / t - 1),
-            jnp.max(jnp.abs(Z.T - Q @ Z)) + jnp.max(jnp.abs(Q @ Z - Z @ Q)),  # (4.13)
-            jnp.max(jnp.abs(integrating_tensor(S @ th) - S @ Z @ S.T)),      # (4.12)
-            jnp.max(jnp.abs(Qdot - skew(omega) @ Q)),            # (4.9)
-            jnp.abs(cos_t - t2) + jnp.max(jnp.abs(vec - vinv)),  # (4.6)-(4.7)
-        ])
+        return jnp.stack(
+            [
+                jnp.max(jnp.abs(Q @ Q.T - eye)),  # (4.27)
+                jnp.max(jnp.abs(Q @ th - th)),  # (4.8)
+                jnp.max(jnp.abs(Z @ Zi - eye)),  # (4.11)/(4.20)
+                # det Z, rel.; 2(1 − cos θ) written as 4 sin²(θ/2), free of cancellation at small θ
+                jnp.abs(integrating_tensor_det(th) * 4 * jnp.sin(0.5 * jnp.sqrt(t)) ** 2 / t - 1),
+                jnp.max(jnp.abs(Z.T - Q @ Z)) + jnp.max(jnp.abs(Q @ Z - Z @ Q)),  # (4.13)
+                jnp.max(jnp.abs(integrating_tensor(S @ th) - S @ Z @ S.T)),  # (4.12)
+                jnp.max(jnp.abs(Qdot - skew(omega) @ Q)),  # (4.9)
+                jnp.abs(cos_t - t2) + jnp.max(jnp.abs(vec - vinv)),  # (4.6)-(4.7)
+            ]
+        )
 
     errs = np.asarray(jax.jit(jax.vmap(per_point))(th, ph, ps)).max(axis=0)
     names = [
@@ -67,8 +70,13 @@ def kinematics(n: int) -> list[Check]:
         ("(4.6), (4.7) readings R1-R2", "composition invariants vs Q(φ)·Q(ψ)", "matrix product"),
     ]
     return [
-        Check(f"4.2 {eq}", f"{quantity} ({n} random points, max error)", paper, fmt(float(e)),
-              float(e), 1e-12)
+        Check(
+            f"4.2 {eq}",
+            f"{quantity} ({n} random points, max error)",
+            paper,
+            fmt(float(e)),
+            float(e),
+            1e-12,
+        )
         for (eq, quantity, paper), e in zip(names, errs)
     ]
-
