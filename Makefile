@@ -8,8 +8,9 @@ PYTEST_ARGS ?=
 # the suite runs in 2 processes (pytest-xdist; one per core of the CI machine), test files kept
 # whole per process so that each compiles its JAX programs once
 WORKERS ?= 2
+LINTED := rbo_jax tests benchmarks notebooks
 
-.PHONY: demo test test-all bench clean
+.PHONY: demo lint test test-all bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 10), "rbo_jax needs Python >= 3.10"'
@@ -21,7 +22,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/rbo-jax reproduce --out out
 
-test: $(STAMP)
+# the code's lint and format (ruff, pinned in the test extra), then the tests
+lint: $(STAMP)
+	$(BIN)/ruff check $(LINTED)
+	$(BIN)/ruff format --check $(LINTED)
+
+test: lint
 	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile -m "not slow" $(PYTEST_ARGS)
 
 test-all: $(STAMP)

@@ -6,11 +6,10 @@ equinox, diffrax, optimistix, optax, xarray or zarr, which the layers that need 
 one of their names is first used.
 """
 
-import importlib.metadata
-
 from . import _lazy
 from ._cache import enable_from_environment as _enable_cache_from_environment
 from ._precision import enable_float64_by_default as _enable_float64_by_default
+from ._version import __version__ as __version__  # the one place it is written
 
 _enable_float64_by_default()
 _enable_cache_from_environment()  # $RBO_JAX_COMPILATION_CACHE (rbo_jax.enable_compilation_cache)
@@ -125,5 +124,3 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         ),
     },
 )
-
-__version__ = importlib.metadata.version("rbo_jax")

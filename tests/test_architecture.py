@@ -13,7 +13,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "rbo_jax"
 
 # Bottom to top. A module may import from its own layer's package folder and from lower layers.
 LAYERS = [
-    ("_custom_types", "_elementary"),
+    ("_custom_types", "_elementary", "_version"),
     ("_cache", "_callables"),
     ("_precision", "_enumeration", "_programs", "_lazy"),
     ("_validation",),
@@ -32,10 +32,11 @@ LAYERS = [
     ("batch",),
     ("plotting",),
     ("app",),
+    ("__main__",),  # python -m rbo_jax: the command
 ]
 LAYER = {name: i for i, names in enumerate(LAYERS) for name in names}
 ROOT = "<rbo_jax>"  # the package root re-exports every layer: only the top layer imports it
-LAYER[ROOT] = len(LAYERS) - 2
+LAYER[ROOT] = LAYER["app"] - 1
 MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 80
 

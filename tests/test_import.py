@@ -44,9 +44,12 @@ def test_import_loads_no_layer_and_no_heavy_dependency():
         print({_loaded(", 'layers': layers, 'x64': rbo_jax.float64_enabled()")})
     """)
     assert got["heavy"] == []
-    assert set(got["layers"]) <= {"rbo_jax._lazy", "rbo_jax._precision", "rbo_jax._cache"}, got[
-        "layers"
-    ]
+    assert set(got["layers"]) <= {
+        "rbo_jax._lazy",
+        "rbo_jax._precision",
+        "rbo_jax._cache",
+        "rbo_jax._version",
+    }, got["layers"]
     assert got["x64"] is True
 
 
