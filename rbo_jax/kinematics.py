@@ -472,8 +472,8 @@ class Turn:
 
     With $R = \theta\times E$ and $R^2\cdot v = \theta(\theta\cdot v) - \theta^2 v$ (4.4):
 
-    - :meth:`rotate` $Q\cdot v = v + \frac{\sin\theta}{\theta}\,\theta\times v
-      + \frac{1-\cos\theta}{\theta^2} R^2\cdot v$ (4.3); :meth:`rotate_back` $Q^T\cdot v$ (the
+    - :meth:`rotate` $Q\cdot v = v + \frac{\sin\theta}{\theta}\,\theta\times v +
+      \frac{1-\cos\theta}{\theta^2} R^2\cdot v$ (4.3); :meth:`rotate_back` $Q^T\cdot v$ (the
       sign of the middle term flips);
     - :meth:`Z` $Z\cdot v = v - \frac12\theta\times v + \frac{1-g}{\theta^2} R^2\cdot v$ (4.11);
       :meth:`ZT` $Z^T\cdot v$.

@@ -1,0 +1,79 @@
+"""MkDocs hook: the notebooks of ``notebooks/`` as pages, executed at build time.
+
+The notebooks are stored without outputs. Each is executed top to bottom (nbclient, the
+``python3`` kernel of this environment, at the notebooks' default small sizes, two at a time),
+converted to Markdown with its figures (nbconvert), and added to the site as
+``notebooks/NAME.md`` with ``notebooks/NAME_files/*.png``; the Markdown then goes through the
+same extensions as every page (the equations of ``math.py`` included). A cell that raises fails
+the build. Executed notebooks are kept in ``.cache/docs-notebooks/``, keyed by the notebook and
+the package's sources, so an unchanged notebook is not run again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from mkdocs.structure.files import File
+
+ROOT = Path(__file__).resolve().parents[2]
+NOTEBOOKS = ROOT / "notebooks"
+CACHE = ROOT / ".cache" / "docs-notebooks"
+
+
+def _key(path: Path) -> str:
+    digest = hashlib.sha256(path.read_bytes())
+    for source in sorted((ROOT / "rbo_jax").rglob("*")):
+        if source.suffix in (".py", ".toml"):
+            digest.update(source.relative_to(ROOT).as_posix().encode())
+            digest.update(source.read_bytes())
+    return digest.hexdigest()[:20]
+
+
+def _execute(path: Path):
+    import nbclient
+    import nbformat
+
+    cached = CACHE / f"{path.stem}-{_key(path)}.ipynb"
+    if cached.is_file():
+        return nbformat.read(cached, as_version=4)
+    nb = nbformat.read(path, as_version=4)
+    client = nbclient.NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+    )
+    client.execute()  # raises CellExecutionError with the traceback if a cell fails
+    CACHE.mkdir(parents=True, exist_ok=True)
+    for old in CACHE.glob(f"{path.stem}-*.ipynb"):
+        old.unlink()
+    nbformat.write(nb, cached)
+    return nb
+
+
+def _markdown(nb, stem: str) -> tuple[str, dict[str, bytes]]:
+    from nbconvert import MarkdownExporter
+
+    for cell in nb.cells:  # figures and text, not the HTML reprs (xarray's carries styles)
+        for output in cell.get("outputs", []):
+            data = output.get("data", {})
+            if "text/html" in data and len(data) > 1:
+                del data["text/html"]
+    exporter = MarkdownExporter()
+    body, resources = exporter.from_notebook_node(
+        nb, resources={"output_files_dir": f"{stem}_files", "unique_key": stem}
+    )
+    return body, resources.get("outputs", {})
+
+
+def on_files(files, config):
+    os.environ.pop("RBO_NOTEBOOK_FULL", None)  # the default, small sizes
+    paths = sorted(NOTEBOOKS.glob("*.ipynb"))
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        executed = list(pool.map(_execute, paths))
+    for path, nb in zip(paths, executed):
+        body, outputs = _markdown(nb, path.stem)
+        files.append(File.generated(config, f"notebooks/{path.stem}.md", content=body))
+        for name, data in outputs.items():
+            files.append(File.generated(config, f"notebooks/{name}", content=data))
+    return files
