@@ -3,8 +3,8 @@
 
 Checks that every page loads without console errors, that the equations are rendered (MathML; no
 raw ``$...$`` or ``\\(...\\)`` left in the visible text), that every public name has its anchor on
-its API page, and takes screenshots of the home page and one API page (into ``$RBO_DOCS_SCREENSHOTS``
-if set, else a pytest temporary folder).
+its API page, and takes screenshots of the home page and one API page (into
+``$RBO_DOCS_SCREENSHOTS`` if set, else a pytest temporary folder).
 
 Marked ``docs``: not part of ``make test``; ``make docs-test`` builds the site and runs it. The
 site is ``$RBO_DOCS_SITE`` if set (built already), else ``site/``, built here first when it is
