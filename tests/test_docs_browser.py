@@ -144,13 +144,23 @@ def visited(browser, base_url, pages):
             """
         )
         math = len(browser.find_elements(By.CSS_SELECTOR, "article math"))
-        results[page] = {"severe": severe, "text": text, "math": math}
+        resources = browser.execute_script(
+            "return performance.getEntriesByType('resource').map(e => e.name)"
+        )
+        foreign = [url for url in resources if not url.startswith(base_url)]
+        results[page] = {"severe": severe, "text": text, "math": math, "foreign": foreign}
     return results
 
 
 def test_pages_load_without_console_errors(visited):
     errors = {page: r["severe"] for page, r in visited.items() if r["severe"]}
     assert not errors, json.dumps(errors, indent=1)[:4000]
+
+
+def test_pages_load_nothing_from_the_network(visited):
+    """No CDN: every script, style sheet, font and image comes from the site itself."""
+    foreign = {page: r["foreign"] for page, r in visited.items() if r["foreign"]}
+    assert not foreign, foreign
 
 
 _RAW_MATH = re.compile(r"\$[^$\s][^$]*\$|\\\(|\\\)|\\\[|\\\]|\\frac|\\theta")
