@@ -137,8 +137,7 @@ def visited(browser, base_url, pages):
         severe = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
         text = browser.execute_script(
             """
-            const root = document.querySelector('article') || document.body;
-            const copy = root.cloneNode(true);
+            const copy = document.body.cloneNode(true);  // the page, its navigation, its contents
             copy.querySelectorAll('pre, code, math, script, style').forEach(n => n.remove());
             return copy.textContent;
             """

@@ -31,8 +31,18 @@ def _render(latex: str, display: str, where: str) -> str:
     return mathml
 
 
+_TITLE = re.compile(r"\\\((.*?)\\\)", re.S)  # \(...\) in a heading's entry of the table of contents
+
+
+def _render_toc(items, where: str) -> None:
+    for item in items:
+        item.title = _TITLE.sub(lambda m: _render(m.group(1), "inline", where), item.title)
+        _render_toc(item.children, where)
+
+
 def on_page_content(html_text: str, page, config, files) -> str:
     where = page.file.src_uri
+    _render_toc(page.toc, where)
     html_text = _BLOCK.sub(lambda m: _render(m.group(1), "block", where), html_text)
     html_text = _INLINE.sub(lambda m: _render(m.group(1), "inline", where), html_text)
     return _ROLE.sub("", html_text)
