@@ -13,7 +13,7 @@ _PLACEHOLDER = re.compile(r"^<!-- rbo-jax-help ?([\w-]*) -->$", re.M)
 def _help(command: str) -> str:
     from rbo_jax.app.cli import build_parser
 
-    os.environ["COLUMNS"] = "100"  # argparse wraps to the terminal's width
+    os.environ["COLUMNS"] = "80"  # argparse wraps to the terminal's width; 80 fits the page
     parser = build_parser()
     if command:
         (sub,) = [a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction"]
