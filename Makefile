@@ -9,7 +9,7 @@ PYTEST_ARGS ?=
 # the suite runs in 2 processes (pytest-xdist; one per core of the CI machine), test files kept
 # whole per process so that each compiles its JAX programs once
 WORKERS ?= 2
-LINTED := rbo_jax tests benchmarks notebooks
+LINTED := rbo_jax tests benchmarks notebooks docs/_hooks
 
 .PHONY: demo lint test test-all bench clean
 
