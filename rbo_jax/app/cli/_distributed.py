@@ -191,11 +191,11 @@ def initialize(args: argparse.Namespace):
 
     import jax
 
+    sys.stderr.flush()  # what Python wrote so far goes to the terminal
     terminal = os.dup(2)
     log = os.open(os.environ[CHILD_ENV], os.O_WRONLY | os.O_APPEND | os.O_CREAT)
     os.dup2(log, 2)
     os.close(log)
-    sys.stderr.flush()
     sys.stderr = io.TextIOWrapper(
         io.FileIO(terminal, "w", closefd=True), write_through=True, line_buffering=True
     )
