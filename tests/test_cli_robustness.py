@@ -667,7 +667,16 @@ _COMMANDS = {
     "reproduce": (["reproduce", "--quick", "--out", "{dir}/report"], {"--out": "folder"}),
     "sweep": (
         ["sweep", "{config}", "--quiet", "--output", "{dir}/s.zarr"],
-        {"--output": "store", "config": "config"},
+        {
+            "--output": "store",
+            "config": "config",
+            # alone, the options of a multi-process run are refused (they go together)
+            "--heartbeat-timeout": "refuse",
+            "--process-id": "refuse",
+            "--coordinator": "refuse",
+            "--workers": ("int", 1, 4 * (os.cpu_count() or 1)),
+            "--scheduler": "scheduler",
+        },
     ),
 }
 _GRIDS = [
@@ -737,6 +746,8 @@ def _values(rule, rng, places, data):
             ("{dir}/t.png", True),
         ][rng.integers(6)]
         return text.format(**places), bad
+    if rule == "scheduler":  # connecting is the computation's part (a stub here)
+        return [("tcp://127.0.0.1:1", False), ("", True), ("  ", True)][rng.integers(3)]
     if rule == "config":
         return [
             (str(places["config"]), False),

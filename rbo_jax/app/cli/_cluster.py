@@ -4,6 +4,7 @@ starts: one line and exit 2 for a combination that cannot run."""
 from __future__ import annotations
 
 import argparse
+import os
 
 from .._cluster import MISSING, dask_installed
 from ._common import Failure
@@ -37,6 +38,12 @@ def check_cluster_options(args: argparse.Namespace) -> None:
         )
     if workers is not None and workers < 1:
         raise Failure(f"--workers must be >= 1, got {workers}.")
+    most = 4 * (os.cpu_count() or 1)  # each worker is a process that imports JAX (~0.3 GB)
+    if workers is not None and workers > most:
+        raise Failure(
+            f"--workers {workers}: more than {most} local worker processes (4 per core of "
+            "this machine); for more, start workers on other machines and use --scheduler."
+        )
     if scheduler is not None and not scheduler.strip():
         raise Failure("--scheduler needs an address, e.g. tcp://HOST:8786.")
     if not dask_installed():
