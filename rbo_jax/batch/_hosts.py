@@ -79,7 +79,7 @@ class Hosts:
             try:
                 if client.key_value_try_get(f"{self.prefix}/failed/{i}") == "1":
                     out.append(i)
-            except Exception:  # no report: the process failed before it could make one
+            except jax.errors.JaxRuntimeError:  # NOT_FOUND: it failed before it could report
                 out.append(i)
         return out
 
