@@ -27,10 +27,10 @@ from .._validation import (
     _common_float_dtype,
     _is_traced,
     checked_inputs_trusted,
-    library_code_only,
 )
 from ..kinematics import distance_to_singularity
 from ..simulate import _status_from_solution
+from ..simulate import _trusted as _trusted_solve
 from ..trajectory import SolveStatus, check_times, warn_if_float32
 from ._field import rates, right_forms, transverse
 from ._integrate import Config, Problem, solve
@@ -238,15 +238,9 @@ def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, 
 
 
 def _trusted(lattice, method, solver, adjoint) -> bool:
-    """Whether diffrax's own input checks may be left out (rbo_jax checked the inputs, and the
-    lattice, solver and adjoint are library code): :func:`checked_inputs_trusted`."""
-    return (
-        library_code_only(lattice)
-        and method == "diffrax"
-        and all(
-            x is None or type(x).__module__.split(".")[0] == "diffrax" for x in (solver, adjoint)
-        )
-    )
+    """Whether diffrax's own input checks may be left out (rbo_jax checked the inputs; the
+    lattice, solver and adjoint are library code): the rule of :func:`rbo_jax.simulate`."""
+    return method == "diffrax" and _trusted_solve(lattice, solver, adjoint)
 
 
 def simulate(
