@@ -1,13 +1,19 @@
 r"""Continuation of a Hopf point in two parameters: the flutter boundary.
 
-The Hopf system of :mod:`._hopf` (equilibrium, eigenvalue pair $\pm i\omega$, normalisation) is
-solved at successive values of a second parameter, each solve starting from the previous
-solution (natural continuation in a ``lax.scan`` around the one Hopf program of
-:mod:`._system`: one compiled program per model structure, differentiable, and
+``method="natural"`` (the default): the Hopf system of :mod:`._hopf` (equilibrium, eigenvalue
+pair $\pm i\omega$, normalisation) is solved at successive values of a second parameter, each
+solve starting from the previous solution (natural continuation in a ``lax.scan`` around the one
+Hopf program of :mod:`._system`: one compiled program per model structure, differentiable, and
 vmapped over any further parameters given as arrays, e.g. the critical follower moment against
 the friction coefficient $b$ for several ratios $A_3/A_1$ at once). Natural continuation cannot
-pass a turning point of the boundary in the second parameter; there the status turns to
-``not_converged`` and the rest of the curve is NaN.
+pass a turning point of the boundary in the second parameter (there the Jacobian of the Hopf
+system in its unknowns is singular, and beyond it the boundary has no point at the next value);
+there the status turns to ``not_converged`` and the rest of the curve is NaN: continue such a
+boundary with ``method="arclength"``.
+
+``method="arclength"``: Keller's pseudo-arclength continuation of the same system in the plane
+of the two parameters (:mod:`._hopf_curve`), which passes turning points and reports them, the
+Bautin points ($\ell_1 = 0$) and a Bogdanov–Takens end (frequency $\to 0$) of the boundary.
 """
 
 from __future__ import annotations
@@ -74,26 +80,67 @@ def continue_hopf(
     rtol: float = 1e-10,
     atol: float = 1e-10,
     max_steps: int = 64,
+    method: str = "natural",
+    ds: float | None = None,
+    ds_min: float | None = None,
+    ds_max: float | None = None,
+    max_points: int = 200,
+    progress: bool = False,
 ):
-    r"""The Hopf boundary $\alpha_H(\beta)$ of ``parameter`` = α against ``along`` = β, for β
-    in ``values`` (module docstring), as an :class:`xarray.Dataset`.
+    r"""The Hopf boundary of ``parameter`` = α against ``along`` = β (module docstring), as an
+    :class:`xarray.Dataset`.
 
-    ``params`` holds the fixed parameters of ``model_fn``; an entry given as a 1-D array is a
-    batch axis (vmapped; one curve per value, each started from ``guess``). The first point
-    starts from ``guess`` exactly as :func:`rbo_jax.hopf_point`, the next ones from the previous
-    solution; order ``values`` from the end where the guess is good.
+    ``params`` holds the fixed parameters of ``model_fn``. The first point starts from
+    ``guess`` (a value of α) exactly as :func:`rbo_jax.hopf_point` at β = ``values[0]``.
 
-    **Returns** a Dataset over the batch axes and ``along`` with the critical ``value`` (named
-    ``parameter``), ``frequency``, ``first_lyapunov``, ``transversality``, ``theta``
-    (component) and ``status`` (int8 codes of :class:`rbo_jax.bifurcation.HopfStatus`, names in
-    ``flag_meanings``); ``attrs`` name the ``parameter``, ``along`` and the ``batch`` axes.
-    Differentiable with respect to the fixed parameters (``jax.grad`` of
-    the underlying :func:`rbo_jax.hopf_point` solves).
+    **method="natural"**: $\alpha_H(\beta)$ for β in ``values``, each point started from the
+    previous solution; order ``values`` from the end where the guess is good. An entry of
+    ``params`` given as a 1-D array is a batch axis (vmapped; one curve per value). Where the
+    boundary turns back in β (a turning point, e.g. a minimum of β along it) the solve fails:
+    ``status`` is ``not_converged`` from there on and the values are NaN; follow such a boundary
+    with ``method="arclength"``. **Returns** a Dataset over the batch axes and ``along`` with
+    the critical ``value`` (named ``parameter``), ``frequency``, ``first_lyapunov``,
+    ``transversality``, ``theta`` (component) and ``status`` (int8 codes of
+    :class:`rbo_jax.bifurcation.HopfStatus`, names in ``flag_meanings``); ``attrs`` name the
+    ``parameter``, ``along``, the ``batch`` axes and the ``method``. Differentiable with respect
+    to the fixed parameters (``jax.grad`` of the underlying :func:`rbo_jax.hopf_point` solves).
+
+    **method="arclength"**: Keller's pseudo-arclength continuation of the curve
+    $(\alpha, \beta)$ (:mod:`rbo_jax.bifurcation._hopf_curve`): it starts at β = ``values[0]``,
+    goes first towards ``values[1]`` and ends when β leaves ``[min(values), max(values)]``,
+    after ``max_points`` points, at a Bogdanov–Takens point, or when the step falls below
+    ``ds_min`` (default ``1e-6`` of the span of ``values``). The arclength step (in the 18
+    unknowns: θ, α, ω, the eigenvector, β) starts at ``ds`` (default ``0.02`` of the span),
+    grows ×1.5 up to ``ds_max`` (default ``0.1`` of the span) after corrections of at most
+    three Newton steps, and halves after failures. ``progress``: a tqdm bar. No batch axes
+    (every entry of ``params`` a scalar). **Returns** a Dataset over ``point`` with
+    ``parameter`` (α) and ``along`` (β) as data variables, ``frequency``, ``first_lyapunov``,
+    ``transversality``, ``theta`` (component), ``status``, and over ``special`` (as
+    :func:`rbo_jax.continue_equilibria`): ``special_type`` (``"turning_point"``: β turns
+    back; ``"bautin"``: $\ell_1$ changes sign; ``"bogdanov_takens"``: the frequency tends to
+    0), ``special_value`` (β there), ``special_parameter`` (α there), ``special_index`` (the
+    point before it), ``special_frequency`` and ``special_first_lyapunov`` (NaN where not
+    computed); ``attrs``: ``parameter``, ``along``, ``method`` and ``stop_reason``. Not
+    differentiable (a loop in Python around compiled steps).
     """
-    import xarray as xr
+    others, batch, values, guess, theta_guess = _arguments(
+        params, parameter, along, values, guess, theta_guess
+    )
+    if method == "arclength":
+        options = dict(ds=ds, ds_min=ds_min, ds_max=ds_max, max_points=int(max_points))
+        return _arclength(
+            model_fn, params, parameter, guess, along, values, batch, others, theta_eq_fn,
+            theta_guess, t, rtol, atol, max_steps, {**options, "progress": progress},
+        )  # fmt: skip
+    if method != "natural":
+        raise ValueError(f'method must be "natural" or "arclength", got {method!r}.')
+    static_args = (canonical(model_fn), canonical(theta_eq_fn), float(rtol), float(atol))
+    return _natural(static_args, int(max_steps), parameter, along, values, guess, theta_guess,
+                    batch, others, t)  # fmt: skip
 
-    from .. import _enumeration as enum
 
+def _arguments(params, parameter, along, values, guess, theta_guess):
+    """The checked arguments: ``(others, batch, values, guess, theta_guess)``."""
     others = {
         str(k): jnp.asarray(v, dtype=jnp.result_type(float))
         for k, v in params.items()
@@ -108,20 +155,21 @@ def continue_hopf(
         raise ValueError(f"values of {along!r} must be a non-empty 1-D array.")
     guess = jnp.asarray(guess, dtype=jnp.result_type(float))
     theta_guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
+    return others, batch, values, guess, theta_guess
+
+
+def _natural(
+    static_args, max_steps, parameter, along, values, guess, theta_guess, batch, others, t
+):
+    """``method="natural"``: the scan of :func:`_curve`, vmapped over the batch axes."""
+    import xarray as xr
+
+    model_fn, theta_eq_fn, rtol, atol = static_args
 
     def run(**point):
         names = tuple(point) + (along,)
         shapes = tuple(jnp.shape(v) for v in point.values()) + ((),)
-        static = Static(
-            canonical(model_fn),
-            canonical(theta_eq_fn),
-            parameter,
-            names,
-            shapes,
-            float(rtol),
-            float(atol),
-            int(max_steps),
-        )
+        static = Static(model_fn, theta_eq_fn, parameter, names, shapes, rtol, atol, max_steps)
         parts = [jnp.ravel(v) for v in point.values()]
         p = jnp.concatenate(parts) if parts else jnp.zeros(0, values.dtype)
         return _curve_jit(static, jnp.asarray(t, dtype=values.dtype), p, guess, values, theta_guess)
@@ -143,7 +191,12 @@ def continue_hopf(
             "status": (dims, np.asarray(enum.code(points.status)).astype(np.int8)),
         },
         coords={**coords, "component": ["x", "y", "z"]},
-        attrs={"parameter": parameter, "along": along, "batch": " ".join(batch)},
+        attrs={
+            "parameter": parameter,
+            "along": along,
+            "batch": " ".join(batch),
+            "method": "natural",
+        },
     )
     ds["status"].attrs["flag_meanings"] = " ".join(enum.names(HopfStatus))
     ds[parameter].attrs["long_name"] = f"critical {parameter} (Hopf point)"
@@ -156,3 +209,40 @@ def _vmap_named(fn, name):
         return jax.vmap(lambda v: fn(**point, **{name: v}))(value)
 
     return batched
+
+
+def _arclength(
+    model_fn, params, parameter, guess, along, values, batch, others, theta_eq_fn, theta_guess,
+    t, rtol, atol, max_steps, options,
+):  # fmt: skip
+    """``method="arclength"``: checks, then :func:`._hopf_curve.continue_hopf_arclength`."""
+    from ._hopf_curve import continue_hopf_arclength
+
+    if batch:
+        raise ValueError(
+            'method="arclength" follows one curve: params '
+            + ", ".join(repr(name) for name in batch)
+            + " given as arrays (batch axes) must be scalars; loop over their values."
+        )
+    if values.size < 2 or not float(jnp.max(values)) > float(jnp.min(values)):
+        raise ValueError(
+            f'method="arclength" needs values of {along!r} with at least two distinct entries '
+            "(the start values[0], the first direction towards values[1], the bounds "
+            "min(values), max(values))."
+        )
+    if options["max_points"] < 1:
+        raise ValueError(f"max_points must be at least 1, got {options['max_points']}.")
+    static = Static(
+        canonical(model_fn),
+        canonical(theta_eq_fn),
+        parameter,
+        tuple(others) + (along,),
+        tuple(jnp.shape(v) for v in others.values()) + ((),),
+        float(rtol),
+        float(atol),
+        int(max_steps),
+    )
+    context = (static.model_fn, {k: v for k, v in params.items()}, parameter, along)
+    return continue_hopf_arclength(
+        static, context, others, guess, np.asarray(values), theta_guess, t, **options
+    )
