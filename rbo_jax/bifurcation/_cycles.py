@@ -19,6 +19,14 @@ point with tangent $(\mathrm{Re}\,q/|\mathrm{Re}\,q|, 0, 0)$.
 Along the branch: the Floquet multipliers (stable if every nontrivial one has $|\mu| < 1$) and the
 **amplitude** $\max_t|\theta(t) - \bar\theta|$ over 64 equally spaced samples of one period
 ($\bar\theta$ their mean).
+
+**Special points** (:mod:`._cycle_special`): folds of cycles (the parameter component of the
+branch's tangent, the null vector of $(M - E,\ F(\varphi_T),\ \partial_\alpha\varphi_T;\
+g^T, 0, 0)$, changes sign; located by :func:`rbo_jax.bifurcation.fold_of_cycles`, Newton's
+method on the minimally augmented shooting system, :mod:`._cycle_fold`), period doubling (a
+real multiplier through $-1$) and Neimark–Sacker points (a complex pair through $|\mu| = 1$).
+The pseudo-arclength corrector passes folds: past a fold of a hard (subcritical, $\ell_1 > 0$)
+Hopf point the family continues as large stable cycles.
 """
 
 from __future__ import annotations
@@ -30,12 +38,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _enumeration as enum
 from .._programs import jit
 from ..ensemble import fast_simulate
 from ..model import RigidBodyOscillator
+from ._cycle_fold import fold_of_cycles
+from ._cycle_special import detect, fold_guess
 from ._field import flat_field
 from ._hopf import HopfPoint, _point, canonical
-from ._orbit import _lstsq, _sorted, flow, split_multipliers
+from ._orbit import OrbitStatus, _lstsq, _sorted, flow
 from ._system import _build
 
 __all__ = ["continue_limit_cycles"]
@@ -61,6 +72,9 @@ def _system(model_fn, parameter, others, solver, u, g, x_ref, tau, u_k, s):
 
 @functools.partial(jit, small=True)
 def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref, tol, max_newton):
+    """Newton's corrector from the predictor ``u_k + s tau``. Returns the cycle, its status code
+    (:class:`OrbitStatus`), Newton's steps, the multipliers, the amplitude and the unit tangent
+    of the branch at the cycle (the null vector of the 7×8 shooting Jacobian, along ``tau``)."""
     g = flat_field(_build(model_fn, _point(others, parameter, alpha_ref)))(x_ref)
     g = g / jnp.linalg.norm(g)
 
@@ -69,21 +83,27 @@ def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref,
 
     def body(carry):
         u, _, k, _, _, _ = carry
-        r, A, M, ok = _system(model_fn, parameter, others, solver, u, g, x_ref, tau, u_k, s)
+        r, A, _, ok = _system(model_fn, parameter, others, solver, u, g, x_ref, tau, u_k, s)
         delta = _lstsq(A, -r)
         res = jnp.max(jnp.abs(r))
         done = (res <= tol) | ~ok | ~jnp.isfinite(res) | (u[6] <= 0) | (k == max_newton)
-        return u + jnp.where(done, 0.0, delta), res, k + 1, done, M, ok
+        return u + jnp.where(done, 0.0, delta), res, k + 1, done, A, ok
 
-    init = (u_k + s * tau, jnp.asarray(jnp.inf), 0, False, jnp.zeros((6, 6)), True)
-    u, res, k, _, M, ok = jax.lax.while_loop(cond, body, init)
+    init = (u_k + s * tau, jnp.asarray(jnp.inf), 0, False, jnp.zeros((8, 8)), True)
+    u, res, k, _, A, ok = jax.lax.while_loop(cond, body, init)
     model = _build(model_fn, _point(others, parameter, u[7]))
     # N_SAMPLES equally spaced samples of one period (t = T, a repeat of t = 0, left out)
     ts = jnp.linspace(0.0, 1.0, N_SAMPLES + 1) * jnp.where(u[6] > 0, u[6], 1.0)
     theta = fast_simulate(model, u[:3], u[3:6], ts, throw=False, **solver).theta[:-1]
     amplitude = jnp.max(jnp.linalg.norm(theta - jnp.mean(theta, axis=0, keepdims=True), axis=1))
-    converged = (res <= tol) & ok & (u[6] > 0)
-    return u, converged, k - 1, _sorted(jnp.linalg.eigvals(M)), amplitude
+    S = OrbitStatus
+    status = S.where(res <= tol, S.successful, S.not_converged)
+    status = S.where(ok, status, S.solve_failed)
+    status = S.where(u[6] > 0, status, S.nonpositive_period)
+    tangent = jnp.linalg.solve(A, jnp.zeros(8).at[7].set(1.0))  # A's last row: tau
+    tangent = tangent / jnp.linalg.norm(tangent)
+    M = A[:6, :6] + jnp.eye(6)
+    return u, enum.code(status), k - 1, _sorted(jnp.linalg.eigvals(M)), amplitude, tangent
 
 
 def continue_limit_cycles(
@@ -99,24 +119,32 @@ def continue_limit_cycles(
     tol: float = 1e-9,
     rtol: float = 1e-11,
     atol: float = 1e-11,
+    locate_folds: bool = True,
     progress: bool = False,
 ):
     r"""The family of limit cycles born at ``hopf`` (a :class:`rbo_jax.bifurcation.HopfPoint`
     of ``model_fn`` in ``parameter``, with the other entries ``params``), continued by
-    pseudo-arclength (module docstring).
+    pseudo-arclength (module docstring) through folds, with its special points.
 
     ``amplitude`` is the first step from the Hopf point (in the state norm) and the initial
     arclength step; steps grow ×1.5 up to ``ds_max`` after easy corrections and halve after
-    failed ones. The run stops after ``max_points`` cycles, when the parameter leaves
-    ``bounds``, or when the step falls below ``amplitude``/1000. ``tol``: Newton's tolerance on
-    the shooting residual; ``rtol``, ``atol``: :func:`rbo_jax.fast_simulate`'s.
+    failed ones (large cycles, amplitudes of a radian and more, want ``ds_max`` of 0.3–1: the
+    arclength is measured in $(x_0, T, \alpha)$). The run stops after ``max_points`` cycles,
+    when the parameter leaves ``bounds``, or when the step falls below ``amplitude``/1000 (the
+    stop reason names the last failure: Newton's, or the integration's, e.g. a cycle reaching
+    the singular sphere $|\theta| = 2\pi$ of (4.11)). ``tol``: Newton's tolerance on the
+    shooting residual; ``rtol``, ``atol``: :func:`rbo_jax.fast_simulate`'s. ``locate_folds``:
+    refine detected folds by :func:`rbo_jax.bifurcation.fold_of_cycles` (otherwise the linear
+    zero of the tangent's parameter component).
 
     **Returns** an :class:`xarray.Dataset` over ``point`` (the Hopf point first: amplitude 0,
     NaN multipliers, ``stable`` False; the cycles are ``point`` 1 onwards):
     ``parameter``, ``period``, ``amplitude`` ($\max_t|\theta - \bar\theta|$), ``theta0``,
     ``Omega0`` (component), ``multipliers`` (index; sorted by decreasing modulus),
-    ``trivial_multiplier_error`` ($|\mu_{trivial} - 1|$) and ``stable``;
-    ``attrs["stop_reason"]``.
+    ``trivial_multiplier_error`` ($|\mu_{trivial} - 1|$) and ``stable``; over ``special``
+    (as :func:`rbo_jax.continue_equilibria`): ``special_type`` (``"fold"``,
+    ``"period_doubling"``, ``"neimark_sacker"``), ``special_value`` (the parameter) and
+    ``special_index`` (the cycle before it); ``attrs["stop_reason"]``.
     """
     import xarray as xr
 
@@ -128,46 +156,66 @@ def continue_limit_cycles(
         if k != parameter
     }
     solver = dict(rtol=float(rtol), atol=float(atol), max_steps=100_000)
+    model_fn = canonical(model_fn)  # a new but identical function: the same program
+    correct = functools.partial(_correct, model_fn, parameter, others, solver)
+    steps = dict(s=float(amplitude), ds_max=float(ds_max), tol=float(tol), bounds=bounds)
+    rows, reason = _march(correct, hopf, steps, max_points, _bar(progress, max_points))
+    special = detect([(u, t, _nontrivial(mu)) for u, mu, _, t in rows])
+    if locate_folds:
+        _locate_folds(special, rows, model_fn, others, parameter, solver, float(tol))
+    return _dataset(xr, parameter, rows, special, reason)
+
+
+def _march(correct, hopf, steps, max_points, bar):
+    """The predictor-corrector loop (``rows``: ``(u, multipliers, amplitude, tangent)``)."""
     x_h = jnp.concatenate([hopf.theta, jnp.zeros(3)])
     d = jnp.real(hopf.eigenvector)
     u_k = jnp.concatenate([x_h, jnp.stack([hopf.period, hopf.value])])
     tau = jnp.concatenate([d / jnp.linalg.norm(d), jnp.zeros(2)])
-    rows = [(u_k, jnp.full(6, jnp.nan + 0j), 0.0)]
-    s, s_min = float(amplitude), float(amplitude) * 1e-3
+    rows = [(u_k, jnp.full(6, jnp.nan + 0j), 0.0, tau)]
+    s, s_min, bounds = steps["s"], steps["s"] * 1e-3, steps["bounds"]
     x_ref, alpha_ref = x_h + s * tau[:6], hopf.value
     reason = "max_points"
-    bar = _bar(progress, max_points)
-    model_fn = canonical(model_fn)  # a new but identical function: the same program
     while len(rows) < max_points:
-        u, ok, k, mu, amp = _correct(
-            model_fn,
-            parameter,
-            others,
-            solver,
-            u_k,
-            tau,
-            jnp.asarray(s),
-            x_ref,
-            alpha_ref,
-            float(tol),
-            12,
+        u, code, k, mu, amp, tangent = correct(
+            u_k, tau, jnp.asarray(s), x_ref, alpha_ref, steps["tol"], 12
         )
-        if not bool(ok):
+        if int(code) != int(np.asarray(enum.code(OrbitStatus.successful))):
             s *= 0.5
             if s < s_min:
-                reason = "step size below amplitude/1000"
+                failure = enum.name(enum.from_code(OrbitStatus, code))
+                reason = f"step size below amplitude/1000 (last correction: {failure})"
                 break
             continue
-        rows.append((u, mu, float(amp)))
+        rows.append((u, mu, float(amp), tangent))
         bar.update(1)
         tau = (u - u_k) / jnp.linalg.norm(u - u_k)
         u_k, x_ref, alpha_ref = u, u[:6], u[7]
-        s = min(s * 1.5, ds_max) if int(k) <= 3 else s
+        s = min(s * 1.5, steps["ds_max"]) if int(k) <= 3 else s
         if not bounds[0] <= float(u[7]) <= bounds[1]:
             reason = "left bounds"
             break
     bar.close()
-    return _dataset(xr, parameter, rows, reason)
+    return rows, reason
+
+
+def _locate_folds(special, rows, model_fn, others, parameter, solver, tol):
+    """Each detected fold refined by :func:`fold_of_cycles` from the interpolated cycle (kept
+    at the interpolated value where Newton's method fails)."""
+    for i, (kind, value, index) in enumerate(special):
+        if kind != "fold":
+            continue
+        y = fold_guess([(u, t, None) for u, _, _, t in rows], index)
+        guess = {"theta0": y[:3], "Omega0": y[3:6], "period": y[6], parameter: y[7]}
+        fold = fold_of_cycles(model_fn, others, parameter, guess, tol=tol, **solver)
+        if bool(fold.ok):
+            special[i] = (kind, float(fold.value), index)
+
+
+def _nontrivial(mu):
+    """The multipliers without the one nearest 1 (NumPy)."""
+    mu = np.asarray(mu)
+    return np.delete(mu, np.argmin(np.abs(mu - 1.0))) if np.all(np.isfinite(mu)) else mu[1:]
 
 
 def _bar(progress, total):
@@ -176,23 +224,24 @@ def _bar(progress, total):
     return _progress(progress, total)
 
 
-def _dataset(xr, parameter, rows, reason):
-    U = np.stack([np.asarray(u) for u, _, _ in rows])
-    mu = np.stack([np.asarray(m) for _, m, _ in rows])
-    trivial = np.array([abs(complex(split_multipliers(jnp.asarray(m))[0]) - 1) for m in mu])
-    others = np.array(
-        [np.max(np.abs(np.asarray(split_multipliers(jnp.asarray(m))[1]))) for m in mu]
-    )
+def _dataset(xr, parameter, rows, special, reason):
+    U = np.stack([np.asarray(u) for u, _, _, _ in rows])
+    mu = np.stack([np.asarray(m) for _, m, _, _ in rows])
+    trivial = np.array([np.min(np.abs(m - 1.0)) for m in mu])
+    others = np.array([np.max(np.abs(_nontrivial(m))) for m in mu])
     return xr.Dataset(
         {
             parameter: ("point", U[:, 7]),
             "period": ("point", U[:, 6]),
-            "amplitude": ("point", np.array([a for _, _, a in rows])),
+            "amplitude": ("point", np.array([a for _, _, a, _ in rows])),
             "theta0": (("point", "component"), U[:, :3]),
             "Omega0": (("point", "component"), U[:, 3:6]),
             "multipliers": (("point", "index"), mu),
             "trivial_multiplier_error": ("point", trivial),
             "stable": ("point", others < 1.0),
+            "special_type": ("special", np.array([s[0] for s in special], dtype=str)),
+            "special_value": ("special", np.array([s[1] for s in special], dtype=float)),
+            "special_index": ("special", np.array([s[2] for s in special], dtype=int)),
         },
         coords={"component": ["x", "y", "z"], "index": np.arange(6)},
         attrs={"parameter": parameter, "stop_reason": reason},
