@@ -217,16 +217,23 @@ def _on_line(a: _Point, b: _Point, fa: float, fb: float):
 
 def _locate_bautin(model_fn, params, parameter, along, before: _Point, after: _Point):
     r"""The Bautin point (generalised Hopf, $\ell_1 = 0$) between two points of the boundary
-    whose first Lyapunov coefficients have opposite signs: ``(alpha, beta)`` by linear
-    interpolation of $\ell_1$ along the chord (error $O(s^2)$).
+    whose first Lyapunov coefficients have opposite signs: :func:`rbo_jax.bautin_point` started
+    from the linear interpolation of $\ell_1$ along the chord, ``(alpha, beta)``; the
+    interpolation itself (error $O(s^2)$) if that solve fails. ``before.X``/``after.X`` are
+    ``[θ(3), α, ω, v_r(6), v_i(6), β]`` and ``before.raw.first_lyapunov`` its $\ell_1$."""
+    from ._bautin import bautin_point
 
-    The hook for an exact location: ``model_fn``, ``params`` (the fixed parameters),
-    ``parameter`` (α) and ``along`` (β) name the problem, ``before.X``/``after.X`` are
-    ``[θ(3), α, ω, v_r(6), v_i(6), β]`` and ``before.raw.first_lyapunov`` its $\ell_1$;
-    a solve such as ``bautin_point(model_fn, params, (parameter, along), guess)`` started from
-    the interpolated point may replace the interpolation."""
     fa, fb = float(before.raw.first_lyapunov), float(after.raw.first_lyapunov)
     alpha, beta, _ = _on_line(before, after, fa, fb)
+    point = bautin_point(
+        model_fn,
+        params,
+        (parameter, along),
+        (alpha, beta),
+        theta_guess=np.asarray(before.X[:3]),
+    )
+    if bool(point.ok):
+        return float(point.value[0]), float(point.value[1])
     return alpha, beta
 
 
