@@ -109,7 +109,6 @@ class BStatic(NamedTuple):
     parameters end with $\\beta$) and the secant's tolerances and budget."""
 
     hopf: Static
-    step: float
     rtol: float
     atol: float
     max_steps: int
@@ -125,7 +124,7 @@ _STEPS = np.array([-2.0, -1.0, 1.0, 2.0])  # Richardson's central stencil, error
 _WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
 
 
-def _secant(static: BStatic, p, guess, theta0, t):
+def _secant(static: BStatic, p, guess, theta0, t, step):
     r"""The secant iteration on $\ell_1(\beta)$ (module docstring), then the gradient of $\ell_1$
     along the Hopf curve with respect to $q = (p, \beta)$ by central differences of Hopf points
     solved again at $q \pm h e_i$, $q \pm 2he_i$ ($h = 10^{-3}\max(1, |q_i|)$, Richardson's
@@ -139,12 +138,12 @@ def _secant(static: BStatic, p, guess, theta0, t):
         """The flat parameters of this iteration's Hopf solve."""
         b0 = guess[1]
         slope = (c["l"] - c["l_prev"]) / (c["b"] - c["b_prev"])
-        b = jnp.where(c["k"] == 0, b0, b0 + static.step * jnp.maximum(jnp.abs(b0), 1.0))
+        b = jnp.where(c["k"] == 0, b0, b0 + step * jnp.maximum(jnp.abs(b0), 1.0))
         b = jnp.where(c["k"] >= 2, c["b"] - c["l"] / slope, b)
         i, j = c["j"] % n, c["j"] // n
         q = jnp.concatenate([p, c["b"][None]])
-        step = 1e-3 * jnp.maximum(jnp.abs(q[i]), 1.0)
-        fd = q.at[i].add(jnp.asarray(_STEPS, dtype)[jnp.minimum(j, 3)] * step)
+        h_i = 1e-3 * jnp.maximum(jnp.abs(q[i]), 1.0)
+        fd = q.at[i].add(jnp.asarray(_STEPS, dtype)[jnp.minimum(j, 3)] * h_i)
         return jnp.where(c["phase"] == 0, jnp.concatenate([p, b[None]]), fd), slope
 
     def body(c):
@@ -199,8 +198,8 @@ def _secant(static: BStatic, p, guess, theta0, t):
     )
     c = jax.lax.while_loop(lambda c: c["phase"] < 2, body, init)
     q = jnp.concatenate([p, c["b"][None]])
-    step = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
-    grad = jnp.tensordot(jnp.asarray(_WEIGHTS, dtype), c["values"].reshape(4, n), 1) / step
+    h_q = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
+    grad = jnp.tensordot(jnp.asarray(_WEIGHTS, dtype), c["values"].reshape(4, n), 1) / h_q
     raw = c["raw"]
     return (
         c["b"],
@@ -255,13 +254,15 @@ class Raw(NamedTuple):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def bautin_solution(static: BStatic, p, guess, theta0, t) -> Raw:
+def bautin_solution(static: BStatic, p, guess, theta0, t, step) -> Raw:
     """The raw Bautin point; differentiable in ``p`` (module docstring)."""
-    return _solve(static, p, guess, theta0, t)[0]
+    return _solve(static, p, guess, theta0, t, step)[0]
 
 
-def _solve(static, p, guess, theta0, t):
-    beta, u, Ju, Jp, trans, l1, grad, steps, code = _secant_program(static, p, guess, theta0, t)
+def _solve(static, p, guess, theta0, t, step):
+    beta, u, Ju, Jp, trans, l1, grad, steps, code = _secant_program(
+        static, p, guess, theta0, t, step
+    )
     l2 = _final_program(static, jnp.concatenate([p, beta[None]]), u, t)
     return Raw(beta, u, trans, l1, grad, l2, steps, code), Ju, Jp
 
@@ -372,6 +373,7 @@ def bautin_point(
         1e-11,
         64,
     )
-    static = BStatic(hopf, float(step), float(rtol), float(atol), int(max_steps))
+    static = BStatic(hopf, float(rtol), float(atol), int(max_steps))
     t = t if _is_traced(t) else np.asarray(t, dtype)
-    return _finish(bautin_solution(static, p, guess, theta_guess, t))
+    step = step if _is_traced(step) else np.asarray(step, dtype)
+    return _finish(bautin_solution(static, p, guess, theta_guess, t, step))
