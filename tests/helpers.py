@@ -53,3 +53,12 @@ def spectrum_match_error(p, q) -> float:
     cost = np.abs(p[:, None] - q[None, :])
     rows, cols = linear_sum_assignment(cost)
     return float(cost[rows, cols].max())
+
+
+def damped_nikolai(M, b, c, A3):
+    """The damped Nikolai problem (follower moment (4.57), friction (4.84)), d = 2, A1 = 1: one
+    function, so one program of each kind for every test of the codimension-two analysis (and
+    one entry of the compilation cache the test run shares)."""
+    import rbo_jax as rbo
+
+    return rbo.nikolai_model(M, c, 2.0, A1=1.0, A3=A3, friction=b)

@@ -8,16 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
+from helpers import damped_nikolai
 
 import rbo_jax as rbo
 
 C, D, A1 = 1.0, 2.0, 1.0
 
 
-def nikolai(M, b, c, A3):
-    """The damped Nikolai problem (4.57), (4.84); one structure for every test (one compiled
-    program of each kind)."""
-    return rbo.nikolai_model(M, c, D, A1=A1, A3=A3, friction=b)
+nikolai = damped_nikolai  # (4.57), (4.84); d = D, A1 = A1
 
 
 def critical_moment(b, c=C):

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import damped_nikolai
 
 import rbo_jax as rbo
 from rbo_jax.bifurcation import OrbitStatus
@@ -20,11 +21,8 @@ from rbo_jax.bifurcation._cycle_special import multiplier_crossings
 
 K_AXIS = (0.0, 0.0, 1.0)
 C, D, A1 = 1.0, 2.0, 1.0
-PARAMS = {"b": 0.1, "A3": 2.0}  # the hard side: l1 > 0
-
-
-def nikolai(M, b, A3):
-    return rbo.nikolai_model(M, C, D, A1=A1, A3=A3, k=K_AXIS, friction=b)
+PARAMS = {"b": 0.1, "c": C, "A3": 2.0}  # the hard side: l1 > 0
+nikolai = damped_nikolai  # (4.57), (4.84) with d = D, A1 = A1
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +85,7 @@ def test_fold_solves_the_augmented_shooting_system(cycles, fold_index, fold):
     assert float(cycles["special_value"].values[0]) == pytest.approx(value, abs=1e-8)
     assert float(fold.period) == pytest.approx(float(other.period), abs=1e-7)
     assert float(fold.residual) < 1e-9
-    model = nikolai(fold.value, PARAMS["b"], PARAMS["A3"])
+    model = nikolai(fold.value, **PARAMS)
     ts = jnp.stack([jnp.zeros(()), fold.period])
     traj = rbo.fast_simulate(model, fold.theta0, fold.Omega0, ts, rtol=1e-11, atol=1e-11)
     assert np.max(np.abs(np.asarray(traj.theta[-1] - fold.theta0))) < 1e-9
@@ -113,7 +111,7 @@ def test_between_the_fold_and_the_hopf_point_rest_and_the_large_cycle_coexist(
     M = cycles["M"].values
     j = fold_index + 3
     assert float(fold.value) < M[j] < float(hopf.value) - 0.01
-    model = nikolai(float(M[j]), PARAMS["b"], PARAMS["A3"])
+    model = nikolai(float(M[j]), **PARAMS)
     T = float(cycles["period"].values[j])
     ts = jnp.concatenate([jnp.zeros(1), 2000.0 + jnp.linspace(0.0, T, 65)[:-1]])
     solver = dict(rtol=1e-9, atol=1e-9, throw=False)
@@ -193,3 +191,27 @@ def test_multiplier_crossings_classify_period_doubling_and_neimark_sacker():
     sequence = [[-r, *_ring(0.5, 1.0)] for r in np.linspace(0.7, 1.3, 7)]
     found = [i for i in range(6) if multiplier_crossings(sequence[i], sequence[i + 1])]
     assert found == [3]
+
+
+def test_fold_near_the_bautin_point_follows_the_second_lyapunov_coefficient():
+    """Near the Bautin point the normal form rho' = rho(mu + l1 rho^2 + l2 rho^4) puts the fold of
+    cycles at mu = l1^2/(4|l2|) on the stable side: M* - M_c = omega l1^2/(4 l2 sigma) (sigma the
+    transversality), to leading order in l1. The folds located by the shooting continuation at
+    A3 = A3_B + 0.04 and + 0.02 approach it, with an error halving with l1 (first order), so
+    Richardson's extrapolation of the two lands on the prediction: an independent check of l2
+    (normal form, fifth derivatives) on the rigid body itself."""
+    bp = rbo.bautin_point(nikolai, {"b": PARAMS["b"], "c": C}, ("M", "A3"), (0.2, 1.3))
+    l2 = float(bp.second_lyapunov)
+    ratios = []
+    for dA3 in (0.04, 0.02):
+        params = {**PARAMS, "A3": float(bp.value[1]) + dA3}
+        h = rbo.hopf_point(nikolai, params, "M", 0.2)
+        l1, omega, sigma = (float(h.first_lyapunov), float(h.frequency), float(h.transversality))
+        cycles = rbo.continue_limit_cycles(
+            nikolai, params, "M", h, amplitude=0.01, ds_max=0.05, max_points=40
+        )
+        folds = cycles["special_value"].values[cycles["special_type"].values == "fold"]
+        assert folds.size == 1 and folds[0] < float(h.value)
+        ratios.append((folds[0] - float(h.value)) / (omega * l1**2 / (4 * l2 * sigma)))
+    assert abs(ratios[0] - 1) < 0.2 and abs(ratios[1] - 1) < 0.6 * abs(ratios[0] - 1)
+    assert 2 * ratios[1] - ratios[0] == pytest.approx(1.0, abs=0.02)

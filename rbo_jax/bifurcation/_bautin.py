@@ -48,13 +48,14 @@ from ._hopf import (
     HopfStatus,
     Static,
     _is_traced,
+    _nan_unless,
     _zero_tangent,
     canonical,
     flat_parameters,
     solution,
 )
-from ._normal_form import second_lyapunov_coefficient
-from ._system import _adjoint_vector, _oriented, _Problem
+from ._normal_form import STENCIL, WEIGHTS, second_lyapunov_coefficient
+from ._system import _adjoint_vector, _code, _oriented, _Problem, normalisation_vector
 
 __all__ = ["BautinPoint", "BautinStatus", "bautin_point"]
 
@@ -114,14 +115,26 @@ class BStatic(NamedTuple):
     max_steps: int
 
 
-def _warm_vector(u):
-    """The normalisation vector $w$ with $w^Hv = 1$ at the Hopf solution ``u``."""
-    vr, vi = u[5:11], u[11:17]
-    return jnp.concatenate([vr, vi]) / (vr @ vr + vi @ vi)
-
-
-_STEPS = np.array([-2.0, -1.0, 1.0, 2.0])  # Richardson's central stencil, error O(h^4)
-_WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
+def _start(h: Static, p, guess, theta0, t, n):
+    """The loop's first carry: nothing solved yet (zeros shaped as the Hopf program's output)."""
+    dtype = p.dtype
+    cold = (jnp.zeros(17, dtype), jnp.zeros(12, dtype), jnp.asarray(False))
+    q = jnp.concatenate([p, guess[1:]])
+    shapes = jax.eval_shape(lambda: solution(h, q, guess[0], theta0, t, *cold))
+    return dict(
+        b_prev=guess[1],
+        l_prev=jnp.zeros((), dtype),
+        b=guess[1],
+        l=jnp.zeros((), dtype),
+        raw=jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes),
+        u=cold[0],
+        w=cold[1],
+        k=jnp.asarray(0, jnp.int32),
+        j=jnp.asarray(0, jnp.int32),
+        values=jnp.zeros(4 * n, dtype),
+        code=jnp.asarray(_code(BautinStatus.successful), jnp.int32),
+        phase=jnp.asarray(0, jnp.int32),
+    )
 
 
 def _secant(static: BStatic, p, guess, theta0, t, step):
@@ -143,7 +156,7 @@ def _secant(static: BStatic, p, guess, theta0, t, step):
         i, j = c["j"] % n, c["j"] // n
         q = jnp.concatenate([p, c["b"][None]])
         h_i = 1e-3 * jnp.maximum(jnp.abs(q[i]), 1.0)
-        fd = q.at[i].add(jnp.asarray(_STEPS, dtype)[jnp.minimum(j, 3)] * h_i)
+        fd = q.at[i].add(jnp.asarray(STENCIL, dtype)[jnp.minimum(j, 3)] * h_i)
         return jnp.where(c["phase"] == 0, jnp.concatenate([p, b[None]]), fd), slope
 
     def body(c):
@@ -165,7 +178,7 @@ def _secant(static: BStatic, p, guess, theta0, t, step):
             l=raw.first_lyapunov,
             raw=raw,
             u=raw.u,
-            w=_warm_vector(raw.u),
+            w=normalisation_vector(raw.u),
             k=k,
             code=code.astype(jnp.int32),
             phase=jnp.where(stop, jnp.where(code == ok_code, 1, 2), 0).astype(jnp.int32),
@@ -179,27 +192,10 @@ def _secant(static: BStatic, p, guess, theta0, t, step):
         )
         return jax.tree.map(lambda a, b: jnp.where(c["phase"] == 0, a, b), secant, fd)
 
-    shapes = jax.eval_shape(
-        lambda: solution(h, jnp.concatenate([p, guess[1:]]), guess[0], theta0, t, *_cold(dtype))
-    )
-    init = dict(
-        b_prev=guess[1],
-        l_prev=jnp.zeros((), dtype),
-        b=guess[1],
-        l=jnp.zeros((), dtype),
-        raw=jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes),
-        u=jnp.zeros(17, dtype),
-        w=jnp.zeros(12, dtype),
-        k=jnp.asarray(0, jnp.int32),
-        j=jnp.asarray(0, jnp.int32),
-        values=jnp.zeros(4 * n, dtype),
-        code=jnp.asarray(ok_code, jnp.int32),
-        phase=jnp.asarray(0, jnp.int32),
-    )
-    c = jax.lax.while_loop(lambda c: c["phase"] < 2, body, init)
+    c = jax.lax.while_loop(lambda c: c["phase"] < 2, body, _start(h, p, guess, theta0, t, n))
     q = jnp.concatenate([p, c["b"][None]])
     h_q = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
-    grad = jnp.tensordot(jnp.asarray(_WEIGHTS, dtype), c["values"].reshape(4, n), 1) / h_q
+    grad = jnp.tensordot(jnp.asarray(WEIGHTS, dtype), c["values"].reshape(4, n), 1) / h_q
     raw = c["raw"]
     return (
         c["b"],
@@ -212,10 +208,6 @@ def _secant(static: BStatic, p, guess, theta0, t, step):
         c["k"],
         c["code"],
     )
-
-
-def _cold(dtype):
-    return jnp.zeros(17, dtype), jnp.zeros(12, dtype), jnp.asarray(False)
 
 
 def _final(static: BStatic, q, u, t):
@@ -232,10 +224,6 @@ def _final(static: BStatic, q, u, t):
     qv = jax.lax.complex(a, b)
     adjoint = _adjoint_vector(jax.jacfwd(F)(x0), omega, qv)
     return second_lyapunov_coefficient(F, x0, omega, qv, adjoint)
-
-
-def _code(item) -> int:
-    return int(np.asarray(enum.code(item)))
 
 
 _secant_program = program(_secant, small=True)
@@ -277,10 +265,6 @@ def _bautin_jvp(static, primals, tangents):
     du = -jnp.linalg.solve(Ju, Jp @ jnp.concatenate([dp, dbeta[None]]))
     zeros = jax.tree.map(_zero_tangent, raw)
     return raw, zeros._replace(beta=dbeta, u=du)
-
-
-def _nan_unless(good, x):
-    return jnp.where(good, x, jnp.full_like(x, jnp.nan))
 
 
 def _finish(raw: Raw) -> BautinPoint:

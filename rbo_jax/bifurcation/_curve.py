@@ -29,6 +29,7 @@ from .._programs import jit
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._hopf import HopfStatus, Static, canonical, finish, solution
+from ._system import normalisation_vector
 
 _SUCCESSFUL = int(np.asarray(enum.code(HopfStatus.successful)))
 _NOT_CONVERGED = int(np.asarray(enum.code(HopfStatus.not_converged)))
@@ -47,9 +48,7 @@ def _curve(static, t, p, guess, values, theta_guess):
         q = jnp.concatenate([p, value[None]])
         raw = solution(static, q, guess, theta_guess, t, u, w, ~first)
         good = alive & (raw.status == _SUCCESSFUL)
-        v = raw.u[5:11], raw.u[11:17]
-        n2 = v[0] @ v[0] + v[1] @ v[1]
-        w_new = jnp.concatenate([v[0], v[1]]) / n2  # w^H v = 1 at the new solution
+        w_new = normalisation_vector(raw.u)  # w^H v = 1 at the new solution
         status = jnp.where(alive, raw.status, _NOT_CONVERGED)
         carry = (jnp.where(good, raw.u, u), jnp.where(good, w_new, w), good, jnp.zeros((), bool))
         return carry, finish(raw._replace(status=status.astype(raw.status.dtype)))

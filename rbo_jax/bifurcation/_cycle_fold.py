@@ -288,8 +288,7 @@ def fold_of_cycles(
     if not callable(model_fn):
         raise TypeError("model_fn must be a callable model_fn(**params) -> RigidBodyOscillator.")
     dtype = jnp.result_type(float)
-    # sorted names: the order jax.grad's pytrees give a dict (one program for both)
-    others = {str(k): params[k] for k in sorted(params, key=str) if k != parameter}
+    others = {str(k): v for k, v in params.items() if k != parameter}  # flat, by sorted name
     names, shapes, p = flat_parameters(others)
     static = Static(
         canonical(model_fn),

@@ -208,16 +208,18 @@ def _is_traced(tree) -> bool:
 
 
 def flat_parameters(others: dict):
-    """``(names, shapes, p)``: the parameters flattened (NumPy when concrete: no small eager
-    programs)."""
-    names = tuple(others)
-    shapes = tuple(tuple(int(d) for d in jnp.shape(v)) for v in others.values())
+    """``(names, shapes, p)``: the parameters flattened in the order of their names (NumPy
+    when concrete: no small eager programs). Sorted, so that the same parameters give the same
+    program whatever the order of the mapping (``jax.grad`` sorts a dict's keys)."""
+    names = tuple(sorted(others))
+    values = [others[k] for k in names]
+    shapes = tuple(tuple(int(d) for d in jnp.shape(v)) for v in values)
     dtype = jnp.result_type(float)
     if _is_traced(others):
-        parts = [jnp.ravel(jnp.asarray(v, dtype=dtype)) for v in others.values()]
+        parts = [jnp.ravel(jnp.asarray(v, dtype=dtype)) for v in values]
         p = jnp.concatenate(parts) if parts else jnp.zeros(0, dtype)
     else:
-        parts = [np.ravel(np.asarray(v, dtype=dtype)) for v in others.values()]
+        parts = [np.ravel(np.asarray(v, dtype=dtype)) for v in values]
         p = np.concatenate(parts) if parts else np.zeros(0, dtype)
     return names, shapes, p
 

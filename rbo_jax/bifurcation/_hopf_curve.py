@@ -52,7 +52,7 @@ from .. import _enumeration as enum
 from .._programs import jit
 from ._field import jet
 from ._hopf import HopfStatus, Raw, Static, solution
-from ._system import _Problem, _rows, _small, _system
+from ._system import _Problem, _rows, _small, _system, normalisation_vector
 
 __all__ = ["continue_hopf_arclength"]
 
@@ -116,8 +116,7 @@ def _corrector(static: Static, t, p, X, tau, s, w, max_newton):
         lambda c: ~c[2] & (c[1] < max_newton), body, init
     )
     converged = done & jnp.all(jnp.isfinite(V))
-    v = V[5:11], V[11:17]
-    w_new = jnp.concatenate([v[0], v[1]]) / (v[0] @ v[0] + v[1] @ v[1])
+    w_new = normalisation_vector(V)
     _, Ju, Jp, _, _, _ = _system(V_last[:17], w_new, *D, problem.n_p)
     tangent = jnp.linalg.solve(_bordered(Ju, Jp[:, -1], tau), e)
     return V, converged, k, tangent / jnp.linalg.norm(tangent), w_new, scale
@@ -170,8 +169,7 @@ def _first_point(run: _Run, guess, theta_guess) -> _Point:
             f"HopfStatus.{enum.name(enum.from_code(HopfStatus, status))}."
         )
     u = np.asarray(raw.u)
-    v = u[5:11], u[11:17]
-    w = np.concatenate(v) / (v[0] @ v[0] + v[1] @ v[1])
+    w = np.asarray(normalisation_vector(u))
     X = np.concatenate([u, [beta0]])
     tau0 = np.zeros(18)
     tau0[17] = run.direction

@@ -63,9 +63,10 @@ __all__ = ["second_lyapunov_coefficient", "jet5"]
 ORDER = 5
 
 
-# Richardson's central stencil for a first derivative, error O(h^4): f'(0) ≈ Σ w f(s h)/h
-_STENCIL = np.array([-2.0, -1.0, 1.0, 2.0])
-_WEIGHTS4 = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
+# Richardson's central stencil for a first derivative, error O(h^4): f'(0) ≈ Σ w f(sh)/h
+# (also the Bautin solve's derivative of l1 along the Hopf curve)
+STENCIL = np.array([-2.0, -1.0, 1.0, 2.0])
+WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
 STEP = 2e-3  # h: truncation ~h^4 ~ 1e-11, rounding ~1e-16/h^2 ~ 1e-11 for the fifth derivative
 
 
@@ -80,8 +81,8 @@ def jet5(F, y, t):
     u4 = t[3] / jnp.where(n4 > 0, n4, 1.0)
     u5 = t[4] / jnp.where(n5 > 0, n5, 1.0)
     h = jnp.asarray(STEP, y.dtype)
-    s = jnp.asarray(_STENCIL, y.dtype)
-    w = jnp.asarray(_WEIGHTS4, y.dtype)
+    s = jnp.asarray(STENCIL, y.dtype)
+    w = jnp.asarray(WEIGHTS, y.dtype)
     one = jnp.concatenate([s[:, None] * u4[None, :], jnp.zeros((1, y.shape[0]), y.dtype)]) * h
     two = (s[:, None, None] * u4[None, None] + s[None, :, None] * u5[None, None]).reshape(
         -1, y.shape[0]
@@ -175,7 +176,7 @@ def _stage_forms(s, q, c):
     ]
 
 
-_WEIGHTS = np.array([1, 1, 3, 6, 1, 3, 6, 3, 6, 6, 2, 3, 1, 3, 6])  # of G32's forms
+_G32_WEIGHTS = np.array([1, 1, 3, 6, 1, 3, 6, 3, 6, 6, 2, 3, 1, 3, 6])  # of G32's forms
 
 
 def _stage_update(s, L, omega, q, p, c, v):
@@ -193,7 +194,7 @@ def _stage_update(s, L, omega, q, p, c, v):
         h22 = v[6] + 4 * v[7] + v[8] + v[9] + 2 * (v[10] + v[11] + v[12]) + v[13]
         h22 = h22.real - 4 * G21.real * c["H11"]  # real: every term has its conjugate
         return {**c, "H31": _solve(L, 2 * omega, h31), "H22": -jnp.linalg.solve(L, h22)}
-    return {**c, "G32": jnp.vdot(p, jnp.tensordot(jnp.asarray(_WEIGHTS, v.dtype), v, 1))}
+    return {**c, "G32": jnp.vdot(p, jnp.tensordot(jnp.asarray(_G32_WEIGHTS, v.dtype), v, 1))}
 
 
 def second_lyapunov_coefficient(F, x0, omega, q, p):

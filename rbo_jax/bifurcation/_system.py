@@ -41,7 +41,13 @@ from ..model import RigidBodyOscillator
 from ._field import flat_field, jet
 from ._lyapunov import STAGE_TWO_ROWS, from_stage_two, stage_one, stage_two_rows
 
-__all__ = ["EQUILIBRIUM_TOLERANCE", "HopfStatus", "hopf_program", "unpack_parameters"]
+__all__ = [
+    "EQUILIBRIUM_TOLERANCE",
+    "HopfStatus",
+    "hopf_program",
+    "normalisation_vector",
+    "unpack_parameters",
+]
 
 EQUILIBRIUM, START, NEWTON, FINAL, LYAPUNOV, DONE = range(6)
 EQUILIBRIUM_TOLERANCE = 1e-12  # Newton's rtol and atol at the guess (solve_equilibrium's)
@@ -167,6 +173,13 @@ def _adjoint_vector(J, omega, q):
     bottom = jnp.concatenate([jnp.conj(q), jnp.zeros(1, q.dtype)])[None, :]
     rhs = jnp.asarray(np.eye(n + 1)[n], dtype=q.dtype)
     return jnp.linalg.solve(jnp.concatenate([top, bottom]), rhs)[:n]
+
+
+def normalisation_vector(u):
+    r"""$w = [v_r, v_i]/|v|^2$ for the eigenvector $v = v_r + iv_i$ of the Hopf solution ``u``:
+    $w^Hv = 1$ there, so a warm start from ``u`` keeps its scale and phase (continuations)."""
+    vr, vi = u[5:11], u[11:17]
+    return jnp.concatenate([vr, vi]) / (vr @ vr + vi @ vi)
 
 
 def _oriented(u):
