@@ -206,6 +206,15 @@ _HOPF_GRAD = (
 result = float(jax.grad(lambda b: rbo_jax.hopf_point(nikolai, {"b": b}, "M", 0.15).value)(0.1))
 """
 )
+_BAUTIN = (
+    _CACHE
+    + """\
+def nikolai(M, b, A3):  # tests/test_bautin.py, c fixed
+    return rbo_jax.nikolai_model(M, 1.0, 2.0, A1=1.0, A3=A3, friction=b)
+bp = rbo_jax.bautin_point(nikolai, {"b": 0.1}, ("M", "A3"), (0.2, 1.2))
+result = np.array([*np.asarray(bp.value), float(bp.second_lyapunov)])
+"""
+)
 
 _SCIPY = """\
 from _numpy_reference import numpy_rhs
@@ -377,6 +386,7 @@ def rows() -> list[Row]:
             _HOPF_GRAD,
             target=(8.0, 2.0),
         ),
+        Row("bautin", "`bautin_point` (damped Nikolai, (M, A3))", _RBO, _BAUTIN),
         Row("cli_simulate", "`rbo-jax simulate` (README example, process)", cli=CLI_SIMULATE),
         Row("cli_fit", "`rbo-jax fit` (README example, process)", cli=CLI_FIT, needs=("cli_obs",)),
         Row("import_jax", "anchor: `import jax`", "import jax\n", "result = 0.0\n", target=None),

@@ -156,8 +156,8 @@ def test_bogdanov_takens_end_of_the_boundary(stiffness_arc):
 
 
 def test_bautin_point_where_l1_changes_sign(stiffness_arc):
-    """The Bautin point lies between the two points where l1 changes sign; there l1 of
-    rbo.hopf_point is zero to the accuracy of the linear interpolation."""
+    """The Bautin point lies between the two points where l1 changes sign, located exactly by
+    rbo.bautin_point: there l1 of rbo.hopf_point is zero."""
     ds = stiffness_arc
     types = list(ds["special_type"].values)
     assert types.count("bautin") == 1
@@ -171,6 +171,9 @@ def test_bautin_point_where_l1_changes_sign(stiffness_arc):
     h = rbo.hopf_point(stiffness_model, {"e": 0.03, "c": c_b}, "M", M_b)
     assert float(h.value) == pytest.approx(M_b, abs=1e-3)
     assert abs(float(h.first_lyapunov)) < 0.1 * (l1[i] - l1[i + 1])
+    # located by rbo.bautin_point, not only interpolated: on the curve, and l1 = 0 there
+    assert float(h.value) == pytest.approx(M_b, abs=1e-10)
+    assert abs(float(h.first_lyapunov)) < 1e-10
     assert float(ds["special_first_lyapunov"][k]) == 0.0
 
 

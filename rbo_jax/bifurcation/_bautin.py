@@ -13,18 +13,18 @@ $\alpha_F - \alpha_H \approx \omega\ell_1^2/(4\ell_2\,\mathrm{transversality})$,
 $\alpha_F$ and $\alpha_H$ the equilibrium and a large stable cycle coexist (hysteresis).
 
 **Solve.** The secant method on $\ell_1(\beta)$, each value from the Hopf program of
-:mod:`._system` warm-started at the previous Hopf point (one compiled loop; $\ell_1$ comes with
-the Hopf point, no derivative of it is traced). The secant converges superlinearly; it stops when
-the step in $\beta$ is below ``atol + rtol·|β|``.
+:mod:`._system` warm-started at the previous Hopf point; it stops when the step in $\beta$ is
+below ``atol + rtol·|β|`` (superlinear convergence). The same loop then solves the Hopf points
+at $q \pm he_i$, $q \pm 2he_i$ around the solution $q = (p, \beta_B)$ ($p$ the other parameters,
+$h = 10^{-3}\max(1, |q_i|)$): the gradient of $\ell_1$ along the Hopf curve by Richardson's
+central differences, $O(h^4)$, ~1e-9 relative (one compiled loop around one copy of the Hopf
+program; the exact derivative would need fourth derivatives of the vector field, whose traced
+program took minutes to compile). A second program computes $\ell_2$ at the solution.
 
-**At the solution** (a second compiled program): $\ell_2$, and the gradient of the total
-$\ell_1$ along the Hopf curve with respect to $(p, \beta)$ ($p$ the other parameters), by forward
-mode through Kuznetsov's formula (fourth derivatives of the vector field) with the Hopf point's
-own derivative $du = -(\partial_u r)^{-1}\partial_{(p,\beta)} r\,d(p, \beta)$ (implicit function
-theorem, :mod:`._hopf`). **Derivatives** of the Bautin point then follow from the implicit function
-theorem for the pair of equations (Hopf system, $\ell_1 = 0$):
-$d\beta_B = -\nabla_p\ell_1\cdot dp/\partial_\beta\ell_1$, and $d\alpha_B$ from the Hopf system
-at $(p + dp, \beta_B + d\beta_B)$: ``jax.grad`` and ``jax.jacfwd`` work through
+**Derivatives** of the Bautin point follow from the implicit function theorem for the pair of
+equations (Hopf system, $\ell_1 = 0$): $d\beta_B = -\nabla_p\ell_1\cdot dp/\partial_\beta\ell_1$,
+and $du = -(\partial_u r)^{-1}\partial_{(p,\beta)} r\,d(p, \beta)$ of the Hopf system
+(:mod:`._hopf`) at $(dp, d\beta_B)$: ``jax.grad`` and ``jax.jacfwd`` work through
 :func:`bautin_point`.
 """
 
@@ -315,8 +315,7 @@ def bautin_point(
     values are NaN). ``jax.grad``/``jax.jacfwd`` of ``value`` (and ``frequency``, ``theta``)
     with respect to the other entries of ``params`` by the implicit function theorem; ``vmap``
     over them works. Two compiled programs per model structure (the secant loop around the
-    Hopf program; $\ell_2$ with fifth derivatives of the vector field, and the gradient of
-    $\ell_1$), kept by the program store when it is on
+    Hopf program, with the gradient of $\ell_1$; $\ell_2$), kept by the program store when it is on
     (:func:`rbo_jax.enable_compilation_cache`).
 
     Example: the damped Nikolai problem (4.57), (4.84), whose critical moment

@@ -5,7 +5,8 @@ independent computation: scipy integration of the reduced equations, the Euler-a
 section 4.6.3) and passes when the error is below a stated tolerance. Figures are written next to
 the report. The exit status is non-zero if any check fails. One module per part of the paper:
 ``_kinematics`` (4.2), ``_nikolai`` (4.4–4.5), ``_dynamics`` (4.3–4.6), ``_precession`` (4.7),
-``_fitting``, ``_bifurcation`` (Hopf points, Floquet multipliers, continuation), ``_lattice``
+``_fitting``, ``_bifurcation`` (Hopf points, Floquet multipliers, continuation), ``_flutter``
+(Bautin point, folds of cycles, hysteresis; full run only), ``_lattice``
 (4.8: chains of bodies, their waves, the sine-Gordon kink and Kelvin's medium).
 """
 
@@ -20,6 +21,7 @@ from ._bifurcation import bifurcation
 from ._common import Check
 from ._dynamics import balance_and_energy, simplest
 from ._fitting import fitting
+from ._flutter import flutter
 from ._kinematics import kinematics
 from ._lattice import lattice
 from ._nikolai import nikolai
@@ -52,6 +54,16 @@ def run_reproduction(
         ("regular precession (4.7)", lambda: precession(out, plt)),
         ("fitting", fitting),
         ("bifurcations: Hopf points, continuation", lambda: bifurcation(out, plt, quick)),
+        *(
+            []
+            if quick
+            else [
+                (
+                    "hard and soft flutter: Bautin point, folds, hysteresis",
+                    lambda: flutter(out, plt),
+                )
+            ]
+        ),
         (
             "lattices of bodies (4.8): waves, kink, Kelvin's medium",
             lambda: lattice(out, plt, quick),
@@ -107,6 +119,8 @@ def _write_report(out, checks, elapsed, quick, figures):
                 "and (full run) the limit cycles",
             ),
             ("hopf_boundary.png", "Flutter boundary by continue_hopf over the stability map"),
+            ("flutter_map.png", "Soft and hard flutter over (A3, b) with the Bautin curve"),
+            ("hysteresis.png", "Hysteresis of a quasi-static follower moment over the cycles"),
             (
                 "lattice_dispersion.png",
                 "Chain of bodies: Bloch branches at rest against the closed forms; the flutter "
