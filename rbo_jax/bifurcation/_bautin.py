@@ -257,16 +257,22 @@ def _solve(static, p, guess, theta0, t, step):
 
 @bautin_solution.defjvp
 def _bautin_jvp(static, primals, tangents):
-    p = primals[0]
     raw, Ju, Jp = _solve(static, *primals)
-    dp = tangents[0]
-    n_p = p.shape[0]
-    dbeta = -(raw.grad[:n_p] @ dp) / raw.grad[n_p]
-    du = -jnp.linalg.solve(Ju, Jp @ jnp.concatenate([dp, dbeta[None]]))
+    dbeta, du = _implicit_tangent(raw.grad, Ju, Jp, tangents[0])
     zeros = jax.tree.map(_zero_tangent, raw)
     return raw, zeros._replace(beta=dbeta, u=du)
 
 
+@jax.jit
+def _implicit_tangent(grad, Ju, Jp, dp):
+    """$(d\beta_B, du)$ for $dp$ (module docstring): one compiled program, also for the batch
+    of tangents of ``jax.jacfwd``."""
+    n_p = dp.shape[0]
+    dbeta = -(grad[:n_p] @ dp) / grad[n_p]
+    return dbeta, -jnp.linalg.solve(Ju, Jp @ jnp.concatenate([dp, dbeta[None]]))
+
+
+@jax.jit
 def _finish(raw: Raw) -> BautinPoint:
     omega, a, b, _, _ = _oriented(raw.u)
     good = raw.status == _code(BautinStatus.successful)
