@@ -378,21 +378,22 @@ def periodic_orbit(
     are below ``tol``; ``rtol``, ``atol``, ``max_steps`` go to :func:`rbo_jax.fast_simulate`.
     The Floquet multipliers come from the monodromy matrix at the solution.
 
-    **Conservative models** (``conservative``; ``None``: :func:`is_conservative`, i.e. every load
-    a :class:`rbo_jax.PotentialLoad`): the unfolded system of the module docstring for
-    $(x_0, T, \varepsilon)$, with the energy condition $E(x_0) = $ ``energy`` (``None``: the
-    energy of the guess, :meth:`rbo_jax.RigidBodyOscillator.energy`) and least-squares steps
-    truncated below ``rcond`` times the largest singular value (``rcond`` is for this system
-    only). The result's ``unfolding`` is $\varepsilon$ at the solution: 0 up to the tolerance,
-    else the status is ``unfolded`` ($|\varepsilon| > \sqrt{\mathrm{tol}}$). With further
-    integrals (axisymmetric models, (4.78); the isotropic oscillator, (4.94)) the orbits of one
-    energy form families: the result is the orbit reached by minimum-norm steps, one of the
-    family near the guess. ``conservative=True`` may be forced on a model whose non-potential
-    loads vanish (``Friction(0.0)``, ``FollowerMoment(0.0, k)``) or are velocity-independent
-    (dead, follower moments: the system is reversible under $(\theta, \Omega, t) \mapsto
-    (\theta, -\Omega, -t)$, its symmetric orbits form families along which the power of the
-    load integrates to 0); the status ``unfolded`` tells where no orbit of the model was found.
-    ``energy`` is refused by plain shooting (``conservative=False`` or a non-conservative model).
+    **Conservative models** (``conservative``; ``None``: :func:`is_conservative`, i.e. every
+    load a :class:`rbo_jax.PotentialLoad`): the unfolded system of the module docstring for
+    $(x_0, T, \varepsilon)$, with the energy condition $E(x_0) = E_*$, $E_*$ = ``energy``
+    (``None``: the energy of the guess, :meth:`rbo_jax.RigidBodyOscillator.energy`) and
+    least-squares steps truncated below ``rcond`` times the largest singular value (``rcond`` is
+    for this system only). The result's ``unfolding`` is $\varepsilon$ at the solution: 0 up to
+    the tolerance, else the status is ``unfolded`` ($|\varepsilon| > \sqrt{\mathrm{tol}}$). With
+    further integrals (axisymmetric models, (4.78); the isotropic oscillator, (4.94)) the orbits
+    of one energy form families: the result is the orbit reached by minimum-norm steps, one of
+    the family near the guess. ``conservative=True`` may be forced on a model whose
+    non-potential loads vanish (``Friction(0.0)``, ``FollowerMoment(0.0, k)``) or are
+    velocity-independent (dead, follower moments: the system is reversible under $(\theta,
+    \Omega, t) \mapsto (\theta, -\Omega, -t)$, its symmetric orbits form families along which
+    the power of the load integrates to 0); the status ``unfolded`` tells where no orbit of the
+    model was found. ``energy`` is refused by plain shooting (``conservative=False`` or a
+    non-conservative model).
 
     Never raises: ``status`` says whether Newton converged. jit- and vmap-compatible; one
     compiled program per model structure, kept by the program store when it is on
