@@ -239,26 +239,26 @@ class Raw(NamedTuple):
     l2: Array
     steps: Array
     status: Array
+    Ju: Array  # the Hopf system's Jacobians at the solution (implicit function theorem)
+    Jp: Array
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def bautin_solution(static: BStatic, p, guess, theta0, t, step) -> Raw:
     """The raw Bautin point; differentiable in ``p`` (module docstring)."""
-    return _solve(static, p, guess, theta0, t, step)[0]
-
-
-def _solve(static, p, guess, theta0, t, step):
     beta, u, Ju, Jp, trans, l1, grad, steps, code = _secant_program(
         static, p, guess, theta0, t, step
     )
     l2 = _final_program(static, jnp.concatenate([p, beta[None]]), u, t)
-    return Raw(beta, u, trans, l1, grad, l2, steps, code), Ju, Jp
+    return Raw(beta, u, trans, l1, grad, l2, steps, code, Ju, Jp)
 
 
 @bautin_solution.defjvp
 def _bautin_jvp(static, primals, tangents):
-    raw, Ju, Jp = _solve(static, *primals)
-    dbeta, du = _implicit_tangent(raw.grad, Ju, Jp, tangents[0])
+    # the custom_jvp function itself, not its body: so jax.grad runs the programs the value
+    # compiled (a traced body would compile them again, without the small-program options)
+    raw = bautin_solution(static, *primals)
+    dbeta, du = _implicit_tangent(raw.grad, raw.Ju, raw.Jp, tangents[0])
     zeros = jax.tree.map(_zero_tangent, raw)
     return raw, zeros._replace(beta=dbeta, u=du)
 
