@@ -1,6 +1,8 @@
 """rbo_jax: differentiable JAX physics of the rigid body oscillator (turn-vector formulation).
 
-Importing the package enables float64 in JAX (see :mod:`rbo_jax._precision` and the README).
+Importing the package enables float64 in JAX (see :mod:`rbo_jax._precision` and the README) and,
+before JAX's backend starts, asks for one CPU device per core the process may use, so that batch
+work uses the whole machine (:mod:`rbo_jax._devices`; ``RBO_JAX_CPU_DEVICES=off`` to opt out).
 The names below load on first use (:mod:`rbo_jax._lazy`): ``import rbo_jax`` imports JAX, not
 equinox, diffrax, optimistix, optax, xarray or zarr, which the layers that need them import when
 one of their names is first used.
@@ -8,10 +10,12 @@ one of their names is first used.
 
 from . import _lazy
 from ._cache import enable_from_environment as _enable_cache_from_environment
+from ._devices import use_every_core as _use_every_core
 from ._precision import enable_float64_by_default as _enable_float64_by_default
 from ._version import __version__ as __version__  # the one place it is written
 
 _enable_float64_by_default()
+_use_every_core()  # one CPU device per core, unless the user chose or JAX has started
 _enable_cache_from_environment()  # $RBO_JAX_COMPILATION_CACHE (rbo_jax.enable_compilation_cache)
 
 __getattr__, __dir__, __all__ = _lazy.attach(

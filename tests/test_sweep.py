@@ -424,7 +424,8 @@ def test_killed_sweep_resumes_to_an_identical_store(tmp_path, hook_log):
         resume=True,
         progress=False,
     )
-    assert hook_log() == space.n_chunks - n_done  # only the missing chunks were computed
+    # only the missing chunks were computed (the hook runs once per chunk and device)
+    assert hook_log() == jax.local_device_count() * (space.n_chunks - n_done)
 
     fresh = tmp_path / "fresh.zarr"
     uninterrupted = sweep(
@@ -459,8 +460,10 @@ def test_four_local_devices_share_each_chunk(tmp_path):
     report = json.loads(out.read_text())
     assert report["local_devices"] == 4
     assert report["strategy"] == "shard_map"
-    assert report["batch"] == 8  # a chunk of 6 points padded to a multiple of 4
-    assert report["shard_devices"] == 4 and report["shard_shapes"] == [[2]] * 4
+    # a chunk of 6 points padded to 4 devices x 16 points (the quantity's eigenvalues are one
+    # LAPACK call per block, here one block of 16 points per device: _program.Layout)
+    assert report["batch"] == 64
+    assert report["shard_devices"] == 4 and report["shard_shapes"] == [[16]] * 4
     assert report["identical"]
     assert report["status_counts"]["nonfinite_input"] == 3
 
@@ -521,8 +524,9 @@ def test_two_processes_equal_one_process(tmp_path, hook_log):
     evaluated = sum(
         np.isfinite(space.points(space.slices(c))).all(axis=1).any() for c in range(space.n_chunks)
     )
-    # two sweeps (in memory, stored); every evaluated chunk once, shared by the processes
-    assert len(calls) == 2 * evaluated
+    # two sweeps (in memory, stored); every evaluated chunk once, shared by the processes, and
+    # split over each process's devices (one per core, as here: the hook runs once per device)
+    assert len(calls) == 2 * evaluated * jax.local_device_count()
     assert 0 < calls.count("0") < len(calls) and 0 < calls.count("1") < len(calls)
 
 

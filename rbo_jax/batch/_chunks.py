@@ -37,9 +37,8 @@ class Chunks:
     chunk's host arrays ``{name: array}`` to new arrays of the same shapes and dtypes."""
 
     def __init__(self, quantity, space: Space, devices, dims=None, postprocess=None):
-        n_dev = len(devices)
-        self.batch = -(-space.chunk_points // n_dev) * n_dev
-        self.program = program(quantity, space.names, tuple(devices), self.batch)
+        self.program = program(quantity, space.names, tuple(devices), space.chunk_points)
+        self.batch = self.program.batch  # the padded chunk (_program.Layout)
         self.space = space
         self.spec: OutputSpec = make_output_spec(self.program.structure, space, dims)
         self.dummy = space.dummy()

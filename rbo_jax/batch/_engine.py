@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from .._devices import warn_if_few_devices
 from . import _store
 from ._chunks import Chunks
 from ._dask import DaskChunks, check_devices
@@ -346,6 +347,8 @@ def sweep(
         devices = check_devices(devices)
     # with a client this process only traces (the outputs' structure; the program that one-device
     # workers load from the program store): on one device
+    if client is None:
+        warn_if_few_devices(devices)
     local = local_devices(1 if client is not None else devices)
     attrs = _check_attrs(attrs)
     if (resume or retry_errors) and store is None:

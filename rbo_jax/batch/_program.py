@@ -1,32 +1,62 @@
-"""The compiled program of a sweep: ``jit(shard_map(vmap(quantity)))`` over one chunk.
+"""The compiled program of a sweep: one chunk, split over the local devices.
 
-Each device runs the vmapped quantity on its shard of the chunk with no communication. (Plain
-``jit`` over a ``NamedSharding`` is avoided on purpose: the adaptive ``while_loop`` of a vmapped
-ODE solve is then partitioned by GSPMD into one loop synchronised across shards at every step,
-reported ~80x slower — diffrax#407, jax#20968.) One exception: a quantity that lineax cannot solve
-inside ``shard_map`` (lineax#185; e.g. the Newton solve of :func:`rbo_jax.solve_equilibrium`) is
-compiled as ``jit`` over the sharded batch instead; its few Newton steps then run in lock-step
-across devices, which costs little.
+Each device runs the quantity on its shard of the chunk, with no communication between devices:
+``jit(shard_map(local))`` over a 1-D mesh of the devices, ``local`` the quantity batched over the
+device's points. (Plain ``jit`` over a ``NamedSharding`` is avoided: GSPMD partitions the
+adaptive ``while_loop`` of a vmapped solve into one loop synchronised across devices at every
+step, ~80x slower, diffrax#407, jax#20968.)
+
+**From one point's jaxpr.** The quantity is traced once, for one point (``jax.make_jaxpr``), and
+the program is that jaxpr batched (``jaxpr_as_fun`` under ``vmap``) and sharded. Library code
+that transforms functions while it is traced — lineax's closure conversion in a Newton solve
+(:func:`rbo_jax.solve_equilibrium`), which cannot be traced inside ``shard_map`` (lineax#185) —
+has then done its work before ``shard_map`` sees the program, so every quantity runs sharded
+the same way (these quantities used to run as GSPMD ``jit`` with a collective in every Newton
+step). A quantity that ``shard_map`` still refuses runs on one device, with a warning that says
+so.
+
+**LAPACK in blocks** (:func:`block_size`). XLA's CPU runtime runs LAPACK custom calls (``eig``,
+``lu``, triangular solves, ...) on its intra-op thread pool, and jaxlib's kernels split a large
+batch of matrices into tasks on that same pool and block until they finish
+(``jaxlib/cpu/lapack_kernels.cc``: ``ParallelBatchMap``; a batch is split when batch × cost ≥
+200 000 flop). With one device per core every pool thread can be a device's program blocked in
+such a kernel, waiting for tasks that no thread is left to run: a 100 × 100 stability map on 2
+or 4 CPU devices waited forever at 0 % CPU (issue 31; native stacks: every ``tf_XLAEigen``
+thread in ``BlockingCounter::Wait`` under ``lapack_dgeev_ffi``). A quantity that calls LAPACK is
+therefore mapped over blocks of points (``lax.map(..., batch_size=block)``) small enough that no
+kernel is ever split, on any number of devices.
+
+**The same bits on any number of devices.** A point's value must not depend on where it sits in
+the batch: XLA's CPU code rounds some fused expressions differently in the scalar remainder of a
+vectorised loop than in its vector body. Each device's share of a chunk is therefore a multiple
+of the block (or of :data:`VECTOR` points), so every point is computed by the same code in
+the same position modulo the vector width whatever the number of devices (the refilled lanes of
+:func:`rbo_jax.fast_simulate` follow the same rule, ``ensemble/_solve.py``).
 
 Every call has the same shape (a partial chunk is padded), so one compilation serves a sweep;
 programs are cached on what the quantity computes (:func:`rbo_jax._callables.callable_key`: its
 code, closure, defaults and globals, so a new but identical lambda is the same quantity), the
-parameter names, the devices and the batch size, so repeated sweeps of the same quantity compile
-once. With the program store on (:func:`rbo_jax.enable_compilation_cache`) a single-device
-program is exported there (``jax.export``) with its output structure, keyed on
-:func:`rbo_jax._callables.stable_text` of the quantity, so a second process loads it instead of
-tracing it; a quantity that cannot be named across processes (a closure over an object of no
-covered module), or one that cannot be exported (a host callback), is traced as usual.
+parameter names, the devices and the chunk size, so repeated sweeps of the same quantity compile
+once. With the program store on (:func:`rbo_jax.enable_compilation_cache`) the per-device program
+is exported there (``jax.export``) with its output structure and layout, keyed on
+:func:`rbo_jax._callables.stable_text` of the quantity and the number of devices, so a second
+process loads it instead of tracing it (the loaded program runs under ``shard_map`` like a traced
+one); a quantity that cannot be named across processes (a closure over an object of no covered
+module), or one that cannot be exported (a host callback), is traced as usual.
 """
 
 from __future__ import annotations
 
 import ast
 import functools
+import math
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
+from jax.extend.core import jaxpr_as_fun, jaxprs_in_params
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
@@ -35,6 +65,38 @@ from .._callables import callable_key, stable_text
 from ._output import describe_output, encode_output, split_output
 
 BATCH_AXIS = "batch"
+# A device's share of a chunk is a multiple of this many points (or of the LAPACK block): no
+# point in the scalar remainder of a vectorised loop (16 doubles: two AVX-512 vectors).
+VECTOR = 16
+# jaxlib splits a batched LAPACK call over the intra-op pool from this much work (flop) on
+# (GetLapackBatchChunkSize, kMinWorkPerTask).
+SPLIT_WORK = 200_000
+# An upper bound of jaxlib's cost per matrix of every LAPACK kernel, in units of n³ (its own
+# estimates: LU n³, QR ≤ 2n³, eigh 4n³ (×3 complex), real eig 10n³; 3 × the largest, so that
+# a kernel whose estimate we do not know is still never split).
+COST_PER_N3 = 30
+# The primitives that lower to LAPACK on CPU (jax._src.lax.linalg), and the FFT (ducc, which
+# also runs on the intra-op pool).
+LINALG = frozenset(
+    {
+        "cholesky",
+        "cholesky_update",
+        "eig",
+        "eigh",
+        "geqp3",
+        "geqrf",
+        "hessenberg",
+        "householder_product",
+        "lu",
+        "ormqr",
+        "qr",
+        "schur",
+        "svd",
+        "triangular_solve",
+        "tridiagonal",
+        "tridiagonal_solve",
+    }
+)
 
 
 def point_function(quantity, names, record: dict):
@@ -49,18 +111,111 @@ def point_function(quantity, names, record: dict):
     return point
 
 
+def _equations(jaxpr):
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for sub in jaxprs_in_params(eqn.params):
+            yield from _equations(sub)
+
+
+def _lapack_work(eqn) -> int:
+    """An upper bound of jaxlib's work estimate for one point's call ``eqn``: COST_PER_N3 · n³
+    per matrix (n the largest of the operands' matrix dimensions) × the matrices per point."""
+    shapes = [v.aval.shape for v in eqn.invars if hasattr(v.aval, "shape")]
+    n = max((max(s[-2:]) for s in shapes if len(s) >= 1), default=1)
+    first = shapes[0] if shapes else ()
+    matrices = math.prod(first[:-2]) if len(first) >= 2 else 1
+    return COST_PER_N3 * int(n) ** 3 * int(matrices)
+
+
+def block_size(jaxpr) -> int:
+    """Points per block for a quantity whose one-point ``jaxpr`` calls LAPACK (or an FFT): the
+    most points whose batched calls jaxlib never splits over the intra-op pool (a multiple of
+    :data:`VECTOR` when at least that); 0 when the quantity calls neither (one ``vmap``)."""
+    work, fft = 0, False
+    for eqn in _equations(jaxpr):
+        name = eqn.primitive.name
+        if name == "fft":
+            fft = True
+        elif name in LINALG:
+            work = max(work, _lapack_work(eqn))
+    if fft:
+        return 1  # ducc splits a transform by the number of transforms: one point at a time
+    if work == 0:
+        return 0
+    block = max(1, (SPLIT_WORK - 1) // work)
+    return block // VECTOR * VECTOR if block >= VECTOR else block
+
+
+def _local(closed, out_tree, block: int):
+    """The per-device function ``(points, n) -> outputs`` of one point's jaxpr: ``vmap``, or
+    ``lax.map`` over blocks of ``block`` points."""
+    fn = jaxpr_as_fun(closed)
+    batched = (
+        jax.vmap(lambda x: fn(x))
+        if not block
+        else (lambda xs: lax.map(lambda x: fn(x), xs, batch_size=block))
+    )
+
+    def chunk_program(xs):  # the name in JAX's logs and persistent cache
+        return jax.tree_util.tree_unflatten(out_tree, batched(xs))
+
+    return chunk_program
+
+
+def _sharded(local, mesh):
+    # check_vma=False: the body has no collectives, and user quantities may hold callbacks or
+    # custom rules that the varying-manual-axes checker does not know.
+    return jax.jit(
+        jax.shard_map(
+            local, mesh=mesh, in_specs=P(BATCH_AXIS), out_specs=P(BATCH_AXIS), check_vma=False
+        )
+    )
+
+
+class Layout:
+    """How a chunk is laid out on the devices: ``devices``, ``block`` (0: one vmap), ``batch``
+    (the padded chunk: a multiple of the devices × the unit, the block or VECTOR). A block of
+    at least VECTOR points is cut to a device's share of the chunk (rounded up to VECTOR), so
+    that a small chunk is not padded to a whole block on every device; blocks stay multiples of
+    VECTOR, and a point's position modulo VECTOR stays the same on any number of devices."""
+
+    def __init__(self, devices, block: int, chunk_points: int):
+        self.devices = tuple(devices)
+        share = -(-int(chunk_points) // len(self.devices))
+        if block >= VECTOR:
+            block = min(block, -(-share // VECTOR) * VECTOR)
+        self.block = int(block)
+        unit = (self.block or VECTOR) * len(self.devices)
+        self.batch = -(-int(chunk_points) // unit) * unit
+        self.mesh = jax.sharding.Mesh(np.array(self.devices, dtype=object), (BATCH_AXIS,))
+        self.sharding = NamedSharding(self.mesh, P(BATCH_AXIS))
+
+    def x(self, n_names: int):
+        """The argument: the chunk's points, sharded over the devices."""
+        dtype = jnp.result_type(float)
+        return jax.ShapeDtypeStruct((self.batch, n_names), dtype, sharding=self.sharding)
+
+    def local_x(self, n_names: int):
+        """One device's share of the argument (what a stored program takes)."""
+        dtype = jnp.result_type(float)
+        return jax.ShapeDtypeStruct((self.batch // len(self.devices), n_names), dtype)
+
+
 class Program:
     """One chunk program: ``call(points sharded over the batch) -> (values, status)``. Traced at
     once (which gives the output ``structure``), compiled on the first call (a sweep with nothing
-    left to compute compiles nothing). ``traced`` is a traced jitted function, or the jitted call
-    of a program from the program store (:mod:`rbo_jax._programs`), compiled the same way."""
+    left to compute compiles nothing). ``traced`` is a traced jitted function, or the jitted
+    ``shard_map`` of a program from the program store (:mod:`rbo_jax._programs`), traced and
+    compiled on the first call. ``strategy``: ``"shard_map"``, or ``"one device"`` for a quantity
+    that ``shard_map`` refused."""
 
-    def __init__(
-        self, traced, sharding: NamedSharding, batch: int, structure: dict, strategy: str, x=None
-    ):
-        self.traced, self.sharding, self.batch = traced, sharding, batch
+    def __init__(self, traced, layout: Layout, structure: dict, strategy: str, x=None):
+        self.traced, self.layout = traced, layout
+        self.sharding, self.batch, self.block = layout.sharding, layout.batch, layout.block
+        self.devices = layout.devices
         self.structure = structure  # the output structure recorded while tracing
-        self.strategy = strategy  # "shard_map", or "jit" for what shard_map cannot trace
+        self.strategy = strategy
         self._x = x  # the argument's shape, dtype and sharding, for a stored program
         self._compiled = None
 
@@ -71,44 +226,10 @@ class Program:
         return self._compiled(x)
 
 
-def _functions(quantity, names, devices, batch):
-    """The argument and the two jitted chunk functions (``shard_map`` and plain ``jit``), with
-    the record that their tracing fills."""
-    mesh = jax.sharding.Mesh(np.array(devices, dtype=object), (BATCH_AXIS,))
-    sharding = NamedSharding(mesh, P(BATCH_AXIS))
-    x = jax.ShapeDtypeStruct((batch, len(names)), jnp.result_type(float), sharding=sharding)
-    record: dict = {}
-    batched = jax.vmap(point_function(quantity, names, record))
-    # check_vma=False: the body has no collectives, and user quantities may hold callbacks or
-    # custom rules that the varying-manual-axes checker does not know.
-    sharded = jax.shard_map(
-        batched, mesh=mesh, in_specs=P(BATCH_AXIS), out_specs=P(BATCH_AXIS), check_vma=False
-    )
-    functions = {
-        "shard_map": jax.jit(sharded),
-        "jit": jax.jit(batched, in_shardings=sharding, out_shardings=sharding),
-    }
-    return x, sharding, record, functions
-
-
-def _trace(x, record, functions, how):
-    """``how(jitted)(x)`` with the shard_map program, else (lineax cannot yet be traced inside
-    shard_map, patrick-kidger/lineax#185) with plain jit over the sharded batch: ``(result,
-    strategy)``. A user error raises again with the second, unchanged."""
-    for strategy in ("shard_map", "jit"):
-        record.clear()
-        try:
-            return how(functions[strategy])(x), strategy
-        except Exception:
-            if strategy == "jit":
-                raise
-    raise AssertionError("unreachable")
-
-
-def _store_key(quantity, names, devices, batch) -> str | None:
+def _store_key(quantity, names, devices, chunk_points) -> str | None:
     """The program store's key of a chunk program (``None``: store off, or a quantity that
-    cannot be named across processes, or several devices, whose programs are not stored)."""
-    if _programs.program_store() is None or len(devices) != 1:
+    cannot be named across processes)."""
+    if _programs.program_store() is None:
         return None
     text = stable_text(quantity)
     if text is None:
@@ -116,10 +237,11 @@ def _store_key(quantity, names, devices, batch) -> str | None:
     return _programs.program_key(
         repr(
             (
-                "rbo_jax.batch chunk",
+                "rbo_jax.batch chunk 2",  # 2: the per-device program under shard_map
                 text,
                 names,
-                batch,
+                chunk_points,
+                len(devices),
                 str(jnp.result_type(float)),
                 devices[0].platform,
             )
@@ -127,40 +249,71 @@ def _store_key(quantity, names, devices, batch) -> str | None:
     )
 
 
-def _stored_program(key, x, sharding, record, functions, batch) -> Program | None:
+def _stored_program(key, quantity, names, devices, chunk_points) -> Program | None:
     """The chunk program from the store, exported there first if missing (``None``: it cannot
     be exported, e.g. a host callback in the quantity)."""
     found = _programs.load(key)
     if found is None and not _programs.unexportable(key):
+        closed, out_tree, record = _trace_point(quantity, names)
+        layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
+        local = _local(closed, out_tree, layout.block)
         try:
-            exported, strategy = _trace(x, record, functions, jax.export.export)
-        except Exception:  # not exportable, or a user error: the plain trace tells them apart
+            exported = jax.export.export(jax.jit(local))(layout.local_x(len(names)))
+        except Exception:  # not exportable: the caller traces it
+            _programs.unexportable(key, mark=True)
             return None
-        meta = repr((dict(record), strategy))
+        meta = repr((dict(record), layout.block))
         _programs.save(key, exported, meta)
         found = exported, meta
     if found is None:
         return None
     exported, meta = found
-    structure, strategy = ast.literal_eval(meta)
-    call = _programs.call_of(exported, "chunk_program")
-    return Program(call, sharding, batch, structure, strategy, x)
+    structure, block = ast.literal_eval(meta)
+    layout = Layout(devices, block, chunk_points)
+
+    def chunk_program(xs):  # the name in JAX's logs and persistent cache
+        return exported.call(xs)
+
+    call = _sharded(chunk_program, layout.mesh)
+    return Program(call, layout, structure, "shard_map", layout.x(len(names)))
 
 
-def _compile_program(quantity, names, devices, batch) -> Program:
-    x, sharding, record, functions = _functions(quantity, names, devices, batch)
-    key = _store_key(quantity, names, devices, batch)
+def _trace_point(quantity, names):
+    """One point's closed jaxpr, its output tree and the recorded output structure."""
+    record: dict = {}
+    point = point_function(quantity, names, record)
+    dtype = jnp.result_type(float)
+    closed, shape = jax.make_jaxpr(point, return_shape=True)(
+        jax.ShapeDtypeStruct((len(names),), dtype)
+    )
+    return closed, jax.tree_util.tree_structure(shape), record
+
+
+def _compile_program(quantity, names, devices, chunk_points) -> Program:
+    key = _store_key(quantity, names, devices, chunk_points)
     if key is not None:
-        found = _stored_program(key, x, sharding, record, functions, batch)
+        found = _stored_program(key, quantity, names, devices, chunk_points)
         if found is not None:
             return found
-        # new functions: jit would answer the trace of a failed export from its cache, without
-        # running the quantity, which records the output structure
-        x, sharding, record, functions = _functions(quantity, names, devices, batch)
-    traced, strategy = _trace(x, record, functions, lambda f: f.trace)
-    if key is not None and not _programs.unexportable(key):
-        _programs.unexportable(key, mark=True)  # traced fine, but jax.export refused it
-    return Program(traced, sharding, batch, dict(record), strategy)
+    closed, out_tree, record = _trace_point(quantity, names)
+    layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
+    local = _local(closed, out_tree, layout.block)
+    try:
+        traced = _sharded(local, layout.mesh).trace(layout.x(len(names)))
+        return Program(traced, layout, dict(record), "shard_map")
+    except Exception as e:  # shard_map refused the quantity: one device, said so
+        if len(devices) == 1:
+            raise
+        warnings.warn(
+            f"rbo_jax.sweep: this quantity cannot run under shard_map over {len(devices)} "
+            f"devices ({type(e).__name__}: {str(e)[:200]}); its chunks run on one device, "
+            f"{devices[0]}.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        layout = Layout(devices[:1], layout.block, chunk_points)
+        traced = jax.jit(local, in_shardings=layout.sharding, out_shardings=layout.sharding)
+        return Program(traced.trace(layout.x(len(names))), layout, dict(record), "one device")
 
 
 class _Quantity:
@@ -180,15 +333,16 @@ class _Quantity:
 
 
 @functools.lru_cache(maxsize=32)
-def _cached_program(quantity: _Quantity, names, devices, batch) -> Program:
-    return _compile_program(quantity.fn, names, devices, batch)
+def _cached_program(quantity: _Quantity, names, devices, chunk_points) -> Program:
+    return _compile_program(quantity.fn, names, devices, chunk_points)
 
 
-def program(quantity, names, devices, batch) -> Program:
-    """The program of ``quantity``, cached on what the quantity computes, not on the object: a
-    new but identical lambda (a notebook cell run again) reuses the compiled program. With the
-    program store on, a second process loads it instead of tracing it."""
-    return _cached_program(_Quantity(quantity), names, devices, batch)
+def program(quantity, names, devices, chunk_points) -> Program:
+    """The program of ``quantity`` for chunks of ``chunk_points`` points over ``devices``
+    (its ``batch`` is the padded chunk), cached on what the quantity computes, not on the
+    object: a new but identical lambda (a notebook cell run again) reuses the compiled program.
+    With the program store on, a second process loads it instead of tracing it."""
+    return _cached_program(_Quantity(quantity), tuple(names), tuple(devices), int(chunk_points))
 
 
 def local_devices(devices) -> tuple:
