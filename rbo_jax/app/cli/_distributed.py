@@ -16,13 +16,18 @@ cannot take a Python function: the status argument has no Python type).
 - :func:`supervise`: the command runs again as a child process, which this process waits for.
   The child sends JAX's own log (C++ writes to file descriptor 2) to a file and keeps Python's
   ``sys.stderr`` (progress bar, messages) on the terminal. If the child is ended by a signal —
-  JAX's abort — this process reads the log, names the lost process, releases the store's lock if
-  the child held it, counts the chunks kept and prints one line with the command that finishes
-  the sweep (``--resume``), exit 1.
+  JAX's abort — this process reads the log, names the lost process (with its pid and host,
+  which the child logged there), releases the store's lock if the child held it, counts the
+  chunks kept and missing and prints one line with the command that finishes the sweep
+  (``--resume``), exit 1. The child ends itself (SIGKILL) when this process is gone — it watches
+  a pipe whose other end this process holds — so that ``kill -9`` of the command a user started
+  loses that process of the run, as losing its host does (before, the child went on computing
+  unseen: the others never heard of a loss).
 - :func:`initialize` (in the child): ``jax.distributed.initialize`` with the heartbeat timeout and
   JAX's recoverable mode (``jax_enable_recoverability``), in which the service survives the loss of
-  a process other than 0: then process 0 finishes the lost process's chunks itself
-  (:mod:`rbo_jax.batch._hosts`) and the sweep ends with exit 0.
+  a process other than 0: then process 0 says in one line which process was lost and which
+  chunks it takes over, finishes them itself (:mod:`rbo_jax.batch._hosts`) and the sweep ends
+  with exit 0.
 """
 
 from __future__ import annotations
