@@ -1,11 +1,18 @@
 """A lost process in a multi-process ``rbo-jax sweep`` (jax.distributed on localhost, real
-processes, killed with SIGKILL): nothing is lost and nobody hangs (issue 26, item 2).
+processes, killed with SIGKILL): nothing is lost, nobody hangs (issue 26, item 2) and the
+survivor says in one line which process was lost (index, pid, host) and what happens to its
+chunks (issue 31, E).
 
-- a worker (process 1) lost: process 0 notices within the heartbeat timeout, computes the chunks
-  the worker left and ends with exit 0; the store equals the one-process sweep bit for bit;
+- a worker (process 1) lost: process 0 notices within the heartbeat timeout, prints the line
+  naming it and the chunks it takes over, computes them and ends with exit 0; the store equals
+  the one-process sweep bit for bit;
 - the coordinator (process 0) lost: process 1 ends within seconds with exit 1 and one line that
-  names process 0 and gives the command that finishes the sweep — no C++ abort, no stack trace;
-  that command (one process, ``--resume``) finishes the store, equal to the one-process sweep;
+  names process 0, the chunks kept and missing, and gives the command that finishes the sweep —
+  no C++ abort, no stack trace; that command (one process, ``--resume``) finishes the store,
+  equal to the one-process sweep;
+- either, killed as a user kills a command (``kill -9 PID`` of the ``rbo-jax`` process, not its
+  process group): the same, and the process that computed for it ends with it (before, it went
+  on unseen, and the survivor ended with exit 0 and no word of a loss);
 - the options of a multi-process run are refused before anything starts (exit 2, one line).
 """
 
@@ -120,9 +127,39 @@ def reference(tmp_path_factory):
     return _arrays(folder / "growth.zarr")
 
 
-def _two_processes(folder: Path, kill: int, heartbeat: int):
+# The survivor's line (rbo_jax/batch/_hosts.py lost_line, rbo_jax/app/cli/_distributed.py).
+WORKER_LOST = re.compile(
+    r"^rbo_jax\.sweep: process 1 of 2 \(pid (\d+) on host (\S+)\) was lost \(no heartbeat\); "
+    r"process 0 computes the (\d+) chunks? it left: ([\d, -]+)$"
+)
+COORDINATOR_LOST = re.compile(
+    r"^rbo-jax sweep: error: process 0 of 2 \(pid (\d+) on host (\S+)\), which coordinates "
+    r"the run, was lost; (\d+) of (\d+) chunks are kept in growth\.zarr \((\d+) missing: "
+    r"([\d, -]+)\); finish the sweep with: rbo-jax (.+) \(or all processes again with --resume\)$"
+)
+
+
+def _ids(ranges: str) -> list[int]:
+    """``"1, 3-5"`` as ``[1, 3, 4, 5]``."""
+    out = []
+    for word in ranges.split(", "):
+        a, _, b = word.partition("-")
+        out += range(int(a), int(b or a) + 1)
+    return out
+
+
+def _gone(pid: int) -> bool:
+    """Whether process ``pid`` has ended (a zombie waiting to be reaped counts as ended)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in "ZX"
+    except FileNotFoundError:
+        return True
+
+
+def _two_processes(folder: Path, kill: int, heartbeat: int, group: bool = True):
     """Start processes 0 and 1 (each in its own session: killing one's group is losing its
-    host), SIGKILL process ``kill`` once two chunks are in the store; the survivor's
+    host), SIGKILL process ``kill`` once two chunks are in the store (its process group, or with
+    ``group=False`` only the ``rbo-jax`` process, as ``kill -9 PID`` does); the survivor's
     (returncode, stderr, seconds from the kill to its end)."""
     (folder / "growth.toml").write_text(CONFIG)
     store, port = folder / "growth.zarr", _free_port()
@@ -159,7 +196,7 @@ def _two_processes(folder: Path, kill: int, heartbeat: int):
             assert time.monotonic() < deadline and survivor.poll() is None, survivor.stderr.read()
             time.sleep(0.05)
         done_at_kill = _chunks_done(store)
-        os.killpg(procs[kill].pid, signal.SIGKILL)
+        (os.killpg if group else os.kill)(procs[kill].pid, signal.SIGKILL)
         killed = time.monotonic()
         err = survivor.communicate(timeout=300)[1]
         seconds = time.monotonic() - killed
@@ -173,33 +210,61 @@ def _two_processes(folder: Path, kill: int, heartbeat: int):
     return survivor.returncode, err, seconds
 
 
-def test_lost_worker_its_chunks_computed_by_process_0(tmp_path, reference):
-    """Process 1 killed mid-sweep: process 0 sees it lost after the heartbeat timeout (3 s),
-    computes the chunks it left, exits 0; the store equals the one-process sweep exactly."""
-    rc, err, seconds = _two_processes(tmp_path, kill=1, heartbeat=3)
-    assert rc == 0, err[-3000:]
-    assert "process(es) [1] of 2 lost" in err
-    assert not _crashed(err), err[-3000:]
-    assert seconds < 120
-    got = _arrays(tmp_path / "growth.zarr")
+def _same_as_reference(folder: Path, reference):
+    got = _arrays(folder / "growth.zarr")
     assert got.keys() == reference.keys()
     for name in reference:
         np.testing.assert_array_equal(got[name], reference[name], err_msg=name)
+
+
+@pytest.mark.parametrize("group", [True, False], ids=["host-lost", "kill-pid"])
+def test_lost_worker_named_and_its_chunks_computed_by_process_0(tmp_path, reference, group):
+    """Process 1 killed mid-sweep: process 0 sees it lost after the heartbeat timeout (3 s),
+    says so in one line (its pid and host, the chunks it takes over), computes them, exits 0;
+    the store equals the one-process sweep exactly. Killed by its pid only, process 1's child
+    (the pid the line names) ends with it."""
+    rc, err, seconds = _two_processes(tmp_path, kill=1, heartbeat=3, group=group)
+    assert rc == 0, err[-3000:]
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err[-3000:]
+    said = WORKER_LOST.match(lines[0])
+    assert said, err[-3000:]
+    pid, host, count, ids = int(said[1]), said[2], int(said[3]), _ids(said[4])
+    assert host == socket.gethostname() and _gone(pid)
+    assert 1 <= count == len(ids) <= 7 and all(0 <= i < 12 for i in ids), lines[0]
+    assert not _crashed(err), err[-3000:]
+    assert seconds < 120
+    _same_as_reference(tmp_path, reference)
     assert not (tmp_path / "growth.zarr.lock").exists()
 
 
-def test_lost_coordinator_ends_the_worker_in_one_line_and_resume_finishes(tmp_path, reference):
+@pytest.mark.parametrize("group", [True, False], ids=["host-lost", "kill-pid"])
+def test_lost_coordinator_ends_the_worker_in_one_line_and_resume_finishes(
+    tmp_path, reference, group
+):
     """Process 0 killed mid-sweep: process 1 ends within seconds (not JAX's abort: exit 1, one
-    line naming process 0, the chunks kept and the command that finishes); that command on one
-    process completes the store, equal to the one-process sweep bit for bit."""
-    rc, err, seconds = _two_processes(tmp_path, kill=0, heartbeat=10)
+    line naming process 0 with its pid and host, the chunks kept and missing and the command
+    that finishes); that command on one process completes the store, equal to the one-process
+    sweep bit for bit."""
+    rc, err, seconds = _two_processes(tmp_path, kill=0, heartbeat=10, group=group)
     assert rc == 1, err[-3000:]
     lines = err.strip().splitlines()
     assert len(lines) == 1, err[-3000:]
-    assert "process 0 of 2" in lines[0] and "lost" in lines[0] and "chunks are kept" in lines[0]
+    said = COORDINATOR_LOST.match(lines[0])
+    assert said, err[-3000:]
+    pid, host, kept, total, count, ids = (
+        int(said[1]),
+        said[2],
+        int(said[3]),
+        int(said[4]),
+        int(said[5]),
+        _ids(said[6]),
+    )
+    assert host == socket.gethostname() and _gone(pid)
+    assert total == 12 and kept >= 2 and count == len(ids) == total - kept, lines[0]
     assert not _crashed(err), err[-3000:]
     assert seconds < 60
-    command = lines[0].split("finish the sweep with: rbo-jax ", 1)[1].split(" (or all", 1)[0]
+    command = said[7]
     assert "--coordinator" not in command and command.endswith("--resume")
     done = subprocess.run(
         [*RBO_JAX, *command.split()],
@@ -210,9 +275,38 @@ def test_lost_coordinator_ends_the_worker_in_one_line_and_resume_finishes(tmp_pa
         timeout=600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    got = _arrays(tmp_path / "growth.zarr")
-    for name in reference:
-        np.testing.assert_array_equal(got[name], reference[name], err_msg=name)
+    _same_as_reference(tmp_path, reference)
+
+
+@pytest.mark.parametrize(
+    "lost, left, who, line",
+    [
+        (
+            [1],
+            [4, 7, 8],
+            {1: "pid 5 on host h"},
+            "rbo_jax.sweep: process 1 of 4 (pid 5 on host h) was lost (no heartbeat); "
+            "process 0 computes the 3 chunks it left: 4, 7-8",
+        ),
+        (
+            [1, 3],
+            list(range(0, 40, 2)),
+            {3: "pid 6 on host g"},
+            "rbo_jax.sweep: processes 1, 3 (pid 6 on host g) of 4 were lost (no heartbeat); "
+            "process 0 computes the 20 chunks they left: 0, 2, 4, 6, 8, 10, 12, 14, ...",
+        ),
+        (
+            [2],
+            [],
+            {},
+            "rbo_jax.sweep: process 2 of 4 was lost (no heartbeat); it left no chunk to compute",
+        ),
+    ],
+)
+def test_the_lost_line_names_processes_and_chunks(lost, left, who, line):
+    from rbo_jax.batch._hosts import lost_line
+
+    assert lost_line(lost, 4, left, who) == line
 
 
 @pytest.mark.parametrize(

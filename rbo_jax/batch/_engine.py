@@ -54,7 +54,7 @@ from . import _store
 from ._chunks import Chunks
 from ._dask import DaskChunks, check_devices
 from ._errors import SweepError
-from ._hosts import Hosts
+from ._hosts import Hosts, lost_line
 from ._lock import StoreLock
 from ._output import OutputSpec, dataset, summary_line, to_json
 from ._program import local_devices
@@ -138,6 +138,7 @@ def _run_shares(chunks: Chunks, mine, writer, bar, hosts: Hosts, path: Path, spa
     way that a lost process cannot block (:meth:`Hosts.live`); process 0 computes what the lost
     processes left missing. Errors of any process are re-raised (on process 0 as a
     :class:`SweepError` naming them)."""
+    hosts.introduce()  # who each process is, to name a lost one
     error = None
     try:
         chunks.run(mine, writer, bar)
@@ -158,11 +159,7 @@ def _run_shares(chunks: Chunks, mine, writer, bar, hosts: Hosts, path: Path, spa
     lost = [i for i in range(hosts.count) if i not in alive]
     if lost and hosts.index == 0:
         left = _store.missing_chunks(_store.open_group(path, "r"), space)
-        print(
-            f"rbo_jax.sweep: process(es) {lost} of {hosts.count} lost (no heartbeat); "
-            f"process 0 computes the {len(left)} chunk(s) they left",
-            file=sys.stderr,
-        )
+        print(lost_line(lost, hosts.count, left, hosts.who), file=sys.stderr, flush=True)
         chunks.run(left, writer, None)
 
 

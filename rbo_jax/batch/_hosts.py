@@ -21,17 +21,62 @@ is lost. The loss of process 0, which runs the service, ends the others in any c
 wrote is kept, and ``resume=True`` finishes the sweep. Failures (an exception in a process) are
 reported through the service's key-value store, not a collective, so that a lost process does
 not turn them into a second error.
+
+**Said in words.** Each process puts its pid and host name in the key-value store when a sweep
+starts and logs those of the others (logger ``rbo_jax.sweep``, level INFO: the CLI reads process
+0's there when process 0 is lost). Process 0 prints one line on stderr when it takes over, e.g.
+``rbo_jax.sweep: process 1 of 2 (pid 5374 on host node02) was lost (no heartbeat); process 0
+computes the 3 chunks it left: 4, 7-8`` (:func:`lost_line`).
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
+import os
+import socket
 
 import jax
 import numpy as np
 
 from ._output import OutputSpec
 from ._space import Space
+
+log = logging.getLogger("rbo_jax.sweep")
+
+#: The key of a process's "pid host" in the coordination service's key-value store.
+_WHO = "rbo_jax/process/{}"
+
+
+def chunk_ranges(ids: list[int], most: int = 8) -> str:
+    """``[1, 2, 3, 5, 8, 9]`` as ``"1-3, 5, 8-9"``; past ``most`` ranges the rest as "..."."""
+    ranges: list[list[int]] = []
+    for i in sorted(ids):
+        if ranges and i == ranges[-1][1] + 1:
+            ranges[-1][1] = i
+        else:
+            ranges.append([i, i])
+    words = [str(a) if a == b else f"{a}-{b}" for a, b in ranges]
+    return ", ".join(words[:most] + (["..."] if len(words) > most else []))
+
+
+def lost_line(lost: list[int], count: int, left: list[int], who: dict[int, str]) -> str:
+    """The one line that process 0 prints when it takes over the chunks of lost processes."""
+    named = [f"{i}" + (f" ({who[i]})" if i in who else "") for i in lost]
+    one = len(lost) == 1
+    what = (
+        f"process {lost[0]} of {count}" + (f" ({who[lost[0]]})" if lost[0] in who else "") + " was"
+        if one
+        else f"processes {', '.join(named)} of {count} were"
+    )
+    its = "it" if one else "they"
+    took = (
+        f"process 0 computes the {len(left)} chunk{'s' if len(left) != 1 else ''} {its} "
+        f"left: {chunk_ranges(left)}"
+        if left
+        else f"{its} left no chunk to compute"
+    )
+    return f"rbo_jax.sweep: {what} lost (no heartbeat); {took}"
 
 
 class Hosts:
@@ -42,6 +87,14 @@ class Hosts:
     def __init__(self):
         self.index, self.count = jax.process_index(), jax.process_count()
         self.prefix = f"rbo_jax/sweep/{next(Hosts._sweeps)}" if self.count > 1 else ""
+        self.who: dict[int, str] = {}  # "pid N on host H" of the processes, by index
+        client = self._client() if self.count > 1 else None
+        if client is not None:
+            client.key_value_set(
+                _WHO.format(self.index),
+                f"{os.getpid()} {socket.gethostname()}",
+                allow_overwrite=True,
+            )
 
     @staticmethod
     def _client():
@@ -49,6 +102,20 @@ class Hosts:
         from jax._src import distributed
 
         return distributed.global_state.client
+
+    def introduce(self):
+        """Read (and log) the pid and host of every process: after a meeting of all of them,
+        each having put its own in the key-value store on creating its :class:`Hosts`."""
+        client = self._client() if self.count > 1 else None
+        if client is None:
+            return
+        for i in range(self.count):
+            try:
+                pid, host = client.key_value_try_get(_WHO.format(i)).split(" ", 1)
+            except (jax.errors.JaxRuntimeError, ValueError):  # NOT_FOUND: not said
+                continue
+            self.who[i] = f"pid {pid} on host {host}"
+            log.info("process %d of %d is pid %s on host %s", i, self.count, pid, host)
 
     def live(self, name: str) -> list[int]:
         """Meet the other processes; the indices of the processes that are alive. Returns when

@@ -16,13 +16,18 @@ cannot take a Python function: the status argument has no Python type).
 - :func:`supervise`: the command runs again as a child process, which this process waits for.
   The child sends JAX's own log (C++ writes to file descriptor 2) to a file and keeps Python's
   ``sys.stderr`` (progress bar, messages) on the terminal. If the child is ended by a signal —
-  JAX's abort — this process reads the log, names the lost process, releases the store's lock if
-  the child held it, counts the chunks kept and prints one line with the command that finishes
-  the sweep (``--resume``), exit 1.
+  JAX's abort — this process reads the log, names the lost process (with its pid and host,
+  which the child logged there), releases the store's lock if the child held it, counts the
+  chunks kept and missing and prints one line with the command that finishes the sweep
+  (``--resume``), exit 1. The child ends itself (SIGKILL) when this process is gone — it watches
+  a pipe whose other end this process holds — so that ``kill -9`` of the command a user started
+  loses that process of the run, as losing its host does (before, the child went on computing
+  unseen: the others never heard of a loss).
 - :func:`initialize` (in the child): ``jax.distributed.initialize`` with the heartbeat timeout and
   JAX's recoverable mode (``jax_enable_recoverability``), in which the service survives the loss of
-  a process other than 0: then process 0 finishes the lost process's chunks itself
-  (:mod:`rbo_jax.batch._hosts`) and the sweep ends with exit 0.
+  a process other than 0: then process 0 says in one line which process was lost and which
+  chunks it takes over, finishes them itself (:mod:`rbo_jax.batch._hosts`) and the sweep ends
+  with exit 0.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ from ._common import Failure
 HEARTBEAT_S = 10
 #: Set in the child's environment: the file that receives JAX's log.
 CHILD_ENV = "RBO_JAX_SWEEP_JAX_LOG"
+#: Set in the child's environment: the read end of a pipe that the supervisor holds open.
+PARENT_ENV = "RBO_JAX_SWEEP_SUPERVISOR_FD"
 
 
 def check_options(args: argparse.Namespace) -> bool:
@@ -85,6 +92,13 @@ def supervised() -> bool:
     return CHILD_ENV in os.environ
 
 
+def _who(log: str, index: int) -> str:
+    """`` (pid N on host H)`` of process ``index``, as :mod:`rbo_jax.batch._hosts` logged it
+    in the child's log; empty if it did not."""
+    found = re.findall(rf"process {index} of \d+ is (pid \d+ on host \S+)", log)
+    return f" ({found[-1]})" if found else ""
+
+
 def _lost_process(log: str, count: int) -> str:
     """Which process was lost, from JAX's log of the child."""
     found = re.search(r"stopped sending heartbeats\):\s*([\d,\s]+)", log)
@@ -99,11 +113,21 @@ def _lost_process(log: str, count: int) -> str:
         r"failed to connect to all addresses|leader task",
         log,
     ):
-        return f"process 0 of {count}, which coordinates the run, was lost"
+        return f"process 0 of {count}{_who(log, 0)}, which coordinates the run, was lost"
     tail = [line for line in log.splitlines() if re.match(r"[EF]\d{4} ", line)]
     return "JAX's distributed runtime ended this process" + (
         f" ({tail[-1].split('] ', 1)[-1][:200]})" if tail else ""
     )
+
+
+def _missing(store: Path) -> list[int] | None:
+    """The ids of the chunks that the store is missing (None: not readable)."""
+    from ...batch import _store
+
+    try:
+        return _store.missing_chunks(_store.open_group(store, "r"), None)
+    except Exception:  # a store being created, or not one of a sweep
+        return None
 
 
 def _release_lock(store: Path, pid: int):
@@ -124,9 +148,18 @@ def supervise(args: argparse.Namespace, store: Path) -> int:
     """Run the command in a child process and turn its death by a signal into one line."""
     fd, log_path = tempfile.mkstemp(prefix="rbo-jax-sweep-", suffix=".log")
     os.close(fd)
-    env = dict(os.environ, **{CHILD_ENV: log_path})
+    # the child ends itself when this process is gone (its end of the pipe closes): killing
+    # this process, the one the user started, loses the process of the run, as losing its host
+    # does; without it the child would go on unseen (the others never hear of a loss)
+    watched, held = os.pipe()
+    env = dict(os.environ, **{CHILD_ENV: log_path, PARENT_ENV: str(watched)})
     code = "import sys; sys.argv[0] = 'rbo-jax'; from rbo_jax.app.cli import run; run()"
-    child = subprocess.Popen([sys.executable, "-c", code, *args.argv], env=env)
+    try:
+        child = subprocess.Popen(
+            [sys.executable, "-c", code, *args.argv], env=env, pass_fds=(watched,)
+        )
+    finally:
+        os.close(watched)
 
     def forward(signum, frame):  # Ctrl-C reaches the child from the terminal too
         if child.poll() is None:
@@ -139,6 +172,7 @@ def supervise(args: argparse.Namespace, store: Path) -> int:
         rc = child.wait()
         log = Path(log_path).read_text(errors="replace")
     finally:
+        os.close(held)
         Path(log_path).unlink(missing_ok=True)
     if rc >= 0:
         return rc
@@ -150,12 +184,15 @@ def supervise(args: argparse.Namespace, store: Path) -> int:
         if -rc == signal.SIGABRT
         else f"process {args.process_id} was killed ({name})"
     )
+    from ...batch._hosts import chunk_ranges
     from ._sweep_store import _chunks_done, resume_command
 
     _release_lock(store, child.pid)
     counts = _chunks_done(store)
+    missing = _missing(store) if counts is not None else None
     kept = (
         f"{counts[0]} of {counts[1]} chunks are kept in {store}"
+        + (f" ({len(missing)} missing: {chunk_ranges(missing)})" if missing else "")
         if counts is not None
         else f"nothing was written to {store}"
     )
@@ -184,13 +221,37 @@ def single_process_argv(argv: list[str]) -> list[str]:
     return out
 
 
+def _end_with_supervisor():
+    """In the child: a thread that kills this process (SIGKILL, as a lost host) as soon as the
+    supervisor is gone, i.e. its end of the pipe of :data:`PARENT_ENV` closes."""
+    import threading
+
+    fd = os.environ.get(PARENT_ENV)
+    if fd is None:
+        return
+
+    def watch():
+        try:
+            while os.read(int(fd), 1):  # the supervisor never writes: this waits for the end
+                pass
+        except OSError:  # not a pipe of ours
+            return
+        os.kill(os.getpid(), getattr(signal, "SIGKILL", signal.SIGTERM))
+
+    threading.Thread(target=watch, name="rbo-jax supervisor watch", daemon=True).start()
+
+
 def initialize(args: argparse.Namespace):
     """In the child: JAX's log to the file of :data:`CHILD_ENV`, Python's stderr kept on the
-    terminal; then ``jax.distributed.initialize`` with the heartbeat timeout, recoverable."""
+    terminal, and the processes' pids and hosts logged there too (``rbo_jax.sweep``, INFO),
+    for :func:`supervise` to name a lost process 0; then ``jax.distributed.initialize`` with the
+    heartbeat timeout, recoverable. The child ends when its supervisor does."""
     import io
+    import logging
 
     import jax
 
+    _end_with_supervisor()
     sys.stderr.flush()  # what Python wrote so far goes to the terminal
     terminal = os.dup(2)
     log = os.open(os.environ[CHILD_ENV], os.O_WRONLY | os.O_APPEND | os.O_CREAT)
@@ -199,6 +260,12 @@ def initialize(args: argparse.Namespace):
     sys.stderr = io.TextIOWrapper(
         io.FileIO(terminal, "w", closefd=True), write_through=True, line_buffering=True
     )
+    to_log = logging.StreamHandler(open(2, "w", closefd=False, buffering=1))  # noqa: SIM115
+    to_log.setFormatter(logging.Formatter("rbo_jax: %(message)s"))
+    logger = logging.getLogger("rbo_jax.sweep")
+    logger.addHandler(to_log)
+    logger.setLevel(logging.INFO)
+    logger.propagate = False  # not on the terminal
     jax.config.update("jax_enable_recoverability", True)
     heartbeat = HEARTBEAT_S if args.heartbeat_timeout is None else args.heartbeat_timeout
     try:
