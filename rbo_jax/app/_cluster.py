@@ -51,7 +51,13 @@ def dask_client(scheduler: str | None = None, workers: int | None = None):
         # the sweep has its progress bar (a `dask scheduler` started by hand keeps 8787)
         with (
             distributed.LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0"
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=":0",
+                # one CPU device per worker process: the workers are the cores (import rbo_jax
+                # would otherwise give each of them every core, rbo_jax._devices)
+                env={"RBO_JAX_CPU_DEVICES": "1"},
             ) as cluster,
             distributed.Client(cluster) as client,
         ):

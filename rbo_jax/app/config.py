@@ -323,6 +323,7 @@ def run_config(
     scheduler: str | None = None,
     workers: int | None = None,
     client=None,
+    devices: int | None = None,
 ):
     """Run a configured sweep (:func:`load_config`): write the store and, on process 0, the PNG
     of the map. ``output`` / ``png`` override the configured paths; ``retry_errors`` (with
@@ -330,7 +331,8 @@ def run_config(
     (``pip install 'rbo_jax[dask]'``): ``scheduler`` the address ``tcp://HOST:PORT`` of a running
     scheduler, or ``workers`` a local cluster of that many processes (closed at the end), or
     ``client`` a :class:`distributed.Client` (at most one of the three); this process still
-    writes the store. Returns ``(dataset, png path or None)``."""
+    writes the store. ``devices``: the number of local devices (each worker's, on Dask) to
+    compute on (default all). Returns ``(dataset, png path or None)``."""
     cfg = config if isinstance(config, SweepConfig) else load_config(config)
     out = Path(output) if output is not None else cfg.output
     if client is not None and (scheduler is not None or workers is not None):
@@ -354,6 +356,7 @@ def run_config(
             attrs={"quantity": cfg.quantity_name, "config": cfg.canonical},
             desc=cfg.quantity_name,
             client=client,
+            devices=devices,
         )
     png_path = None
     if plot and jax.process_index() == 0:

@@ -20,9 +20,8 @@ apart from the workers.) How:
   on (:func:`rbo_jax.enable_compilation_cache`, the client's directory) loaded from it and
   compiled at most once. Chunks are padded as on one process, with the same batch, under the
   client's precision and promotion settings (``jax_enable_x64`` and the others that key a
-  stored program), so a point's values are bit for bit those of the one-process sweep on the
-  same number of devices (and the same ``XLA_FLAGS``, which a worker takes from its own
-  environment).
+  stored program), so a point's values are bit for bit those of the one-process sweep, on any
+  number of devices (:mod:`rbo_jax.batch._program`).
 - **Only points travel.** A worker's space holds no values: the client sends each task its
   chunk's points (``chunk_size`` x parameters floats), so a list of a million points is never
   shipped whole to every worker.

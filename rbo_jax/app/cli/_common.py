@@ -127,6 +127,23 @@ def check_count(value: int, option: str, minimum: int = 1) -> None:
         raise Failure(f"{option} must be an integer from {minimum} to {MAX_COUNT}, got {value}.")
 
 
+def check_devices(value: int | None, local: bool = True) -> None:
+    """``--devices N``: at least 1 and, for this process's own devices (``local``), at most
+    their number (exit status 2)."""
+    if value is None:
+        return
+    if local:
+        import jax
+
+        n = jax.local_device_count()
+        if not 1 <= value <= n:
+            raise Failure(
+                f"--devices must be from 1 to {n} (the local devices of this process), got {value}."
+            )
+    elif value < 1:
+        raise Failure(f"--devices must be at least 1, got {value}.")
+
+
 def check_state(value, option: str) -> None:
     """An initial vector option (``--theta0``, ``--Omega0``): three finite components."""
     if value is None:

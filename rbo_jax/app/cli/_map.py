@@ -8,7 +8,15 @@ import time
 
 from .._io import DATASET_SUFFIXES, netcdf_engine, write_dataset
 from .._outputs import save_figure
-from ._common import Failure, check_count, check_number, check_output, model_spec, pyplot_or_fail
+from ._common import (
+    Failure,
+    check_count,
+    check_devices,
+    check_number,
+    check_output,
+    model_spec,
+    pyplot_or_fail,
+)
 from ._memory import BYTES_PER_MAP_POINT, check_memory
 
 AXES = ("M", "c", "d", "A3")
@@ -61,6 +69,7 @@ def _check_options(args, ranged, n):
             )
         plt = pyplot_or_fail("rbo-jax stability-map")
     check_count(args.chunk_size, "--chunk-size")
+    check_devices(args.devices)
     check_number(args.rtol, "--rtol", above=0)
     sizes = " x ".join(f"--{name} {getattr(args, name).size:,}" for name in AXES)
     check_memory(
@@ -164,6 +173,7 @@ def stability_map_command(args: argparse.Namespace) -> int:
             chunk_size=args.chunk_size,
             rtol=args.rtol,
             progress=args.progress,
+            devices=args.devices,
         )
     except SweepError as e:  # the sweep's own memory guard, should the estimate above pass
         raise Failure(str(e)) from None

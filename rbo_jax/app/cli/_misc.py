@@ -110,10 +110,17 @@ def sweep_command(args: argparse.Namespace) -> int:
     from ..config import ConfigError, load_config, run_config
     from . import _distributed
     from ._cluster import check_cluster_options
+    from ._common import Failure, check_devices
     from ._sweep_store import check_paths, report_on_interrupt
 
     check_cluster_options(args)  # --scheduler / --workers (Dask): exit 2 before anything starts
     multi_process = _distributed.check_options(args)  # jax.distributed: the same
+    try:
+        # on Dask, --devices counts each worker's devices, which this process cannot see
+        check_devices(args.devices, local=args.scheduler is None and args.workers is None)
+    except Failure as e:
+        print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
+        return 2
     try:
         cfg = load_config(args.config)
     except ConfigError as e:
@@ -147,6 +154,7 @@ def sweep_command(args: argparse.Namespace) -> int:
             retry_errors=args.retry_errors,
             scheduler=args.scheduler,
             workers=args.workers,
+            devices=args.devices,
         )
     except (FileExistsError, SweepError) as e:
         print(f"rbo-jax sweep: error: {e}", file=sys.stderr)

@@ -1,0 +1,107 @@
+"""Child process of tests/test_devices.py: ``python _devices_worker.py WHAT OUT.json``. It imports
+rbo_jax first (which chooses the number of CPU devices before JAX starts, unless the
+environment says otherwise), runs WHAT and writes a JSON report."""
+
+import json
+import os
+import sys
+import time
+import warnings
+
+
+def devices():
+    import jax
+
+    import rbo_jax  # noqa: F401  (before any JAX computation; importing jax starts nothing)
+
+    return {
+        "devices": len(jax.devices()),
+        "platform": jax.devices()[0].platform,
+        "cores": len(os.sched_getaffinity(0)),
+    }
+
+
+def started_first():
+    """JAX computes before rbo_jax is imported: one device, and the first sweep says so."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    jnp.ones(2).block_until_ready()
+    import rbo_jax
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rbo_jax.sweep(lambda x: x * 2.0, {"x": np.arange(4.0)}, progress=False)
+        rbo_jax.sweep(lambda x: x * 3.0, {"x": np.arange(4.0)}, progress=False)
+    return {"devices": len(jax.devices()), "warnings": [str(w.message) for w in caught]}
+
+
+def newton_map():
+    """The issue's stability map (Newton equilibria, LAPACK eigenvalues) on every local device
+    and on one: it must end, and give the same bits."""
+    import jax
+    import numpy as np
+
+    import rbo_jax as rbo
+
+    axes = {"M": np.linspace(-0.8, 0.8, 40), "c": np.linspace(0.5, 2.0, 40)}
+
+    def model_fn(M, c):
+        return rbo.nikolai_model(M, c, 2.0, A3=0.6)
+
+    start = time.perf_counter()
+    many = rbo.stability_map(model_fn, axes)
+    elapsed = time.perf_counter() - start
+    one = rbo.stability_map(model_fn, axes, devices=1)
+    return {
+        "devices": len(jax.devices()),
+        "seconds": elapsed,
+        "counts": many.attrs["status_counts"],
+        "identical": all(
+            np.array_equal(many[v].values, one[v].values, equal_nan=True) for v in many.data_vars
+        ),
+    }
+
+
+def fast_sweep():
+    """Final states of fast_simulate (refilled lanes) over 1, 2 and all local devices and two
+    chunk sizes: the same bits."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import rbo_jax as rbo
+
+    k = jnp.array([0.0, 0.0, 1.0])
+
+    def final(M, c):
+        model = rbo.nikolai_model(M, c, 2.0, A3=0.5)
+        theta0 = (M / 2.0) * k + jnp.array([1e-3, 0.0, 0.0])
+        traj = rbo.fast_simulate(
+            model, theta0, jnp.zeros(3), jnp.array([0.0, 30.0]), rtol=1e-9, atol=1e-10, throw=False
+        )
+        return {"theta": traj.theta[-1], "Omega": traj.Omega[-1]}, traj.status
+
+    axes = {"M": np.linspace(0.05, 0.8, 30), "c": np.linspace(0.5, 2.0, 41)}
+    runs = {}
+    for devices in sorted({1, 2, len(jax.devices())}):
+        for chunk in (1230, 500):
+            ds = rbo.sweep(final, axes, chunk_size=chunk, devices=devices, progress=False)
+            runs[f"{devices}/{chunk}"] = np.concatenate(
+                [ds["theta"].values.ravel(), ds["Omega"].values.ravel()]
+            )
+    first = next(iter(runs.values()))
+    return {
+        "devices": len(jax.devices()),
+        "runs": sorted(runs),
+        "differ": sorted(k for k, v in runs.items() if not np.array_equal(v, first)),
+        "finite": bool(np.isfinite(first).all()),
+    }
+
+
+if __name__ == "__main__":
+    what, out = sys.argv[1], sys.argv[2]
+    report = globals()[what]()
+    with open(out, "w") as f:
+        json.dump(report, f)

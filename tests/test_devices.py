@@ -1,0 +1,105 @@
+"""Every core by default (issue 31): ``import rbo_jax`` asks JAX for one CPU device per core of
+the process's affinity, the batch engine spreads chunks over them without waiting forever, and
+the results are bit for bit the same on any number of devices. Each test runs real processes
+(the device count is fixed when JAX's backend starts)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+WORKER = HERE / "_devices_worker.py"
+DEVICE_VARIABLES = ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES", "RBO_JAX_CPU_DEVICES", "JAX_PLATFORMS")
+
+
+def _run(tmp_path, what, affinity=None, timeout=300, **env_extra):
+    env = {k: v for k, v in os.environ.items() if k not in DEVICE_VARIABLES}
+    env["JAX_PLATFORMS"] = "cpu"
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
+    env.update(env_extra)
+    out = tmp_path / f"{what}.json"
+    res = subprocess.run(
+        [sys.executable, str(WORKER), what, str(out)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,  # a hang fails the test instead of waiting forever
+        preexec_fn=None if affinity is None else (lambda: os.sched_setaffinity(0, affinity)),
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(out.read_text())
+
+
+def test_a_fresh_process_has_one_cpu_device_per_core(tmp_path):
+    """Nothing set: as many CPU devices as cores in the affinity."""
+    report = _run(tmp_path, "devices")
+    assert report["platform"] == "cpu"
+    assert report["devices"] == report["cores"] == len(os.sched_getaffinity(0))
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity here")
+def test_the_affinity_counts_not_the_machine(tmp_path):
+    """``taskset -c 0``: one core, one device."""
+    first = min(os.sched_getaffinity(0))
+    report = _run(tmp_path, "devices", affinity={first})
+    assert report["cores"] == 1 and report["devices"] == 1
+
+
+@pytest.mark.parametrize(
+    "env, expected",
+    [
+        ({"RBO_JAX_CPU_DEVICES": "off"}, 1),
+        ({"RBO_JAX_CPU_DEVICES": "3"}, 3),
+        ({"JAX_NUM_CPU_DEVICES": "5"}, 5),
+        ({"XLA_FLAGS": "--xla_force_host_platform_device_count=6"}, 6),
+    ],
+)
+def test_the_user_chooses(tmp_path, env, expected):
+    """The opt-out, an explicit count, and JAX's own settings are respected."""
+    assert _run(tmp_path, "devices", **env)["devices"] == expected
+
+
+def test_a_bad_setting_is_named(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in DEVICE_VARIABLES}
+    env.update(RBO_JAX_CPU_DEVICES="many", PYTHONPATH=str(ROOT))
+    res = subprocess.run(
+        [sys.executable, "-c", "import rbo_jax"], env=env, capture_output=True, text=True
+    )
+    assert res.returncode != 0 and "RBO_JAX_CPU_DEVICES='many'" in res.stderr
+
+
+def test_jax_started_first_is_said_once(tmp_path):
+    """A computation before ``import rbo_jax`` fixes one device; the first sweep on a machine
+    of several cores says what to do, once."""
+    report = _run(tmp_path, "started_first")
+    assert report["devices"] == 1
+    if len(os.sched_getaffinity(0)) > 1:
+        assert len(report["warnings"]) == 1
+        assert "import rbo_jax before the first jax computation" in report["warnings"][0].lower()
+    else:
+        assert report["warnings"] == []
+
+
+@pytest.mark.parametrize("devices", [2, 4])
+def test_stability_map_with_newton_equilibria_ends_on_several_devices(tmp_path, devices):
+    """The map of issue 31 (Newton equilibria, LAPACK eigenvalues; 40 x 40 is the smallest grid
+    that waited forever on 2 devices) ends on 2 and 4 CPU devices and equals the one-device map
+    bit for bit."""
+    report = _run(tmp_path, "newton_map", RBO_JAX_CPU_DEVICES=str(devices))
+    assert report["devices"] == devices
+    assert report["identical"]
+    assert report["counts"]["successful"] == 1600
+
+
+def test_fast_simulate_sweep_is_bitwise_the_same_on_any_number_of_devices(tmp_path):
+    """Refilled lanes, chunks of 1230 and 500 points, over 1, 2 and 4 devices: one result."""
+    report = _run(tmp_path, "fast_sweep", RBO_JAX_CPU_DEVICES="4")
+    assert report["devices"] == 4 and len(report["runs"]) == 6
+    assert report["finite"]
+    assert report["differ"] == []
