@@ -22,16 +22,18 @@ batch of matrices into tasks on that same pool and block until they finish
 200 000 flop). With one device per core every pool thread can be a device's program blocked in
 such a kernel, waiting for tasks that no thread is left to run: a 100 × 100 stability map on 2
 or 4 CPU devices waited forever at 0 % CPU (issue 31; native stacks: every ``tf_XLAEigen``
-thread in ``BlockingCounter::Wait`` under ``lapack_dgeev_ffi``). A quantity that calls LAPACK is
-therefore mapped over blocks of points (``lax.map(..., batch_size=block)``) small enough that no
-kernel is ever split, on any number of devices.
+thread in ``BlockingCounter::Wait`` under ``lapack_dgeev_ffi``). While a chunk program is traced,
+the batching rules of the LAPACK primitives are therefore replaced by ones that run a batch in
+blocks small enough that no kernel is ever split (:func:`lapack_in_blocks`); the rest of the
+quantity stays one ``vmap`` over the device's points.
 
 **The same bits on any number of devices.** A point's value must not depend on where it sits in
 the batch: XLA's CPU code rounds some fused expressions differently in the scalar remainder of a
 vectorised loop than in its vector body. Each device's share of a chunk is therefore a multiple
-of the block (or of :data:`VECTOR` points), so every point is computed by the same code in
-the same position modulo the vector width whatever the number of devices (the refilled lanes of
-:func:`rbo_jax.fast_simulate` follow the same rule, ``ensemble/_solve.py``).
+of :data:`VECTOR` points, so every point is computed by the same code in the same position
+modulo the vector width whatever the number of devices (the refilled lanes of
+:func:`rbo_jax.fast_simulate` follow the same rule, ``ensemble/_solve.py``); LAPACK computes each
+matrix alone, whatever the block.
 
 Every call has the same shape (a partial chunk is padded), so one compilation serves a sweep;
 programs are cached on what the quantity computes (:func:`rbo_jax._callables.callable_key`: its
@@ -48,14 +50,18 @@ module), or one that cannot be exported (a host callback), is traced as usual.
 from __future__ import annotations
 
 import ast
+import contextlib
 import functools
 import math
+import threading
 import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax._src import core as jax_core
+from jax._src.interpreters import batching
 from jax.extend.core import jaxpr_as_fun, jaxprs_in_params
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
@@ -129,9 +135,9 @@ def _lapack_work(eqn) -> int:
 
 
 def block_size(jaxpr) -> int:
-    """Points per block for a quantity whose one-point ``jaxpr`` calls LAPACK (or an FFT): the
-    most points whose batched calls jaxlib never splits over the intra-op pool (a multiple of
-    :data:`VECTOR` when at least that); 0 when the quantity calls neither (one ``vmap``)."""
+    """Points per LAPACK call for a quantity whose one-point ``jaxpr`` calls LAPACK (or an FFT):
+    the most points whose batched calls jaxlib never splits over the intra-op pool; 0 when the
+    quantity calls neither."""
     work, fft = 0, False
     for eqn in _equations(jaxpr):
         name = eqn.primitive.name
@@ -143,24 +149,82 @@ def block_size(jaxpr) -> int:
         return 1  # ducc splits a transform by the number of transforms: one point at a time
     if work == 0:
         return 0
-    block = max(1, (SPLIT_WORK - 1) // work)
-    return block // VECTOR * VECTOR if block >= VECTOR else block
+    return max(1, (SPLIT_WORK - 1) // work)
 
 
-def _local(closed, out_tree, block: int):
-    """The per-device function ``(points, n) -> outputs`` of one point's jaxpr: ``vmap``, or
-    ``lax.map`` over blocks of ``block`` points."""
+def _local(closed, out_tree):
+    """The per-device function ``(points, n) -> outputs`` of one point's jaxpr (``vmap``)."""
     fn = jaxpr_as_fun(closed)
-    batched = (
-        jax.vmap(lambda x: fn(x))
-        if not block
-        else (lambda xs: lax.map(lambda x: fn(x), xs, batch_size=block))
-    )
+    batched = jax.vmap(lambda x: fn(x))
 
     def chunk_program(xs):  # the name in JAX's logs and persistent cache
         return jax.tree_util.tree_unflatten(out_tree, batched(xs))
 
     return chunk_program
+
+
+def _chunked_rule(prim, original, block: int):
+    """A batching rule of ``prim`` that runs a batch larger than ``block`` as ``lax.map`` over
+    blocks of ``block`` (each block by the original rule)."""
+
+    def rule(axis_data, vals, dims, **params):
+        if axis_data.size <= block or all(d is None for d in dims):
+            return original(axis_data, vals, dims, **params)
+        which = [i for i, d in enumerate(dims) if d is not None]
+        moved = tuple(jnp.moveaxis(vals[i], dims[i], 0) for i in which)
+
+        def one(xs):
+            args = list(vals)
+            for i, x in zip(which, xs):
+                args[i] = x
+            return prim.bind(*args, **params)
+
+        out = lax.map(one, moved, batch_size=block)
+        return out, ([0] * len(out) if prim.multiple_results else 0)
+
+    return rule
+
+
+@contextlib.contextmanager
+def lapack_in_blocks(block: int):
+    """While a chunk program is traced: every LAPACK primitive batched over more than ``block``
+    matrices runs in blocks of ``block`` (:func:`_chunked_rule`), so that jaxlib never splits
+    a call over the intra-op pool; the rest of the quantity stays one ``vmap`` over the
+    device's points (the refilled lanes of :func:`rbo_jax.fast_simulate` keep all of them).
+    JAX's caches of batched sub-jaxprs are cleared around it, so that no program traced
+    before or after takes the other's. One trace at a time (a lock): the rules are global."""
+    if not block:
+        yield
+        return
+    rules = batching.fancy_primitive_batchers
+    with _RULES_LOCK:
+        saved = {p: rules[p] for p in _lapack_primitives() if p in rules}
+        _clear_batching_caches()
+        try:
+            for p, original in saved.items():
+                rules[p] = _chunked_rule(p, original, block)
+            yield
+        finally:
+            rules.update(saved)
+            _clear_batching_caches()
+
+
+_RULES_LOCK = threading.RLock()
+
+
+def _lapack_primitives():
+    from jax._src.lax import fft as fft_module
+    from jax._src.lax import linalg
+
+    found = [v for v in vars(linalg).values() if isinstance(v, jax_core.Primitive)]
+    return [p for p in found if p.name in LINALG] + [fft_module.fft_p]
+
+
+def _clear_batching_caches():
+    for name in ("_batch_jaxpr2", "_batch_jaxpr_axes"):
+        cached = getattr(batching, name, None)
+        if cached is not None and hasattr(cached, "cache_clear"):
+            cached.cache_clear()
 
 
 def _sharded(local, mesh):
@@ -174,19 +238,13 @@ def _sharded(local, mesh):
 
 
 class Layout:
-    """How a chunk is laid out on the devices: ``devices``, ``block`` (0: one vmap), ``batch``
-    (the padded chunk: a multiple of the devices × the unit, the block or VECTOR). A block of
-    at least VECTOR points is cut to a device's share of the chunk (rounded up to VECTOR), so
-    that a small chunk is not padded to a whole block on every device; blocks stay multiples of
-    VECTOR, and a point's position modulo VECTOR stays the same on any number of devices."""
+    """How a chunk is laid out on the devices: ``devices``, ``block`` (LAPACK calls in blocks of
+    this many points; 0: no LAPACK call), ``batch`` (the padded chunk: a multiple of the devices
+    × :data:`VECTOR`, so that every device's share is a multiple of VECTOR)."""
 
     def __init__(self, devices, block: int, chunk_points: int):
-        self.devices = tuple(devices)
-        share = -(-int(chunk_points) // len(self.devices))
-        if block >= VECTOR:
-            block = min(block, -(-share // VECTOR) * VECTOR)
-        self.block = int(block)
-        unit = (self.block or VECTOR) * len(self.devices)
+        self.devices, self.block = tuple(devices), int(block)
+        unit = VECTOR * len(self.devices)
         self.batch = -(-int(chunk_points) // unit) * unit
         self.mesh = jax.sharding.Mesh(np.array(self.devices, dtype=object), (BATCH_AXIS,))
         self.sharding = NamedSharding(self.mesh, P(BATCH_AXIS))
@@ -256,9 +314,10 @@ def _stored_program(key, quantity, names, devices, chunk_points) -> Program | No
     if found is None and not _programs.unexportable(key):
         closed, out_tree, record = _trace_point(quantity, names)
         layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
-        local = _local(closed, out_tree, layout.block)
+        local = _local(closed, out_tree)
         try:
-            exported = jax.export.export(jax.jit(local))(layout.local_x(len(names)))
+            with lapack_in_blocks(layout.block):
+                exported = jax.export.export(jax.jit(local))(layout.local_x(len(names)))
         except Exception:  # not exportable: the caller traces it
             _programs.unexportable(key, mark=True)
             return None
@@ -297,9 +356,10 @@ def _compile_program(quantity, names, devices, chunk_points) -> Program:
             return found
     closed, out_tree, record = _trace_point(quantity, names)
     layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
-    local = _local(closed, out_tree, layout.block)
+    local = _local(closed, out_tree)
     try:
-        traced = _sharded(local, layout.mesh).trace(layout.x(len(names)))
+        with lapack_in_blocks(layout.block):
+            traced = _sharded(local, layout.mesh).trace(layout.x(len(names)))
         return Program(traced, layout, dict(record), "shard_map")
     except Exception as e:  # shard_map refused the quantity: one device, said so
         if len(devices) == 1:
@@ -313,7 +373,9 @@ def _compile_program(quantity, names, devices, chunk_points) -> Program:
         )
         layout = Layout(devices[:1], layout.block, chunk_points)
         traced = jax.jit(local, in_shardings=layout.sharding, out_shardings=layout.sharding)
-        return Program(traced.trace(layout.x(len(names))), layout, dict(record), "one device")
+        with lapack_in_blocks(layout.block):
+            traced = traced.trace(layout.x(len(names)))
+        return Program(traced, layout, dict(record), "one device")
 
 
 class _Quantity:

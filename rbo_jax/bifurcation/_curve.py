@@ -173,10 +173,13 @@ def _natural(
         p = jnp.concatenate(parts) if parts else jnp.zeros(0, values.dtype)
         return _curve_jit(static, jnp.asarray(t, dtype=values.dtype), p, guess, values, theta_guess)
 
-    fn = run
-    for name in reversed(batch):
-        fn = _vmap_named(fn, name)
-    points = fn(**others)
+    if batch and not _traced((others, values, guess, theta_guess, t)):
+        points = _on_every_device(run, batch, others)
+    else:  # under a transformation (jax.grad of the curve): one vmapped program
+        fn = run
+        for name in reversed(batch):
+            fn = _vmap_named(fn, name)
+        points = fn(**others)
     dims = tuple(batch) + (along,)
     coords = {name: np.asarray(others[name]) for name in batch}
     coords[along] = np.asarray(values)
@@ -187,7 +190,7 @@ def _natural(
             "first_lyapunov": (dims, np.asarray(points.first_lyapunov)),
             "transversality": (dims, np.asarray(points.transversality)),
             "theta": (dims + ("component",), np.asarray(points.theta)),
-            "status": (dims, np.asarray(enum.code(points.status)).astype(np.int8)),
+            "status": (dims, _codes(points).astype(np.int8)),
         },
         coords={**coords, "component": ["x", "y", "z"]},
         attrs={
@@ -200,6 +203,47 @@ def _natural(
     ds["status"].attrs["flag_meanings"] = " ".join(enum.names(HopfStatus))
     ds[parameter].attrs["long_name"] = f"critical {parameter} (Hopf point)"
     return ds
+
+
+def _traced(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+
+
+class _Points:
+    """The fields of the curves computed by the batch engine (NumPy arrays)."""
+
+    def __init__(self, ds):
+        for name in ("value", "frequency", "first_lyapunov", "transversality", "theta"):
+            setattr(self, name, ds[name].values)
+        self.status_code = ds["status_code"].values
+
+
+def _codes(points) -> np.ndarray:
+    if isinstance(points, _Points):
+        return np.asarray(points.status_code)
+    return np.asarray(enum.code(points.status))
+
+
+def _on_every_device(run, batch, others):
+    """The curves of every point of the batch axes, as one sweep (:func:`rbo_jax.sweep`): its
+    chunks are split over every local device, where the vmapped program ran on one."""
+    from ..batch import sweep
+
+    fixed = {k: v for k, v in others.items() if k not in batch}
+
+    def curve(**point):
+        r = run(**point, **fixed)
+        return {
+            "value": r.value,
+            "frequency": r.frequency,
+            "first_lyapunov": r.first_lyapunov,
+            "transversality": r.transversality,
+            "theta": r.theta,
+            "status_code": jnp.asarray(enum.code(r.status), jnp.int32),
+        }
+
+    axes = {name: np.asarray(others[name]) for name in batch}
+    return _Points(sweep(curve, axes, progress=False, desc="continue_hopf"))
 
 
 def _vmap_named(fn, name):
