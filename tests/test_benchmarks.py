@@ -49,6 +49,8 @@ def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
         "=== fitting ===",
         "=== lattice ===",
         "=== dask ===",
+        "=== cores ===",
+        "speed-up over one core",
         "speed-up per trajectory",
         "max |p - (4.69)|",
         "first fit",
@@ -195,3 +197,24 @@ def test_latency_snippets_compile(monkeypatch):
     assert len(set(keys)) == len(keys)
     for row in latency.rows():
         compile(latency.snippet(row), f"<latency {row.key}>", "exec")
+
+
+def test_the_current_table_goes_between_the_markers(tmp_path):
+    """make bench writes the summary, machine, commit and date between the README's markers and
+    leaves the history below them as it was."""
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import run
+
+    readme = tmp_path / "README.md"
+    readme.write_text("# Benchmarks\n\n## History\n\nold figures\n")
+    results = {"dask": {"chunk": 64, "overhead_ms": 7.5, "speedup_2_workers": 1.5}}
+    run.write_readme(run.markdown_table(results, "2026-11-26 12:00", (0.5, 0.7)), str(readme))
+    first = readme.read_text()
+    assert first.startswith("# Benchmarks\n\n" + run.BEGIN)
+    assert "| dask | sweep on 2 Dask workers vs 1 process | 1.50x |" in first
+    assert "2026-11-26 12:00" in first and "## History\n\nold figures" in first
+    results["dask"]["speedup_2_workers"] = 1.8
+    run.write_readme(run.markdown_table(results, "2026-11-27 12:00", (0.5, 0.7)), str(readme))
+    second = readme.read_text()
+    assert "1.80x" in second and "1.50x" not in second and second.count(run.BEGIN) == 1
+    assert second.endswith("## History\n\nold figures\n")
