@@ -15,7 +15,8 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "rbo_jax"
 LAYERS = [
     ("_custom_types", "_elementary", "_version"),
     ("_cache", "_callables"),
-    ("_precision", "_enumeration", "_programs", "_lazy"),
+    ("_precision", "_devices", "_enumeration", "_programs", "_lazy"),
+    ("_sharding",),
     ("_validation",),
     ("kinematics",),
     ("inertia", "analytic"),

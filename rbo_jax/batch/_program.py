@@ -50,59 +50,28 @@ module), or one that cannot be exported (a host callback), is traced as usual.
 from __future__ import annotations
 
 import ast
-import contextlib
 import functools
-import math
-import threading
 import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
-from jax._src import core as jax_core
-from jax._src.interpreters import batching
-from jax.extend.core import jaxpr_as_fun, jaxprs_in_params
-from jax.sharding import NamedSharding
-from jax.sharding import PartitionSpec as P
 
 from .. import _programs
 from .._callables import callable_key, stable_text
+from .._sharding import (
+    BATCH_AXIS,
+    VECTOR,
+    Layout,
+    block_size,
+    lapack_in_blocks,
+    local_function,
+    sharded,
+    trace_point,
+)
 from ._output import describe_output, encode_output, split_output
 
-BATCH_AXIS = "batch"
-# A device's share of a chunk is a multiple of this many points (or of the LAPACK block): no
-# point in the scalar remainder of a vectorised loop (16 doubles: two AVX-512 vectors).
-VECTOR = 16
-# jaxlib splits a batched LAPACK call over the intra-op pool from this much work (flop) on
-# (GetLapackBatchChunkSize, kMinWorkPerTask).
-SPLIT_WORK = 200_000
-# An upper bound of jaxlib's cost per matrix of every LAPACK kernel, in units of n³ (its own
-# estimates: LU n³, QR ≤ 2n³, eigh 4n³ (×3 complex), real eig 10n³; 3 × the largest, so that
-# a kernel whose estimate we do not know is still never split).
-COST_PER_N3 = 30
-# The primitives that lower to LAPACK on CPU (jax._src.lax.linalg), and the FFT (ducc, which
-# also runs on the intra-op pool).
-LINALG = frozenset(
-    {
-        "cholesky",
-        "cholesky_update",
-        "eig",
-        "eigh",
-        "geqp3",
-        "geqrf",
-        "hessenberg",
-        "householder_product",
-        "lu",
-        "ormqr",
-        "qr",
-        "schur",
-        "svd",
-        "triangular_solve",
-        "tridiagonal",
-        "tridiagonal_solve",
-    }
-)
+__all__ = ["BATCH_AXIS", "VECTOR", "Program", "local_devices", "point_function", "program"]
 
 
 def point_function(quantity, names, record: dict):
@@ -115,149 +84,6 @@ def point_function(quantity, names, record: dict):
         return encode_output(values, status)
 
     return point
-
-
-def _equations(jaxpr):
-    for eqn in jaxpr.eqns:
-        yield eqn
-        for sub in jaxprs_in_params(eqn.params):
-            yield from _equations(sub)
-
-
-def _lapack_work(eqn) -> int:
-    """An upper bound of jaxlib's work estimate for one point's call ``eqn``: COST_PER_N3 · n³
-    per matrix (n the largest of the operands' matrix dimensions) × the matrices per point."""
-    shapes = [v.aval.shape for v in eqn.invars if hasattr(v.aval, "shape")]
-    n = max((max(s[-2:]) for s in shapes if len(s) >= 1), default=1)
-    first = shapes[0] if shapes else ()
-    matrices = math.prod(first[:-2]) if len(first) >= 2 else 1
-    return COST_PER_N3 * int(n) ** 3 * int(matrices)
-
-
-def block_size(jaxpr) -> int:
-    """Points per LAPACK call for a quantity whose one-point ``jaxpr`` calls LAPACK (or an FFT):
-    the most points whose batched calls jaxlib never splits over the intra-op pool; 0 when the
-    quantity calls neither."""
-    work, fft = 0, False
-    for eqn in _equations(jaxpr):
-        name = eqn.primitive.name
-        if name == "fft":
-            fft = True
-        elif name in LINALG:
-            work = max(work, _lapack_work(eqn))
-    if fft:
-        return 1  # ducc splits a transform by the number of transforms: one point at a time
-    if work == 0:
-        return 0
-    return max(1, (SPLIT_WORK - 1) // work)
-
-
-def _local(closed, out_tree):
-    """The per-device function ``(points, n) -> outputs`` of one point's jaxpr (``vmap``)."""
-    fn = jaxpr_as_fun(closed)
-    batched = jax.vmap(lambda x: fn(x))
-
-    def chunk_program(xs):  # the name in JAX's logs and persistent cache
-        return jax.tree_util.tree_unflatten(out_tree, batched(xs))
-
-    return chunk_program
-
-
-def _chunked_rule(prim, original, block: int):
-    """A batching rule of ``prim`` that runs a batch larger than ``block`` as ``lax.map`` over
-    blocks of ``block`` (each block by the original rule)."""
-
-    def rule(axis_data, vals, dims, **params):
-        if axis_data.size <= block or all(d is None for d in dims):
-            return original(axis_data, vals, dims, **params)
-        which = [i for i, d in enumerate(dims) if d is not None]
-        moved = tuple(jnp.moveaxis(vals[i], dims[i], 0) for i in which)
-
-        def one(xs):
-            args = list(vals)
-            for i, x in zip(which, xs):
-                args[i] = x
-            return prim.bind(*args, **params)
-
-        out = lax.map(one, moved, batch_size=block)
-        return out, ([0] * len(out) if prim.multiple_results else 0)
-
-    return rule
-
-
-@contextlib.contextmanager
-def lapack_in_blocks(block: int):
-    """While a chunk program is traced: every LAPACK primitive batched over more than ``block``
-    matrices runs in blocks of ``block`` (:func:`_chunked_rule`), so that jaxlib never splits
-    a call over the intra-op pool; the rest of the quantity stays one ``vmap`` over the
-    device's points (the refilled lanes of :func:`rbo_jax.fast_simulate` keep all of them).
-    JAX's caches of batched sub-jaxprs are cleared around it, so that no program traced
-    before or after takes the other's. One trace at a time (a lock): the rules are global."""
-    if not block:
-        yield
-        return
-    rules = batching.fancy_primitive_batchers
-    with _RULES_LOCK:
-        saved = {p: rules[p] for p in _lapack_primitives() if p in rules}
-        _clear_batching_caches()
-        try:
-            for p, original in saved.items():
-                rules[p] = _chunked_rule(p, original, block)
-            yield
-        finally:
-            rules.update(saved)
-            _clear_batching_caches()
-
-
-_RULES_LOCK = threading.RLock()
-
-
-def _lapack_primitives():
-    from jax._src.lax import fft as fft_module
-    from jax._src.lax import linalg
-
-    found = [v for v in vars(linalg).values() if isinstance(v, jax_core.Primitive)]
-    return [p for p in found if p.name in LINALG] + [fft_module.fft_p]
-
-
-def _clear_batching_caches():
-    for name in ("_batch_jaxpr2", "_batch_jaxpr_axes"):
-        cached = getattr(batching, name, None)
-        if cached is not None and hasattr(cached, "cache_clear"):
-            cached.cache_clear()
-
-
-def _sharded(local, mesh):
-    # check_vma=False: the body has no collectives, and user quantities may hold callbacks or
-    # custom rules that the varying-manual-axes checker does not know.
-    return jax.jit(
-        jax.shard_map(
-            local, mesh=mesh, in_specs=P(BATCH_AXIS), out_specs=P(BATCH_AXIS), check_vma=False
-        )
-    )
-
-
-class Layout:
-    """How a chunk is laid out on the devices: ``devices``, ``block`` (LAPACK calls in blocks of
-    this many points; 0: no LAPACK call), ``batch`` (the padded chunk: a multiple of the devices
-    × :data:`VECTOR`, so that every device's share is a multiple of VECTOR)."""
-
-    def __init__(self, devices, block: int, chunk_points: int):
-        self.devices, self.block = tuple(devices), int(block)
-        unit = VECTOR * len(self.devices)
-        self.batch = -(-int(chunk_points) // unit) * unit
-        self.mesh = jax.sharding.Mesh(np.array(self.devices, dtype=object), (BATCH_AXIS,))
-        self.sharding = NamedSharding(self.mesh, P(BATCH_AXIS))
-
-    def x(self, n_names: int):
-        """The argument: the chunk's points, sharded over the devices."""
-        dtype = jnp.result_type(float)
-        return jax.ShapeDtypeStruct((self.batch, n_names), dtype, sharding=self.sharding)
-
-    def local_x(self, n_names: int):
-        """One device's share of the argument (what a stored program takes)."""
-        dtype = jnp.result_type(float)
-        return jax.ShapeDtypeStruct((self.batch // len(self.devices), n_names), dtype)
 
 
 class Program:
@@ -314,7 +140,7 @@ def _stored_program(key, quantity, names, devices, chunk_points) -> Program | No
     if found is None and not _programs.unexportable(key):
         closed, out_tree, record = _trace_point(quantity, names)
         layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
-        local = _local(closed, out_tree)
+        local = local_function(closed, out_tree)
         try:
             with lapack_in_blocks(layout.block):
                 exported = jax.export.export(jax.jit(local))(layout.local_x(len(names)))
@@ -333,19 +159,15 @@ def _stored_program(key, quantity, names, devices, chunk_points) -> Program | No
     def chunk_program(xs):  # the name in JAX's logs and persistent cache
         return exported.call(xs)
 
-    call = _sharded(chunk_program, layout.mesh)
+    call = sharded(chunk_program, layout.mesh)
     return Program(call, layout, structure, "shard_map", layout.x(len(names)))
 
 
 def _trace_point(quantity, names):
     """One point's closed jaxpr, its output tree and the recorded output structure."""
     record: dict = {}
-    point = point_function(quantity, names, record)
-    dtype = jnp.result_type(float)
-    closed, shape = jax.make_jaxpr(point, return_shape=True)(
-        jax.ShapeDtypeStruct((len(names),), dtype)
-    )
-    return closed, jax.tree_util.tree_structure(shape), record
+    closed, out_tree = trace_point(point_function(quantity, names, record), len(names))
+    return closed, out_tree, record
 
 
 def _compile_program(quantity, names, devices, chunk_points) -> Program:
@@ -356,10 +178,10 @@ def _compile_program(quantity, names, devices, chunk_points) -> Program:
             return found
     closed, out_tree, record = _trace_point(quantity, names)
     layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
-    local = _local(closed, out_tree)
+    local = local_function(closed, out_tree)
     try:
         with lapack_in_blocks(layout.block):
-            traced = _sharded(local, layout.mesh).trace(layout.x(len(names)))
+            traced = sharded(local, layout.mesh).trace(layout.x(len(names)))
         return Program(traced, layout, dict(record), "shard_map")
     except Exception as e:  # shard_map refused the quantity: one device, said so
         if len(devices) == 1:

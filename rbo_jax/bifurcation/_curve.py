@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import _enumeration as enum
 from .._programs import jit
+from .._sharding import map_points
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._hopf import HopfStatus, Static, canonical, finish, solution
@@ -212,10 +213,10 @@ def _traced(tree) -> bool:
 class _Points:
     """The fields of the curves computed by the batch engine (NumPy arrays)."""
 
-    def __init__(self, ds):
+    def __init__(self, out):
         for name in ("value", "frequency", "first_lyapunov", "transversality", "theta"):
-            setattr(self, name, ds[name].values)
-        self.status_code = ds["status_code"].values
+            setattr(self, name, out[name])
+        self.status_code = out["status_code"]
 
 
 def _codes(points) -> np.ndarray:
@@ -225,10 +226,8 @@ def _codes(points) -> np.ndarray:
 
 
 def _on_every_device(run, batch, others):
-    """The curves of every point of the batch axes, as one sweep (:func:`rbo_jax.sweep`): its
-    chunks are split over every local device, where the vmapped program ran on one."""
-    from ..batch import sweep
-
+    """The curves of every point of the batch axes, spread over every local device
+    (:func:`rbo_jax._sharding.map_points`), where the vmapped program ran on one."""
     fixed = {k: v for k, v in others.items() if k not in batch}
 
     def curve(**point):
@@ -242,8 +241,10 @@ def _on_every_device(run, batch, others):
             "status_code": jnp.asarray(enum.code(r.status), jnp.int32),
         }
 
-    axes = {name: np.asarray(others[name]) for name in batch}
-    return _Points(sweep(curve, axes, progress=False, desc="continue_hopf"))
+    grids = np.meshgrid(*(np.asarray(others[name]) for name in batch), indexing="ij")
+    shape = grids[0].shape
+    out = map_points(curve, {name: g.ravel() for name, g in zip(batch, grids)})
+    return _Points({k: v.reshape(shape + v.shape[1:]) for k, v in out.items()})
 
 
 def _vmap_named(fn, name):
