@@ -17,6 +17,10 @@ Rows:
   of (M, c); the first call (compilation included) and a second call, the figure;
 - ``sweep of fast_simulate``: :func:`rbo_jax.sweep` of the same final states over ``--sim-n``
   points in the library; first call and a second call, the figure.
+- ``lanes`` (a profile, with ``--rows lanes``): one pinned core, ``jax.jit(jax.vmap(
+  fast_simulate))`` of N of those trajectories per call for N = 1000 … 16000: the time per
+  trajectory against N shows what the refilled lanes lose at the end of a call, waiting for
+  the slowest trajectories (a device's share of a chunk is such a call).
 
 CPU time is the child's user + system time (``resource``): a ratio of CPU to wall near the number
 of cores means every core was busy, above it threads waited for each other. The persistent caches
@@ -85,6 +89,15 @@ CHILD = textwrap.dedent(
     def model_fn(M, c):
         return rbo.nikolai_model(M, c, 2.0, A3=0.6)
 
+    if what == "lanes":
+        M = np.random.default_rng(0).uniform(0.05, 0.8, n)
+        c = np.random.default_rng(1).uniform(0.5, 2.0, n)
+        f = jax.jit(jax.vmap(final))
+        jax.block_until_ready(f(M, c))
+        t = time.perf_counter()
+        jax.block_until_ready(f(M, c))
+        print(json.dumps({"n": n, "us_per_traj": (time.perf_counter() - t) / n * 1e6}))
+        sys.exit(0)
     if what == "map":
         axes = {"M": np.linspace(-0.8, 0.8, side), "c": np.linspace(0.5, 2.0, side)}
         run = lambda: rbo.stability_map(model_fn, axes)
@@ -168,6 +181,19 @@ def library(mode, core, what, n, t1):
     }
 
 
+def lanes_profile(core, t1, sizes=(1000, 2000, 4000, 8000, 16000)):
+    """µs per trajectory of one vmapped call of N trajectories, one pinned core."""
+    out = []
+    print("lanes: jax.jit(jax.vmap(fast_simulate)) on one pinned core", flush=True)
+    for n in sizes:
+        cmd = ["taskset", "-c", str(core), sys.executable, "-c", CHILD, "lanes", str(n), str(t1)]
+        _, _, text = _timed(cmd, _env({}))
+        r = json.loads(text.strip().splitlines()[-1])
+        out.append(r)
+        print(f"  N = {n:6d}: {r['us_per_traj']:7.2f} us per trajectory", flush=True)
+    return out
+
+
 def _parse(argv):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sweep-n", type=int, default=6000, help="points of the CLI sweep")
@@ -176,7 +202,7 @@ def _parse(argv):
     p.add_argument("--sim-n", type=int, default=40_000, help="points of the library sweep")
     p.add_argument("--sim-t1", type=float, default=100.0, help="end time of the library sweep")
     p.add_argument("--core", type=int, default=None, help="the core of the one-core runs")
-    p.add_argument("--rows", default="cli,map,sim", help="subset of cli,map,sim")
+    p.add_argument("--rows", default="cli,map,sim", help="subset of cli,map,sim,lanes")
     p.add_argument("--json", default=None)
     p.add_argument("--smoke", action="store_true", help="tiny sizes (tests)")
     args = p.parse_args(argv)
@@ -196,6 +222,9 @@ def main(argv=None) -> dict:
         flush=True,
     )
     results = {"cores": cores, "rows": []}
+    if "lanes" in rows:
+        rows.remove("lanes")
+        results["lanes"] = lanes_profile(core, args.sim_t1)
     with tempfile.TemporaryDirectory() as tmp:
         for row in rows:
             for mode in MODES:

@@ -34,7 +34,11 @@ import time
 def _parse(argv):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=100_000, help="points of the sweep")
-    parser.add_argument("--devices", default="1,2", help="device counts to time, e.g. 1,2")
+    parser.add_argument(
+        "--devices",
+        default=f"1,{len(os.sched_getaffinity(0))}",
+        help="device counts to time (default: 1 and one per core of the affinity)",
+    )
     parser.add_argument("--chunk", type=int, default=4096, help="chunk size (points per call)")
     parser.add_argument("--scipy-sample", type=int, default=20, help="points run with scipy")
     parser.add_argument("--no-numba", action="store_true", help="skip the numba runs")
@@ -47,7 +51,7 @@ def _parse(argv):
     )
     args = parser.parse_args(argv)
     try:
-        args.devices = [int(x) for x in args.devices.split(",")]
+        args.devices = sorted({int(x) for x in args.devices.split(",")})
     except ValueError:
         parser.error(f"--devices must be a comma-separated list of integers, got {args.devices!r}")
     if min(args.devices) < 1 or args.n < 1 or args.chunk < 1 or args.scipy_sample < 0:
