@@ -68,7 +68,7 @@ class SweepConfig:
     quantity: Callable[..., Any]
     axes: dict | None
     points: dict | None
-    chunk_size: int
+    chunk_size: int | None
     output: Path
     png: Path | None
     plot: str
@@ -210,7 +210,10 @@ def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
     for k in ("output", "png"):
         if k in sw and (not isinstance(sw[k], str) or not sw[k]):
             r.fail(f"[sweep] {k}", f"must be a path (a string), got {sw[k]!r}.")
-    sw["chunk_size"] = r.integer(sw, "chunk_size", "[sweep]", default=4096)
+    # no chunk_size: rbo_jax.sweep's default, CHUNK_PER_DEVICE points per local device
+    sw["chunk_size"] = (
+        r.integer(sw, "chunk_size", "[sweep]", default=None) if "chunk_size" in sw else None
+    )
     name = sw["quantity"]
     sw.setdefault("plot", DEFAULT_PLOT[name])
     if not isinstance(sw["plot"], str) or sw["plot"] not in OUTPUTS[name]:

@@ -16,6 +16,7 @@ import re
 import jax
 import numpy as np
 
+from .._sharding import deal, undeal
 from ._errors import SweepError
 from ._output import OutputSpec, fill_value, make_output_spec
 from ._program import program
@@ -51,6 +52,7 @@ class Chunks:
         block = np.empty((self.batch, pts.shape[1]))
         block[:] = pts[0]
         block[: pts.shape[0]] = pts
+        block = deal(block, len(self.program.devices))  # alike shares (_sharding.deal)
         return self.program.call(jax.device_put(block, self.program.sharding))
 
     def _host(self, future, m: int):
@@ -58,14 +60,17 @@ class Chunks:
         program raised)."""
         spec = self.spec
         values, status = jax.device_get(future)
-        status = np.asarray(status)[:m]
+        n_dev = len(self.program.devices)
+        status = undeal(np.asarray(status), n_dev)[:m]
         bad = (status < 0) | (status >= len(spec.status_names))
         if bad.any():
             raise SweepError(
                 f"the quantity returned status codes {sorted(set(status[bad].tolist()))} "
                 f"outside {spec.status_enum} (0..{len(spec.status_names) - 1})."
             )
-        return status, {v.name: np.asarray(values[v.name])[:m] for v in self.spec.variables}
+        return status, {
+            v.name: undeal(np.asarray(values[v.name]), n_dev)[:m] for v in self.spec.variables
+        }
 
     def _empty(self, m: int, code: int):
         return (

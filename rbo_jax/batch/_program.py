@@ -68,6 +68,7 @@ from .._sharding import (
     local_function,
     sharded,
     trace_point,
+    whole_loops,
 )
 from ._output import describe_output, encode_output, split_output
 
@@ -106,7 +107,8 @@ class Program:
     def call(self, x):
         if self._compiled is None:
             traced = self.traced if self._x is None else self.traced.trace(self._x)
-            self._compiled = traced.lower().compile()
+            with whole_loops(self.devices):  # each device's loops on its own core
+                self._compiled = traced.lower().compile()
         return self._compiled(x)
 
 
