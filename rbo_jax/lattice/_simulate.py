@@ -14,6 +14,7 @@ r"""``lattice.simulate``: the motion of a lattice, by three integrators.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -33,6 +34,7 @@ from ..simulate import _status_from_solution
 from ..simulate import _trusted as _trusted_solve
 from ..trajectory import SolveStatus, check_times, warn_if_float32
 from ._field import rates, right_forms, transverse
+from ._halo import BLOCK, HALO, Halo, Whole
 from ._integrate import Config, Problem, solve
 from ._lattice import Lattice
 from ._splitting import split
@@ -88,9 +90,59 @@ def _parameters_ok(lattice: Lattice):
     return ok
 
 
-def _dop853(lattice, theta0, Omega0, ts, cfg: Config):
-    out = solve(Problem.of(lattice), tuple(theta0) + tuple(Omega0), ts, cfg)
+class Layout(NamedTuple):
+    """Where and how a DOP853 solve runs (static): on the local devices with these ids (one:
+    the plain program; several: a chain split over them, :func:`_sharded`), the step made in
+    blocks (``halo``: :class:`._halo.Halo`) or on whole arrays (:class:`._halo.Whole`)."""
+
+    devices: tuple[int, ...]
+    halo: bool
+    block: int = BLOCK
+
+
+def _dop853(lattice, theta0, Omega0, ts, cfg: Config, layout: Layout):
+    problem = Problem.of(lattice)
+    y0 = tuple(theta0) + tuple(Omega0)
+    n = lattice.size
+    if len(layout.devices) > 1:
+        out = _sharded(problem, y0, ts, cfg, layout)
+    else:
+        plan = Halo(n, n, lattice.periodic[0], layout.block) if layout.halo else Whole(n)
+        out = solve(problem, y0, ts, cfg, plan)
     return out["samples"], out["turns"], out["status"], out["num_steps"], out["num_recentred"]
+
+
+AXIS = "lattice"
+
+
+def _sharded(problem, y0, ts, cfg: Config, layout: Layout):
+    """:func:`._integrate.solve` of a chain split over ``layout.devices`` (``jax.shard_map``
+    over a 1-D mesh): every device integrates its N/d bodies with halos from its neighbours and
+    the shards' error norms summed (:class:`._halo.Halo`), so that all take the same steps. The
+    right forms ($A^{-1}$) are made before, outside the devices' program (no LAPACK call
+    inside a program whose devices wait on each other)."""
+    by_id = {d.id: d for d in jax.devices()}
+    devices = [by_id[i] for i in layout.devices]
+    d, n = len(devices), problem.lattice.size
+    mesh = jax.sharding.Mesh(np.array(devices), (AXIS,))
+    plan = Halo(n, n // d, problem.lattice.periodic[0], layout.block, d, AXIS)
+    P = jax.sharding.PartitionSpec
+
+    def local(problem, y0, ts):
+        out = solve(problem, tuple(y0), ts, cfg, plan)
+        return out["samples"], out["turns"], out["status"], out["num_steps"], out[
+            "num_recentred"
+        ]
+
+    run = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(), P(None, AXIS), P()),
+        out_specs=(P(None, AXIS, None), P(None, AXIS), P(), P(), P()),
+        check_vma=False,
+    )
+    samples, turns, status, steps, nrec = run(problem, jnp.stack(y0), ts)
+    return dict(samples=samples, turns=turns, status=status, num_steps=steps, num_recentred=nrec)
 
 
 def _near_singular(lattice, singular_tol, t, y, args, **kwargs):
@@ -206,10 +258,66 @@ def _config(
     return cfg
 
 
-def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype):
+# Measured on one core (benchmarks/README.md): the step in blocks (:mod:`._halo`) is faster
+# than whole arrays from chains of HALO_MIN bodies on; a chain is split over the local devices
+# by default from SHARD_MIN bodies on.
+HALO_MIN = 8192
+SHARD_MIN = 100_000
+
+
+def _chain_like(lattice: Lattice) -> bool:
+    """Whether the halo and shard plans serve ``lattice``: a chain (one axis, nearest
+    neighbours), one body for every site."""
+    return lattice.is_grid and lattice.ndim == 1 and not lattice.per_site
+
+
+def _layout(lattice: Lattice, devices, traced: bool) -> Layout:
+    """The :class:`Layout` of a DOP853 solve for ``devices`` (:func:`simulate`)."""
+    n = lattice.size
+    chain = _chain_like(lattice)
+    if devices is None:
+        chosen = [jax.local_devices()[0]]
+        local = jax.local_devices()
+        if chain and not traced and n >= SHARD_MIN and len(local) > 1:
+            # the most local devices that split the chain evenly
+            d = max(k for k in range(1, len(local) + 1) if n % k == 0 and n // k >= HALO)
+            chosen = local[:d]
+    else:
+        if isinstance(devices, (int, np.integer)) and not isinstance(devices, bool):
+            local = jax.local_devices()
+            if not 1 <= devices <= len(local):
+                raise ValueError(
+                    f"lattice.simulate: devices must be between 1 and the {len(local)} local "
+                    f"device(s), got {devices}."
+                )
+            chosen = local[: int(devices)]
+        else:
+            chosen = list(devices)
+            if not chosen or not all(isinstance(d, jax.Device) for d in chosen):
+                raise TypeError(
+                    "lattice.simulate: devices must be None, a number of local devices or a "
+                    f"list of jax devices, got {devices!r}."
+                )
+        if len(chosen) > 1:
+            if not chain:
+                raise ValueError(
+                    "lattice.simulate: only a chain with one body for every site is split "
+                    "over devices (method='dop853'); use devices=1 for this lattice."
+                )
+            if n % len(chosen) or n // len(chosen) < HALO:
+                raise ValueError(
+                    f"lattice.simulate: a chain of {n} bodies splits over {len(chosen)} "
+                    f"devices only if they divide it evenly with at least {HALO} bodies "
+                    f"each; choose another number of devices."
+                )
+    halo = chain and (len(chosen) > 1 or n >= HALO_MIN)
+    return Layout(tuple(d.id for d in chosen), halo)
+
+
+def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout):
     """The arguments of the method's program."""
     if method == "dop853":
-        args = (lattice, theta0, Omega0, ts, cfg)
+        args = (lattice, theta0, Omega0, ts, cfg, layout)
     elif method == "diffrax":
         args = (
             lattice,
@@ -260,6 +368,7 @@ def simulate(
     adjoint: diffrax.AbstractAdjoint | None = None,
     dt: float | None = None,
     dtype=None,
+    devices=None,
     throw: bool = True,
 ) -> LatticeTrajectory:
     r"""Integrate a lattice (every body's (4.55)–(4.56) with the gradient of the total energy)
@@ -283,6 +392,13 @@ def simulate(
     - `dtype`: ``jnp.float32`` runs the solve in single precision (for GPUs: see
       ``benchmarks/README.md`` for its accuracy); default: the inputs' and parameters' precision
       (float64 with rbo_jax's default).
+    - `devices`: where a ``"dop853"`` solve runs. ``None`` (default): a chain of at least
+      ``SHARD_MIN`` (10⁵) bodies, one body for every site, is split over all local devices
+      that divide it evenly (domain decomposition, :mod:`._halo`: halos of the neighbours'
+      states, one error norm for the whole chain, SciPy's steps), anything else runs on one
+      device; an int ``d`` (the first ``d`` local devices) or a list of devices chooses;
+      ``1``: the single-device program. Several devices give the one device's steps and
+      states to rounding (the error norm is summed in another order).
     - `throw`: raise on failure (default) or return the status.
 
     **Returns** a :class:`rbo_jax.lattice.LatticeTrajectory`: ``theta``, ``Omega`` (T, N, 3),
@@ -308,8 +424,14 @@ def simulate(
     warn_if_float32(dtype, rtol, atol)
     ok = _parameters_ok(lattice)
 
-    args = _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype)
-    if any(_is_traced(x) for x in jax.tree_util.tree_leaves(args)):
+    traced = any(
+        _is_traced(x) for x in jax.tree_util.tree_leaves((lattice, theta0, Omega0, ts))
+    )
+    layout = _layout(lattice, devices, traced) if method == "dop853" else None
+    args = _method_args(
+        method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout
+    )
+    if traced:
         out = _TRACED[method](*args)
     else:
         with checked_inputs_trusted(_trusted(lattice, method, solver, adjoint)):
