@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _enumeration as enum
-from .._programs import program
+from .._programs import jit, program
 from .._validation import (
     _common_float_dtype,
     _is_traced,
@@ -206,6 +206,9 @@ _PROGRAMS = {
     for name, fn in _TRACED.items()
     for small in (False, True)
 }
+# A solve split over devices is not stored (an exported program is bound to its number of
+# devices and their shardings): plain jit.
+_SHARDED = jit(_dop853)
 
 
 def _config(
@@ -435,7 +438,10 @@ def simulate(
         out = _TRACED[method](*args)
     else:
         with checked_inputs_trusted(_trusted(lattice, method, solver, adjoint)):
-            out = _PROGRAMS[method, lattice.size < SMALL](*args)
+            if layout is not None and len(layout.devices) > 1:
+                out = _SHARDED(*args)
+            else:
+                out = _PROGRAMS[method, lattice.size < SMALL](*args)
     samples, turns, code, num_steps, num_recentred = out
     status = enum.from_code(SolveStatus, code)
     if not (isinstance(ok, np.bool_) and ok):
