@@ -49,6 +49,14 @@ import jax
 import numpy as np
 from _pinning import pinned
 
+import rbo_jax
+from rbo_jax import lattice as L
+
+try:
+    import _numba_lattice as numba_lattice
+except ImportError:  # numba is optional (the "bench" extra)
+    numba_lattice = None
+
 
 def _cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -68,14 +76,6 @@ def _ask_devices(argv) -> None:
     except RuntimeError:  # the backend started already (imported as a module): keep its devices
         pass
 
-
-import rbo_jax
-from rbo_jax import lattice as L
-
-try:
-    import _numba_lattice as numba_lattice
-except ImportError:  # numba is optional (the "bench" extra)
-    numba_lattice = None
 
 K = np.array([0.0, 0.0, 1.0])
 A1, A3, C, D, KB, KT, M = 1.0, 0.6, 1.0, 2.0, 0.7, 0.3, 0.2

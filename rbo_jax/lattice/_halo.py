@@ -27,7 +27,6 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -139,8 +138,8 @@ class Halo(NamedTuple):
         H, n = HALO, self.local
         ext = self._extend(jnp.stack(tuple(y) + tuple(f0)))  # (12, n + 2H)
         w_ext = self._weights(ext.dtype)
-        B = min(self.block, n)
-        nb = math.ceil(n / B)
+        nb = math.ceil(n / self.block)
+        B = math.ceil(n / nb)  # equal blocks: the last overlaps its neighbour by < nb bodies
         dtype = ext.dtype
 
         def one(b, carry):

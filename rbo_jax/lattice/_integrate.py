@@ -193,7 +193,13 @@ def solve(problem: Problem, y0, ts, cfg: Config, plan=None):
     store = D.Store(_one((problem.lattice, y0, ts)))
     with storing(store):
         f0, h0 = D.initial_step(
-            plan.field(problem), ts[0], y0, ts[-1], cfg.rtol, cfg.atol, total=plan.sum,
+            plan.field(problem),
+            ts[0],
+            y0,
+            ts[-1],
+            cfg.rtol,
+            cfg.atol,
+            total=plan.sum,
             size=plan.size,
         )
         failed = problem.failure(y0, y0, cfg, plan)

@@ -141,9 +141,7 @@ def _sharded(problem, y0, ts, cfg: Config, layout: Layout):
 
     def local(problem, y0, ts):
         out = solve(problem, tuple(y0), ts, cfg, plan)
-        return out["samples"], out["turns"], out["status"], out["num_steps"], out[
-            "num_recentred"
-        ]
+        return out["samples"], out["turns"], out["status"], out["num_steps"], out["num_recentred"]
 
     run = jax.shard_map(
         local,
@@ -437,9 +435,7 @@ def simulate(
     warn_if_float32(dtype, rtol, atol)
     ok = _parameters_ok(lattice)
 
-    traced = any(
-        _is_traced(x) for x in jax.tree_util.tree_leaves((lattice, theta0, Omega0, ts))
-    )
+    traced = any(_is_traced(x) for x in jax.tree_util.tree_leaves((lattice, theta0, Omega0, ts)))
     layout = _layout(lattice, devices, traced) if method == "dop853" else None
     args = _method_args(
         method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout
