@@ -206,9 +206,11 @@ def _splitting(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin):
 _TRACED = {"dop853": _dop853, "diffrax": _diffrax, "splitting": _splitting}
 # Lattices of fewer bodies compile with XLA's options for small programs (their run time is
 # dominated by per-operation costs; measured on one core for a chain of 8: compilation 4.7 ->
-# 3.4 s, run time +20 %; of 10 000: 5.5 -> 4.0 s but +15 % run time, so large lattices keep
-# XLA's defaults).
-SMALL = 1024
+# 3.4 s, the same run time; of 10 000: 5.5 -> 4.0 s but +15 % run time). Larger ones keep
+# XLA's defaults: best call with the small options / with the defaults, one pinned core,
+# alternating (benchmark chain, t1 = 2): 64 bodies 1.58 / 1.42 ms, 256: 3.14 / 2.36 ms,
+# 1000: 9.37 / 6.50 ms.
+SMALL = 64
 _PROGRAMS = {
     (name, small): program(fn, small=small)
     for name, fn in _TRACED.items()
