@@ -271,10 +271,12 @@ def _config(
     return cfg
 
 
-# Measured on one core (benchmarks/README.md): the step in blocks (:mod:`._halo`) is faster
-# than whole arrays from chains of HALO_MIN bodies on; a chain is split over the local devices
-# by default from SHARD_MIN bodies on.
-HALO_MIN = 8192
+# The step in blocks (:mod:`._halo`) against whole arrays, µs per body-step on one pinned core,
+# alternating (benchmark chain, loaded 2-core machine): 10⁴ bodies 1.46 / 1.39, 3·10⁴ 1.30 /
+# 1.27, 10⁵ 1.66 / 2.07, 2·10⁵ 1.19 / 1.59: blocks from HALO_MIN bodies on (the 16 slopes of
+# 5·10⁴ bodies, 38 MB, exceed the 32 MiB L3). A chain is split over the local devices by default
+# from SHARD_MIN bodies on.
+HALO_MIN = 50_000
 SHARD_MIN = 100_000
 
 
