@@ -69,7 +69,7 @@ def big(n: int, t1: float):
     steps = int(traj.num_steps)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
     print(
-        f"N = {n}, float32, rtol 1e-5, atol 1e-6, t in [0, {t1:g}]: {traj.message()}; "
+        f"N = {n}, float32, rtol 1e-5, atol 1e-6, t in [0, {t1:g}]: {traj.message}; "
         f"{steps} steps; {len(traj.theta.sharding.device_set)} shard(s) on "
         f"{jax.local_device_count()} CPU device(s); first call {first:.1f} s, second "
         f"{seconds:.1f} s = {seconds / n / steps * 1e6:.3f} us/body-step; peak resident "
