@@ -130,8 +130,8 @@ def _sharded(problem, y0, ts, cfg: Config, layout: Layout):
     """:func:`._integrate.solve` of a chain split over ``layout.devices`` (``jax.shard_map``
     over a 1-D mesh): every device integrates its N/d bodies with halos from its neighbours and
     the shards' error norms summed (:class:`._halo.Halo`), so that all take the same steps. The
-    right forms ($A^{-1}$) are made before, outside the devices' program (no LAPACK call
-    inside a program whose devices wait on each other)."""
+    right forms ($A^{-1}$, by cofactors) are made before ``shard_map``: the devices' program,
+    whose devices wait on each other in its collectives, holds no LAPACK call."""
     by_id = {d.id: d for d in jax.devices()}
     devices = [by_id[i] for i in layout.devices]
     d, n = len(devices), problem.lattice.size
