@@ -24,8 +24,16 @@ the first core the process may use, so that ``taskset -c 1 python ...`` runs on 
 body-step is one accepted step of one body: µs per body-step = time / (N × accepted steps). The
 ratio is numba's time / JAX's (> 1: JAX faster).
 
-Usage: ``python benchmarks/bench_lattice.py [--n 1000,10000,100000] [--t1 2] [--rtol 1e-8]
-[--atol 1e-10] [--repeat 3] [--core C] [--json PATH] [--smoke]``
+**All cores** (``--all-n``, default 10⁶ bodies; 0 skips it): the process asks JAX for one CPU
+device per core it may use (``jax_num_cpu_devices``, before JAX starts; ``--devices`` chooses
+another number), and the per-core table runs with ``devices=1``. The last row is the same chain
+split over all devices (``lattice.simulate(..., devices=None)``: a shard per device, halos of
+the neighbours, one error norm), unpinned, against ``devices=1`` pinned to one core,
+alternating, best of ``--repeat``; the states of both are compared.
+
+Usage: ``python benchmarks/bench_lattice.py [--n 1000,10000,100000,1000000] [--t1 2]
+[--rtol 1e-8] [--atol 1e-10] [--repeat 3] [--core C] [--all-n 1000000] [--devices D]
+[--json PATH] [--smoke]``
 """
 
 from __future__ import annotations
@@ -49,13 +57,39 @@ try:
 except ImportError:  # numba is optional (the "bench" extra)
     numba_lattice = None
 
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
+def _ask_devices(argv) -> None:
+    """One CPU device per core (or ``--devices D``), before JAX's backend starts."""
+    argv = list(argv) if argv is not None else __import__("sys").argv[1:]
+    d = _cores()
+    for i, a in enumerate(argv):
+        if a == "--devices" and i + 1 < len(argv):
+            d = int(argv[i + 1])
+        elif a.startswith("--devices="):
+            d = int(a.split("=", 1)[1])
+    try:
+        jax.config.update("jax_num_cpu_devices", max(1, d))
+    except RuntimeError:  # the backend started already (imported as a module): keep its devices
+        pass
+
+
 K = np.array([0.0, 0.0, 1.0])
 A1, A3, C, D, KB, KT, M = 1.0, 0.6, 1.0, 2.0, 0.7, 0.3, 0.2
 
 
 def _parse(argv):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", default="1000,10000,100000", help="chain sizes, e.g. 1000,10000")
+    parser.add_argument(
+        "--n", default="1000,10000,100000,1000000", help="chain sizes, e.g. 1000,10000"
+    )
+    parser.add_argument(
+        "--all-n", type=int, default=1_000_000, help="chain of the all-cores row (0: none)"
+    )
+    parser.add_argument("--devices", type=int, default=None, help="CPU devices (default: cores)")
     parser.add_argument("--t1", type=float, default=2.0, help="end time")
     parser.add_argument("--rtol", type=float, default=1e-8)
     parser.add_argument("--atol", type=float, default=1e-10)
@@ -75,6 +109,7 @@ def _parse(argv):
         parser.error(f"--n must be a comma-separated list of integers, got {args.n!r}")
     if args.smoke:
         args.n, args.t1, args.repeat = [50], 0.2, 1
+        args.all_n = 64 if jax.local_device_count() > 1 else 0
     if min(args.n) < 2 or args.repeat < 1 or not args.t1 > 0:
         parser.error("need chain sizes >= 2, --repeat >= 1 and --t1 > 0")
     if args.core is None:
@@ -104,11 +139,58 @@ def numba_params(body) -> dict:
     return dict(c=C, d=D, M=M, kb=KB, kt=KT, A=np.asarray(body.inertia), k=K)
 
 
-def jax_call(lat, theta0, Omega0, args):
+def jax_call(lat, theta0, Omega0, args, devices=1):
     """One ``lattice.simulate`` call, to the final state on the host side of JAX's dispatch."""
-    traj = L.simulate(lat, theta0, Omega0, np.array([0.0, args.t1]), rtol=args.rtol, atol=args.atol)
+    traj = L.simulate(
+        lat,
+        theta0,
+        Omega0,
+        np.array([0.0, args.t1]),
+        rtol=args.rtol,
+        atol=args.atol,
+        devices=devices,
+    )
     jax.block_until_ready(traj.theta)
     return traj
+
+
+def all_cores(args) -> dict:
+    """The chain of ``args.all_n`` bodies split over all devices (unpinned) against one device
+    pinned to ``args.core``: first calls alone, then ``args.repeat`` alternating rounds."""
+    n = args.all_n
+    lat, _ = build_lattice(n)
+    theta0, Omega0 = initial_state(n)
+    d = jax.local_device_count()
+    split = d if n % d == 0 and n // d >= 16 else None  # None: the default's choice
+    many = lambda: jax_call(lat, theta0, Omega0, args, devices=split)  # noqa: E731
+    with pinned((args.core,)):
+        jax_call(lat, theta0, Omega0, args)
+    t_many = many()
+    best_one = best_many = np.inf
+    for _ in range(args.repeat):
+        with pinned((args.core,)):
+            one, s = timed(lambda: jax_call(lat, theta0, Omega0, args))
+        best_one = min(best_one, s)
+        t_many, s = timed(many)
+        best_many = min(best_many, s)
+    shards = len(t_many.theta.sharding.device_set)
+    diff = max(
+        float(np.max(np.abs(np.asarray(one.theta) - np.asarray(t_many.theta)))),
+        float(np.max(np.abs(np.asarray(one.Omega) - np.asarray(t_many.Omega)))),
+    )
+    steps = int(one.num_steps)
+    return {
+        "n": n,
+        "devices": d,
+        "shards": shards,
+        "steps": [steps, int(t_many.num_steps)],
+        "seconds_one_core": best_one,
+        "seconds_all": best_many,
+        "us_per_body_step_one_core": best_one / (n * steps) * 1e6,
+        "us_per_body_step_all": best_many / (n * steps) * 1e6,
+        "ratio": best_one / best_many,
+        "max_diff": diff,
+    }
 
 
 def timed(fn):
@@ -213,6 +295,7 @@ def row_text(r) -> str:
 
 
 def main(argv=None) -> dict:
+    _ask_devices(argv)
     args = _parse(argv)
     rows = []
     numba_compile = None
@@ -260,6 +343,16 @@ def main(argv=None) -> dict:
             rows.append(r)
             print(row_text(r), flush=True)
         overhead = None if args.smoke else jax_overhead(args)
+    every = all_cores(args) if args.all_n else None
+    if every is not None:
+        print(
+            f"all cores: N = {every['n']}, {every['shards']} shard(s) on {every['devices']} "
+            f"CPU device(s), unpinned: {every['us_per_body_step_all']:.3f} us/body-step; one "
+            f"device pinned to core {args.core}: {every['us_per_body_step_one_core']:.3f}; "
+            f"all/one = {every['ratio']:.2f}x; steps {every['steps'][0]}/{every['steps'][1]}; "
+            f"max |diff| {every['max_diff']:.1e}",
+            flush=True,
+        )
     print(
         "(steps: accepted; us/body-step: best call time / (N x accepted steps); numba/jax > 1: "
         "jax faster; jax compile: first call less the best call; max |diff|: final state, "
@@ -286,6 +379,7 @@ def main(argv=None) -> dict:
         "atol": args.atol,
         "repeat": args.repeat,
         "jax_overhead": overhead,
+        "all_cores": every,
         "core": args.core,
         "pinned": is_pinned,
         "numba_compile": numba_compile,

@@ -37,6 +37,7 @@ from ._lattice import Lattice
 
 __all__ = [
     "body_moments",
+    "chain_moments",
     "coupling_energy",
     "coupling_moments",
     "energy_gradient",
@@ -174,6 +175,26 @@ def coupling_moments(lattice: Lattice, theta):
     return total
 
 
+def chain_moments(lattice: Lattice, theta, weight):
+    r"""The coupling moments of an **open** chain segment of $E$ bodies, ``(3, E)``: the pair
+    $(p, p+1)$ coupled with ``weight[p]`` (0 or 1; the entry of the last body is its wrap pair,
+    given weight 0 by the caller). The arithmetic of :func:`coupling_moments` on a chain (the
+    moment on body $p$ is $0 + w_p\,\text{on}_i(\varphi_{p,p+1}) + w_{p-1}\,\text{on}_j(
+    \varphi_{p-1,p})$): on the inner bodies of a segment cut from a chain (:mod:`._halo`) the
+    values are the whole chain's bit for bit (a weight of 1 and the added zero are exact)."""
+
+    def per_pair(phi):
+        turn = Turn(phi)
+        g = lattice.coupling.gradient(phi)
+        return turn.ZT(g), -turn.Z(g)
+
+    w, v = _quaternions(theta)
+    phi = _relative((w, v), (jnp.roll(w, -1), jnp.roll(v, -1, axis=1)))
+    on_i, on_j = _per_body(per_pair, phi)
+    on_i, on_j = on_i * weight[None, :], on_j * weight[None, :]
+    return jnp.zeros_like(theta) + on_i + jnp.roll(on_j, 1, axis=1)
+
+
 def energy_gradient(lattice: Lattice, theta):
     r"""$\partial U/\partial\theta_i$ for every body, ``(3, N)``: each foundation's own gradient
     (closed forms where it has them) plus the reverse-mode gradient of the coupling energy."""
@@ -191,11 +212,13 @@ def right_forms(lattice: Lattice, throw: bool = False) -> RightForm:
     )
 
 
-def rates(lattice: Lattice, forms: RightForm, t, theta, Omega):
+def rates(lattice: Lattice, forms: RightForm, t, theta, Omega, moments=None):
     r"""$(\dot\theta, \dot\Omega)$ of every body, ``(3, N)`` each: (4.55)–(4.56) with each
-    foundation's gradient and the couplings' moments (:func:`coupling_moments`), which together
-    are $-Z(\theta_i)\cdot\partial U/\partial\theta_i$ of the total energy."""
-    moments = coupling_moments(lattice, theta)
+    foundation's gradient and the couplings' moments (:func:`coupling_moments`, or the given
+    ``moments``), which together are $-Z(\theta_i)\cdot\partial U/\partial\theta_i$ of the
+    total energy."""
+    if moments is None:
+        moments = coupling_moments(lattice, theta)
     axes = jax.tree_util.tree_map(
         lambda x: 0 if lattice.per_site and eqx.is_array(x) else None, forms
     )

@@ -35,6 +35,7 @@ from ..ensemble._solve import _emit, _one, dense_sampler
 from ..kinematics import distance_to_singularity, storing
 from ..model import RightForm
 from ._field import rates, recentre, right_forms, transverse
+from ._halo import Whole
 from ._lattice import Lattice
 
 __all__ = ["Config", "Problem", "solve"]
@@ -73,11 +74,13 @@ class Problem(eqx.Module):
         dth, dOm = rates(self.lattice, self.forms, t, jnp.stack(y[:3]), jnp.stack(y[3:]))
         return (dth[0], dth[1], dth[2], dOm[0], dOm[1], dOm[2])
 
-    def failure(self, y_old, y_new, cfg: Config):
+    def failure(self, y_old, y_new, cfg: Config, plan=None):
         """The status code of an accepted step that must stop the solve, else ``successful``: a
         non-finite state; a body outside its foundation's domain; a body off the plane that
         jumped across a singular sphere |θ| = 2πk in the step, or (``recenter=False``) came
-        within ``singular_tol`` of one."""
+        within ``singular_tol`` of one. ``plan``: how "any body" reduces (over the shards of a
+        chain: :mod:`._halo`)."""
+        any_ = jnp.any if plan is None else plan.any
         y_old, y_new = lax.stop_gradient((tuple(y_old), tuple(y_new)))
         theta = jnp.stack(y_new[:3])
         n, n_old = _norm(theta), _norm(jnp.stack(y_old[:3]))
@@ -93,22 +96,24 @@ class Problem(eqx.Module):
         margin = jax.vmap(lambda b, th: b.domain_margin(th), in_axes=(self.lattice.body_axes(), 1))(
             bodies, theta
         )
-        finite = jnp.all(jnp.isfinite(jnp.stack(y_new)))
-        status = jnp.where(jnp.any(~(margin > 0)), code("domain_error"), code("successful"))
-        status = jnp.where(jnp.any(singular & moving), code("singular_point"), status)
+        finite = ~any_(~jnp.isfinite(jnp.stack(y_new)))
+        status = jnp.where(any_(~(margin > 0)), code("domain_error"), code("successful"))
+        status = jnp.where(any_(singular & moving), code("singular_point"), status)
         return jnp.where(finite, status, code("nonfinite_state"))
 
-    def recenter(self, y, cfg: Config):
+    def recenter(self, y, cfg: Config, plan=None):
         """:func:`._field.recentre` on the state tuple: ``(y, k per body, whether any)``."""
         theta, k = recentre(jnp.stack(y[:3]), jnp.stack(y[3:]), cfg.recenter_margin)
-        return (theta[0], theta[1], theta[2]) + tuple(y[3:]), k, jnp.any(k > 0)
+        any_ = jnp.any if plan is None else plan.any
+        return (theta[0], theta[1], theta[2]) + tuple(y[3:]), k, any_(k > 0)
 
 
-def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
+def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
     """One step attempt of the whole lattice (SciPy's ``RungeKutta._step_impl``), the samples
-    it passes written, the step's checks, and the re-centring after it: the new carry."""
+    it passes written, the step's checks, and the re-centring after it: the new carry.
+    ``plan``: how the stages are made and the bodies summed (:mod:`._halo`)."""
     c = dict(c)
-    N, nts, t_bound = c["turns"].shape[0], ts.shape[0], ts[-1]
+    N, nts, t_bound = plan.size, ts.shape[0], ts[-1]
     t, y, f0, rej, idx = c["t"], c["y"], c["f"], c["rej"], c["idx"]
     h_min = D.min_step(t)
     h_abs = jnp.where(~rej & (c["h"] < h_min), h_min, c["h"])
@@ -119,9 +124,9 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
     dense = (idx < nts) & (ts[jnp.minimum(idx, nts - 1)] <= t_new)
     last = jnp.where(dense, D.N_EXT, D.NS + 1)
     f_start = tuple(jnp.where(c["first"] == 0, jnp.zeros_like(v), v) for v in f0)
-    y_new, K = D.stages(problem.f, t, y, f_start, h, store, last, first=c["first"])
+    y_new, K = plan.stages(problem, t, y, f_start, h, store, last, c["first"])
     err = lax.stop_gradient(
-        D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol, total=jnp.sum, size=N)
+        D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol, total=plan.sum, size=N)
     )
     accept, h_next = D.controller(err, h_abs, rej)
     go = ~too_small
@@ -140,7 +145,7 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
     )
     status = jnp.where(too_small, code("step_size_collapse"), c["status"])
     status = jnp.where(~jnp.isfinite(err), code("nonfinite_state"), status)
-    failed = problem.failure(y, y_new, cfg)
+    failed = problem.failure(y, y_new, cfg, plan)
     status = jnp.where(commit & (failed != code("successful")), failed, status)
     status = jnp.where(
         commit & (t_new >= t_bound) & (status == RUNNING), code("successful"), status
@@ -150,11 +155,13 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
     f_next = tuple(jnp.where(commit, a, b) for a, b in zip(D.slope(K, D.NS), D.slope(K, 0)))
     first_next = jnp.asarray(1, jnp.int32)
     if cfg.recenter:
-        y_rec, k, moved = problem.recenter(y_next, cfg)
+        y_rec, k, moved = problem.recenter(y_next, cfg, plan)
         moved = moved & commit & (status == RUNNING)
         y_next = tuple(jnp.where(moved, a, b) for a, b in zip(y_rec, y_next))
         c["turns"] = turns + jnp.where(moved, k, 0)
-        c["nrec"] = c["nrec"] + jnp.where(moved, jnp.sum(k > 0), 0).astype(jnp.int32)
+        c["nrec"] = c["nrec"] + jnp.where(moved, plan.sum((k > 0).astype(jnp.int32)), 0).astype(
+            jnp.int32
+        )
         first_next = jnp.where(moved, 0, first_next)  # the state changed: a new first slope
     natt = c["natt"] + go.astype(jnp.int32)
     status = jnp.where(
@@ -174,19 +181,28 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store):
     return c
 
 
-def solve(problem: Problem, y0, ts, cfg: Config):
+def solve(problem: Problem, y0, ts, cfg: Config, plan=None):
     """Integrate from ``y0`` (six ``(N,)`` components) at ``ts[0]`` and sample at ``ts``: a
     dict of ``samples`` (T, N, 6), ``turns`` (T, N) (re-centrings so far at each sample),
     ``status`` (a :class:`rbo_jax.SolveStatus` code), ``num_steps`` (accepted) and
-    ``num_recentred`` (bodies re-centred in all)."""
+    ``num_recentred`` (bodies re-centred in all). ``plan``: :class:`._halo.Whole` (default) or
+    :class:`._halo.Halo` (a chain in blocks; inside ``shard_map``, this device's bodies)."""
     y0 = tuple(y0)
     N, nts = y0[0].shape[0], ts.shape[0]
+    plan = Whole(N) if plan is None else plan
     store = D.Store(_one((problem.lattice, y0, ts)))
     with storing(store):
         f0, h0 = D.initial_step(
-            problem.f, ts[0], y0, ts[-1], cfg.rtol, cfg.atol, total=jnp.sum, size=N
+            plan.field(problem),
+            ts[0],
+            y0,
+            ts[-1],
+            cfg.rtol,
+            cfg.atol,
+            total=plan.sum,
+            size=plan.size,
         )
-        failed = problem.failure(y0, y0, cfg)
+        failed = problem.failure(y0, y0, cfg, plan)
         status0 = jnp.where(failed == code("successful"), RUNNING, failed).astype(jnp.int32)
         status0 = jnp.where(nts == 1, code("successful"), status0)
         first = jnp.where(status0 == RUNNING, jnp.stack(y0, -1), jnp.inf)
@@ -209,7 +225,9 @@ def solve(problem: Problem, y0, ts, cfg: Config):
             nrec=zero,
         )
         c = lax.while_loop(
-            lambda c: c["status"] == RUNNING, lambda c: _attempt(problem, c, ts, cfg, store), c
+            lambda c: c["status"] == RUNNING,
+            lambda c: _attempt(problem, c, ts, cfg, store, plan),
+            c,
         )
     return dict(
         samples=c["out"],

@@ -14,6 +14,7 @@ r"""``lattice.simulate``: the motion of a lattice, by three integrators.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -22,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _enumeration as enum
-from .._programs import program
+from .._programs import jit, program
 from .._validation import (
     _common_float_dtype,
     _is_traced,
@@ -33,6 +34,7 @@ from ..simulate import _status_from_solution
 from ..simulate import _trusted as _trusted_solve
 from ..trajectory import SolveStatus, check_times, warn_if_float32
 from ._field import rates, right_forms, transverse
+from ._halo import BLOCK, HALO, Halo, Whole
 from ._integrate import Config, Problem, solve
 from ._lattice import Lattice
 from ._splitting import split
@@ -88,9 +90,68 @@ def _parameters_ok(lattice: Lattice):
     return ok
 
 
-def _dop853(lattice, theta0, Omega0, ts, cfg: Config):
-    out = solve(Problem.of(lattice), tuple(theta0) + tuple(Omega0), ts, cfg)
-    return out["samples"], out["turns"], out["status"], out["num_steps"], out["num_recentred"]
+class Layout(NamedTuple):
+    """Where and how a DOP853 solve runs (static): on the local devices with these ids (one:
+    the plain program; several: a chain split over them, :func:`_sharded`), the step made in
+    blocks (``halo``: :class:`._halo.Halo`) or on whole arrays (:class:`._halo.Whole`)."""
+
+    devices: tuple[int, ...]
+    halo: bool
+    block: int = BLOCK
+
+
+def _dop853(lattice, theta0, Omega0, ts, cfg: Config, layout: Layout):
+    problem = Problem.of(lattice)
+    y0 = tuple(theta0) + tuple(Omega0)
+    n = lattice.size
+    if len(layout.devices) > 1:
+        out = _sharded(problem, y0, ts, cfg, layout)
+    else:
+        plan = Halo(n, n, lattice.periodic[0], layout.block) if layout.halo else Whole(n)
+        out = solve(problem, y0, ts, cfg, plan)
+    return _split(out["samples"]) + (
+        out["turns"],
+        out["status"],
+        out["num_steps"],
+        out["num_recentred"],
+    )
+
+
+def _split(samples):
+    """``(theta, Omega)`` of the ``(T, N, 6)`` samples, in the program (two slices after it
+    were ~0.2 ms of a call's fixed cost)."""
+    return samples[..., :3], samples[..., 3:]
+
+
+AXIS = "lattice"
+
+
+def _sharded(problem, y0, ts, cfg: Config, layout: Layout):
+    """:func:`._integrate.solve` of a chain split over ``layout.devices`` (``jax.shard_map``
+    over a 1-D mesh): every device integrates its N/d bodies with halos from its neighbours and
+    the shards' error norms summed (:class:`._halo.Halo`), so that all take the same steps. The
+    right forms ($A^{-1}$, by cofactors) are made before ``shard_map``: the devices' program,
+    whose devices wait on each other in its collectives, holds no LAPACK call."""
+    by_id = {d.id: d for d in jax.devices()}
+    devices = [by_id[i] for i in layout.devices]
+    d, n = len(devices), problem.lattice.size
+    mesh = jax.sharding.Mesh(np.array(devices), (AXIS,))
+    plan = Halo(n, n // d, problem.lattice.periodic[0], layout.block, d, AXIS)
+    P = jax.sharding.PartitionSpec
+
+    def local(problem, y0, ts):
+        out = solve(problem, tuple(y0), ts, cfg, plan)
+        return out["samples"], out["turns"], out["status"], out["num_steps"], out["num_recentred"]
+
+    run = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(), P(None, AXIS), P()),
+        out_specs=(P(None, AXIS, None), P(None, AXIS), P(), P(), P()),
+        check_vma=False,
+    )
+    samples, turns, status, steps, nrec = run(problem, jnp.stack(y0), ts)
+    return dict(samples=samples, turns=turns, status=status, num_steps=steps, num_recentred=nrec)
 
 
 def _near_singular(lattice, singular_tol, t, y, args, **kwargs):
@@ -125,8 +186,7 @@ def _diffrax(lattice, theta0, Omega0, ts, solver, rtol, atol, max_steps, singula
     samples = jnp.concatenate([theta, Omega], axis=1).transpose(0, 2, 1)
     samples = jnp.where(jnp.isfinite(samples), samples, jnp.inf)
     turns = jnp.zeros((ts.shape[0], theta0.shape[1]), jnp.int32)
-    return (
-        samples,
+    return _split(samples) + (
         turns,
         enum.code(status),
         sol.stats["num_accepted_steps"],
@@ -140,20 +200,25 @@ def _splitting(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin):
     status = jnp.where(
         finite, enum.code(SolveStatus.successful), enum.code(SolveStatus.nonfinite_state)
     )
-    return samples, turns, status.astype(jnp.int32), steps, jnp.sum(turns[-1] > 0)
+    return _split(samples) + (turns, status.astype(jnp.int32), steps, jnp.sum(turns[-1] > 0))
 
 
 _TRACED = {"dop853": _dop853, "diffrax": _diffrax, "splitting": _splitting}
 # Lattices of fewer bodies compile with XLA's options for small programs (their run time is
 # dominated by per-operation costs; measured on one core for a chain of 8: compilation 4.7 ->
-# 3.4 s, run time +20 %; of 10 000: 5.5 -> 4.0 s but +15 % run time, so large lattices keep
-# XLA's defaults).
-SMALL = 1024
+# 3.4 s, the same run time; of 10 000: 5.5 -> 4.0 s but +15 % run time). Larger ones keep
+# XLA's defaults: best call with the small options / with the defaults, one pinned core,
+# alternating (benchmark chain, t1 = 2): 64 bodies 1.58 / 1.42 ms, 256: 3.14 / 2.36 ms,
+# 1000: 9.37 / 6.50 ms.
+SMALL = 64
 _PROGRAMS = {
     (name, small): program(fn, small=small)
     for name, fn in _TRACED.items()
     for small in (False, True)
 }
+# A solve split over devices is not stored (an exported program is bound to its number of
+# devices and their shardings): plain jit.
+_SHARDED = jit(_dop853)
 
 
 def _config(
@@ -206,10 +271,68 @@ def _config(
     return cfg
 
 
-def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype):
+# The step in blocks (:mod:`._halo`) against whole arrays, µs per body-step on one pinned core,
+# alternating (benchmark chain, loaded 2-core machine): 10⁴ bodies 1.46 / 1.39, 3·10⁴ 1.30 /
+# 1.27, 10⁵ 1.66 / 2.07, 2·10⁵ 1.19 / 1.59: blocks from HALO_MIN bodies on (the 16 slopes of
+# 5·10⁴ bodies, 38 MB, exceed the 32 MiB L3). A chain is split over the local devices by default
+# from SHARD_MIN bodies on.
+HALO_MIN = 50_000
+SHARD_MIN = 100_000
+
+
+def _chain_like(lattice: Lattice) -> bool:
+    """Whether the halo and shard plans serve ``lattice``: a chain (one axis, nearest
+    neighbours), one body for every site."""
+    return lattice.is_grid and lattice.ndim == 1 and not lattice.per_site
+
+
+def _layout(lattice: Lattice, devices, traced: bool) -> Layout:
+    """The :class:`Layout` of a DOP853 solve for ``devices`` (:func:`simulate`)."""
+    n = lattice.size
+    chain = _chain_like(lattice)
+    if devices is None:
+        chosen = [jax.local_devices()[0]]
+        local = jax.local_devices()
+        if chain and not traced and n >= SHARD_MIN and len(local) > 1:
+            # the most local devices that split the chain evenly
+            d = max(k for k in range(1, len(local) + 1) if n % k == 0 and n // k >= HALO)
+            chosen = local[:d]
+    else:
+        if isinstance(devices, (int, np.integer)) and not isinstance(devices, bool):
+            local = jax.local_devices()
+            if not 1 <= devices <= len(local):
+                raise ValueError(
+                    f"lattice.simulate: devices must be between 1 and the {len(local)} local "
+                    f"device(s), got {devices}."
+                )
+            chosen = local[: int(devices)]
+        else:
+            chosen = list(devices)
+            if not chosen or not all(isinstance(d, jax.Device) for d in chosen):
+                raise TypeError(
+                    "lattice.simulate: devices must be None, a number of local devices or a "
+                    f"list of jax devices, got {devices!r}."
+                )
+        if len(chosen) > 1:
+            if not chain:
+                raise ValueError(
+                    "lattice.simulate: only a chain with one body for every site is split "
+                    "over devices (method='dop853'); use devices=1 for this lattice."
+                )
+            if n % len(chosen) or n // len(chosen) < HALO:
+                raise ValueError(
+                    f"lattice.simulate: a chain of {n} bodies splits over {len(chosen)} "
+                    f"devices only if they divide it evenly with at least {HALO} bodies "
+                    f"each; choose another number of devices."
+                )
+    halo = chain and (len(chosen) > 1 or n >= HALO_MIN)
+    return Layout(tuple(d.id for d in chosen), halo)
+
+
+def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout):
     """The arguments of the method's program."""
     if method == "dop853":
-        args = (lattice, theta0, Omega0, ts, cfg)
+        args = (lattice, theta0, Omega0, ts, cfg, layout)
     elif method == "diffrax":
         args = (
             lattice,
@@ -260,6 +383,7 @@ def simulate(
     adjoint: diffrax.AbstractAdjoint | None = None,
     dt: float | None = None,
     dtype=None,
+    devices=None,
     throw: bool = True,
 ) -> LatticeTrajectory:
     r"""Integrate a lattice (every body's (4.55)–(4.56) with the gradient of the total energy)
@@ -283,6 +407,13 @@ def simulate(
     - `dtype`: ``jnp.float32`` runs the solve in single precision (for GPUs: see
       ``benchmarks/README.md`` for its accuracy); default: the inputs' and parameters' precision
       (float64 with rbo_jax's default).
+    - `devices`: where a ``"dop853"`` solve runs. ``None`` (default): a chain of at least
+      ``SHARD_MIN`` (10⁵) bodies, one body for every site, is split over all local devices
+      that divide it evenly (domain decomposition, :mod:`._halo`: halos of the neighbours'
+      states, one error norm for the whole chain, SciPy's steps), anything else runs on one
+      device; an int ``d`` (the first ``d`` local devices) or a list of devices chooses;
+      ``1``: the single-device program. Several devices give the one device's steps and
+      states to rounding (the error norm is summed in another order).
     - `throw`: raise on failure (default) or return the status.
 
     **Returns** a :class:`rbo_jax.lattice.LatticeTrajectory`: ``theta``, ``Omega`` (T, N, 3),
@@ -308,18 +439,24 @@ def simulate(
     warn_if_float32(dtype, rtol, atol)
     ok = _parameters_ok(lattice)
 
-    args = _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype)
-    if any(_is_traced(x) for x in jax.tree_util.tree_leaves(args)):
+    traced = any(_is_traced(x) for x in jax.tree_util.tree_leaves((lattice, theta0, Omega0, ts)))
+    layout = _layout(lattice, devices, traced) if method == "dop853" else None
+    args = _method_args(
+        method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout
+    )
+    if traced:
         out = _TRACED[method](*args)
     else:
         with checked_inputs_trusted(_trusted(lattice, method, solver, adjoint)):
-            out = _PROGRAMS[method, lattice.size < SMALL](*args)
-    samples, turns, code, num_steps, num_recentred = out
+            if layout is not None and len(layout.devices) > 1:
+                out = _SHARDED(*args)
+            else:
+                out = _PROGRAMS[method, lattice.size < SMALL](*args)
+    theta, Omega, turns, code, num_steps, num_recentred = out
     status = enum.from_code(SolveStatus, code)
     if not (isinstance(ok, np.bool_) and ok):
         status = SolveStatus.where(ok, status, SolveStatus.invalid_parameters)
-        samples = jnp.where(ok, samples, jnp.nan)
-    theta, Omega = samples[..., :3], samples[..., 3:]
+        theta, Omega = jnp.where(ok, theta, jnp.nan), jnp.where(ok, Omega, jnp.nan)
     if throw and (_is_traced(enum.code(status)) or enum.name(status) != "successful"):
         theta = status.error_if(theta, status != SolveStatus.successful)
     return LatticeTrajectory(
