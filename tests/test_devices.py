@@ -23,14 +23,20 @@ def _run(tmp_path, what, affinity=None, timeout=300, **env_extra):
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
     env.update(env_extra)
     out = tmp_path / f"{what}.json"
+    cmd = [sys.executable, str(WORKER), what, str(out)]
+    if affinity is not None:  # as taskset: the child pins itself, then becomes the worker
+        pin = (
+            f"import os, sys; os.sched_setaffinity(0, {sorted(affinity)!r}); "
+            "os.execv(sys.executable, [sys.executable] + sys.argv[1:])"
+        )
+        cmd = [sys.executable, "-c", pin] + cmd[1:]
     res = subprocess.run(
-        [sys.executable, str(WORKER), what, str(out)],
+        cmd,
         cwd=ROOT,
         env=env,
         capture_output=True,
         text=True,
         timeout=timeout,  # a hang fails the test instead of waiting forever
-        preexec_fn=None if affinity is None else (lambda: os.sched_setaffinity(0, affinity)),
     )
     assert res.returncode == 0, res.stderr[-3000:]
     return json.loads(out.read_text())
