@@ -32,7 +32,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 BATCH_AXIS = "batch"
-# A device's share of a chunk is a multiple of this many points (or of the LAPACK block): no
+# A device's share of a chunk is a multiple of this many points: no
 # point in the scalar remainder of a vectorised loop (16 doubles: two AVX-512 vectors).
 VECTOR = 16
 # jaxlib splits a batched LAPACK call over the intra-op pool from this much work (flop) on

@@ -30,10 +30,17 @@ quantity stays one ``vmap`` over the device's points.
 **The same bits on any number of devices.** A point's value must not depend on where it sits in
 the batch: XLA's CPU code rounds some fused expressions differently in the scalar remainder of a
 vectorised loop than in its vector body. Each device's share of a chunk is therefore a multiple
-of :data:`VECTOR` points, so every point is computed by the same code in the same position
-modulo the vector width whatever the number of devices (the refilled lanes of
+of :data:`VECTOR` points, so that no point falls in a scalar remainder, whatever the number of
+devices and however the points are dealt to them (the refilled lanes of
 :func:`rbo_jax.fast_simulate` follow the same rule, ``ensemble/_solve.py``); LAPACK computes each
 matrix alone, whatever the block.
+
+**Every core busy.** The points of a chunk are dealt to the devices one by one
+(:func:`rbo_jax._sharding.deal`: neighbouring grid points cost alike, so contiguous shares left
+one device waiting for the other at every chunk), and a program for several CPU devices is
+compiled with the process pinned to one core (:func:`rbo_jax._sharding.whole_loops`: XLA then
+leaves each device's loops whole instead of cutting them into tasks for every core, which only
+queue behind the other devices' work).
 
 Every call has the same shape (a partial chunk is padded), so one compilation serves a sweep;
 programs are cached on what the quantity computes (:func:`rbo_jax._callables.callable_key`: its
