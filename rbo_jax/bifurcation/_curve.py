@@ -94,16 +94,16 @@ def continue_hopf(
     ``guess`` (a value of α) exactly as :func:`rbo_jax.hopf_point` at β = ``values[0]``.
 
     **method="natural"**: $\alpha_H(\beta)$ for β in ``values``, each point started from the
-    previous solution; order ``values`` from the end where the guess is good. An entry of
-    ``params`` given as a 1-D array is a batch axis (vmapped; one curve per value). Where the
-    boundary turns back in β (a turning point, e.g. a minimum of β along it) the solve fails:
-    ``status`` is ``not_converged`` from there on and the values are NaN; follow such a boundary
-    with ``method="arclength"``. **Returns** a Dataset over the batch axes and ``along`` with
-    the critical ``value`` (named ``parameter``), ``frequency``, ``first_lyapunov``,
-    ``transversality``, ``theta`` (component) and ``status`` (int8 codes of
+    previous solution; order ``values`` from the end where the guess is good. An entry of ``params``
+    given as a 1-D array is a batch axis (one curve per value; the curves are spread over every
+    local device). Where the boundary turns back in β (a turning point, e.g. a minimum of β along
+    it) the solve fails: ``status`` is ``not_converged`` from there on and the values are NaN;
+    follow such a boundary with ``method="arclength"``. **Returns** a Dataset over the batch axes
+    and ``along`` with the critical ``value`` (named ``parameter``), ``frequency``,
+    ``first_lyapunov``, ``transversality``, ``theta`` (component) and ``status`` (int8 codes of
     :class:`rbo_jax.bifurcation.HopfStatus`, names in ``flag_meanings``); ``attrs`` name the
-    ``parameter``, ``along``, the ``batch`` axes and the ``method``. Differentiable with respect
-    to the fixed parameters (``jax.grad`` of the underlying :func:`rbo_jax.hopf_point` solves).
+    ``parameter``, ``along``, the ``batch`` axes and the ``method``. Differentiable with respect to
+    the fixed parameters (``jax.grad`` of the underlying :func:`rbo_jax.hopf_point` solves).
 
     **method="arclength"**: Keller's pseudo-arclength continuation of the curve
     $(\alpha, \beta)$ (:mod:`rbo_jax.bifurcation._hopf_curve`): it starts at β = ``values[0]``,
@@ -174,13 +174,7 @@ def _natural(
         p = jnp.concatenate(parts) if parts else jnp.zeros(0, values.dtype)
         return _curve_jit(static, jnp.asarray(t, dtype=values.dtype), p, guess, values, theta_guess)
 
-    if batch and not _traced((others, values, guess, theta_guess, t)):
-        points = _on_every_device(run, batch, others)
-    else:  # under a transformation (jax.grad of the curve): one vmapped program
-        fn = run
-        for name in reversed(batch):
-            fn = _vmap_named(fn, name)
-        points = fn(**others)
+    points = _on_every_device(run, batch, others) if batch else run(**others)
     dims = tuple(batch) + (along,)
     coords = {name: np.asarray(others[name]) for name in batch}
     coords[along] = np.asarray(values)
@@ -206,12 +200,8 @@ def _natural(
     return ds
 
 
-def _traced(tree) -> bool:
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
-
-
 class _Points:
-    """The fields of the curves computed by the batch engine (NumPy arrays)."""
+    """The fields of the curves spread over the devices (NumPy arrays)."""
 
     def __init__(self, out):
         for name in ("value", "frequency", "first_lyapunov", "transversality", "theta"):
@@ -245,14 +235,6 @@ def _on_every_device(run, batch, others):
     shape = grids[0].shape
     out = map_points(curve, {name: g.ravel() for name, g in zip(batch, grids)})
     return _Points({k: v.reshape(shape + v.shape[1:]) for k, v in out.items()})
-
-
-def _vmap_named(fn, name):
-    def batched(**point):
-        value = point.pop(name)
-        return jax.vmap(lambda v: fn(**point, **{name: v}))(value)
-
-    return batched
 
 
 def _arclength(
