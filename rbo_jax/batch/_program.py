@@ -114,7 +114,8 @@ class Program:
     def call(self, x):
         if self._compiled is None:
             traced = self.traced if self._x is None else self.traced.trace(self._x)
-            with whole_loops(self.devices):  # each device's loops on its own core
+            share = self.batch // len(self.devices)
+            with whole_loops(self.devices, share):  # each device's loops on its own core
                 self._compiled = traced.lower().compile()
         return self._compiled(x)
 
