@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import re
 import textwrap
 from importlib import resources
 
@@ -25,9 +26,25 @@ _TYPES = {
 }
 
 
+# A word that starts like a number: a minus sign, then a digit, '.' and a digit, or inf, infinity or
+# nan (alone or before ',' or ':'). argparse reads it as a value, not an option (before Python
+# 3.14 its own matcher takes only plain numbers such as -1 and -0.5, so that `--M -0.8:0.8:41`,
+# `--theta0 -0.1,0,0.2` or `--rtol -1e-3` ended in "expected one argument").
+# The option's type then says what is wrong with a word such as -0.8:0.8:x. No option of rbo-jax
+# looks like a number, so none is mistaken for a value.
+NUMBER_LIKE = re.compile(r"-(?:\.?\d|(?:inf(?:inity)?|nan)(?![^,:]))", re.IGNORECASE)
+
+
 class Parser(argparse.ArgumentParser):
     """argparse's parser with usage errors on one line (the option and what is wrong with it,
-    then where the help is) instead of the usage text and the error, exit status 2."""
+    then where the help is) instead of the usage text and the error, exit status 2; a value
+    that starts with a minus sign needs no '=' (:data:`NUMBER_LIKE`: ``--M -0.8:0.8:41``,
+    ``--theta0 -0.1,0,0.2``). The subparsers of its ``add_subparsers`` are of this class too
+    (argparse's default ``parser_class`` is the parent's)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NUMBER_LIKE
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
