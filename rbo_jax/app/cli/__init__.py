@@ -7,6 +7,8 @@ parameter sweep (of one body, or the Bloch waves of a ``[lattice]`` of bodies);
 ``--lattice chain:N`` or ``grid:NxM``: a chain or grid of copies of it, :mod:`rbo_jax.lattice`);
 ``rbo-jax stability-map`` draws the Nikolai map (4.57)–(4.62), (4.69) over a grid of M, c, d,
 A3; ``rbo-jax fit`` fits foundation parameters to a recorded (or synthetic) trajectory.
+Negative values need no ``=`` (``--M -0.8:0.8:41``, ``--theta0 -0.1,0,0.2``: a word that starts
+like a number is a value, :class:`._options.Parser`).
 
 The commands only compose library calls: a :class:`~rbo_jax.app.spec.ModelSpec` from the
 options, the library's functions, xarray Datasets written as netCDF or zarr.
