@@ -369,6 +369,172 @@ def test_an_unexpected_error_is_one_line_and_the_traceback_on_request(
 
 
 # ---------------------------------------------------------------------------------------------
+# Negative values without '=' (issue 33 D); parsing only
+# ---------------------------------------------------------------------------------------------
+
+# the arguments each command needs before its options parse
+_REQUIRED = {"sweep": ["sweep.toml"], "fit": ["--synthetic"]}
+# a negative value for each type of numeric option (each also with '=' below)
+_NEGATIVE = {
+    "float": ["-0.5", "-.5", "-1e-3", "-2.5E+2", "-inf", "-nan"],
+    "int": ["-3"],
+    "floats": ["-0.1,0,0.2", "-.3,-1e-3,0", "-inf,0,0"],
+    "grid": ["-0.8:0.8:100", "-0.5", "-0.1,0,0.2", "-1e-3:1:3", "-0.8:0.8:x", "-inf"],
+    "horizons": ["-0.5,1"],
+}
+
+
+def _commands():
+    """{command: its subparser} of ``rbo-jax``."""
+    import argparse
+
+    parser = cli.build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return parser, sub.choices
+
+
+def _numeric_options() -> list[tuple[str, str, str]]:
+    """(command, option, type name) of every option that takes a number, list or range."""
+    from rbo_jax.app.cli._common import floats, grid, horizons
+
+    kinds = {float: "float", int: "int", floats: "floats", grid: "grid", horizons: "horizons"}
+    _, commands = _commands()
+    return [
+        (name, action.option_strings[-1], kinds[action.type])
+        for name, sub in commands.items()
+        for action in sub._actions
+        if action.option_strings and action.type in kinds
+    ]
+
+
+def _parse(capsys, argv):
+    """``rbo-jax ARGV`` parsed only: (the options as a dict, or None; the error line)."""
+    try:
+        args = cli.build_parser().parse_args(argv)
+    except SystemExit as e:
+        assert e.code == 2, (argv, e.code)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1, (argv, err)
+        return None, err[0]
+    return {k: v for k, v in vars(args).items() if k != "func"}, ""
+
+
+def _same(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(
+        np.array_equal(a[k], b[k], equal_nan=True)
+        if isinstance(a[k], (np.ndarray, tuple, float))
+        else a[k] == b[k]
+        for k in a
+    )
+
+
+def test_every_parser_reads_a_word_that_starts_like_a_number_as_a_value():
+    """One matcher, on the parser and every subparser ``rbo-jax`` builds: numbers, lists and
+    ranges with a leading minus sign are values; options, and words such as -x, are not."""
+    from rbo_jax.app.cli._options import NUMBER_LIKE, Parser
+
+    parser, commands = _commands()
+    for p in (parser, *commands.values()):
+        assert isinstance(p, Parser) and p._negative_number_matcher is NUMBER_LIKE, p.prog
+        assert not p._has_negative_number_optionals, p.prog  # no option looks like a number
+    values = ["-1", "-0.5", "-.5", "-1e-3", "-1_000", "-0.8:0.8:41", "-0.1,0,0.2", "-0.8:0.8:x"]
+    values += ["-inf", "-Infinity", "-nan", "-inf,0,0", "-inf:0:3"]
+    for word in values:
+        assert NUMBER_LIKE.match(word), word
+    for word in ["-x", "-h", "--M", "--c", "-info", "-nano", "-", "--", "-.", "-e5", "--1"]:
+        assert not NUMBER_LIKE.match(word), word
+    # the options of the test below: every typed option of every command but the strings
+    from rbo_jax.app.cli._common import floats, grid, horizons
+
+    types = {a.type for p in commands.values() for a in p._actions if a.option_strings}
+    assert types <= {None, str, float, int, floats, grid, horizons}, types
+    numeric = {(c, o) for c, o, _ in _numeric_options()}
+    for pair in [("stability-map", "--M"), ("simulate", "--theta0"), ("fit", "--theta0")]:
+        assert pair in numeric
+    assert {c for c, _ in numeric} == set(commands) - {"reproduce"}  # it has no number
+
+
+def test_negative_ranges_lists_and_numbers_need_no_equals_sign(capsys):
+    """`stability-map --M -0.8:0.8:100` ("argument --M: expected one argument" before, though
+    the option's default is -0.8:0.8:41), `--M -0.5`, `--theta0 -0.1,0,0.2` for each command
+    that has them: the values of --M=..., --theta0=..."""
+    linspace = np.linspace(-0.8, 0.8, 100)
+    for argv, dest, value in [
+        (["stability-map", "--M", "-0.8:0.8:100"], "M", linspace),
+        (["stability-map", "--M", "-0.5"], "M", [-0.5]),
+        (["stability-map", "--M", "-0.1,0,0.2"], "M", [-0.1, 0.0, 0.2]),
+        (["stability-map", "--c", "1", "--d", "-1,2", "--A3", "-2:2:3"], "A3", [-2, 0, 2]),
+        (["simulate", "--theta0", "-0.1,0,0.2"], "theta0", (-0.1, 0.0, 0.2)),
+        (["simulate", "--Omega0", "-0.1,0,0.2", "--follower", "-0.5"], "Omega0", (-0.1, 0, 0.2)),
+        (["simulate", "--follower", "-0.5"], "follower", -0.5),
+        (["simulate", "--lattice", "chain:8", "--wave-speed", "-0.5"], "wave_speed", -0.5),
+        (["fit", "--synthetic", "--theta0", "-0.1,0,0.2"], "theta0", (-0.1, 0.0, 0.2)),
+        (["fit", "--synthetic", "--Omega0", "-0.1,0,0.2"], "Omega0", (-0.1, 0.0, 0.2)),
+        (["fit", "--synthetic", "--offset", "-0.5"], "offset", -0.5),
+    ]:
+        args, err = _parse(capsys, argv)
+        assert args is not None, (argv, err)
+        assert np.array_equal(args[dest], value), (argv, args[dest])
+    args, _ = _parse(capsys, ["stability-map", "--M", "-0.8:0.8:100"])
+    assert args["M"].shape == (100,)
+
+
+@pytest.mark.parametrize("command, option, kind", _numeric_options())
+def test_every_numeric_option_takes_a_negative_value_without_equals_sign(
+    capsys, command, option, kind
+):
+    """Every option of every command that takes a number, a list or a range: `OPT -VALUE`
+    parses as `OPT=-VALUE` does (the same values, or the same error from the option's type);
+    `OPT -x` (a typo) and `OPT --other 1` (a missing value) are errors naming OPT, and the option
+    after OPT stays an option."""
+    base = [command, *_REQUIRED.get(command, [])]
+    for value in _NEGATIVE[kind]:
+        spaced = _parse(capsys, [*base, option, value])
+        joined = _parse(capsys, [*base, f"{option}={value}"])
+        if joined[0] is None:
+            assert spaced[0] is None and spaced[1] == joined[1], (option, value, spaced, joined)
+            assert option in spaced[1] and "expected one argument" not in spaced[1]
+        else:
+            assert spaced[0] is not None and _same(spaced[0], joined[0]), (option, value, spaced)
+    args, err = _parse(capsys, [*base, option, "-x"])
+    assert args is None and f"argument {option}" in err and "expected one argument" in err
+    other = "--out" if option != "--out" and command != "sweep" else "--output"
+    args, err = _parse(capsys, [*base, option, other, "1"])
+    assert args is None and f"argument {option}: expected one argument" in err, err
+
+
+@pytest.mark.parametrize(
+    "argv, option, what",
+    [
+        (["stability-map", "--M", "-x"], "--M", "expected one argument"),
+        (["stability-map", "--M", "--c", "1"], "--M", "expected one argument"),
+        (["stability-map", "--M", "-0.8:0.8:x"], "--M", "start:stop:num"),
+        (["stability-map", "--M", "-0.8:0.8:0"], "--M", "start:stop:num"),
+        (["stability-map", "--c", "-1:1:3"], "--c", "c must be > 0"),
+        (["stability-map", "--M", "-inf"], "--M", "finite"),
+        (["simulate", "--theta0", "-x,0,0"], "--theta0", "expected one argument"),
+        (["simulate", "--theta0", "-0.1,0"], "--theta0", "shape (3,)"),
+        (["simulate", "--theta0", "-0.1,a,0"], "--theta0", "comma-separated numbers"),
+        (["simulate", "--follower", "-inf"], "--follower", "finite"),
+        (["simulate", "--rtol", "-1e-3"], "--rtol", "> 0"),
+        (["simulate", "--follower", "--dead", "1"], "--follower", "expected one argument"),
+        (["fit", "--synthetic", "--theta0", "--c", "1"], "--theta0", "expected one argument"),
+        (["fit", "--synthetic", "--offset", "-1"], "--offset", "> -1"),
+        (["fit", "--synthetic", "--horizons", "-0.5,1"], "--horizons", "fractions"),
+        (["demo", "--t1", "-1"], "--t1", "> 0"),
+        (["sweep", "{config}", "--devices", "-1"], "--devices", "from 1"),
+    ],
+)
+def test_a_bad_negative_value_is_refused_naming_its_option(
+    capsys, computed, places, argv, option, what
+):
+    """Without '=', a negative value that is wrong gets the option's own message, before
+    anything is computed; a word that does not start like a number is still an option."""
+    argv = [a.format(**places) for a in argv]
+    _refused(capsys, computed, argv, option, what)
+
+
+# ---------------------------------------------------------------------------------------------
 # Outputs written whole
 # ---------------------------------------------------------------------------------------------
 
