@@ -669,6 +669,8 @@ _FLOATS = [
     ("1e308", "big"),
     ("1e999", "bad"),
     ("-1e-300", "neg"),
+    ("-.5", "neg"),
+    ("-2.5E-3", "neg"),
     ("", "bad"),
     ("abc", "bad"),
     ("1,2", "bad"),
@@ -698,6 +700,10 @@ _VECTORS = [
     ("", False),
     ("1,2,3,4", False),
     ("0.3,-0.2,0.5", True),
+    ("-0.3,0.2,-0.5", True),
+    ("-.1,-1e-3,0", True),
+    ("-0.1,0", False),
+    ("-inf,0,0", False),
 ]
 _OUT_FILES = [
     ("{dir}/ok{ext}", True),
@@ -859,6 +865,10 @@ _GRIDS = [
     ("", "bad"),
     ("0:1:100000000000", "bad"),
     ("-1:1:3", "neg"),
+    ("-0.8:0.8:5", "neg"),
+    ("-0.5", "neg"),
+    ("-0.1,0,0.2", "neg"),
+    ("-0.8:0.8:x", "bad"),
     ("0.5,2", "pos"),
     ("1e300,1", "pos"),
 ]
@@ -931,8 +941,9 @@ def _values(rule, rng, places, data):
 
 
 def _cases(rng, places, data, n):
-    """``n`` random cases: a command's base argv with one or two options set to random values,
-    and whether the case must be refused."""
+    """``n`` random cases: a command's base argv with one or two options set to random values
+    (``--opt=value`` or ``--opt value``: a negative number, list or range needs no '='), and
+    whether the case must be refused."""
     names = sorted(_COMMANDS)
     for _ in range(n):
         name = names[rng.integers(len(names))]
@@ -946,8 +957,12 @@ def _cases(rng, places, data, n):
             verdicts.append(verdict)
             if option == "config":
                 argv[1] = value
+            elif rng.integers(2):
+                argv += [option, value]
             else:
                 argv += [f"{option}={value}"]
+        if {"--scheduler", "--workers"} <= set(chosen):  # they exclude each other
+            verdicts.append(True)
         must = True if True in verdicts else (None if None in verdicts else False)
         yield argv, must, [str(o) for o in chosen]
 
