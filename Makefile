@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 WORKERS ?= 2
 LINTED := rbo_jax tests benchmarks notebooks docs/_hooks
 
-.PHONY: demo lint test test-all bench clean
+.PHONY: demo lint test test-slow test-all bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 10), "rbo_jax needs Python >= 3.10"'
@@ -28,11 +28,18 @@ lint: $(STAMP)
 	$(BIN)/ruff check $(LINTED)
 	$(BIN)/ruff format --check $(LINTED)
 
+# two tiers, by marker (docs/development.md): `make test` is the quick tier (every module's unit,
+# physics and property tests; the README's test command), `make test-slow` the complete tier's
+# other tests alone (notebooks, reproduce, real-process fault tests, benchmark smoke runs, large
+# sizes, costly tests: marked `slow`), `make test-all` both. Compiled programs are kept in
+# ~/.cache/rbo_jax/test-cache between runs (RBO_JAX_TEST_COMPILATION_CACHE=off: a cold run).
 test: lint
 	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile -m "not slow and not docs" $(PYTEST_ARGS)
 
-test-all: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile -m "not docs" $(PYTEST_ARGS)
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile -m "slow and not docs" $(PYTEST_ARGS)
+
+test-all: test test-slow
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
@@ -52,3 +59,4 @@ docs-test: docs
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis out site .cache/docs-notebooks
+	@echo "(the tests' compilation cache stays in ~/.cache/rbo_jax/test-cache: remove it by hand)"

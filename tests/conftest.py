@@ -15,18 +15,64 @@ if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false"
     ).strip()
-# One persistent compilation cache for the whole run: the two xdist workers, the notebook kernels
-# and the rbo-jax processes of the CLI tests compile many of the same programs (the DOP853 loop of
-# fast_simulate, the fit's program, the Hopf system), and a program compiled by one process is
-# loaded by the next. A fresh directory per run, made by the controlling process (the workers
-# and subprocesses inherit the variables) and removed at its end, so nothing is carried from one
-# run to the next. tests/test_cli.py tests the command's own cache in directories of its own.
+# One persistent compilation cache for the suite, kept from one run to the next in a per-user
+# folder (``$XDG_CACHE_HOME`` or ``~/.cache``, then ``rbo_jax/test-cache``): the two xdist workers,
+# the notebook kernels and the rbo-jax processes of the CLI tests compile many of the same
+# programs (the DOP853 loop of fast_simulate, the fit's program, the Hopf system), and a program
+# compiled by one process, or by the previous run, is loaded instead of compiled again. Entries
+# are keyed on the package's sources, the JAX versions and the program (rbo_jax._cache), so an
+# edit never reuses a stale one. ``RBO_JAX_TEST_COMPILATION_CACHE=DIR`` chooses the folder;
+# ``=off`` gives a fresh folder removed at the end of the run (a cold run, as on a new machine).
+# The workers and subprocesses inherit the variables from the controlling process. The folder
+# is pruned to its newest files when it passes TEST_CACHE_LIMIT. tests/test_cli.py tests the
+# command's own cache in directories of its own.
 _TEST_CACHE = "RBO_JAX_TEST_COMPILATION_CACHE"
-_OWN_CACHE = _TEST_CACHE not in os.environ
-if _OWN_CACHE:
-    os.environ[_TEST_CACHE] = tempfile.mkdtemp(prefix="rbo-jax-test-cache-")
+TEST_CACHE_LIMIT = 4 * 2**30  # bytes
+_OWN_CACHE = False
+if os.environ.get("PYTEST_XDIST_WORKER") is None:  # the controlling process (or a plain run)
+    _chosen = os.environ.get(_TEST_CACHE, "").strip()
+    if _chosen.lower() in ("off", "0", "no", "false", "none"):
+        _OWN_CACHE = True
+        os.environ[_TEST_CACHE] = tempfile.mkdtemp(prefix="rbo-jax-test-cache-")
+    elif not _chosen:
+        _base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        os.environ[_TEST_CACHE] = os.path.join(_base, "rbo_jax", "test-cache")
+    try:
+        os.makedirs(os.environ[_TEST_CACHE], exist_ok=True)
+    except OSError:  # a read-only home: a fresh folder for this run
+        _OWN_CACHE = True
+        os.environ[_TEST_CACHE] = tempfile.mkdtemp(prefix="rbo-jax-test-cache-")
 os.environ.setdefault("RBO_JAX_COMPILATION_CACHE", os.environ[_TEST_CACHE])
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.environ[_TEST_CACHE])
+
+
+def _prune(folder: str, limit: int) -> None:
+    """Delete the oldest files of ``folder`` (by modification time) until it holds at most half
+    of ``limit`` bytes, when it holds more than ``limit``."""
+    files = []
+    for root, _, names in os.walk(folder):
+        for name in names:
+            path = os.path.join(root, name)
+            try:
+                st = os.stat(path)
+            except OSError:
+                continue
+            files.append((st.st_mtime, st.st_size, path))
+    total = sum(size for _, size, _ in files)
+    if total <= limit:
+        return
+    for _, size, path in sorted(files):
+        if total <= limit // 2:
+            break
+        try:
+            os.remove(path)
+            total -= size
+        except OSError:
+            pass
+
+
+if not _OWN_CACHE and os.environ.get("PYTEST_XDIST_WORKER") is None:
+    _prune(os.environ[_TEST_CACHE], TEST_CACHE_LIMIT)
 
 import jax  # noqa: E402
 

@@ -67,6 +67,7 @@ def _transformed(X):
     return jax.jvp(phi, (Y,), (_normal_form(Y),))[1]
 
 
+@pytest.mark.slow  # cost: ~12 s, a fifth-order jet compiled
 def test_second_lyapunov_is_invariant_under_changes_of_coordinates():
     """With x = zq + conj(zq), |q| = 1, q = (1, -i, 0)/sqrt2, the quintic coefficient of w = z/sqrt2
     is 4(A2 + iB2), so l2 = Re G32/(12 W) = 4 A2/W; at l1 = 0 it is an invariant of smooth

@@ -41,6 +41,7 @@ def _floats(pattern, text):
     return [float(x) for x in found]
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
 def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
     for marker in [
         "=== sweep ===",
@@ -61,6 +62,7 @@ def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
         assert marker in smoke_output, marker
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
 def test_dask_workers_give_the_process_results(smoke_output):
     """The sweeps on one and two Dask workers equal the in-process sweep bit for bit."""
     part = smoke_output.split("=== dask ===")[1].split("===")[0]
@@ -69,6 +71,7 @@ def test_dask_workers_give_the_process_results(smoke_output):
     assert "results bit for bit equal to the process's: True" in part
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
 def test_the_lattice_takes_the_numba_stencils_steps(smoke_output):
     """The lattice DOP853 and the hand-written numba DOP853 of the same chain take the same
     steps and end in the same state (the same system, SciPy's algorithm on all 6N scalars)."""
@@ -79,6 +82,7 @@ def test_the_lattice_takes_the_numba_stencils_steps(smoke_output):
     assert rel[0] < 1e-13
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
 def test_the_three_integrators_agree_to_the_tolerance(smoke_output):
     """rbo_jax vs scipy, numba vs scipy and numba vs rbo_jax final states differ at the level of
     rtol = atol = 1e-8 (different step sequences), not more."""
@@ -105,6 +109,7 @@ def test_the_three_integrators_agree_to_the_tolerance(smoke_output):
     assert max(vs_jax) < 1e-6
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
 def test_stability_map_and_fit_are_accurate(smoke_output):
     errors = _floats(
         r"rbo_jax\.stability_map \(block fast path\)\s+[0-9.]+\s+[0-9.]+\s+"
@@ -115,6 +120,7 @@ def test_stability_map_and_fit_are_accurate(smoke_output):
     assert "converged: True" in smoke_output
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
 def test_fast_simulate_takes_scipys_steps(smoke_output):
     """fast_simulate is DOP853 with SciPy's controller: on the benchmark's points it takes the
     steps of the numba reference (which takes SciPy's), and the final states agree to rounding;
@@ -146,6 +152,7 @@ def _latency_module(monkeypatch):
     return module
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs (fresh processes)
 def test_latency_smoke_run(tmp_path):
     """`benchmarks/latency.py` with two cheap rows (a few seconds): every process ran (cold and
     warm), imported this checkout's rbo_jax, and the table and JSON carry the machine and the

@@ -126,7 +126,7 @@ def test_transversality_is_the_speed_of_the_critical_root(hopf):
     assert float(hopf.transversality) == pytest.approx(fd, rel=1e-6)
 
 
-@pytest.mark.slow  # l1 is also checked in the default run by the normal-form amplitude test
+@pytest.mark.slow  # cost; the quick tier checks l1 by the normal-form amplitude test
 def test_first_lyapunov_coefficient_is_the_decay_at_the_hopf_point(hopf):
     """At M = M_H exactly the normal form is z' = i omega z + c1 z|z|^2 with Re c1 = omega l1,
     so along a simulated motion 1/|z|^2 grows by -2 omega l1 per unit time; |z| is measured
@@ -235,7 +235,7 @@ def test_hopf_point_failures_are_statuses():
         rbo.hopf_point(nikolai, {"b": 0.1}, "M", [0.1, 0.2])
 
 
-@pytest.mark.slow  # notebook 05 checks the same in the default run
+@pytest.mark.slow  # cost; notebook 05 (complete tier too) checks the same
 def test_flutter_boundary_matches_the_stability_map_and_the_closed_form():
     """continue_hopf over b, vmapped over A3 (which does not enter the bending roots): every
     point satisfies M = 2b sqrt(K/A1), tends to the small-damping asymptote 2b sqrt(c/A1) with
@@ -297,7 +297,7 @@ def cycles(hopf):
     return rbo.continue_limit_cycles(nikolai, {"b": 0.1}, "M", hopf, amplitude=0.02, max_points=9)
 
 
-@pytest.mark.slow  # notebook 05 checks the same in the default run
+@pytest.mark.slow  # cost; notebook 05 (complete tier too) checks the same
 def test_limit_cycles_follow_the_normal_form(hopf, cycles):
     """Near a supercritical Hopf point (l1 < 0) the cycles exist beyond it, are stable, and
     their amplitude follows the normal form: |z|^2 = -transversality (M - M_H)/(omega l1),
@@ -322,7 +322,7 @@ def test_limit_cycles_follow_the_normal_form(hopf, cycles):
     assert np.ptp(slope) < 0.05 * slope[0]
 
 
-@pytest.mark.slow  # notebook 05 checks the same in the default run
+@pytest.mark.slow  # cost; notebook 05 (complete tier too) checks the same
 def test_simulation_beyond_the_hopf_point_settles_on_the_continued_cycle(hopf, cycles):
     """Long fast_simulate runs at the last parameter of the branch, started inside and outside
     the continued cycle (its initial state pulled towards and pushed away from the equilibrium

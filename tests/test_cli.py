@@ -35,6 +35,7 @@ def test_reproduce_exit_status_reflects_failed_checks(monkeypatch, tmp_path, cap
     assert not Check("s", "q", "p", "o", float("nan"), 1.0).passed
 
 
+@pytest.mark.slow  # integration: reproduce --quick, ~1 min
 def test_reproduce_quick_passes_and_writes_the_report(tmp_path):
     """The full chain of `make demo` at --quick size: every check of the paper passes, the report
     lists them and the figures exist."""
@@ -635,7 +636,7 @@ def test_simulate_out_then_fit_data_roundtrip(capsys, tmp_path):
     assert est["d"][0] == pytest.approx(2.0, rel=1e-6)
 
 
-@pytest.mark.slow  # 45 s; tests/test_fitting.py fits on staged horizons in the default run
+@pytest.mark.slow  # cost: 45 s, staged fits of an unstable record
 def test_fit_of_an_unstable_record_needs_staged_horizons(capsys, tmp_path):
     """The Nikolai problem (4.57)-(4.62) grows from 0.18 to 1.7 rad over t in [0, 50]: fitted over
     the whole record at once, Levenberg-Marquardt stops in a local minimum far from (c, d) = (1, 2)

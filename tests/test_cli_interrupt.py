@@ -73,6 +73,7 @@ def _files(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
 
 
+@pytest.mark.slow  # fault test: SIGINT to a real process
 def test_ctrl_c_stops_a_long_simulation_inside_its_compiled_solve(tmp_path):
     """A solve of minutes (10^6 time units at rtol 1e-12: 8.3 million steps, 250 s on the CI
     machine), interrupted 3 s after it started: exit status 130 within 2 s, one line saying
@@ -111,6 +112,7 @@ def test_ctrl_c_stops_a_long_simulation_inside_its_compiled_solve(tmp_path):
     assert _files(tmp_path) == []
 
 
+@pytest.mark.slow  # fault test: SIGTERM to a real process
 def test_sigterm_stops_a_stability_map_with_143(tmp_path):
     """SIGTERM (a batch system ending a job) as Ctrl-C, with 143 = 128 + 15: a map of 3e5 points
     in 600 compiled chunks, stopped while it computes."""
@@ -162,6 +164,7 @@ def _store_files(path: Path) -> dict[str, bytes]:
     }
 
 
+@pytest.mark.slow  # fault test: SIGINT to a real process
 @pytest.mark.skipif(zarr is None, reason="the sweep store needs zarr >= 3 (Python >= 3.11)")
 def test_ctrl_c_keeps_a_sweeps_chunks_and_resume_finishes_it(tmp_path, capsys):
     """A sweep of 80 one-point chunks interrupted after a few: exit status 130 within 2 s, one

@@ -155,6 +155,7 @@ def test_bad_lattice_options_exit_2_naming_the_option_before_compiling(
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # cost: ~15 s, an example sweep end to end
 def test_flutter_band_example_sweeps_the_bloch_growth_and_frequencies(capsys, tmp_path):
     """The example's chain of Nikolai bodies with friction, swept on a 2 x 2 grid of (q, M)
     with quantity bloch_frequencies (which gives bloch_growth too) through `rbo-jax sweep`: the

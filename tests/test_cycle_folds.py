@@ -193,6 +193,7 @@ def test_multiplier_crossings_classify_period_doubling_and_neimark_sacker():
     assert found == [3]
 
 
+@pytest.mark.slow  # cost: ~20 s, three shooting continuations
 def test_fold_near_the_bautin_point_follows_the_second_lyapunov_coefficient():
     """Near the Bautin point the normal form rho' = rho(mu + l1 rho^2 + l2 rho^4) puts the fold of
     cycles at mu = l1^2/(4|l2|) on the stable side: M* - M_c = omega l1^2/(4 l2 sigma) (sigma the

@@ -139,6 +139,7 @@ def _kill_when_busy(client, ready=lambda: True):
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # integration: a Dask cluster of real processes
 @needs_zarr
 def test_two_workers_equal_one_process_bit_for_bit(client, tmp_path, capsys):
     """In memory and to a store; the progress bar counts points, the summary line is printed;
@@ -170,6 +171,7 @@ def test_two_workers_equal_one_process_bit_for_bit(client, tmp_path, capsys):
     assert set(settings.values()) == {(True, "strict")}
 
 
+@pytest.mark.slow  # fault test: SIGKILL to a Dask worker
 @needs_zarr
 def test_a_worker_killed_mid_sweep_changes_nothing(client, tmp_path):
     """A worker SIGKILLed once two chunks are written, while it computes one: its chunks are
@@ -191,6 +193,7 @@ def test_a_worker_killed_mid_sweep_changes_nothing(client, tmp_path):
     assert _files(store) == _files(ref)
 
 
+@pytest.mark.slow  # integration: a Dask cluster of real processes
 def test_a_point_that_raises_is_flagged_as_on_one_process(client):
     """eqx.error_if at c = 2: those points get `error` with their message, the others their
     values; the records list the points in chunk order, as on one process."""
@@ -205,6 +208,7 @@ def test_a_point_that_raises_is_flagged_as_on_one_process(client):
     )
 
 
+@pytest.mark.slow  # integration: a Dask cluster of real processes
 @needs_zarr
 def test_resume_on_dask_submits_only_the_missing_chunks(client, tmp_path):
     path = tmp_path / "resume.zarr"
@@ -221,6 +225,7 @@ def test_resume_on_dask_submits_only_the_missing_chunks(client, tmp_path):
     assert _files(path) == before
 
 
+@pytest.mark.slow  # integration: a Dask cluster of real processes
 def test_bad_arguments_with_a_client(client):
     with pytest.raises(ValueError, match="devices must be None"):
         sweep(
@@ -256,6 +261,7 @@ def one_process(tmp_path_factory):
     return cfg, _files(folder / "map.zarr")
 
 
+@pytest.mark.slow  # fault test: SIGKILL to a Dask worker
 @needs_zarr
 def test_cli_on_a_scheduler_survives_a_killed_worker(client, one_process, tmp_path):
     cfg, expected = one_process
@@ -280,6 +286,7 @@ def test_cli_on_a_scheduler_survives_a_killed_worker(client, one_process, tmp_pa
     assert _files(out) == expected
 
 
+@pytest.mark.slow  # integration: a Dask cluster of real processes
 @needs_zarr
 def test_cli_workers_end_to_end(one_process, tmp_path, capsys):
     cfg, expected = one_process
@@ -343,6 +350,7 @@ def test_cli_unreachable_scheduler(tmp_path, capsys, monkeypatch):
     assert "cannot reach the Dask scheduler 'tcp://127.0.0.1:9'" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow  # fault test: a Dask cluster of real processes
 @needs_zarr
 def test_a_chunk_that_kills_every_worker_is_reported(client, tmp_path):
     """A quantity that ends its process at c = 2 (as a crash in native code would): the chunk

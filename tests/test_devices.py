@@ -92,6 +92,7 @@ def test_jax_started_first_is_said_once(tmp_path):
         assert report["warnings"] == []
 
 
+@pytest.mark.slow  # cost: ~10 s a process, Newton maps on 2 and 4 devices
 @pytest.mark.parametrize("devices", [2, 4])
 def test_stability_map_with_newton_equilibria_ends_on_several_devices(tmp_path, devices):
     """The map of issue 31 (Newton equilibria, LAPACK eigenvalues; 40 x 40 is the smallest grid
@@ -103,6 +104,7 @@ def test_stability_map_with_newton_equilibria_ends_on_several_devices(tmp_path, 
     assert report["counts"]["successful"] == 1600
 
 
+@pytest.mark.slow  # cost: ~35 s, six processes compiling sweeps
 def test_fast_simulate_sweep_is_bitwise_the_same_on_any_number_of_devices(tmp_path):
     """Refilled lanes, chunks of 1230 and 500 points, over 1, 2 and 4 devices: one result."""
     report = _run(tmp_path, "fast_sweep", RBO_JAX_CPU_DEVICES="4")

@@ -217,6 +217,7 @@ def _same_as_reference(folder: Path, reference):
         np.testing.assert_array_equal(got[name], reference[name], err_msg=name)
 
 
+@pytest.mark.slow  # fault test: SIGKILL to a jax.distributed process
 @pytest.mark.parametrize("group", [True, False], ids=["host-lost", "kill-pid"])
 def test_lost_worker_named_and_its_chunks_computed_by_process_0(tmp_path, reference, group):
     """Process 1 killed mid-sweep: process 0 sees it lost after the heartbeat timeout (3 s),
@@ -238,6 +239,7 @@ def test_lost_worker_named_and_its_chunks_computed_by_process_0(tmp_path, refere
     assert not (tmp_path / "growth.zarr.lock").exists()
 
 
+@pytest.mark.slow  # fault test: SIGKILL to a jax.distributed process
 @pytest.mark.parametrize("group", [True, False], ids=["host-lost", "kill-pid"])
 def test_lost_coordinator_ends_the_worker_in_one_line_and_resume_finishes(
     tmp_path, reference, group

@@ -138,6 +138,7 @@ def _model_of(p):
     return make_model(c=p[0], M=p[1])
 
 
+@pytest.mark.slow  # cost: ~12 s of compilation
 def test_vmap_without_jit_takes_numpy_batches():
     """``jax.vmap`` without ``jit`` hands batched NumPy parameters to the lanes as they are
     (they once failed with a TracerArrayConversionError): the results of ``jit(vmap)``, to
@@ -237,6 +238,7 @@ def test_plane_motion_passes_through_2pi():
     np.testing.assert_allclose(tr.theta[:, 2], ts, rtol=1e-8, atol=1e-8)
 
 
+@pytest.mark.slow  # cost: ~12 s of compilation
 def test_forward_derivatives_match_finite_differences():
     """jacfwd of the final state w.r.t. the foundation stiffness c and the initial state
     against central differences of tight solves."""

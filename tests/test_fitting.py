@@ -35,6 +35,7 @@ def _synthetic(model, inits, ts, **kwargs):
     return out
 
 
+@pytest.mark.slow  # cost: ~20 s of compilation
 def test_noise_free_barrier_parameters_recovered_from_30_percent_off():
     """c, d, alpha, beta of (4.49) recovered to ≤ 1e-6 relative from noise-free data, starting
     30 % off (Levenberg-Marquardt through the ODE solver)."""
@@ -84,6 +85,7 @@ def test_noisy_fit_standard_errors_match_the_spread():
     assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
 
 
+@pytest.mark.slow  # cost: ~20 s, reverse mode through diffrax compiled
 def test_loss_gradient_matches_finite_differences():
     """Reverse-mode gradient of the loss through diffrax = central finite differences."""
     true_model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
@@ -208,6 +210,7 @@ def _mujoco_ball_joint(c, b, inertia, theta0, Omega0, t1, n, dt=1e-4):
     return np.array(ts), np.array(Qs), np.array(Oms)
 
 
+@pytest.mark.slow  # cost: ~15 s, MuJoCo data and a fit
 def test_mujoco_ball_joint_stiffness_and_damping_recovered():
     """External check: trajectories of MuJoCo (RK4, dt = 1e-4) for a body on a ball joint with
     stiffness c and damping b are fitted with the isotropic foundation U = ½cθ² and Friction(b);
@@ -259,6 +262,7 @@ def test_other_optimizers_decrease_the_loss(optimizer):
     assert res.loss_history[-1] < 0.2 * res.loss_history[0]
 
 
+@pytest.mark.slow  # cost: ~20 s, staged fits compiled
 def test_staged_horizons_and_initial_state_fit():
     """horizons=(0.5, 1) fits half the record first; fit_initial_state recovers a wrong θ0, Ω0."""
     true_model = RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
@@ -316,6 +320,7 @@ def test_bad_data_is_refused_before_compilation():
         fit(model, data, lambda m: m.foundation.c, solve_max_steps=0)
 
 
+@pytest.mark.slow  # cost: ~15 s of compilation
 def test_solver_step_budget_reaches_the_ode_solves():
     """solve_max_steps is the step budget of every ODE solve inside the fit: 3 steps cannot cover
     t in [0, 3], so the residuals are not finite at the start and the fit says so; the default
@@ -361,6 +366,7 @@ def test_fast_simulate_residuals_vanish_on_the_generating_model(t0):
     assert float(jnp.max(jnp.abs(residuals(wrong, data, integrator="fast_simulate")))) > 1e-3
 
 
+@pytest.mark.slow  # cost: ~20 s, two fits compiled
 def test_fast_simulate_and_simulate_fits_agree():
     """The default fit (Levenberg-Marquardt on fast_simulate's forward mode) and the fit through
     simulate (diffrax, ForwardMode) recover the same parameters, the truth, from 30 % off."""
@@ -407,6 +413,7 @@ def test_fit_programs_hold_no_host_callback():
     assert "callback" not in program("fast_simulate")
 
 
+@pytest.mark.slow  # integration: fits in fresh processes, ~30 s
 def test_fit_program_is_kept_by_the_program_store(tmp_path, monkeypatch):
     """With the command line's program store on, the fit's program is exported once and a
     second process (here: the in-memory programs and JAX's caches cleared) loads it instead of

@@ -136,6 +136,7 @@ def stiffness_arc():
     )
 
 
+@pytest.mark.slow  # cost: the stiffness boundary's continuation, ~30 s
 def test_bogdanov_takens_end_of_the_boundary(stiffness_arc):
     """The branch ends where the frequency vanishes: c = M = 0 in the closed form (K(c, 0) =
     c, M = 2b sqrt(K/A1)), located by extrapolation along the arclength."""
@@ -155,6 +156,7 @@ def test_bogdanov_takens_end_of_the_boundary(stiffness_arc):
     assert np.all(np.diff(c) < 0)
 
 
+@pytest.mark.slow  # cost: the stiffness boundary's continuation, ~30 s
 def test_bautin_point_where_l1_changes_sign(stiffness_arc):
     """The Bautin point lies between the two points where l1 changes sign, located exactly by
     rbo.bautin_point: there l1 of rbo.hopf_point is zero."""

@@ -139,6 +139,7 @@ def test_q0_spectrum_is_the_single_body_spectrum_4_69():
     np.testing.assert_allclose(sorted(lam, key=key), sorted(expected, key=key), atol=1e-12)
 
 
+@pytest.mark.slow  # cost: ~15 s of compilation
 def test_friction_gives_flutter_bands_of_wavenumbers():
     """Nikolai bodies with friction b flutter above the single body's Hopf load (q = 0: the
     uniform motion, growth = the body's spectral abscissa); the couplings stiffen the shorter
@@ -173,6 +174,7 @@ def test_friction_gives_flutter_bands_of_wavenumbers():
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # cost: ~10 s, a long run of a large chain
 def test_sine_gordon_kink_keeps_its_speed_width_and_energy():
     """Plane rotations about k with U = c(1 - cos|theta|) (CosineFoundation) and a quadratic
     coupling are the discrete sine-Gordon chain A3 phi_n'' = kappa (phi_{n+1} - 2 phi_n +
@@ -299,6 +301,7 @@ def test_off_plane_turns_are_recentred_through_the_singular_sphere():
     assert not np.all(np.isfinite(np.asarray(stopped.theta)[-1]))
 
 
+@pytest.mark.slow  # large size: 1e5 steps
 def test_splitting_energy_error_stays_bounded_over_1e5_steps():
     """The Lie-group splitting is symplectic: over 1e5 steps (dt = 0.01, t = 1000) the energy
     error of a conservative chain oscillates within O(dt^2) and does not drift (its largest
@@ -331,6 +334,7 @@ def test_splitting_energy_error_stays_bounded_over_1e5_steps():
     assert np.abs(moment - moment[0]).max() < 1e-11
 
 
+@pytest.mark.slow  # cost: ~13 s of compilation
 def test_per_site_bodies_and_edge_lists():
     """Per-site parameters (bodies built with jax.vmap, each its own foundation stiffness) give
     the same motion on a chain and on the edge list of the same chain, with energy conserved;
@@ -355,6 +359,7 @@ def test_per_site_bodies_and_edge_lists():
         L.dispersion(listed, 0.3)
 
 
+@pytest.mark.slow  # cost: ~40 s of compilation
 def test_ensembles_of_lattices_and_forward_derivatives():
     """vmap over lattices (the coupling stiffness) under jit, the same one by one, and
     forward-mode derivatives of the final state with respect to it (jvp of the batch) against
@@ -452,6 +457,7 @@ def test_coupling_moments_are_the_potential_moments_of_the_total_energy():
         np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(got).max())
 
 
+@pytest.mark.slow  # cost: ~30 s, two fits compiled
 def test_fits_recover_the_stiffnesses_from_a_dispersion_curve_and_a_field():
     """Least squares by gradients: the foundation's and the coupling's stiffnesses from the
     closed-form branches (the torsion branch measured at every other wavenumber, NaN

@@ -42,6 +42,7 @@ def start(n, seed=0):
     return theta, 1e-2 * rng.standard_normal((n, 3))
 
 
+@pytest.mark.slow  # large size: cache blocks of a large chain
 @pytest.mark.parametrize("periodic", [True, False])
 def test_blocks_match_whole_arrays(periodic):
     """Blocks of 24 bodies (the last overlapping its neighbour) on a chain of 100, with
@@ -102,6 +103,7 @@ CHILD = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # cost: ~15 s a process, a chain split over devices
 @pytest.mark.parametrize("d", [2, 4])
 def test_split_over_devices(d):
     """A chain of 64 bodies, periodic and open, on ``d`` CPU devices against one device: the

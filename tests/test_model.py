@@ -396,6 +396,7 @@ def test_inertia_not_spd_is_refused(A, match):
         RigidBodyOscillator(A, QuadraticFoundation(1.0, 2.0, K))
 
 
+@pytest.mark.slow  # cost: ~12 s of compilation for one error
 def test_inertia_not_spd_is_refused_inside_jit():
     """A traced inertia is checked by the solvers (RigidBodyOscillator.parameter_status): with
     throw=True simulate raises the message, with throw=False the point is invalid_parameters with

@@ -59,6 +59,7 @@ def test_notebook_is_stored_without_outputs(name):
     assert code[1].source.lstrip().startswith("import rbo_jax"), f"{name}: import rbo_jax first"
 
 
+@pytest.mark.slow  # integration: the notebooks executed, ~3 min
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_executes(name, monkeypatch):
     import nbclient  # test extra

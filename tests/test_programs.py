@@ -220,6 +220,7 @@ for a in (traj.theta, traj.Omega, diffrax_traj.theta, diffrax_traj.Omega, ds["ei
 """
 
 
+@pytest.mark.slow  # integration: fresh processes, ~15 s
 def test_a_second_process_loads_the_solves_and_the_map_without_tracing(tmp_path):
     """Two real processes sharing a cache directory: the first exports the solves of
     fast_simulate and simulate (diffrax, default throw=True) and the map's chunk program, the
@@ -297,6 +298,7 @@ def _simulate_program_text(model, throw=False, **options):
         ).as_text()
 
 
+@pytest.mark.slow  # cost: ~12 s of compilation
 def test_simulate_programs_hold_no_host_callback_where_the_inputs_are_checked():
     """diffrax checks the sample times (and dt0) again with host callbacks (eqx.error_if), which
     keep a program out of JAX's persistent cache and the program store: simulate, having

@@ -274,6 +274,7 @@ def finite_difference_gradient():
     return np.array(grads)
 
 
+@pytest.mark.slow  # cost: ~20 s, reverse mode through diffrax compiled
 def test_reverse_mode_gradient_matches_finite_differences(finite_difference_gradient):
     """jax.grad (RecursiveCheckpointAdjoint, the default), under jit, w.r.t. c, d, A1 and θ0."""
     grad = np.asarray(jax.jit(jax.grad(_end_state))(P0))
