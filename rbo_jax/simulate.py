@@ -384,6 +384,7 @@ def _solve_sampled(field, y0, ts, events, solver, rtol, atol, max_steps, adjoint
     )
 
 
+# keyword arguments named as fast_simulate's: each public solver spells out its own signature
 def solve_darboux(
     angular_velocity,
     theta0,
