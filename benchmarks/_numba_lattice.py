@@ -20,12 +20,13 @@ user's own solver" baseline of ``bench_lattice.py``, independent of rbo_jax (no 
   coefficients read from ``scipy.integrate._ivp.dop853_coefficients`` at import, the error norm
   ``DOP853._estimate_error_norm`` (RMS over all 6N scalars), SciPy's step-size controller
   (safety 0.9, factors within [0.2, 10], exponent −1/8), ``select_initial_step``, the minimum
-  step ``10 |nextafter(t) − t|`` and the end-point clipping (``RungeKutta._step_impl``): the
+  step ``10 |nextafter(t) − t|`` and the end-point clipping (``RungeKutta._step_impl``; the
+  step control in ``_numba_dop853.py``): the
   steps of ``solve_ivp(method="DOP853")`` on the flattened system, and of
   ``rbo_jax.lattice.simulate(method="dop853")``. The stages are summed through the non-zero
   tableau entries only, in column order (SciPy's order; the zeros it adds are exact). Forward
   integration, final state only (no dense output). Same style as ``_numba_reference.py`` (one
-  body); nothing shared with it.
+  body), with which it shares the step control (``_numba_dop853.py``).
 
 Work arrays (the 13 slopes, 13 × 6N numbers) are allocated once per solve.
 """
@@ -35,6 +36,7 @@ from __future__ import annotations
 import math
 import time
 
+import _numba_dop853 as dop
 import numba
 import numpy as np
 from numba import njit
@@ -44,11 +46,7 @@ __all__ = ["NUMBA_VERSION", "dop853_chain", "chain_rhs", "solve_chain"]
 
 NUMBA_VERSION = numba.__version__
 
-# scipy.integrate._ivp.rk constants and DOP853's error-estimator order (7): exponent -1/(7 + 1).
-SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 10.0
-ERROR_EXPONENT = -1.0 / 8.0
-ORDER_INITIAL_STEP = 7.0
-NS = int(_dc.N_STAGES)  # 12
+NS = dop.NS  # 12 stages
 NC = 6  # state components per body
 
 
@@ -256,50 +254,29 @@ def dop853_chain(y0, t0, t_bound, rtol, atol, n, c, d, M, kb, kt, Am, Ai, k):
 
     # Initial step: scipy.integrate._ivp.common.select_initial_step (RMS norms over 6n).
     interval = abs(t_bound - t0)
-    d0 = 0.0
-    d1 = 0.0
-    for i in range(size):
-        sc = atol + abs(y[i]) * rtol
-        d0 += (y[i] / sc) ** 2
-        d1 += (K[0, i] / sc) ** 2
-    d0 = math.sqrt(d0 / size)
-    d1 = math.sqrt(d1 / size)
-    h0 = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
-    h0 = min(h0, interval)
+    h0, d1 = dop.first_guess(y, K, size, rtol, atol, interval)
     for i in range(size):
         ytmp[i] = y[i] + h0 * K[0, i]
     chain_rhs(ytmp, K[1], n, c, d, M, kb, kt, Am, Ai, k)  # f1, in K[1] as scratch
     nfev += 1
-    d2 = 0.0
-    for i in range(size):
-        sc = atol + abs(y[i]) * rtol
-        d2 += ((K[1, i] - K[0, i]) / sc) ** 2
-    d2 = math.sqrt(d2 / size) / h0
-    if d1 <= 1e-15 and d2 <= 1e-15:
-        h1 = max(1e-6, h0 * 1e-3)
-    else:
-        h1 = (0.01 / max(d1, d2)) ** (1.0 / (ORDER_INITIAL_STEP + 1.0))
-    h_abs = min(100.0 * h0, h1, interval)
+    h_abs = dop.initial_step(y, K, size, rtol, atol, interval, h0, d1)
 
     t = t0
     accepted = 0
     rejected = 0
     status = 0
     t_new = t
+    # RungeKutta._step_impl's loop, as in _numba_reference.py around its own stages and norm
     while t < t_bound:
-        min_step = 10.0 * abs(np.nextafter(t, np.inf) - t)
-        if h_abs < min_step:
-            h_abs = min_step
+        h_min = dop.min_step(t)
+        if h_abs < h_min:
+            h_abs = h_min
         step_rejected = False
         while True:
-            if h_abs < min_step:
+            if h_abs < h_min:
                 status = -1
                 break
-            t_new = t + h_abs
-            if t_new > t_bound:
-                t_new = t_bound
-            h = t_new - t
-            h_abs = abs(h)
+            t_new, h, h_abs = dop.clipped_step(t, h_abs, t_bound)
             # stages 1 … 11 (the field is autonomous: no c_s), then y_new and f(y_new)
             for s in range(1, ns):
                 _combine(K, s, y, h, ytmp)
@@ -335,20 +312,10 @@ def dop853_chain(y0, t0, t_bound, rtol, atol, n, c, d, M, kb, kt, Am, Ai, k):
                 e3 += b3
             e5 = math.sqrt(e5) ** 2
             e3 = math.sqrt(e3) ** 2
-            if e5 == 0.0 and e3 == 0.0:
-                err = 0.0
-            else:
-                err = h_abs * e5 / math.sqrt((e5 + 0.01 * e3) * size)
-            if err < 1.0:
-                if err == 0.0:
-                    factor = MAX_FACTOR
-                else:
-                    factor = min(MAX_FACTOR, SAFETY * err**ERROR_EXPONENT)
-                if step_rejected:
-                    factor = min(1.0, factor)
-                h_abs *= factor
+            err = dop.step_error(e5, e3, h_abs, size)
+            accepted_step, h_abs = dop.step_factor(err, h_abs, step_rejected)
+            if accepted_step:
                 break
-            h_abs *= max(MIN_FACTOR, SAFETY * err**ERROR_EXPONENT)
             step_rejected = True
             rejected += 1
         if status != 0:
@@ -368,14 +335,11 @@ def _flat(theta, Omega):
     return np.ascontiguousarray(np.concatenate([theta.T, Omega.T]).ravel())
 
 
-def solve_chain(theta0, Omega0, t1, rtol, atol, params) -> dict:
-    """Integrate the chain from (theta0, Omega0) (each ``(N, 3)``) over [0, t1]. ``params``: a
-    dict with c, d, M, kb, kt (floats), A (3×3 inertia) and k (the axis). Returns a dict: theta,
-    Omega ``(N, 3)`` at t1, steps (accepted), rejected, nfev, status, seconds (the call)."""
-    n = int(np.shape(theta0)[0])
+def _arguments(params) -> tuple:
+    """``params`` as the trailing arguments of :func:`chain_rhs` and :func:`dop853_chain`:
+    c, d, M, kb, kt (floats), A, A⁻¹ and k (contiguous float64 arrays)."""
     A = np.ascontiguousarray(params["A"], dtype=np.float64)
-    y0 = _flat(theta0, Omega0)
-    args = (
+    return (
         float(params["c"]),
         float(params["d"]),
         float(params["M"]),
@@ -385,6 +349,15 @@ def solve_chain(theta0, Omega0, t1, rtol, atol, params) -> dict:
         np.ascontiguousarray(np.linalg.inv(A)),
         np.ascontiguousarray(params["k"], dtype=np.float64),
     )
+
+
+def solve_chain(theta0, Omega0, t1, rtol, atol, params) -> dict:
+    """Integrate the chain from (theta0, Omega0) (each ``(N, 3)``) over [0, t1]. ``params``: a
+    dict with c, d, M, kb, kt (floats), A (3×3 inertia) and k (the axis). Returns a dict: theta,
+    Omega ``(N, 3)`` at t1, steps (accepted), rejected, nfev, status, seconds (the call)."""
+    n = int(np.shape(theta0)[0])
+    y0 = _flat(theta0, Omega0)
+    args = _arguments(params)
     start = time.perf_counter()
     y, acc, rej, nfev, status = dop853_chain(y0, 0.0, float(t1), float(rtol), float(atol), n, *args)
     seconds = time.perf_counter() - start
@@ -403,19 +376,6 @@ def solve_chain(theta0, Omega0, t1, rtol, atol, params) -> dict:
 def rhs(theta, Omega, params) -> np.ndarray:
     """The right-hand side at one state, ``(6, N)`` component-major (θ̇x, θ̇y, θ̇z, Ω̇x, ...)."""
     n = int(np.shape(theta)[0])
-    A = np.ascontiguousarray(params["A"], dtype=np.float64)
     out = np.empty(NC * n)
-    chain_rhs(
-        _flat(theta, Omega),
-        out,
-        n,
-        float(params["c"]),
-        float(params["d"]),
-        float(params["M"]),
-        float(params["kb"]),
-        float(params["kt"]),
-        A,
-        np.ascontiguousarray(np.linalg.inv(A)),
-        np.ascontiguousarray(params["k"], dtype=np.float64),
-    )
+    chain_rhs(_flat(theta, Omega), out, n, *_arguments(params))
     return out.reshape(NC, n)

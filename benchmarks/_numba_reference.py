@@ -8,7 +8,8 @@ user's own solver" baseline of the simulation benchmarks, independent of rbo_jax
   order error estimator, read from ``scipy.integrate._ivp.dop853_coefficients`` at import
   (nothing copied); the step-size controller, the initial-step selection (Hairer–Nørsett–Wanner
   II.4), the minimum step and the end-point clipping are those of ``scipy.integrate.solve_ivp``
-  (``RungeKutta._step_impl``, ``select_initial_step``), so with the same rtol/atol it takes the
+  (``RungeKutta._step_impl``, ``select_initial_step``; in ``_numba_dop853.py``, shared with
+  ``_numba_lattice.py``), so with the same rtol/atol it takes the
   same steps as ``solve_ivp(method="DOP853")`` (up to the rounding of the dot products) and
   ``nfev`` counts the same evaluations (2 + 12 per attempted step). Forward integration only,
   final state only (no dense output).
@@ -23,6 +24,7 @@ from __future__ import annotations
 import math
 import time
 
+import _numba_dop853 as dop
 import numba
 import numpy as np
 from numba import njit, prange
@@ -32,17 +34,12 @@ __all__ = ["NUMBA_VERSION", "solve_points_serial", "solve_points_parallel", "tim
 
 NUMBA_VERSION = numba.__version__
 
-# scipy.integrate._ivp.rk constants and DOP853's error-estimator order (7): exponent -1/(7 + 1).
-SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 10.0
-ERROR_EXPONENT = -1.0 / 8.0
-ORDER_INITIAL_STEP = 7.0
-
 # scipy's DOP853 tableau (12 stages; E3 and E5 act on the 13 rows of K, the last being f(t + h)),
 # read from scipy at import. The njit functions see these module globals as compile-time
 # constants (numba freezes global arrays), as are the sizes: the stage loops unroll and the zero
 # coefficients fold away (40 → 37 µs per trajectory in a best-of-7 test against passing the arrays
 # as arguments; bitwise the same results).
-NS = int(_dc.N_STAGES)
+NS = dop.NS  # 12 stages
 NY = 6
 TABLEAU_A, TABLEAU_B, TABLEAU_E3, TABLEAU_E5 = (
     np.ascontiguousarray(x, dtype=np.float64) for x in (_dc.A[:NS, :NS], _dc.B, _dc.E3, _dc.E5)
@@ -57,6 +54,7 @@ def rhs(y, out, row, c, d, M, Am, Ai, k):
     trajectory in a best-of-7 test)."""
     t0, t1, t2 = y[0], y[1], y[2]
     w0, w1, w2 = y[3], y[4], y[5]
+    # Z's coefficient g as numpy_rhs has it, in scalar math (the NumPy baseline needs no numba)
     th2 = t0 * t0 + t1 * t1 + t2 * t2
     th = math.sqrt(th2)
     if th < 1e-4:
@@ -110,49 +108,29 @@ def dop853_final(y0, t0, t_bound, rtol, atol, c, d, M, Am, Ai, k):
 
     # Initial step: scipy.integrate._ivp.common.select_initial_step (RMS norms).
     interval = abs(t_bound - t0)
-    d0 = 0.0
-    d1 = 0.0
-    for i in range(n):
-        sc = atol + abs(y[i]) * rtol
-        d0 += (y[i] / sc) ** 2
-        d1 += (K[0, i] / sc) ** 2
-    d0 = math.sqrt(d0 / n)
-    d1 = math.sqrt(d1 / n)
-    h0 = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
-    h0 = min(h0, interval)
+    h0, d1 = dop.first_guess(y, K, n, rtol, atol, interval)
     for i in range(n):
         ytmp[i] = y[i] + h0 * K[0, i]
     rhs(ytmp, K, 1, c, d, M, Am, Ai, k)  # f1, in K[1] as scratch
     nfev += 1
-    d2 = 0.0
-    for i in range(n):
-        sc = atol + abs(y[i]) * rtol
-        d2 += ((K[1, i] - K[0, i]) / sc) ** 2
-    d2 = math.sqrt(d2 / n) / h0
-    if d1 <= 1e-15 and d2 <= 1e-15:
-        h1 = max(1e-6, h0 * 1e-3)
-    else:
-        h1 = (0.01 / max(d1, d2)) ** (1.0 / (ORDER_INITIAL_STEP + 1.0))
-    h_abs = min(100.0 * h0, h1, interval)
+    h_abs = dop.initial_step(y, K, n, rtol, atol, interval, h0, d1)
 
     t = t0
     accepted = 0
     rejected = 0
     status = 0
+    # RungeKutta._step_impl's loop, as in _numba_lattice.py around its own stages and norm; the
+    # step control is shared (_numba_dop853), a shared loop would take the stages as a function
     while t < t_bound:
-        min_step = 10.0 * abs(np.nextafter(t, np.inf) - t)
-        if h_abs < min_step:
-            h_abs = min_step
+        h_min = dop.min_step(t)
+        if h_abs < h_min:
+            h_abs = h_min
         step_rejected = False
         while True:
-            if h_abs < min_step:
+            if h_abs < h_min:
                 status = -1
                 break
-            t_new = t + h_abs
-            if t_new > t_bound:
-                t_new = t_bound
-            h = t_new - t
-            h_abs = abs(h)
+            t_new, h, h_abs = dop.clipped_step(t, h_abs, t_bound)
             # stages (scipy.integrate._ivp.rk.rk_step; the RHS is autonomous, C is not needed)
             for s in range(1, ns):
                 for i in range(n):
@@ -180,20 +158,10 @@ def dop853_final(y0, t0, t_bound, rtol, atol, c, d, M, Am, Ai, k):
                     s3 += K[j, i] * E3[j]
                 e5 += (s5 / sc) ** 2
                 e3 += (s3 / sc) ** 2
-            if e5 == 0.0 and e3 == 0.0:
-                err = 0.0
-            else:
-                err = h_abs * e5 / math.sqrt((e5 + 0.01 * e3) * n)
-            if err < 1.0:
-                if err == 0.0:
-                    factor = MAX_FACTOR
-                else:
-                    factor = min(MAX_FACTOR, SAFETY * err**ERROR_EXPONENT)
-                if step_rejected:
-                    factor = min(1.0, factor)
-                h_abs *= factor
+            err = dop.step_error(e5, e3, h_abs, n)
+            accepted_step, h_abs = dop.step_factor(err, h_abs, step_rejected)
+            if accepted_step:
                 break
-            h_abs *= max(MIN_FACTOR, SAFETY * err**ERROR_EXPONENT)
             step_rejected = True
             rejected += 1
         if status != 0:

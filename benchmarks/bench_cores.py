@@ -44,6 +44,8 @@ import tempfile
 import textwrap
 import time
 
+from _common import write_json
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 CONFIG = """\
@@ -256,9 +258,7 @@ def main(argv=None) -> dict:
                 f"(CPU/wall {r['cpu_per_wall']:.2f})"
             )
     print(f"load average at the end: {os.getloadavg()[0]:.2f}")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(results, f, indent=1)
+    write_json(args.json, results, indent=1)
     return results
 
 

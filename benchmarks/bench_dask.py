@@ -22,10 +22,11 @@ Usage: ``python benchmarks/bench_dask.py [--n 131072] [--chunk 4096] [--cheap-ch
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
+
+from _common import write_json
 
 
 def _parse(argv):
@@ -211,9 +212,7 @@ def main(argv=None) -> dict:
         f"2 workers vs 1 process on the moderate sweep: speed-up {out['speedup_2_workers']:.2f}x"
         f"; results bit for bit equal to the process's: {equal['cheap'] and equal['moderate']}"
     )
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=2)
+    write_json(args.json, out, indent=2)
     return out
 
 

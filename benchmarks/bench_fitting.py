@@ -11,14 +11,12 @@ Usage: ``python benchmarks/bench_fitting.py [--samples 200] [--trajectories 3]``
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import versions
 
-import rbo_jax
 from rbo_jax import BarrierFoundation, RigidBodyOscillator, simulate, transversely_isotropic_inertia
 from rbo_jax.fitting import TrajectoryData, fit
 
@@ -61,10 +59,7 @@ def main(argv=None) -> dict:
     fitted = np.array([float(v) for v in res.params])
     truth = np.array(list(TRUTH.values()))
     rel = np.max(np.abs(fitted / truth - 1))
-    print(
-        f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, {platform.machine()}, "
-        f"{jax.device_count()} {jax.default_backend()} device(s)"
-    )
+    print(versions())
     print(
         f"barrier foundation (4.49), 4 parameters, {args.trajectories} trajectories x "
         f"{args.samples} samples, Levenberg-Marquardt from 30 % off"

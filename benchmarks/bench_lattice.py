@@ -39,7 +39,6 @@ Usage: ``python benchmarks/bench_lattice.py [--n 1000,10000,100000,1000000] [--t
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -47,6 +46,7 @@ import time
 import equinox as eqx
 import jax
 import numpy as np
+from _common import write_json
 from _pinning import pinned
 
 import rbo_jax
@@ -391,9 +391,7 @@ def main(argv=None) -> dict:
             "numba": numba_lattice.NUMBA_VERSION if numba_lattice else None,
         },
     }
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=2, default=float)
+    write_json(args.json, out, indent=2, default=float)
     return out
 
 

@@ -38,8 +38,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _numpy_reference import numpy_rhs
-from scipy.integrate import solve_ivp
+from _common import run_in_chunks, write_json
 
 try:
     import _numba_reference as numba_ref
@@ -47,21 +46,10 @@ except ImportError:  # numba is optional (the "bench" extra)
     numba_ref = None
 
 from _pinning import pinned
+from _problem import DESCRIPTION, final_state, inertia, numba_final_states, scipy_final_state
 
 import rbo_jax
-from rbo_jax import (
-    FollowerMoment,
-    QuadraticFoundation,
-    RigidBodyOscillator,
-    fast_simulate,
-    simulate,
-    transversely_isotropic_inertia,
-)
-
-A1, A3 = 1.0, 0.5
-K = np.array([0.0, 0.0, 1.0])
-T1, RTOL, ATOL = 20.0, 1e-8, 1e-10
-PERTURBATION = np.array([1e-3, -5e-4, 2e-4])
+from rbo_jax import fast_simulate, simulate
 
 
 def parameter_points(n: int, seed: int = 0) -> np.ndarray:
@@ -77,19 +65,9 @@ def parameter_points(n: int, seed: int = 0) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def jax_final_state(p, solver=simulate, rtol=RTOL, atol=ATOL):
-    c, d, M = p[0], p[1], p[2]
-    k = jnp.asarray(K)
-    model = RigidBodyOscillator(
-        transversely_isotropic_inertia(A1, A3, k),
-        QuadraticFoundation(c, d, k),
-        FollowerMoment(M, k),
-    )
-    theta0 = (M / d) * k + jnp.asarray(PERTURBATION)
-    traj = solver(
-        model, theta0, jnp.zeros(3), jnp.array([0.0, T1]), rtol=rtol, atol=atol, throw=False
-    )
-    return jnp.concatenate([traj.theta[-1], traj.Omega[-1]]), traj.num_steps
+def jax_final_state(p, solver=simulate, **tolerances):
+    y, steps, _ = final_state(p[0], p[1], p[2], solver, **tolerances)
+    return y, steps
 
 
 def fast_final_state(p):
@@ -115,21 +93,10 @@ def tight_reference(points: np.ndarray) -> np.ndarray:
 
 
 def run_jax(points: np.ndarray, chunk: int):
-    fn = jax.jit(jax.vmap(jax_final_state))
-    n = points.shape[0]
-    pad = (-n) % chunk
-    padded = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)])
-    t_compile = time.perf_counter()
-    jax.block_until_ready(fn(jnp.asarray(padded[:chunk])))
-    t_compile = time.perf_counter() - t_compile
-    outs, steps = [], []
-    start = time.perf_counter()
-    for i in range(0, padded.shape[0], chunk):
-        y, s = fn(jnp.asarray(padded[i : i + chunk]))
-        outs.append(np.asarray(y))
-        steps.append(np.asarray(s))
-    elapsed = time.perf_counter() - start
-    return np.concatenate(outs)[:n], np.concatenate(steps)[:n], elapsed, t_compile
+    (y, steps), elapsed, t_compile = run_in_chunks(
+        jax.jit(jax.vmap(jax_final_state)), points, chunk
+    )
+    return y, steps, elapsed, t_compile
 
 
 # ---------------------------------------------------------------------------------------------
@@ -142,17 +109,7 @@ def run_scipy(points: np.ndarray):
     outs, nfev, steps = [], [], []
     start = time.perf_counter()
     for c, d, M in points:
-        y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
-        sol = solve_ivp(
-            numpy_rhs,
-            (0.0, T1),
-            y0,
-            method="DOP853",
-            rtol=RTOL,
-            atol=ATOL,
-            args=(c, d, M, A, A_inv, K),
-        )
-        assert sol.success, sol.message
+        sol = scipy_final_state(c, d, M, A, A_inv)
         outs.append(sol.y[:, -1])
         nfev.append(sol.nfev)
         steps.append(sol.t.size - 1)  # accepted steps
@@ -160,14 +117,8 @@ def run_scipy(points: np.ndarray):
     return np.array(outs), np.array(nfev), np.array(steps), elapsed
 
 
-def inertia():
-    A = A1 * (np.eye(3) - np.outer(K, K)) + A3 * np.outer(K, K)
-    return A, np.linalg.inv(A)
-
-
 def run_numba(points: np.ndarray, parallel: bool) -> dict:
-    A, A_inv = inertia()
-    return numba_ref.timed_solve(points, parallel, T1, RTOL, ATOL, PERTURBATION, A, A_inv, K)
+    return numba_final_states(points, parallel)
 
 
 def main(argv=None) -> dict:
@@ -218,8 +169,7 @@ def main(argv=None) -> dict:
         )
     )
     print(
-        f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points "
-        f"(scipy: {ns}); one-core rows pinned to core 0: {is_pinned}"
+        f"{DESCRIPTION}, {args.n} points (scipy: {ns}); one-core rows pinned to core 0: {is_pinned}"
     )
     header = (
         f"{'method':<42}{'s / trajectory':>16}{'traj / s':>12}{'steps (mean)':>14}"
@@ -351,11 +301,7 @@ def main(argv=None) -> dict:
     else:
         print("numba not installed, skipped (pip install numba, or the 'bench' extra)")
     print(f"max |final state difference| jax vs scipy on the sample: {err:.2e}")
-    if args.json:
-        import json
-
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=2, default=float)
+    write_json(args.json, out, indent=2, default=float)
     return out
 
 

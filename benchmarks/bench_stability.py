@@ -18,15 +18,14 @@ Usage: ``python benchmarks/bench_stability.py [--n-per-axis 100] [--numpy-sample
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import run_in_chunks, versions
 from _numpy_reference import numpy_jacobian
 
-import rbo_jax
 from rbo_jax import (
     FollowerMoment,
     QuadraticFoundation,
@@ -64,18 +63,8 @@ def plain_point(x):
 
 
 def run_plain(flat_points, chunk):
-    fn = jax.jit(jax.vmap(plain_point))
-    n = flat_points.shape[0]
-    pad = (-n) % chunk
-    padded = np.concatenate([flat_points, np.repeat(flat_points[-1:], pad, axis=0)])
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(jnp.asarray(padded[:chunk])))
-    t_compile = time.perf_counter() - t0
-    outs = []
-    t0 = time.perf_counter()
-    for i in range(0, padded.shape[0], chunk):
-        outs.append(np.asarray(fn(jnp.asarray(padded[i : i + chunk]))))
-    return np.concatenate(outs)[:n], time.perf_counter() - t0, t_compile
+    """(eigenvalues, seconds, compile seconds) of (a) over the points in chunks."""
+    return run_in_chunks(jax.jit(jax.vmap(plain_point)), flat_points, chunk)
 
 
 def run_numpy(flat_points):
@@ -130,11 +119,7 @@ def main(argv=None) -> dict:
     err_plain = max_error_vs_closed_form(flat_points, eig_plain)
     err_np = max_error_vs_closed_form(sample, eig_np)
     per = {"map": t_map / N, "plain": t_plain / N, "numpy": t_np / sample.shape[0]}
-    print(
-        f"rbo_jax {rbo_jax.__version__}, jax {jax.__version__}, {platform.machine()}, "
-        f"{jax.device_count()} {jax.default_backend()} device(s); {N} map points "
-        f"(numpy: {sample.shape[0]}), chunk {chunk}"
-    )
+    print(f"{versions()}; {N} map points (numpy: {sample.shape[0]}), chunk {chunk}")
     header = f"{'method':<44}{'us / point':>12}{'ratio':>9}{'max |p - (4.69)|':>18}"
     print(header)
     print("-" * len(header))

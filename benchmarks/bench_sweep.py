@@ -24,7 +24,6 @@ Usage: ``python benchmarks/bench_sweep.py [--n 100000] [--devices 1,2] [--chunk 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -70,12 +69,11 @@ def main(argv=None) -> dict:
         jax.config.update("jax_num_cpu_devices", max(args.devices))
     except RuntimeError:
         pass
-    import jax.numpy as jnp
     import numpy as np
-    from scipy.integrate import solve_ivp
 
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    from _numpy_reference import numpy_rhs
+    import _problem as problem
+    from _common import write_json
 
     numba_ref = None
     if not args.no_numba:
@@ -85,42 +83,14 @@ def main(argv=None) -> dict:
             pass
 
     import rbo_jax
-    from rbo_jax import (
-        FollowerMoment,
-        QuadraticFoundation,
-        RigidBodyOscillator,
-        fast_simulate,
-        simulate,
-        sweep,
-        transversely_isotropic_inertia,
-    )
+    from rbo_jax import fast_simulate, simulate, sweep
     from rbo_jax.batch._space import make_space
 
-    A1, A3, T1, RTOL, ATOL = 1.0, 0.5, 20.0, 1e-8, 1e-10
     solver = fast_simulate if args.integrator == "fast_simulate" else simulate
-    K = np.array([0.0, 0.0, 1.0])
-    PERTURBATION = np.array([1e-3, -5e-4, 2e-4])
 
-    def final_state(c, d, M):
-        k = jnp.asarray(K)
-        model = RigidBodyOscillator(
-            transversely_isotropic_inertia(A1, A3, k),
-            QuadraticFoundation(c, d, k),
-            FollowerMoment(M, k),
-        )
-        traj = solver(
-            model,
-            (M / d) * k + jnp.asarray(PERTURBATION),
-            jnp.zeros(3),
-            jnp.array([0.0, T1]),
-            rtol=RTOL,
-            atol=ATOL,
-            throw=False,
-        )
-        return {
-            "y": jnp.concatenate([traj.theta[-1], traj.Omega[-1]]),
-            "num_steps": traj.num_steps,
-        }, traj.status
+    def quantities(c, d, M):
+        y, steps, status = problem.final_state(c, d, M, solver)
+        return {"y": y, "num_steps": steps}, status
 
     rng = np.random.default_rng(0)
     points = {
@@ -136,10 +106,10 @@ def main(argv=None) -> dict:
     results, reference = [], None
     for k in counts:
         t0 = time.perf_counter()
-        sweep(final_state, points=warm, chunk_size=args.chunk, devices=k, progress=False)
+        sweep(quantities, points=warm, chunk_size=args.chunk, devices=k, progress=False)
         t_compile = time.perf_counter() - t0
         t0 = time.perf_counter()
-        ds = sweep(final_state, points=points, chunk_size=args.chunk, devices=k, progress=False)
+        ds = sweep(quantities, points=points, chunk_size=args.chunk, devices=k, progress=False)
         ds["y"].values  # noqa: B018 - all results on the host
         elapsed = time.perf_counter() - t0
         ok = int((ds["status"].values == 0).sum())
@@ -159,23 +129,11 @@ def main(argv=None) -> dict:
         )
 
     # scipy on a sample of the same points.
-    A = A1 * (np.eye(3) - np.outer(K, K)) + A3 * np.outer(K, K)
-    A_inv = np.linalg.inv(A)
+    A, A_inv = problem.inertia()
     ys, nfev_sp = [], []
     t0 = time.perf_counter()
     for i in range(args.scipy_sample):
-        c, d, M = points["c"][i], points["d"][i], points["M"][i]
-        y0 = np.concatenate([(M / d) * K + PERTURBATION, np.zeros(3)])
-        sol = solve_ivp(
-            numpy_rhs,
-            (0.0, T1),
-            y0,
-            method="DOP853",
-            rtol=RTOL,
-            atol=ATOL,
-            args=(c, d, M, A, A_inv, K),
-        )
-        assert sol.success, sol.message
+        sol = problem.scipy_final_state(points["c"][i], points["d"][i], points["M"][i], A, A_inv)
         ys.append(sol.y[:, -1])
         nfev_sp.append(sol.nfev)
     t_scipy = time.perf_counter() - t0
@@ -191,7 +149,7 @@ def main(argv=None) -> dict:
     if numba_ref is not None:
         pts = np.stack([points["c"], points["d"], points["M"]], axis=1)
         for key, par in [("serial", False), ("prange", True)]:
-            r = numba_ref.timed_solve(pts, par, T1, RTOL, ATOL, PERTURBATION, A, A_inv, K)
+            r = problem.numba_final_states(pts, par)
             nb[key] = {
                 "seconds": r["seconds"],
                 "traj_per_s": args.n / r["seconds"],
@@ -233,7 +191,7 @@ def main(argv=None) -> dict:
         + (f"numba {env['numba']}" if env["numba"] else "numba not installed, skipped")
     )
     print(
-        f"Nikolai problem, t in [0, {T1}], rtol = {RTOL:g}, atol = {ATOL:g}, {args.n} points, "
+        f"{problem.DESCRIPTION}, {args.n} points, "
         f"chunks of {batch} (scipy: {args.scipy_sample} points); sweep solver "
         f"{args.integrator}"
     )
@@ -301,9 +259,7 @@ def main(argv=None) -> dict:
         "scipy": {"sample": args.scipy_sample, "s_per_traj": per_scipy, "max_diff": diff},
         "numba": nb or None,
     }
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=2)
+    write_json(args.json, out, indent=2)
     return out
 
 

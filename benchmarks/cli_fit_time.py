@@ -21,30 +21,13 @@ import sys
 import tempfile
 import time
 
+from _common import README_FIT, README_OBSERVATIONS, README_SIMULATE
+
 EXAMPLES = {
     # the README's example: a stable (conservative) motion, the fit starts 30 % / 25 % off
-    "readme": (
-        [
-            "--c",
-            "1",
-            "--d",
-            "2",
-            "--theta0",
-            "0.8,-0.3,0.5",
-            "--Omega0",
-            "0.2,1.1,-0.7",
-            "--t1",
-            "6",
-            "--samples",
-            "61",
-        ],
-        ["--c", "1.3", "--d", "1.5", "--params", "c,d"],
-    ),
+    "readme": (README_OBSERVATIONS, README_FIT),
     # the README's example before: flutter under a follower moment, fitted without it
-    "follower": (
-        ["--c", "1", "--d", "2", "--follower", "0.3", "--theta0", "0.1,0,0.15", "--t1", "50"],
-        ["--params", "c,d"],
-    ),
+    "follower": (README_SIMULATE, ["--params", "c,d"]),
 }
 
 

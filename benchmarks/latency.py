@@ -59,6 +59,8 @@ from dataclasses import dataclass, field
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
+sys.path.insert(0, HERE)  # the benchmarks' shared pieces, also when this file is loaded by path
+from _common import README_FIT, README_OBSERVATIONS, README_SIMULATE  # noqa: E402
 
 # ---------------------------------------------------------------------------------------------
 # The snippets. Each is "imports" (timed as the import) and "call" (timed as the first call; it
@@ -279,51 +281,9 @@ _RBO = "import rbo_jax\nimport jax\nimport jax.numpy as jnp\nimport numpy as np\
 _BENCH_PATH = "import sys\nsys.path.insert(0, {bench!r})\n"
 
 # The README's two commands (the fit's input file is made once per run, not timed).
-CLI_SIMULATE = [
-    "simulate",
-    "--c",
-    "1",
-    "--d",
-    "2",
-    "--follower",
-    "0.3",
-    "--theta0",
-    "0.1,0,0.15",
-    "--t1",
-    "50",
-    "--out",
-    "{work}/run.nc",
-]
-CLI_OBS = [
-    "simulate",
-    "--c",
-    "1",
-    "--d",
-    "2",
-    "--theta0",
-    "0.8,-0.3,0.5",
-    "--Omega0",
-    "0.2,1.1,-0.7",
-    "--t1",
-    "6",
-    "--samples",
-    "61",
-    "--out",
-    "{data}/obs.nc",
-]
-CLI_FIT = [
-    "fit",
-    "--data",
-    "{data}/obs.nc",
-    "--c",
-    "1.3",
-    "--d",
-    "1.5",
-    "--params",
-    "c,d",
-    "--out",
-    "{work}/fit.nc",
-]
+CLI_SIMULATE = ["simulate", *README_SIMULATE, "--out", "{work}/run.nc"]
+CLI_OBS = ["simulate", *README_OBSERVATIONS, "--out", "{data}/obs.nc"]
+CLI_FIT = ["fit", "--data", "{data}/obs.nc", *README_FIT, "--out", "{work}/fit.nc"]
 _CLI = """\
 import sys
 from rbo_jax.app.cli import main

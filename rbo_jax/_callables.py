@@ -12,9 +12,8 @@ its trace depends on, and its compiled program should be reused.
   its closure cells and the values of the globals its code (or nested code) names;
 - a function or class of an importable module (not ``__main__``) by that module and name:
   within a process the object itself; across processes only for modules whose content the
-  program store's key covers (rbo_jax, by its sources; JAX and the libraries of
-  :data:`rbo_jax._programs.PACKAGES`, by version; Python's standard library), a user's module's
-  functions by their code as above;
+  program store's key covers (rbo_jax, by its sources; JAX and the libraries of :data:`PACKAGES`,
+  by version; Python's standard library), a user's module's functions by their code as above;
 - ``functools.partial`` and bound methods by their parts; modules by name (across processes,
   the same covered modules only);
 - numbers, strings, ``None`` by type and ``repr`` (``1`` and ``1.0``, ``0.0`` and ``-0.0``
@@ -47,10 +46,9 @@ import numpy as np
 __all__ = ["callable_key", "describe_treedef", "stable_text"]
 
 _SCALARS = (bool, int, float, complex, str, bytes, type(None), type(Ellipsis))
-# Modules whose content the program store's key covers (by the package's sources or the
-# versions in rbo_jax._programs.PACKAGES) or that come with Python.
-COVERED = (
-    "rbo_jax",
+# The libraries that trace and lower rbo_jax's programs, whose versions the program store's key
+# holds (rbo_jax._programs re-exports this list).
+PACKAGES = (
     "jax",
     "jaxlib",
     "equinox",
@@ -62,6 +60,9 @@ COVERED = (
     "optax",
     "jaxtyping",
 )
+# Modules whose content the program store's key covers (by the package's sources or the
+# versions of PACKAGES) or that come with Python.
+COVERED = ("rbo_jax", *PACKAGES)
 
 
 class _Unkeyable(Exception):

@@ -57,7 +57,7 @@ import jax
 import numpy as np
 
 from . import _cache
-from ._callables import describe_treedef, stable_text
+from ._callables import PACKAGES, describe_treedef, stable_text
 
 __all__ = [
     "PACKAGES",
@@ -74,18 +74,6 @@ __all__ = [
 
 _CALLS: dict[tuple[pathlib.Path, str], Callable | None] = {}
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
-PACKAGES = (
-    "jax",
-    "jaxlib",
-    "equinox",
-    "diffrax",
-    "optimistix",
-    "lineax",
-    "numpy",
-    "scipy",
-    "optax",
-    "jaxtyping",
-)
 # JAX settings that change what a trace gives (or whether it raises)
 _FLAGS = (
     "jax_enable_x64",

@@ -204,8 +204,7 @@ class QuadraticFoundation(AbstractTransverselyIsotropicFoundation):
         return 0.5 * self.c * perp2 + 0.5 * self.d * x**2
 
     def domain_margin(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
-        return jnp.full((), jnp.inf, dtype=theta.dtype)
+        return _everywhere(theta)
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""(4.51): $C = c$, $D = (d - c)\,k\cdot\theta$."""
@@ -296,7 +295,31 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
         return C, D
 
 
-class IsotropicFoundation(AbstractFoundation):
+def _everywhere(theta: VectorLike) -> Scalar:
+    """The domain margin of an energy defined everywhere: ``inf``."""
+    theta = _as_vector(theta)
+    return jnp.full((), jnp.inf, dtype=theta.dtype)
+
+
+class _AbstractIsotropicFoundation(AbstractFoundation):
+    r"""An isotropic foundation $U = F(\theta^2)$ (section 4.2.3), defined everywhere.
+    Subclasses give :meth:`coefficients` (4.48), $C = 2F'(\theta^2)$ and $D = 0$, from which the
+    gradient is $dU/d\theta = C\theta$."""
+
+    @property
+    def isotropic(self) -> bool:
+        return True
+
+    def domain_margin(self, theta: VectorLike) -> Scalar:
+        return _everywhere(theta)
+
+    def gradient(self, theta: VectorLike) -> Vector:
+        r"""$dU/d\theta = 2F'(\theta^2)\,\theta = C\theta$."""
+        theta = _as_vector(theta)
+        return self.coefficients(theta)[0] * theta
+
+
+class IsotropicFoundation(_AbstractIsotropicFoundation):
     r"""An isotropic foundation $U = F(\theta^2)$, $\theta^2 = \theta\cdot\theta$ (section 4.2.3).
 
     ``F`` maps a scalar to a scalar. Its moment is $M_e = -2F'(\theta^2)\,\theta$; it satisfies
@@ -317,14 +340,6 @@ class IsotropicFoundation(AbstractFoundation):
         theta = _as_vector(theta)
         return _as_scalar_output(self.F(dot3(theta, theta)), "IsotropicFoundation: F")
 
-    def domain_margin(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
-        return jnp.full((), jnp.inf, dtype=theta.dtype)
-
-    @property
-    def isotropic(self) -> bool:
-        return True
-
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""$C = 2F'(\theta^2)$ and $D = 0$ (an isotropic energy is transversely isotropic about
         every axis)."""
@@ -332,13 +347,8 @@ class IsotropicFoundation(AbstractFoundation):
         dF = jax.grad(lambda t_: _as_scalar_output(self.F(t_), "F"))(dot3(theta, theta))
         return 2.0 * dF, jnp.zeros_like(dF)
 
-    def gradient(self, theta: VectorLike) -> Vector:
-        r"""$dU/d\theta = 2F'(\theta^2)\,\theta$."""
-        theta = _as_vector(theta)
-        return self.coefficients(theta)[0] * theta
 
-
-class CosineFoundation(AbstractFoundation):
+class CosineFoundation(_AbstractIsotropicFoundation):
     r"""The isotropic foundation $U = c\,(1 - \cos\theta)
     = \tfrac c2\,(3 - \mathrm{tr}\,Q(\theta))$, $\theta = |\theta|$ (section 4.2.3,
     $F(\theta^2) = c(1 - \cos\sqrt{\theta^2})$): the
@@ -367,27 +377,15 @@ class CosineFoundation(AbstractFoundation):
         t = dot3(theta, theta)
         return self.c * t * _cosc(t)
 
-    def domain_margin(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
-        return jnp.full((), jnp.inf, dtype=theta.dtype)
-
-    @property
-    def isotropic(self) -> bool:
-        return True
-
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
-        r"""$C = c\sin\theta/\theta$, $D = 0$ (4.48)."""
+        r"""$C = c\sin\theta/\theta$, $D = 0$ (4.48): $dU/d\theta = c\,\frac{\sin\theta}{\theta}
+        \,\theta$."""
         theta = _as_vector(theta)
         C = self.c * _sinc(dot3(theta, theta))
         return C, jnp.zeros_like(C)
 
-    def gradient(self, theta: VectorLike) -> Vector:
-        r"""$dU/d\theta = c\,\frac{\sin\theta}{\theta}\,\theta$."""
-        theta = _as_vector(theta)
-        return self.coefficients(theta)[0] * theta
 
-
-class ZeroFoundation(AbstractFoundation):
+class ZeroFoundation(_AbstractIsotropicFoundation):
     r"""No foundation, $U = 0$: a free body (Kelvin's medium, where the bodies of a lattice are
     held by their couplings alone, :mod:`rbo_jax.lattice`)."""
 
@@ -396,14 +394,6 @@ class ZeroFoundation(AbstractFoundation):
     def energy(self, theta: VectorLike) -> Scalar:
         theta = _as_vector(theta)
         return jnp.zeros((), dtype=theta.dtype)
-
-    def domain_margin(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
-        return jnp.full((), jnp.inf, dtype=theta.dtype)
-
-    @property
-    def isotropic(self) -> bool:
-        return True
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         theta = _as_vector(theta)
@@ -443,8 +433,7 @@ class TransverselyIsotropicFoundation(AbstractTransverselyIsotropicFoundation):
         )
 
     def domain_margin(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
-        return jnp.full((), jnp.inf, dtype=theta.dtype)
+        return _everywhere(theta)
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""$C = 2\,\partial F/\partial t$, $D = \partial F/\partial x$ by automatic

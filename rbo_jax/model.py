@@ -104,6 +104,7 @@ class LeftForm(eqx.Module):
     $\dot L = M$, $\dot\theta = Z\cdot\omega$ with $\omega = P\cdot A^{-1}\cdot P^T\cdot L$.
     Made by :meth:`RigidBodyOscillator.left_form`."""
 
+    # fields and call as RightForm's: two small forms of one model, clearer apart than in a base
     model: RigidBodyOscillator
     inertia_inv: Float[Array, "3 3"]
     throw: bool = eqx.field(static=True, default=True)

@@ -21,6 +21,7 @@ this to flag a point and carry on).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -176,13 +177,7 @@ def simulate(
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
     inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
     _check_start(t0, dt0, inputs.ts)
-    args = (
-        model,
-        inputs.theta0,
-        inputs.Omega0,
-        inputs.ts,
-        inputs.bad_times,
-        inputs.dtype,
+    options = _Options(
         t0,
         solver,
         rtol,
@@ -197,6 +192,7 @@ def simulate(
         throw,
         progress,
     )
+    args = (model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype, options)
     # Concrete inputs: one compiled program for everything between the checks and the result
     # (the step-size bounds, A^-1, the statuses), not a dozen small eager ones, without diffrax's
     # host callbacks where that is safe (kept by JAX's cache and the program store); inside a
@@ -244,72 +240,68 @@ def _trusted(model, *diffrax_objects) -> bool:
     )
 
 
-def _solve(
-    model,
-    theta0,
-    Omega0,
-    ts,
-    bad_times,
-    dtype,
-    t0,
-    solver,
-    rtol,
-    atol,
-    dt0,
-    dtmin,
-    max_steps,
-    adjoint,
-    stepsize_controller,
-    singular_tol,
-    form,
-    throw,
-    progress,
-):
+class _Options(NamedTuple):
+    """The keyword arguments of :func:`simulate` as given (in its order), passed whole to its
+    solve."""
+
+    t0: Any
+    solver: diffrax.AbstractSolver | None
+    rtol: Any
+    atol: Any
+    dt0: Any
+    dtmin: Any
+    max_steps: int
+    adjoint: diffrax.AbstractAdjoint | None
+    stepsize_controller: diffrax.AbstractStepSizeController | None
+    singular_tol: Any
+    form: str
+    throw: bool
+    progress: bool
+
+
+def _solve(model, theta0, Omega0, ts, bad_times, dtype, options: _Options):
     """The diffrax solve of :func:`simulate` from checked inputs: ``(theta, Omega, status code,
     accepted steps)``, plain arrays (a program the store can keep)."""
+    o = options
     # Bad traced times (throw=False) are replaced by zeros: then t0 = t1 = 0 too.
-    t0 = ts[0] if t0 is None else jnp.where(bad_times, ts[0], jnp.asarray(t0, dtype))
+    t0 = ts[0] if o.t0 is None else jnp.where(bad_times, ts[0], jnp.asarray(o.t0, dtype))
     t1 = ts[-1]
-    if dtmin is None:
-        dtmin = 1e-12 * jnp.maximum(t1 - t0, 1e-300)
-    solver = diffrax.Dopri8() if solver is None else solver
-    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-    if stepsize_controller is None:
-        stepsize_controller = diffrax.PIDController(
-            rtol=rtol, atol=atol, dtmin=dtmin, force_dtmin=False
-        )
+    dtmin = 1e-12 * jnp.maximum(t1 - t0, 1e-300) if o.dtmin is None else o.dtmin
+    controller = o.stepsize_controller
+    if controller is None:
+        controller = diffrax.PIDController(rtol=o.rtol, atol=o.atol, dtmin=dtmin, force_dtmin=False)
 
-    if form == "right":
+    if o.form == "right":
         y0 = (theta0, Omega0)
-        vf = model.right_form(throw)
+        vf = model.right_form(o.throw)
         to_theta_Omega = jax.tree_util.Partial(_right_to_theta_Omega, model)
     else:
         y0 = (theta0, model.kinetic_moment(theta0, Omega0))
-        vf = model.left_form(throw)
+        vf = model.left_form(o.throw)
         to_theta_Omega = jax.tree_util.Partial(_left_to_theta_Omega, model)
 
     # Partials of module-level functions, not closures: see _singular_events.
     transverse = jax.tree_util.Partial(_state_transverse, to_theta_Omega)
     domain_cond = jax.tree_util.Partial(_domain_cond, model)
-    singular_tol = jnp.asarray(singular_tol, dtype)
+    singular_tol = jnp.asarray(o.singular_tol, dtype)
 
     event_names = ("singular_point", "singular_point", "domain_error")
     event = diffrax.Event(cond_fn=[*_singular_events(transverse, singular_tol), domain_cond])
 
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vf),
-        solver,
+        diffrax.Dopri8() if o.solver is None else o.solver,
         t0=t0,
         t1=t1,
-        dt0=dt0,
+        dt0=o.dt0,
         y0=y0,
         saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=stepsize_controller,
-        adjoint=adjoint,
+        stepsize_controller=controller,
+        adjoint=diffrax.RecursiveCheckpointAdjoint() if o.adjoint is None else o.adjoint,
         event=event,
-        max_steps=max_steps,
+        max_steps=o.max_steps,
         throw=False,
-        progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
+        progress_meter=diffrax.TqdmProgressMeter() if o.progress else diffrax.NoProgressMeter(),
     )
     status = _status_from_solution(sol, event_names)
     theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
@@ -371,6 +363,28 @@ def _darboux_transverse(w, t, theta):
     return theta, transverse_fraction(theta, w(t)) > TRANSVERSE_TOL
 
 
+def _solve_sampled(field, y0, ts, events, solver, rtol, atol, max_steps, adjoint=None):
+    r"""diffrax's solve of $\dot y$ = ``field(t, y, args)`` from ``y0`` at ``ts[0]``, sampled at
+    ``ts`` and stopped by the ``events`` (diffrax event conditions): ``solver`` (default
+    ``Dopri8``), a PID controller of ``rtol``, ``atol`` from diffrax's first step, ``adjoint``
+    (default ``RecursiveCheckpointAdjoint``); failures are in the solution's result."""
+    return diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        diffrax.Dopri8() if solver is None else solver,
+        t0=ts[0],
+        t1=ts[-1],
+        dt0=None,
+        y0=y0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        event=diffrax.Event(cond_fn=list(events)),
+        max_steps=max_steps,
+        throw=False,
+    )
+
+
+# keyword arguments named as fast_simulate's: each public solver spells out its own signature
 def solve_darboux(
     angular_velocity,
     theta0,
@@ -410,19 +424,8 @@ def solve_darboux(
     transverse = jax.tree_util.Partial(_darboux_transverse, w)
     singular_tol = jnp.asarray(singular_tol, theta0.dtype)
 
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vf),
-        diffrax.Dopri8() if solver is None else solver,
-        t0=ts[0],
-        t1=ts[-1],
-        dt0=None,
-        y0=theta0,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        event=diffrax.Event(cond_fn=list(_singular_events(transverse, singular_tol))),
-        max_steps=max_steps,
-        throw=False,
-    )
+    events = _singular_events(transverse, singular_tol)
+    sol = _solve_sampled(vf, theta0, ts, events, solver, rtol, atol, max_steps)
     bad_input = ~all_finite(theta0)
     status = _status_from_solution(sol, ("singular_point", "singular_point"), bad_input)
     theta = sol.ys

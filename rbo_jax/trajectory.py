@@ -76,23 +76,11 @@ def _per_sample(f, *samples):
     return jax.vmap(f)(*samples)
 
 
-class Trajectory(eqx.Module):
-    r"""Samples of a solution of the rigid body oscillator.
-
-    Fields: ``ts`` (n,), ``theta`` (n, 3) the turn-vector, ``Omega`` (n, 3) the right angular
-    velocity, ``model`` the :class:`RigidBodyOscillator`, ``status`` a :class:`SolveStatus`,
-    ``num_steps`` the number of accepted solver steps. Samples after a failure are ``inf``.
-
-    Derived (computed on access): ``omega`` = P·Ω (left angular velocity), ``turn_tensor`` P(t),
-    ``kinetic_moment`` L (4.44), ``kinetic_energy``, ``potential_energy``, ``energy`` = K + U + V.
-    """
-
-    ts: Float[Array, " n"]
-    theta: Float[Array, "n 3"]
-    Omega: Float[Array, "n 3"]
-    model: RigidBodyOscillator
-    status: SolveStatus
-    num_steps: Int[Array, ""]
+class _AbstractSolved(eqx.Module):
+    """What the field ``status`` (a :class:`SolveStatus`) of a solve's result says: ``ok``,
+    ``message``, ``status_name`` (of :class:`Trajectory` and
+    :class:`rbo_jax.lattice.LatticeTrajectory`). The field is the subclass's own, not an
+    ``eqx.AbstractVar`` here, which would move it to the front of the fields."""
 
     @property
     def ok(self):
@@ -113,6 +101,25 @@ class Trajectory(eqx.Module):
         """The status as a name, e.g. ``"singular_point"`` (for a concrete, unbatched
         trajectory; the names are the fields of :class:`SolveStatus`)."""
         return _enumeration.name(self.status)
+
+
+class Trajectory(_AbstractSolved):
+    r"""Samples of a solution of the rigid body oscillator.
+
+    Fields: ``ts`` (n,), ``theta`` (n, 3) the turn-vector, ``Omega`` (n, 3) the right angular
+    velocity, ``model`` the :class:`RigidBodyOscillator`, ``status`` a :class:`SolveStatus`,
+    ``num_steps`` the number of accepted solver steps. Samples after a failure are ``inf``.
+
+    Derived (computed on access): ``omega`` = P·Ω (left angular velocity), ``turn_tensor`` P(t),
+    ``kinetic_moment`` L (4.44), ``kinetic_energy``, ``potential_energy``, ``energy`` = K + U + V.
+    """
+
+    ts: Float[Array, " n"]
+    theta: Float[Array, "n 3"]
+    Omega: Float[Array, "n 3"]
+    model: RigidBodyOscillator
+    status: SolveStatus
+    num_steps: Int[Array, ""]
 
     def _map(self, f):
         return _per_sample(f, self.theta, self.Omega)
@@ -342,37 +349,21 @@ def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Tra
     invalid parameters or times NaN (none of them is a result); with ``throw`` a failure raises
     its status message."""
     flags = (inputs.bad_input, inputs.invalid, inputs.bad_times)
-    if (
+    # concrete and nothing flagged: no replacement, and a successful solve raises nothing (no
+    # small eager programs)
+    quiet = (
         _xp(flags) is np
         and not any(bool(f) for f in flags)
         and not _is_traced(_enumeration.code(status))
-    ):
-        # concrete and nothing flagged: no replacement, and a successful solve raises nothing
-        # (no small eager programs)
-        if throw and _enumeration.name(status) != "successful":
-            theta = status.error_if(theta, status != SolveStatus.successful)
-        return Trajectory(
-            ts=inputs.ts_given,
-            theta=theta,
-            Omega=Omega,
-            model=model,
-            status=status,
-            num_steps=num_steps,
-        )
-    status = SolveStatus.where(inputs.bad_input, SolveStatus.nonfinite_input, status)
-    status = SolveStatus.where(inputs.invalid, SolveStatus.invalid_parameters, status)
-    status = SolveStatus.where(inputs.bad_times, SolveStatus.invalid_times, status)
-    nan = inputs.invalid | inputs.bad_times
-    fill = jnp.where(nan, jnp.nan, jnp.inf)
-    theta = jnp.where(inputs.bad_input | nan, fill, theta)
-    Omega = jnp.where(inputs.bad_input | nan, fill, Omega)
-    if throw:
-        theta = status.error_if(theta, status != SolveStatus.successful)
-    return Trajectory(
-        ts=inputs.ts_given,
-        theta=theta,
-        Omega=Omega,
-        model=model,
-        status=status,
-        num_steps=num_steps,
     )
+    if not quiet:
+        status = SolveStatus.where(inputs.bad_input, SolveStatus.nonfinite_input, status)
+        status = SolveStatus.where(inputs.invalid, SolveStatus.invalid_parameters, status)
+        status = SolveStatus.where(inputs.bad_times, SolveStatus.invalid_times, status)
+        nan = inputs.invalid | inputs.bad_times
+        fill = jnp.where(nan, jnp.nan, jnp.inf)
+        theta = jnp.where(inputs.bad_input | nan, fill, theta)
+        Omega = jnp.where(inputs.bad_input | nan, fill, Omega)
+    if throw and not (quiet and _enumeration.name(status) == "successful"):
+        theta = status.error_if(theta, status != SolveStatus.successful)
+    return Trajectory(inputs.ts_given, theta, Omega, model, status, num_steps)

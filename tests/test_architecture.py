@@ -148,3 +148,81 @@ def test_enumeration_internals_are_read_in_one_module():
         text = path.read_text()
         for internal in ("_name_to_item", "._value", "._enumeration"):
             assert internal not in text, f"{path.relative_to(PACKAGE)} reads {internal}"
+
+
+def _module_name(path: pathlib.Path) -> str:
+    """``rbo_jax.app.cli._lattice`` for its file; a package by its folder."""
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Every module of rbo_jax -> the modules of rbo_jax it imports, anywhere in its source (at
+    the top, inside functions, under ``TYPE_CHECKING``). ``from P import x`` names the module
+    ``P.x`` where there is one, else ``P`` itself (a package's ``__init__``)."""
+    modules = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+    graph = {}
+    for me, path in modules.items():
+        package = me if path.name == "__init__.py" else me.rpartition(".")[0]
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:  # relative: up from the module's package
+                    up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    base = ".".join(up + ([base] if base else []))
+                names = [
+                    f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base
+                    for a in node.names
+                ]
+            else:
+                continue
+            for name in names:
+                while name and name not in modules:  # an attribute of a module: the module
+                    name = name.rpartition(".")[0]
+                if name and name != me:
+                    targets.add(name)
+        graph[me] = targets
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while not component or component[-1] != v:
+                component.append(stack.pop())
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_modules_import_each_other():
+    """The modules of rbo_jax import each other in no circle, however long and wherever the
+    import stands (a function-level import closes a circle too): what two modules both need
+    belongs in a module below them."""
+    graph = _import_graph()
+    assert "rbo_jax.app.cli._samples" in graph["rbo_jax.app.cli._lattice"]
+    assert "rbo_jax.ensemble._dop853" in graph["rbo_jax.lattice._integrate"]
+    assert _cycles(graph) == []
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]

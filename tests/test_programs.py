@@ -294,7 +294,7 @@ def _simulate_program_text(model, throw=False, **options):
             inputs.ts,
             inputs.bad_times,
             inputs.dtype,
-            *args.values(),
+            simulate._Options(**args),
         ).as_text()
 
 

@@ -395,6 +395,7 @@ class LatticeSpec:
         table |= {"n": sizes[0]} if parts[0] == "chain" else {"shape": sizes}
         return table
 
+    # the signature of ModelSpec.from_mapping: the readers' common interface, not shared code
     @classmethod
     def from_mapping(
         cls,

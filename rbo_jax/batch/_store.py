@@ -143,24 +143,16 @@ def _create(path: Path, space: Space, spec: OutputSpec, attrs: dict):
         config=config,
     )
     meta = group.create_group(META)
-    meta.create_array(
-        "chunk_done",
-        shape=space.chunk_grid,
-        dtype="uint8",
-        chunks=(1,) * len(space.chunk_grid),
-        fill_value=0,
-        compressors=None,
-        config=config,
-    )
-    meta.create_array(
-        "checksum",
-        shape=space.chunk_grid,
-        dtype="uint64",
-        chunks=(1,) * len(space.chunk_grid),
-        fill_value=0,
-        compressors=None,
-        config=config,
-    )
+    for name, dtype in (("chunk_done", "uint8"), ("checksum", "uint64")):  # one value per chunk
+        meta.create_array(
+            name,
+            shape=space.chunk_grid,
+            dtype=dtype,
+            chunks=(1,) * len(space.chunk_grid),
+            fill_value=0,
+            compressors=None,
+            config=config,
+        )
     # the error records of a chunk (JSON text; "" when none raised), one file per chunk
     meta.create_array(
         "errors",

@@ -227,6 +227,19 @@ def min_step(t):
     return 10.0 * jnp.abs(jnp.nextafter(t, jnp.inf) - t)
 
 
+def trial_step(t, h_abs, rejected, t_bound):
+    """The step an attempt from ``t`` tries (``RungeKutta._step_impl``): ``h_abs`` raised to
+    :func:`min_step` unless the last attempt was rejected, the end clipped at ``t_bound``.
+    Returns ``(t_new, h, |h|, too_small)``; ``too_small``: below :func:`min_step` (the solve
+    stops with ``step_size_collapse``)."""
+    h_min = min_step(t)
+    h_abs = jnp.where(~rejected & (h_abs < h_min), h_min, h_abs)
+    too_small = h_abs < h_min
+    t_new = jnp.minimum(t + h_abs, t_bound)
+    h = lax.stop_gradient(t_new - t)
+    return t_new, h, jnp.abs(h), too_small
+
+
 def dense_sums(K, i):
     """The four sums Σ_j D[r, j] K[i][j] of the interpolant for state component i, in literal
     order (element-wise code XLA fuses; as dot products they were 24 separate matrix calls

@@ -81,12 +81,7 @@ def attempt(
     accepted: a rejected step with a sample wastes them, a rare case)."""
     t, y, f0, rej, status = st["t"], st["y"], st["f"], st["rej"], st["status"]
     running = status == RUNNING
-    h_min = D.min_step(t)
-    h_abs = jnp.where(~rej & (st["h"] < h_min), h_min, st["h"])
-    too_small = h_abs < h_min
-    t_new = jnp.minimum(t + h_abs, t_bound)
-    h = lax.stop_gradient(t_new - t)
-    h_abs = jnp.abs(h)
+    t_new, h, h_abs, too_small = D.trial_step(t, st["h"], rej, t_bound)
     dense = running if wants_dense is None else running & wants_dense(t_new)
     last = jnp.where(jnp.any(dense), D.N_EXT, D.NS + 1)
     y_new, K = stages(f, t, y, f0, h, store, last)

@@ -2,8 +2,9 @@
 embedded 5th- and 3rd-order error estimators and the 7th-order dense output of Hairer, Nørsett &
 Wanner (*Solving Ordinary Differential Equations I*, 2nd ed., Springer 1993, section II.10; the
 Fortran code DOP853). The numbers are those of SciPy's ``scipy.integrate._ivp.dop853_coefficients``
-(BSD-3-Clause), written out as float literals so that no SciPy is needed at run time;
-``tests/test_fast_simulate.py`` checks them against SciPy's bit for bit.
+(BSD-3-Clause), written out as float literals so that no SciPy is needed at run time (``B``
+and ``E3`` derived from them as SciPy derives them); ``tests/test_fast_simulate.py`` checks them
+against SciPy's bit for bit.
 
 ``A`` is 16×16: rows 1–11 are the stages, row 12 is ``B`` (the weights), rows 13–15 the three
 extra stages of the dense output; ``C`` the 16 nodes; ``E3``, ``E5`` act on the 13 slopes
@@ -307,35 +308,15 @@ A = (
         0.0,
     ),
 )
-B = (
-    0.054293734116568765,
-    0.0,
-    0.0,
-    0.0,
-    0.0,
-    4.450312892752409,
-    1.8915178993145003,
-    -5.801203960010585,
-    0.3111643669578199,
-    -0.1521609496625161,
-    0.20136540080403034,
-    0.04471061572777259,
-)
-E3 = (
-    -0.18980075407240762,
-    0.0,
-    0.0,
-    0.0,
-    0.0,
-    4.450312892752409,
-    1.8915178993145003,
-    -5.801203960010585,
-    -0.4226823213237919,
-    -0.1521609496625161,
-    0.20136540080403034,
-    0.02265179219836082,
-    0.0,
-)
+B = A[N_STAGES][:N_STAGES]  # the weights of the 8th-order solution: row 12 of A
+# the 3rd-order estimator E3 = B - BHH, BHH the weights of DOP853's 3rd-order solution (non-zero
+# at stages 0, 8 and 11), as SciPy computes it
+_BHH = {
+    0: 0.244094488188976377952755905512,
+    8: 0.733846688281611857341361741547,
+    11: 0.220588235294117647058823529412e-1,
+}
+E3 = tuple(b - _BHH[i] if i in _BHH else b for i, b in enumerate(B)) + (0.0,)
 E5 = (
     0.01312004499419488,
     0.0,

@@ -231,19 +231,9 @@ class TrajectoryData(eqx.Module):
         def cut(x):
             return None if x is None else np.asarray(x)[keep]
 
+        per_sample = [name for name, _ in _OBSERVED + _WEIGHTS]
         return TrajectoryData(
             np.asarray(self.ts)[keep],
-            theta=cut(self.theta),
-            Q=cut(self.Q),
-            omega=cut(self.omega),
-            Omega=cut(self.Omega),
-            theta0=self.theta0,
-            Omega0=self.Omega0,
-            t0=self.t0,
-            theta_weight=cut(self.theta_weight),
-            omega_weight=cut(self.omega_weight),
-            Omega_weight=cut(self.Omega_weight),
-            sigma_theta=self.sigma_theta,
-            sigma_omega=self.sigma_omega,
-            sigma_Omega=self.sigma_Omega,
+            **{name: cut(getattr(self, name)) for name in per_sample},
+            **{name: getattr(self, name) for name in ("theta0", "Omega0", "t0", *_SIGMAS)},
         )

@@ -115,12 +115,7 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
     c = dict(c)
     N, nts, t_bound = plan.size, ts.shape[0], ts[-1]
     t, y, f0, rej, idx = c["t"], c["y"], c["f"], c["rej"], c["idx"]
-    h_min = D.min_step(t)
-    h_abs = jnp.where(~rej & (c["h"] < h_min), h_min, c["h"])
-    too_small = h_abs < h_min
-    t_new = jnp.minimum(t + h_abs, t_bound)
-    h = lax.stop_gradient(t_new - t)
-    h_abs = jnp.abs(h)
+    t_new, h, h_abs, too_small = D.trial_step(t, c["h"], rej, t_bound)
     dense = (idx < nts) & (ts[jnp.minimum(idx, nts - 1)] <= t_new)
     last = jnp.where(dense, D.N_EXT, D.NS + 1)
     f_start = tuple(jnp.where(c["first"] == 0, jnp.zeros_like(v), v) for v in f0)

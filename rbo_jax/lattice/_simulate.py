@@ -30,7 +30,7 @@ from .._validation import (
     checked_inputs_trusted,
 )
 from ..kinematics import distance_to_singularity
-from ..simulate import _status_from_solution
+from ..simulate import _solve_sampled, _status_from_solution
 from ..simulate import _trusted as _trusted_solve
 from ..trajectory import SolveStatus, check_times, warn_if_float32
 from ._field import rates, right_forms, transverse
@@ -167,19 +167,8 @@ def _diffrax(lattice, theta0, Omega0, ts, solver, rtol, atol, max_steps, singula
         return rates(lattice, forms, t, *y)
 
     cond = jax.tree_util.Partial(_near_singular, lattice, jnp.asarray(singular_tol, ts.dtype))
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(field),
-        diffrax.Dopri8() if solver is None else solver,
-        t0=ts[0],
-        t1=ts[-1],
-        dt0=None,
-        y0=(theta0, Omega0),
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-        event=diffrax.Event(cond_fn=[cond]),
-        max_steps=max_steps,
-        throw=False,
+    sol = _solve_sampled(
+        field, (theta0, Omega0), ts, [cond], solver, rtol, atol, max_steps, adjoint
     )
     status = _status_from_solution(sol, ("singular_point",))
     theta, Omega = sol.ys

@@ -8,9 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .. import _enumeration
-from .._validation import _is_traced
-from ..trajectory import SolveStatus
+from ..trajectory import SolveStatus, _AbstractSolved
 from ._field import kinetic_moment, total_energy
 from ._lattice import Lattice
 
@@ -24,7 +22,7 @@ def _per_sample(fn, lattice, theta, Omega):
     return jax.vmap(lambda th, Om: fn(lattice, th.T, Om.T))(theta, Omega)
 
 
-class LatticeTrajectory(eqx.Module):
+class LatticeTrajectory(_AbstractSolved):
     r"""Samples of a lattice's motion (:func:`rbo_jax.lattice.simulate`).
 
     Fields: ``ts`` (T,); ``theta`` (T, N, 3) the turn-vectors and ``Omega`` (T, N, 3) the right
@@ -40,6 +38,7 @@ class LatticeTrajectory(eqx.Module):
     Kelvin's medium).
     """
 
+    # the fields of rbo_jax.Trajectory with a site axis (other shapes: declared here, not shared)
     ts: Float[Array, " T"]
     theta: Float[Array, "T N 3"]
     Omega: Float[Array, "T N 3"]
@@ -48,24 +47,6 @@ class LatticeTrajectory(eqx.Module):
     status: SolveStatus
     num_steps: Int[Array, ""]
     num_recentred: Int[Array, ""]
-
-    @property
-    def ok(self):
-        """Whether the solve reached the final time (a NumPy boolean for a concrete status)."""
-        code = _enumeration.code(self.status)
-        if _is_traced(code):
-            return self.status == SolveStatus.successful
-        return np.asarray(code) == np.asarray(_enumeration.code(SolveStatus.successful))
-
-    @property
-    def message(self) -> str:
-        """The status message (for a concrete, unbatched trajectory)."""
-        return SolveStatus[self.status] or "successful"
-
-    @property
-    def status_name(self) -> str:
-        """The status as a name, e.g. ``"singular_point"``."""
-        return _enumeration.name(self.status)
 
     @property
     def energy(self) -> Float[Array, " T"]:

@@ -16,8 +16,9 @@ import time
 from .._io import DATASET_SUFFIXES
 from .._reader import SpecError
 from ..spec import LatticeSpec, ModelSpec
-from ._common import Failure, check_suffix, table
+from ._common import Failure, check_suffix
 from ._memory import BYTES_PER_BODY, BYTES_PER_BODY_SAMPLE, check_memory
+from ._samples import check_reached, initial_state, print_samples, solver_options
 
 DEFAULTS = {
     "coupling_kb": 1.0,
@@ -172,7 +173,6 @@ def _initial_states(args, s, spec: ModelSpec, lattice: LatticeSpec, model, k):
     import numpy as np
 
     from ...lattice import kink, twist
-    from ._simulate import _initial_state
 
     n = math.prod(lattice.shape)
     if s.wave == "kink":
@@ -182,7 +182,7 @@ def _initial_states(args, s, spec: ModelSpec, lattice: LatticeSpec, model, k):
     if s.wave == "twist":
         spin = float(np.dot(args.Omega0, k))
         return twist(n, s.winding, spin, k=k), f"twist, winding {s.winding}, spin {spin:g}"
-    theta0, Omega0 = _initial_state(args, model)
+    theta0, Omega0 = initial_state(args, model)
     rng = np.random.default_rng(s.seed)
     noise = s.perturbation * rng.standard_normal((2, n, 3))
     states = (np.asarray(theta0) + noise[0], np.asarray(Omega0) + noise[1])
@@ -193,25 +193,17 @@ def _initial_states(args, s, spec: ModelSpec, lattice: LatticeSpec, model, k):
     )
 
 
-def _print_table(ds, max_rows, spread):
+def _print_table(ds, max_rows):
     import numpy as np
 
-    E, t, theta = ds["energy"].values, ds["t"].values, ds["theta"].values
+    t, theta = ds["t"].values, ds["theta"].values
     reached = np.all(np.isfinite(theta), axis=(1, 2))
-    relative = bool(np.isfinite(E[0]) and E[0] != 0)
-    drift = (E - E[0]) / (abs(E[0]) if relative else 1.0)
     largest = np.max(np.linalg.norm(theta, axis=2), axis=1)
-    rows = [
-        [float(t[i]), float(largest[i]), float(E[i]), float(drift[i])]
-        for i in spread(list(np.flatnonzero(reached)), max_rows)
-    ]
-    if rows:
-        print(table(["t", "max |theta_i|", "K + U", "rel. drift" if relative else "drift"], rows))
-        if len(rows) < int(reached.sum()):
-            print(f"   ({len(rows)} of {int(reached.sum())} samples shown; --max-rows)")
-    max_drift = float(np.max(np.abs(drift[reached]))) if reached.any() else float("nan")
-    where = "relative to E(0) = " + format(E[0], ".6g") if relative else "absolute"
-    return f"max |energy drift| = {max_drift:.2e} ({where})", reached
+
+    def values(i):
+        return [float(t[i]), float(largest[i])]
+
+    return print_samples(ds, reached, ["t", "max |theta_i|"], values, max_rows), reached
 
 
 def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
@@ -221,7 +213,6 @@ def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
 
     from ...lattice import simulate
     from .._io import write_dataset
-    from ._simulate import _spread
 
     s = _settings(args)
     lattice = _lattice_spec(args, s)
@@ -245,16 +236,7 @@ def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
     start = time.perf_counter()
     try:
         traj = simulate(
-            lat,
-            theta0,
-            Omega0,
-            ts,
-            method=s.method,
-            rtol=args.rtol,
-            atol=args.atol,
-            max_steps=args.max_steps,
-            dt=s.dt,
-            throw=False,
+            lat, theta0, Omega0, ts, method=s.method, dt=s.dt, throw=False, **solver_options(args)
         )
     except ValueError as e:  # the library's checks of what the options above did not cover
         raise Failure(f"--lattice {args.lattice}: {e}") from None
@@ -266,7 +248,7 @@ def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
         command="rbo-jax " + " ".join(args.argv),
     )
     elapsed = time.perf_counter() - start
-    drift, reached = _print_table(ds, args.max_rows, _spread)
+    drift, reached = _print_table(ds, args.max_rows)
     if args.out is not None:
         write_dataset(ds, args.out)
     print(
@@ -274,8 +256,5 @@ def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
         f"status: {traj.status_name}, {drift}, wall time {elapsed:.2f} s (compilation "
         f"included)" + (f"; trajectory -> {args.out}" if args.out else "")
     )
-    if not bool(traj.ok):
-        last = ds["t"].values[reached][-1] if reached.any() else None
-        where = f" after t = {last:g} (later samples are inf)" if last is not None else ""
-        raise Failure(f"the solver stopped{where}: {traj.message}", code=1)
+    check_reached(traj, ds, reached)
     return 0
