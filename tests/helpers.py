@@ -5,6 +5,15 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
+
+try:
+    import zarr
+except ImportError:  # zarr >= 3 needs Python >= 3.11; there sweeps run in memory only
+    zarr = None
+needs_zarr = pytest.mark.skipif(
+    zarr is None, reason="the sweep store needs zarr >= 3, which needs Python >= 3.11"
+)
 
 
 def tree_allclose(x, y, *, rtol=1e-12, atol=1e-12) -> bool:

@@ -718,6 +718,7 @@ def test_fit_invalid_options_exit_2(capsys, argv, message):
     assert code == 2 and message in err
 
 
+@pytest.mark.slow  # integration: rbo-jax in fresh processes, twice each
 def test_persistent_compilation_cache_is_written_and_reused(tmp_path):
     """The command keeps its compiled programs in $RBO_JAX_COMPILATION_CACHE: the first process
     writes entries, a second one reads them (same output) and adds none; ``off`` writes

@@ -19,13 +19,9 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import needs_zarr, zarr
 
 from rbo_jax.app import cli
-
-try:
-    import zarr
-except ImportError:  # zarr >= 3 needs Python >= 3.11
-    zarr = None
 
 LIMIT_S = 2.0
 RUN = "from rbo_jax.app.cli import run; run()"  # what the console script `rbo-jax` runs
@@ -165,7 +161,7 @@ def _store_files(path: Path) -> dict[str, bytes]:
 
 
 @pytest.mark.slow  # fault test: SIGINT to a real process
-@pytest.mark.skipif(zarr is None, reason="the sweep store needs zarr >= 3 (Python >= 3.11)")
+@needs_zarr
 def test_ctrl_c_keeps_a_sweeps_chunks_and_resume_finishes_it(tmp_path, capsys):
     """A sweep of 80 one-point chunks interrupted after a few: exit status 130 within 2 s, one
     line with the chunks kept and the command that finishes the sweep, no lock file left; that

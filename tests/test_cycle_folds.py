@@ -49,6 +49,7 @@ def fold(cycles, fold_index):
     return fold_of_cycles(nikolai, PARAMS, "M", cycles.isel(point=fold_index))
 
 
+@pytest.mark.slow  # cost: the module's shooting continuation of cycles (~15 s) and fold solves
 def test_hard_side_cycles_turn_back_at_a_fold_below_the_hopf_point(hopf, cycles, fold_index):
     """The unstable small cycles born at M_c (l1 > 0) exist below it and grow until the fold;
     past it the branch turns back towards larger M as stable cycles whose amplitude keeps
@@ -72,6 +73,7 @@ def test_hard_side_cycles_turn_back_at_a_fold_below_the_hopf_point(hopf, cycles,
     assert cycles.attrs["stop_reason"] == "max_points"
 
 
+@pytest.mark.slow  # cost: the module's shooting continuation of cycles (~15 s) and fold solves
 def test_fold_solves_the_augmented_shooting_system(cycles, fold_index, fold):
     """Newton's method on the minimally augmented system converges from either neighbour of
     the fold and from the continuation's interpolated guess to the same point; there the cycle
@@ -102,6 +104,7 @@ def test_fold_solves_the_augmented_shooting_system(cycles, fold_index, fold):
     np.testing.assert_allclose(np.asarray(fold.multipliers), mu, atol=1e-8)
 
 
+@pytest.mark.slow  # cost: the module's shooting continuation of cycles (~15 s) and fold solves
 def test_between_the_fold_and_the_hopf_point_rest_and_the_large_cycle_coexist(
     hopf, cycles, fold_index, fold
 ):
@@ -128,6 +131,7 @@ def test_between_the_fold_and_the_hopf_point_rest_and_the_large_cycle_coexist(
     assert np.max(np.linalg.norm(th - theta_eq, axis=1)) < 0.05 * 0.05
 
 
+@pytest.mark.slow  # cost: the module's shooting continuation of cycles (~15 s) and fold solves
 def test_gradient_of_the_fold_against_finite_differences(cycles, fold_index, fold):
     """d M*/dp = -w^T G_p / w^T G_M (implicit function theorem at the fold, w the left null
     vector of the shooting Jacobian) against central differences of the located fold."""
@@ -146,6 +150,7 @@ def test_gradient_of_the_fold_against_finite_differences(cycles, fold_index, fol
     assert float(grad["b"]) == pytest.approx(float(fold.value) / PARAMS["b"], rel=0.05)
 
 
+@pytest.mark.slow  # cost: the module's shooting continuation of cycles (~15 s) and fold solves
 def test_an_iterate_through_the_singular_sphere_is_a_solve_failure(cycles, fold_index):
     """A guess on the singular sphere |theta| = 2 pi of (4.11), where the turn vector's
     equations are undefined: fast_simulate's failure is the fold's status, and its values are

@@ -20,6 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from helpers import needs_zarr
 from sweep_quantities import (
     DASK_AXES,
     DASK_CHUNK,
@@ -34,13 +35,6 @@ from rbo_jax.app import _cluster, cli
 from rbo_jax.app.cli import _cluster as cli_cluster
 from rbo_jax.batch import SweepError, _dask, _store, status_counts, sweep
 
-try:
-    import zarr
-except ImportError:  # zarr >= 3 needs Python >= 3.11; there sweeps run in memory only
-    zarr = None
-needs_zarr = pytest.mark.skipif(
-    zarr is None, reason="the sweep store needs zarr >= 3, which needs Python >= 3.11"
-)
 distributed = pytest.importorskip("distributed")
 
 HERE = Path(__file__).resolve().parent

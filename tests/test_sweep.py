@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import xarray as xr
+from helpers import needs_zarr, zarr
 from sweep_quantities import (
     DIST_AXES,
     DIST_CHUNK,
@@ -47,14 +48,6 @@ from rbo_jax.batch._space import _chunk_shape, make_space
 from rbo_jax.plotting import plot_sweep
 from rbo_jax.simulate import SolveStatus
 from rbo_jax.stability import StabilityKind
-
-try:
-    import zarr
-except ImportError:  # zarr >= 3 needs Python >= 3.11; there sweeps run in memory only
-    zarr = None
-needs_zarr = pytest.mark.skipif(
-    zarr is None, reason="the sweep store needs zarr >= 3, which needs Python >= 3.11"
-)
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
