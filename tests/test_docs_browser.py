@@ -32,11 +32,13 @@ ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
 
+# What is missing is said by each test (a skip there), not at import: a skip at import would show
+# in every run that merely collects this file, `make test` included, where it is deselected.
+MISSING = None
 if not (Path(CHROMIUM).is_file() and Path(CHROMEDRIVER).is_file()):
-    pytest.skip(
+    MISSING = (
         "no headless browser: install Debian's chromium and chromium-driver "
-        "(apt-get install chromium chromium-driver)",
-        allow_module_level=True,
+        "(apt-get install chromium chromium-driver)"
     )
 try:
     import mkdocs  # noqa: F401
@@ -45,10 +47,14 @@ try:
     from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.by import By
 except ImportError as error:
-    pytest.skip(
-        f"the docs extra is not installed ({error.name}): pip install -e '.[docs]'",
-        allow_module_level=True,
-    )
+    MISSING = MISSING or f"the docs extra is not installed ({error.name}): pip install -e '.[docs]'"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _browser_and_docs_extra():
+    if MISSING:
+        pytest.skip(MISSING)
+
 
 sys.path.insert(0, str(ROOT / "docs" / "_hooks"))
 from api_names import public_names  # noqa: E402
