@@ -1,4 +1,5 @@
-"""Quantities shared by tests/test_sweep.py and its subprocess worker (tests/_sweep_worker.py).
+"""Quantities shared by tests/test_sweep.py and its subprocess worker (tests/_sweep_worker.py),
+and a small sweep configuration shared by the CLI tests.
 
 Module-level functions, so that the compiled sweep program is cached across tests (the runner
 cache is keyed on the function) and identical in the test process and in its children.
@@ -16,6 +17,23 @@ import numpy as np
 import rbo_jax as rbo
 
 K = jnp.array([0.0, 0.0, 1.0])
+
+#: A small TOML sweep of the damped Nikolai problem (the CLI tests change it with str.replace).
+SMALL_CONFIG = """
+[sweep]
+quantity = "spectral_abscissa"
+output = "small.zarr"
+chunk_size = 4
+
+[axes]
+M = [0.0, 0.2, 0.4]
+b = { start = 0.0, stop = 0.3, num = 4 }
+
+[model]
+inertia = { A1 = 1.0, A3 = 0.5 }
+foundation = { type = "quadratic", c = 1.0, d = 2.0 }
+loads = [{ type = "follower", M = "M" }, { type = "friction", b = "b" }]
+"""
 
 #: Host hook settings: seconds to sleep per call, and a file to which each call appends a line.
 #: Read at call time, so the compiled program is the same whatever they are.

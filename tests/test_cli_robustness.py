@@ -18,6 +18,7 @@ import shlex
 
 import numpy as np
 import pytest
+from sweep_quantities import SMALL_CONFIG
 
 from rbo_jax.app import _outputs, cli
 from rbo_jax.app._io import read_trajectory_file, write_dataset
@@ -78,20 +79,11 @@ def _refused(capsys, computed, argv, *names):
     return lines[0]
 
 
-SWEEP_CONFIG = """
-[sweep]
-quantity = "spectral_abscissa"
-output = "small.zarr"
-chunk_size = 4
-
-[axes]
-M = [0.0, 0.2, 0.4]
-
-[model]
-inertia = { A1 = 1.0, A3 = 0.5 }
-foundation = { type = "quadratic", c = 1.0, d = 2.0 }
-loads = [{ type = "follower", M = "M" }]
-"""
+SWEEP_CONFIG = (  # SMALL_CONFIG without the friction and its axis b
+    SMALL_CONFIG.replace("b = { start = 0.0, stop = 0.3, num = 4 }\n", "").replace(
+        ', { type = "friction", b = "b" }', ""
+    )
+)
 
 
 @pytest.fixture

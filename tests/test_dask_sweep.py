@@ -25,6 +25,7 @@ from sweep_quantities import (
     DASK_AXES,
     DASK_CHUNK,
     NIKOLAI_DIMS,
+    SMALL_CONFIG,
     kills_its_worker,
     nikolai_spectrum,
     raises_for_large_c,
@@ -40,21 +41,9 @@ distributed = pytest.importorskip("distributed")
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
-CONFIG = """
-[sweep]
-quantity = "spectral_abscissa"
-output = "map.zarr"
-chunk_size = 1
-
-[axes]
-M = [0.0, 0.2, 0.4]
-b = { start = 0.0, stop = 0.3, num = 4 }
-
-[model]
-inertia = { A1 = 1.0, A3 = 0.5 }
-foundation = { type = "quadratic", c = 1.0, d = 2.0 }
-loads = [{ type = "follower", M = "M" }, { type = "friction", b = "b" }]
-"""
+CONFIG = SMALL_CONFIG.replace('output = "small.zarr"', 'output = "map.zarr"').replace(
+    "chunk_size = 4", "chunk_size = 1"
+)
 
 
 @pytest.fixture(scope="module")

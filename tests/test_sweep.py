@@ -33,6 +33,7 @@ from sweep_quantities import (
     KILL_CHUNK,
     NIKOLAI_AXES,
     NIKOLAI_DIMS,
+    SMALL_CONFIG,
     K,
     nikolai_abscissa,
     nikolai_model,
@@ -735,22 +736,6 @@ def test_plot_sweep_draws_grids_curves_and_points(nikolai):
 # ---------------------------------------------------------------------------------------------
 # The CLI and its configuration.
 # ---------------------------------------------------------------------------------------------
-
-SMALL_CONFIG = """
-[sweep]
-quantity = "spectral_abscissa"
-output = "small.zarr"
-chunk_size = 4
-
-[axes]
-M = [0.0, 0.2, 0.4]
-b = { start = 0.0, stop = 0.3, num = 4 }
-
-[model]
-inertia = { A1 = 1.0, A3 = 0.5 }
-foundation = { type = "quadratic", c = 1.0, d = 2.0 }
-loads = [{ type = "follower", M = "M" }, { type = "friction", b = "b" }]
-"""
 
 
 @needs_zarr
