@@ -226,8 +226,8 @@ def _final(static: BStatic, q, u, t):
     return second_lyapunov_coefficient(F, x0, omega, qv, adjoint)
 
 
-_secant_program = program(_secant, small=True)
-_final_program = program(_final, small=True)
+_secant_program = program(_secant, fast_compile=True)
+_final_program = program(_final, fast_compile=True)
 
 
 class Raw(NamedTuple):

@@ -144,7 +144,7 @@ class Raw(NamedTuple):
 
 # One program per model structure: with the program store on (rbo_jax.enable_compilation_cache)
 # a second process loads it traced (user functions keyed by their code, _programs).
-_program = program(hopf_program, small=True)  # XLA's options for small programs
+_program = program(hopf_program, fast_compile=True)  # XLA options: run in ms, compile fast
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
