@@ -306,6 +306,7 @@ _SMALL = {"xla_cpu_use_fusion_emitters": False}
 _FAST_COMPILE = {
     "xla_backend_optimization_level": 0,
     "xla_disable_hlo_passes": "while-loop-invariant-code-motion,simplify-while-loops",
+    "xla_cpu_parallel_codegen_split_count": 1,
 }
 
 
@@ -342,16 +343,18 @@ def fast_compile_options() -> dict | None:
     """XLA's options for programs that run in milliseconds and compile in seconds: the Newton
     loops around one traced jet of the vector field (:func:`rbo_jax.hopf_point`,
     :func:`rbo_jax.bautin_point`). Those of :func:`small_program_options`, and LLVM without
-    optimisation (``xla_backend_optimization_level=0``) and without XLA's two passes over while
+    optimisation (``xla_backend_optimization_level=0``), without XLA's two passes over while
     loops that run again and again over the whole loop body (``while-loop-invariant-code-motion``,
-    ``simplify-while-loops``; each run also reruns the simplification pipeline). Measured on the
-    2-core machine (Hopf program, best of two, under load): 6.8 -> 3.7 s to compile (code
-    generation 3.1 -> 0.4 s, HLO passes 2.9 -> 1.0 s), run time 2.8 -> 6.4 ms. Those of
-    :func:`small_program_options` where this XLA does not know them."""
-    small = small_program_options()
-    if small is None:
+    ``simplify-while-loops``; each run also reruns the simplification pipeline) and without
+    splitting the LLVM module for parallel code generation (``SplitModule`` took 0.3-0.4 s,
+    more than the unoptimised code generation it spreads). Measured on the 2-core machine (Hopf
+    program, best of two, load ~3): 4.65 -> 2.7 s to compile (code generation 3.1 -> 0.4 s,
+    HLO passes 2.9 -> 1.0 s at load ~5), run time 2.3 -> 5.4 ms; the Bautin program 2.9 ->
+    2.5 s without the split (best of six). LLVM -O0 forms no fused multiply-adds: results move
+    by rounding. Those of :func:`small_program_options` where this XLA does not know them."""
+    if jax.default_backend() != "cpu":
         return None
-    return _known({**small, **_FAST_COMPILE}) or small
+    return _known({**_SMALL, **_FAST_COMPILE}) or small_program_options()
 
 
 def _nested_options(e: ValueError) -> bool:

@@ -425,13 +425,15 @@ def test_small_programs_take_xla_options_at_the_top_level_only(monkeypatch):
 
 
 def test_fast_compile_programs_take_the_small_options_and_more():
-    """``fast_compile=True``: the small programs' options plus LLVM without optimisation and
-    without XLA's while-loop passes (where XLA knows them), at the top level only; same values."""
+    """``fast_compile=True``: the small programs' options plus LLVM without optimisation,
+    without XLA's while-loop passes and without parallel code generation (where XLA knows them),
+    at the top level only; same values."""
     options = _programs.fast_compile_options()
     assert options == {
         **_programs.small_program_options(),
         "xla_backend_optimization_level": 0,
         "xla_disable_hlo_passes": "while-loop-invariant-code-motion,simplify-while-loops",
+        "xla_cpu_parallel_codegen_split_count": 1,
     }
 
     def f(x):

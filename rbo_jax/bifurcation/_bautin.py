@@ -43,7 +43,7 @@ import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
-from .._programs import program
+from .._programs import jit, program
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._field import jet
@@ -293,7 +293,7 @@ def _implicit_tangent(grad, Ju, Jp, dp):
     return dbeta, -jnp.linalg.solve(Ju, Jp @ jnp.concatenate([dp, dbeta[None]]))
 
 
-@jax.jit
+@functools.partial(jit, fast_compile=True)
 def _finish(raw: Raw) -> BautinPoint:
     omega, a, b, _, _ = _oriented(raw.u)
     good = raw.status == _code(BautinStatus.successful)

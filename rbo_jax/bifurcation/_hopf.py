@@ -51,7 +51,7 @@ from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
 from .._callables import callable_key
-from .._programs import program
+from .._programs import jit, program
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._lyapunov import first_lyapunov_coefficient
@@ -178,7 +178,7 @@ def _nan_unless(good, x):
     return jnp.where(good, x, jnp.full_like(x, jnp.nan))
 
 
-@jax.jit
+@functools.partial(jit, fast_compile=True)
 def finish(raw: Raw) -> HopfPoint:
     """The :class:`HopfPoint` of a raw solution (the eigenvector normalised, conjugated where
     Newton found $-\\omega$), NaN values where the status is not successful."""
