@@ -44,7 +44,6 @@ from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
 from .._programs import jit, program
-from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._field import jet
 from ._hopf import (
@@ -56,6 +55,7 @@ from ._hopf import (
     canonical,
     flat_parameters,
 )
+from ._interface import Outcome, check_model_fn, check_params, check_theta_eq_fn, theta_guess_vector
 from ._normal_form import STENCIL, WEIGHTS, Schedule
 from ._system import DONE, _code, _oriented, _Problem, _typed, normalisation_vector
 
@@ -82,7 +82,7 @@ class BautinStatus(eqx.Enumeration):
     )
 
 
-class BautinPoint(eqx.Module):
+class BautinPoint(Outcome):
     r"""A generalized Hopf (Bautin) point (module docstring): ``value`` $= (\alpha_B, \beta_B)$
     of the two ``parameters``, the ``frequency`` $\omega$, the equilibrium ``theta``, the critical
     ``eigenvector``, ``first_lyapunov`` (≈ 0: the residual of $\ell_1 = 0$), its derivative
@@ -91,6 +91,7 @@ class BautinPoint(eqx.Module):
     back into a large stable cycle), the ``transversality`` of the Hopf point, the secant's
     ``num_steps`` and the ``status`` (:class:`BautinStatus`)."""
 
+    # this result's own fields, declared here (its pytree and its docs); `ok` is Outcome's
     value: Float[Array, "2"]
     frequency: Float[Array, ""]
     theta: Float[Array, "3"]
@@ -101,10 +102,6 @@ class BautinPoint(eqx.Module):
     transversality: Float[Array, ""]
     num_steps: Int[Array, ""]
     status: BautinStatus
-
-    @property
-    def ok(self):
-        return self.status == BautinStatus.successful
 
 
 class BStatic(NamedTuple):
@@ -317,6 +314,7 @@ def bautin_point(
     parameters: tuple[str, str],
     guess,
     *,
+    # keywords shared with hopf_point, continue_hopf (a public, documented signature)
     theta_eq_fn: Callable[..., object] | None = None,
     theta_guess=None,
     t=0.0,
@@ -349,10 +347,8 @@ def bautin_point(
     ``bautin_point(lambda M, b, A3: nikolai_model(M, 1.0, 2.0, A3=A3, friction=b), {"b": 0.1},
     ("M", "A3"), (0.2, 1.2))``.
     """
-    if not callable(model_fn):
-        raise TypeError("model_fn must be a callable model_fn(**params) -> RigidBodyOscillator.")
-    if not isinstance(params, Mapping):
-        raise TypeError(f"params must be a mapping {{name: value}}, got {type(params).__name__}.")
+    check_model_fn(model_fn)
+    check_params(params)
     if (
         not isinstance(parameters, (tuple, list))
         or len(parameters) != 2
@@ -360,17 +356,14 @@ def bautin_point(
         or parameters[0] == parameters[1]
     ):
         raise ValueError(f"parameters must be two different names of params, got {parameters!r}.")
-    if theta_eq_fn is not None and not callable(theta_eq_fn):
-        raise TypeError("theta_eq_fn must be a callable theta_eq_fn(**params) -> theta.")
+    check_theta_eq_fn(theta_eq_fn)
     dtype = jnp.result_type(float)
     alpha, beta = (str(n) for n in parameters)
     guess = guess if _is_traced(guess) else np.asarray(guess, dtype)
     if jnp.shape(guess) != (2,):
         raise ValueError(f"guess must be a pair ({alpha}, {beta}), got shape {jnp.shape(guess)}.")
     others = {str(k): v for k, v in params.items() if k not in (alpha, beta)}
-    theta_guess = (
-        np.zeros(3, dtype) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
-    )
+    theta_guess = theta_guess_vector(theta_guess, dtype)
     names, shapes, p = flat_parameters(others)
     hopf = Static(
         canonical(model_fn),
