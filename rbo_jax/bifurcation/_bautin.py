@@ -105,7 +105,7 @@ class BautinPoint(Outcome):
 
 
 class BStatic(NamedTuple):
-    """What the Bautin programs are compiled for: the Hopf program's static data (its flat
+    """What the Bautin program is compiled for: the Hopf program's static data (its flat
     parameters end with $\\beta$) and the secant's tolerances and budget."""
 
     hopf: Static
