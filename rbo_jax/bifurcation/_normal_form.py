@@ -236,7 +236,7 @@ class Schedule:
         directions of :meth:`evaluation`); after a stage's last evaluation, the stage's
         solves."""
         e = jnp.minimum(st["e"], EVALUATIONS - 1)
-        table = {k: jnp.asarray(v)[e] for k, v in _TABLES.items() if k != "rows"}
+        table = {k: jnp.asarray(_TABLES[k])[e] for k in ("pick", "form", "last", "stage")}
         weight = jnp.asarray(_TABLES["weight"], self.dtype)[e] * scale
         d = jnp.stack([d1, d2, d3])[table["pick"]]
         term = jnp.asarray(_TABLES["coeff"], self.cdtype)[e] * (weight * d).astype(self.cdtype)
