@@ -290,6 +290,12 @@ def stored(fn: Callable, options: Callable[[], dict | None] = lambda: None) -> C
 
 # XLA's options for small programs (small_program_options), known to this XLA or not
 _SMALL = {"xla_cpu_use_fusion_emitters": False}
+# and, added to them, for programs that run in milliseconds (fast_compile_options)
+_FAST_COMPILE = {
+    "xla_backend_optimization_level": 0,
+    "xla_disable_hlo_passes": "while-loop-invariant-code-motion,simplify-while-loops",
+    "xla_cpu_parallel_codegen_split_count": 1,
+}
 
 
 @functools.cache
@@ -308,11 +314,35 @@ def small_program_options() -> dict | None:
     program)."""
     if jax.default_backend() != "cpu":
         return None
+    return _known(dict(_SMALL))
+
+
+def _known(options: dict) -> dict | None:
+    """``options`` if this XLA compiles a tiny program with them, else ``None``."""
     try:
-        jax.jit(lambda x: x + 1.0).lower(np.float32(0.0)).compile(dict(_SMALL))
+        jax.jit(lambda x: x + 1.0).lower(np.float32(0.0)).compile(options)
     except jax.errors.JaxRuntimeError:
         return None
-    return dict(_SMALL)
+    return options
+
+
+@functools.cache
+def fast_compile_options() -> dict | None:
+    """XLA's options for programs that run in milliseconds and compile in seconds: the Newton
+    loops around one traced jet of the vector field (:func:`rbo_jax.hopf_point`,
+    :func:`rbo_jax.bautin_point`). Those of :func:`small_program_options`, and LLVM without
+    optimisation (``xla_backend_optimization_level=0``), without XLA's two passes over while
+    loops that run again and again over the whole loop body (``while-loop-invariant-code-motion``,
+    ``simplify-while-loops``; each run also reruns the simplification pipeline) and without
+    splitting the LLVM module for parallel code generation (``SplitModule`` took 0.3-0.4 s,
+    more than the unoptimised code generation it spreads). Measured on the 2-core machine (Hopf
+    program, best of two, load ~3): 4.65 -> 2.7 s to compile (code generation 3.1 -> 0.4 s,
+    HLO passes 2.9 -> 1.0 s at load ~5), run time 2.3 -> 5.4 ms; the Bautin program 2.9 ->
+    2.5 s without the split (best of six). LLVM -O0 forms no fused multiply-adds: results move
+    by rounding. Those of :func:`small_program_options` where this XLA does not know them."""
+    if jax.default_backend() != "cpu":
+        return None
+    return _known({**_SMALL, **_FAST_COMPILE}) or small_program_options()
 
 
 def _nested_options(e: ValueError) -> bool:
@@ -320,29 +350,29 @@ def _nested_options(e: ValueError) -> bool:
     return "compiler_options" in str(e) and "top-level" in str(e)
 
 
-def jit(fn: Callable, *, small: bool = False) -> Callable:
+def jit(fn: Callable, *, small: bool = False, fast_compile: bool = False) -> Callable:
     """``eqx.filter_jit(fn)``, with ``small``: compiled with :func:`small_program_options` when
     called at the top level (JAX refuses compiler options on a jit inside another trace: there
-    it is the plain ``eqx.filter_jit``, inlined in the caller's program). The jitted functions
-    are made on first use (the options need JAX's backend, which ``import rbo_jax`` does not
-    start)."""
+    it is the plain ``eqx.filter_jit``, inlined in the caller's program); ``fast_compile``: with
+    :func:`fast_compile_options` instead. The jitted functions are made on first use (the
+    options need JAX's backend, which ``import rbo_jax`` does not start)."""
     made: dict = {}
 
-    def jitted(options):
-        if options not in made:
-            made[options] = eqx.filter_jit(
-                fn, compiler_options=small_program_options() if options else None
-            )
-        return made[options]
+    def options():
+        if fast_compile:
+            return fast_compile_options()
+        return small_program_options() if small else None
+
+    def jitted(top_level):
+        key = repr(options()) if top_level else None
+        if key not in made:
+            made[key] = eqx.filter_jit(fn, compiler_options=options() if top_level else None)
+        return made[key]
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if (
-            small
-            and small_program_options() is not None
-            and not any(
-                isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))
-            )
+        if options() is not None and not any(
+            isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))
         ):
             try:
                 return jitted(True)(*args, **kwargs)
@@ -352,13 +382,15 @@ def jit(fn: Callable, *, small: bool = False) -> Callable:
         return jitted(False)(*args, **kwargs)
 
     def lower(*args, **kwargs):
-        return jitted(small and small_program_options() is not None).lower(*args, **kwargs)
+        return jitted(options() is not None).lower(*args, **kwargs)
 
     call.lower = lower
+    call.options = options
     return call
 
 
-def program(fn: Callable, *, small: bool = False) -> Callable:
+def program(fn: Callable, *, small: bool = False, fast_compile: bool = False) -> Callable:
     """The compiled entry point of ``fn``: :func:`jit` of it, kept by the program store
     (:func:`stored`; positional arguments only)."""
-    return stored(jit(fn, small=small), small_program_options if small else lambda: None)
+    jitted = jit(fn, small=small, fast_compile=fast_compile)
+    return stored(jitted, jitted.options)

@@ -424,3 +424,25 @@ def test_small_programs_take_xla_options_at_the_top_level_only(monkeypatch):
     finally:
         monkeypatch.undo()
         _programs.small_program_options.cache_clear()
+
+
+def test_fast_compile_programs_take_the_small_options_and_more():
+    """``fast_compile=True``: the small programs' options plus LLVM without optimisation,
+    without XLA's while-loop passes and without parallel code generation (where XLA knows them),
+    at the top level only; same values."""
+    options = _programs.fast_compile_options()
+    assert options == {
+        **_programs.small_program_options(),
+        "xla_backend_optimization_level": 0,
+        "xla_disable_hlo_passes": "while-loop-invariant-code-motion,simplify-while-loops",
+        "xla_cpu_parallel_codegen_split_count": 1,
+    }
+
+    def f(x):
+        return jax.lax.fori_loop(0, 3, lambda i, y: jnp.sin(y) * 2.0, x)
+
+    x = jnp.linspace(0.0, 1.0, 5)
+    fast = _programs.jit(f, fast_compile=True)
+    np.testing.assert_allclose(fast(x), f(x), rtol=1e-15)
+    np.testing.assert_allclose(jax.jit(fast)(x), f(x), rtol=1e-15)
+    assert _programs.program(f, fast_compile=True)(x).shape == x.shape

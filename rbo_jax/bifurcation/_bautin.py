@@ -17,9 +17,11 @@ $\alpha_F$ and $\alpha_H$ the equilibrium and a large stable cycle coexist (hyst
 below ``atol + rtol·|β|`` (superlinear convergence). The same loop then solves the Hopf points
 at $q \pm he_i$, $q \pm 2he_i$ around the solution $q = (p, \beta_B)$ ($p$ the other parameters,
 $h = 10^{-3}\max(1, |q_i|)$): the gradient of $\ell_1$ along the Hopf curve by Richardson's
-central differences, $O(h^4)$, ~1e-9 relative (one compiled loop around one copy of the Hopf
-program; the exact derivative would need fourth derivatives of the vector field, whose traced
-program took minutes to compile). A second program computes $\ell_2$ at the solution.
+central differences, $O(h^4)$, ~1e-9 relative (the exact derivative would need fourth
+derivatives of the vector field, whose traced program took minutes to compile), and finally the
+second Lyapunov coefficient $\ell_2$ at the solution (:mod:`._normal_form`). All of it is ONE
+compiled loop around ONE traced third-order jet of the vector field (:func:`._field.jet`), one
+evaluation per iteration: the Hopf system's rows, then those of $\ell_2$ (:func:`_program`).
 
 **Derivatives** of the Bautin point follow from the implicit function theorem for the pair of
 equations (Hopf system, $\ell_1 = 0$): $d\beta_B = -\nabla_p\ell_1\cdot dp/\partial_\beta\ell_1$,
@@ -41,9 +43,9 @@ import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
-from .._programs import program
-from ..kinematics import _as_vector
+from .._programs import jit, program
 from ..model import RigidBodyOscillator
+from ._field import jet
 from ._hopf import (
     HopfStatus,
     Static,
@@ -52,10 +54,10 @@ from ._hopf import (
     _zero_tangent,
     canonical,
     flat_parameters,
-    solution,
 )
-from ._normal_form import STENCIL, WEIGHTS, second_lyapunov_coefficient
-from ._system import _adjoint_vector, _code, _oriented, _Problem, normalisation_vector
+from ._interface import Outcome, check_model_fn, check_params, check_theta_eq_fn, theta_guess_vector
+from ._normal_form import STENCIL, WEIGHTS, Schedule
+from ._system import DONE, _code, _oriented, _Problem, _typed, normalisation_vector
 
 __all__ = ["BautinPoint", "BautinStatus", "bautin_point"]
 
@@ -80,7 +82,7 @@ class BautinStatus(eqx.Enumeration):
     )
 
 
-class BautinPoint(eqx.Module):
+class BautinPoint(Outcome):
     r"""A generalized Hopf (Bautin) point (module docstring): ``value`` $= (\alpha_B, \beta_B)$
     of the two ``parameters``, the ``frequency`` $\omega$, the equilibrium ``theta``, the critical
     ``eigenvector``, ``first_lyapunov`` (≈ 0: the residual of $\ell_1 = 0$), its derivative
@@ -89,6 +91,7 @@ class BautinPoint(eqx.Module):
     back into a large stable cycle), the ``transversality`` of the Hopf point, the secant's
     ``num_steps`` and the ``status`` (:class:`BautinStatus`)."""
 
+    # this result's own fields, declared here (its pytree and its docs); `ok` is Outcome's
     value: Float[Array, "2"]
     frequency: Float[Array, ""]
     theta: Float[Array, "3"]
@@ -100,13 +103,9 @@ class BautinPoint(eqx.Module):
     num_steps: Int[Array, ""]
     status: BautinStatus
 
-    @property
-    def ok(self):
-        return self.status == BautinStatus.successful
-
 
 class BStatic(NamedTuple):
-    """What the Bautin programs are compiled for: the Hopf program's static data (its flat
+    """What the Bautin program is compiled for: the Hopf program's static data (its flat
     parameters end with $\\beta$) and the secant's tolerances and budget."""
 
     hopf: Static
@@ -115,119 +114,139 @@ class BStatic(NamedTuple):
     max_steps: int
 
 
-def _start(h: Static, p, guess, theta0, t, n):
-    """The loop's first carry: nothing solved yet (zeros shaped as the Hopf program's output)."""
-    dtype = p.dtype
-    cold = (jnp.zeros(17, dtype), jnp.zeros(12, dtype), jnp.asarray(False))
-    q = jnp.concatenate([p, guess[1:]])
-    shapes = jax.eval_shape(lambda: solution(h, q, guess[0], theta0, t, *cold))
-    return dict(
-        b_prev=guess[1],
-        l_prev=jnp.zeros((), dtype),
-        b=guess[1],
-        l=jnp.zeros((), dtype),
-        raw=jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes),
-        u=cold[0],
-        w=cold[1],
-        k=jnp.asarray(0, jnp.int32),
-        j=jnp.asarray(0, jnp.int32),
-        values=jnp.zeros(4 * n, dtype),
-        code=jnp.asarray(_code(BautinStatus.successful), jnp.int32),
-        phase=jnp.asarray(0, jnp.int32),
-    )
+SECANT, GRADIENT, SECOND, FINISHED = range(4)  # the phases of the program's loop
 
 
-def _secant(static: BStatic, p, guess, theta0, t, step):
-    r"""The secant iteration on $\ell_1(\beta)$ (module docstring), then the gradient of $\ell_1$
-    along the Hopf curve with respect to $q = (p, \beta)$ by central differences of Hopf points
-    solved again at $q \pm h e_i$, $q \pm 2he_i$ ($h = 10^{-3}\max(1, |q_i|)$, Richardson's
-    stencil: ~1e-9 relative): one loop around ONE copy of the Hopf program, whose phase picks
-    the point to solve. Returns ``(beta, u, Ju, Jp, transversality, l1, grad, steps, code)``."""
-    dtype, h = p.dtype, static.hopf
-    n = p.shape[0] + 1
-    ok_code, failed = _code(BautinStatus.successful), _code(BautinStatus.hopf_failed)
+class _Bautin:
+    r"""The Bautin point in ONE loop around ONE traced third-order jet of the vector field
+    (:func:`._field.jet`), one evaluation per iteration (:meth:`body`): the Hopf solves of the
+    secant iteration on $\ell_1(\beta)$ (module docstring; the Hopf system's loop of
+    :class:`._system._Problem`, restarted warm at each new $\beta$), then those at
+    $q \pm he_i$, $q \pm 2he_i$ around the solution $q = (p, \beta)$ ($h = 10^{-3}\max(1,
+    |q_i|)$: the gradient of $\ell_1$ along the Hopf curve by Richardson's central differences,
+    ~1e-9 relative), then the evaluations of $\ell_2$ at the solution
+    (:class:`._normal_form.Schedule`)."""
 
-    def point(c):
-        """The flat parameters of this iteration's Hopf solve."""
-        b0 = guess[1]
+    def __init__(self, static: BStatic, p, guess, theta0, t, step):
+        self.static, self.p, self.guess, self.theta0, self.t, self.step = (
+            static, p, guess, theta0, t, step,
+        )  # fmt: skip
+        self.dtype, self.n = p.dtype, p.shape[0] + 1
+        self.schedule = Schedule(6, p.dtype)
+
+    def problem(self, q) -> _Problem:
+        """The Hopf system at the flat parameters $q = (p, \beta)$."""
+        h = self.static.hopf
+        return _Problem(
+            h.model_fn, h.parameter, h.names, h.shapes, h.rtol, h.atol, h.max_steps, q, self.t
+        )
+
+    def point(self, c):
+        r"""The flat parameters $q = (p, \beta)$ of the next Hopf solve: the secant's next
+        $\beta$ (phase ``SECANT``), or the ``j``-th point of the stencil around the solution
+        (``GRADIENT``); and the secant's slope."""
+        p, b0, n = self.p, self.guess[1], self.n
         slope = (c["l"] - c["l_prev"]) / (c["b"] - c["b_prev"])
-        b = jnp.where(c["k"] == 0, b0, b0 + step * jnp.maximum(jnp.abs(b0), 1.0))
+        b = jnp.where(c["k"] == 0, b0, b0 + self.step * jnp.maximum(jnp.abs(b0), 1.0))
         b = jnp.where(c["k"] >= 2, c["b"] - c["l"] / slope, b)
         i, j = c["j"] % n, c["j"] // n
         q = jnp.concatenate([p, c["b"][None]])
         h_i = 1e-3 * jnp.maximum(jnp.abs(q[i]), 1.0)
-        fd = q.at[i].add(jnp.asarray(STENCIL, dtype)[jnp.minimum(j, 3)] * h_i)
-        return jnp.where(c["phase"] == 0, jnp.concatenate([p, b[None]]), fd), slope
+        fd = q.at[i].add(jnp.asarray(STENCIL, self.dtype)[jnp.minimum(j, 3)] * h_i)
+        return jnp.where(c["phase"] == SECANT, jnp.concatenate([p, b[None]]), fd), slope
 
-    def body(c):
-        q, slope = point(c)
-        raw = solution(h, q, guess[0], theta0, t, c["u"], c["w"], c["k"] > 0)
-        hopf_ok = raw.status == _HOPF_OK
-        b, k = q[-1], c["k"] + 1
+    def initial(self) -> dict:
+        """The first carry: the cold Hopf solve at the guess, nothing else done."""
+        dtype, i32, guess, cdtype = self.dtype, jnp.int32, self.guess, self.schedule.cdtype
+        q0 = jnp.concatenate([self.p, guess[1:]])
+        cold = jnp.zeros(17, dtype), jnp.zeros(12, dtype), jnp.asarray(False)
+        h = self.static.hopf
+        start = self.problem(q0).first_state(h.theta_eq_fn, guess[0], self.theta0, *cold)
+        zero = jnp.zeros((), dtype)
+        c = dict(hopf=start, q=q0, b_prev=guess[1], l_prev=zero, b=guess[1], l=zero)
+        c.update(k=jnp.asarray(0, i32), j=jnp.asarray(0, i32), values=jnp.zeros(4 * self.n, dtype))
+        c.update(code=jnp.asarray(_code(BautinStatus.successful), i32))
+        c.update(phase=jnp.asarray(SECANT, i32))
+        # the last secant solve (its Jacobians: the implicit function theorem) and l2's loop
+        c.update(u=cold[0], Ju=jnp.zeros((17, 17), dtype), Jp=jnp.zeros((17, self.n), dtype))
+        z6 = jnp.zeros(6, cdtype)
+        second = self.schedule.initial_state(jnp.zeros((6, 6), dtype), 0.0, z6, z6)
+        return jax.tree.map(jnp.asarray, {**c, "transversality": zero, "second": second})
+
+    def solved(self, c):
+        r"""After a Hopf solve: the secant's step or the stencil's value, then the next solve
+        (warm, from the secant's last point) or the evaluations of $\ell_2$."""
+        static, s, i32 = self.static, c["hopf"], jnp.int32
+        ok_code, failed = _code(BautinStatus.successful), _code(BautinStatus.hopf_failed)
+        u, Ju, Jp, _, _, status, adjoint, l1, trans = self.problem(c["q"]).outputs(
+            s, self.guess[0], c["k"] > 0
+        )
+        hopf_ok = status == _HOPF_OK
+        _, slope = self.point(c)
+        b, k = c["q"][-1], c["k"] + 1
         small = (k >= 3) & (jnp.abs(b - c["b"]) <= static.atol + static.rtol * jnp.abs(b))
         flat = (k <= 2) | (jnp.isfinite(slope) & (slope != 0))
         code = jnp.where(hopf_ok, ok_code, failed)
         code = jnp.where(flat, code, _code(BautinStatus.degenerate))
         code = jnp.where(~small & (k >= static.max_steps), _code(BautinStatus.not_converged), code)
         stop = (code != ok_code) | small
-        secant = dict(
-            c,
-            b_prev=c["b"],
-            l_prev=c["l"],
-            b=b,
-            l=raw.first_lyapunov,
-            raw=raw,
-            u=raw.u,
-            w=normalisation_vector(raw.u),
-            k=k,
-            code=code.astype(jnp.int32),
-            phase=jnp.where(stop, jnp.where(code == ok_code, 1, 2), 0).astype(jnp.int32),
-        )
-        fd = dict(
-            c,
-            values=c["values"].at[c["j"]].set(raw.first_lyapunov),
-            j=c["j"] + 1,
-            code=jnp.where(hopf_ok, c["code"], failed).astype(jnp.int32),
-            phase=jnp.where((c["j"] + 1 >= 4 * n) | ~hopf_ok, 2, 1).astype(jnp.int32),
-        )
-        return jax.tree.map(lambda a, b: jnp.where(c["phase"] == 0, a, b), secant, fd)
+        omega, a, b_, _, _ = _oriented(u)
+        second = self.schedule.initial_state(s["J"], omega, jax.lax.complex(a, b_), adjoint)
+        secant = dict(c, b_prev=c["b"], l_prev=c["l"], b=b, l=l1, u=u, Ju=Ju, Jp=Jp, k=k)
+        secant.update(transversality=trans, code=code.astype(i32), second=second)
+        secant["phase"] = jnp.where(stop, jnp.where(code == ok_code, GRADIENT, FINISHED), SECANT)
+        last = c["j"] + 1 >= 4 * self.n
+        fd = dict(c, values=c["values"].at[c["j"]].set(l1), j=c["j"] + 1)
+        fd["code"] = jnp.where(hopf_ok, c["code"], failed).astype(i32)
+        fd["phase"] = jnp.where(~hopf_ok, FINISHED, jnp.where(last, SECOND, GRADIENT))
+        new = jax.tree.map(lambda x, y: jnp.where(c["phase"] == SECANT, x, y), secant, fd)
+        new = _typed(new, c)
+        q, _ = self.point(new)
+        w = normalisation_vector(new["u"])
+        again = self.problem(q).initial_state(new["u"], w, True, s["theta_eq"])
+        return _typed({**new, "q": q, "hopf": again}, c)
 
-    c = jax.lax.while_loop(lambda c: c["phase"] < 2, body, _start(h, p, guess, theta0, t, n))
+    def body(self, c):
+        """One evaluation of the jet: a row of the Hopf system (:meth:`._system._Problem.
+        evaluation`) or of $\\ell_2$ (:meth:`._normal_form.Schedule.evaluation`), then the
+        step of the one that asked for it."""
+        dtype, schedule = self.dtype, self.schedule
+        hopf = self.problem(c["q"])
+        y_h, t_h = hopf.evaluation(c["hopf"])
+        shift, t_2, scale = schedule.evaluation(c["second"])
+        m, u = y_h.shape[0], c["u"]
+        y_2 = jnp.concatenate([u[:3] + shift[:3], shift[3:], u[3:4], self.p, c["b"][None]])
+        t_2 = jnp.concatenate([t_2, jnp.zeros((3, m - 6), dtype)], axis=1)
+        second = c["phase"] == SECOND
+        y, d = jnp.where(second, y_2, y_h), jnp.where(second, t_2, t_h)
+        derivatives = jet(hopf.field, y, d[0], d[1], d[2])
+
+        def hopf_step(c):
+            c = _typed({**c, "hopf": hopf.advance(c["hopf"], *derivatives)}, c)
+            return jax.lax.cond(c["hopf"]["phase"] >= DONE, self.solved, lambda c: c, c)
+
+        def second_step(c):
+            st = schedule.advance(c["second"], scale, *derivatives[1:])
+            phase = jnp.where(schedule.done(st), FINISHED, SECOND)
+            return _typed({**c, "second": st, "phase": phase}, c)
+
+        return jax.lax.cond(second, second_step, hopf_step, c)
+
+
+def _program(static: BStatic, p, guess, theta0, t, step):
+    """:class:`_Bautin`'s loop. Returns ``(beta, u, Ju, Jp, transversality, l1, grad, steps,
+    code, l2)``."""
+    bautin = _Bautin(static, p, guess, theta0, t, step)
+    c = jax.lax.while_loop(lambda c: c["phase"] < FINISHED, bautin.body, bautin.initial())
     q = jnp.concatenate([p, c["b"][None]])
     h_q = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
-    grad = jnp.tensordot(jnp.asarray(WEIGHTS, dtype), c["values"].reshape(4, n), 1) / h_q
-    raw = c["raw"]
-    return (
-        c["b"],
-        raw.u,
-        raw.Ju,
-        raw.Jp,
-        raw.transversality,
-        raw.first_lyapunov,
-        grad,
-        c["k"],
-        c["code"],
-    )
+    values = c["values"].reshape(4, bautin.n)
+    grad = jnp.tensordot(jnp.asarray(WEIGHTS, p.dtype), values, 1) / h_q
+    out = (c["b"], c["u"], c["Ju"], c["Jp"], c["transversality"], c["l"], grad, c["k"])
+    return out + (c["code"], Schedule.result(c["second"]))
 
 
-def _final(static: BStatic, q, u, t):
-    r"""$\ell_2$ (:mod:`._normal_form`) at the Hopf solution ``u`` for the flat parameters
-    $q = (p, \beta)$, with the adjoint vector of $J$ at the point."""
-    h = static.hopf
-    problem = _Problem(h.model_fn, h.parameter, h.names, h.shapes, 0.0, 0.0, 0, q, t)
-
-    def F(x):
-        return problem.field(jnp.concatenate([x, u[3:4], q]))
-
-    x0 = jnp.concatenate([u[:3], jnp.zeros(3, u.dtype)])
-    omega, a, b, _, _ = _oriented(u)
-    qv = jax.lax.complex(a, b)
-    adjoint = _adjoint_vector(jax.jacfwd(F)(x0), omega, qv)
-    return second_lyapunov_coefficient(F, x0, omega, qv, adjoint)
-
-
-_secant_program = program(_secant, small=True)
-_final_program = program(_final, small=True)
+_bautin_program = program(_program, fast_compile=True)
 
 
 class Raw(NamedTuple):
@@ -246,10 +265,9 @@ class Raw(NamedTuple):
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def bautin_solution(static: BStatic, p, guess, theta0, t, step) -> Raw:
     """The raw Bautin point; differentiable in ``p`` (module docstring)."""
-    beta, u, Ju, Jp, trans, l1, grad, steps, code = _secant_program(
+    beta, u, Ju, Jp, trans, l1, grad, steps, code, l2 = _bautin_program(
         static, p, guess, theta0, t, step
     )
-    l2 = _final_program(static, jnp.concatenate([p, beta[None]]), u, t)
     return Raw(beta, u, trans, l1, grad, l2, steps, code, Ju, Jp)
 
 
@@ -272,7 +290,7 @@ def _implicit_tangent(grad, Ju, Jp, dp):
     return dbeta, -jnp.linalg.solve(Ju, Jp @ jnp.concatenate([dp, dbeta[None]]))
 
 
-@jax.jit
+@functools.partial(jit, fast_compile=True)
 def _finish(raw: Raw) -> BautinPoint:
     omega, a, b, _, _ = _oriented(raw.u)
     good = raw.status == _code(BautinStatus.successful)
@@ -296,6 +314,7 @@ def bautin_point(
     parameters: tuple[str, str],
     guess,
     *,
+    # keywords shared with hopf_point, continue_hopf (a public, documented signature)
     theta_eq_fn: Callable[..., object] | None = None,
     theta_guess=None,
     t=0.0,
@@ -320,19 +339,16 @@ def bautin_point(
     **Returns** a :class:`BautinPoint`; never raises for a failed solve (``status`` says why,
     values are NaN). ``jax.grad``/``jax.jacfwd`` of ``value`` (and ``frequency``, ``theta``)
     with respect to the other entries of ``params`` by the implicit function theorem; ``vmap``
-    over them works. Two compiled programs per model structure (the secant loop around the
-    Hopf program, with the gradient of $\ell_1$; $\ell_2$), kept by the program store when it is on
-    (:func:`rbo_jax.enable_compilation_cache`).
+    over them works. One compiled program per model structure (module docstring), kept by the
+    program store when it is on (:func:`rbo_jax.enable_compilation_cache`).
 
     Example: the damped Nikolai problem (4.57), (4.84), whose critical moment
     $M_c = 2b\sqrt{K(M_c)/A_1}$ does not depend on $A_3$ while $\ell_1$ does:
     ``bautin_point(lambda M, b, A3: nikolai_model(M, 1.0, 2.0, A3=A3, friction=b), {"b": 0.1},
     ("M", "A3"), (0.2, 1.2))``.
     """
-    if not callable(model_fn):
-        raise TypeError("model_fn must be a callable model_fn(**params) -> RigidBodyOscillator.")
-    if not isinstance(params, Mapping):
-        raise TypeError(f"params must be a mapping {{name: value}}, got {type(params).__name__}.")
+    check_model_fn(model_fn)
+    check_params(params)
     if (
         not isinstance(parameters, (tuple, list))
         or len(parameters) != 2
@@ -340,17 +356,14 @@ def bautin_point(
         or parameters[0] == parameters[1]
     ):
         raise ValueError(f"parameters must be two different names of params, got {parameters!r}.")
-    if theta_eq_fn is not None and not callable(theta_eq_fn):
-        raise TypeError("theta_eq_fn must be a callable theta_eq_fn(**params) -> theta.")
+    check_theta_eq_fn(theta_eq_fn)
     dtype = jnp.result_type(float)
     alpha, beta = (str(n) for n in parameters)
     guess = guess if _is_traced(guess) else np.asarray(guess, dtype)
     if jnp.shape(guess) != (2,):
         raise ValueError(f"guess must be a pair ({alpha}, {beta}), got shape {jnp.shape(guess)}.")
     others = {str(k): v for k, v in params.items() if k not in (alpha, beta)}
-    theta_guess = (
-        np.zeros(3, dtype) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
-    )
+    theta_guess = theta_guess_vector(theta_guess, dtype)
     names, shapes, p = flat_parameters(others)
     hopf = Static(
         canonical(model_fn),

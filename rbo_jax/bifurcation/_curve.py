@@ -74,6 +74,7 @@ def continue_hopf(
     along: str,
     values,
     *,
+    # keywords shared with hopf_point, bautin_point (a public, documented signature)
     theta_eq_fn: Callable[..., object] | None = None,
     theta_guess=None,
     t=0.0,

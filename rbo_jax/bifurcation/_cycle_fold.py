@@ -45,7 +45,6 @@ import functools
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -56,19 +55,21 @@ from .._programs import program
 from ..model import RigidBodyOscillator
 from ._field import flat_field
 from ._hopf import _zero_tangent, canonical, flat_parameters
+from ._interface import Outcome, check_model_fn
 from ._orbit import OrbitStatus, _sorted, flow
 from ._system import _build, unpack_parameters
 
 __all__ = ["FoldOfCycles", "fold_of_cycles"]
 
 
-class FoldOfCycles(eqx.Module):
+class FoldOfCycles(Outcome):
     r"""A fold of limit cycles (module docstring): the parameter ``value`` $\alpha^*$ at the
     fold, the cycle there (``period``, initial state ``theta0``, ``Omega0``), its six Floquet
     ``multipliers`` (sorted by decreasing modulus; two equal 1), the ``residual`` (max norm of
     the shooting equations and the test function), Newton's ``num_steps`` and the ``status``
     (:class:`rbo_jax.bifurcation.OrbitStatus`)."""
 
+    # this result's own fields, declared here (its pytree and its docs); `ok` is Outcome's
     value: Float[Array, ""]
     period: Float[Array, ""]
     theta0: Float[Array, "3"]
@@ -78,14 +79,11 @@ class FoldOfCycles(eqx.Module):
     num_steps: Int[Array, ""]
     status: OrbitStatus
 
-    @property
-    def ok(self):
-        return self.status == OrbitStatus.successful
-
 
 class Static(NamedTuple):
     """What the fold program is compiled for (hashable, stable reprs)."""
 
+    # alike the Hopf program's Static, but the static data of another program (fold_program)
     model_fn: Callable
     parameter: str
     names: tuple[str, ...]
@@ -98,6 +96,7 @@ class Static(NamedTuple):
 
 
 class Raw(NamedTuple):
+    # this program's outputs, in its order (alike other programs' Raw, not the same)
     y: Array  # (x0, T, alpha)
     residual: Array
     num_steps: Array
@@ -285,8 +284,7 @@ def fold_of_cycles(
     derivatives of the flow with respect to $p$). Compiled once per structure of ``model_fn``
     and ``params``.
     """
-    if not callable(model_fn):
-        raise TypeError("model_fn must be a callable model_fn(**params) -> RigidBodyOscillator.")
+    check_model_fn(model_fn)
     dtype = jnp.result_type(float)
     others = {str(k): v for k, v in params.items() if k != parameter}  # flat, by sorted name
     names, shapes, p = flat_parameters(others)

@@ -43,7 +43,6 @@ import functools
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -51,16 +50,16 @@ from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
 from .._callables import callable_key
-from .._programs import program
-from ..kinematics import _as_vector
+from .._programs import jit, program
 from ..model import RigidBodyOscillator
+from ._interface import Outcome, check_model_fn, check_params, check_theta_eq_fn, theta_guess_vector
 from ._lyapunov import first_lyapunov_coefficient
 from ._system import HopfStatus, hopf_program
 
 __all__ = ["HopfStatus", "HopfPoint", "hopf_point", "first_lyapunov_coefficient"]
 
 
-class HopfPoint(eqx.Module):
+class HopfPoint(Outcome):
     r"""A Hopf point (module docstring): the critical ``value`` of the parameter, the
     ``frequency`` $\omega > 0$ of the eigenvalue pair $\pm i\omega$, the equilibrium ``theta``,
     the critical ``eigenvector`` $q$ ($Jq = i\omega q$, $|q| = 1$) and adjoint ``adjoint``
@@ -69,6 +68,7 @@ class HopfPoint(eqx.Module):
     ``residual`` (max norm at the solution) and ``num_steps``, and the ``status``
     (:class:`HopfStatus`)."""
 
+    # this result's own fields, declared here (its pytree and its docs); `ok` is Outcome's
     value: Float[Array, ""]
     frequency: Float[Array, ""]
     theta: Float[Array, "3"]
@@ -79,10 +79,6 @@ class HopfPoint(eqx.Module):
     residual: Float[Array, ""]
     num_steps: Int[Array, ""]
     status: HopfStatus
-
-    @property
-    def ok(self):
-        return self.status == HopfStatus.successful
 
     @property
     def supercritical(self):
@@ -120,6 +116,7 @@ def canonical(fn):
 class Static(NamedTuple):
     """What the program of :func:`hopf_point` is compiled for (hashable, stable reprs)."""
 
+    # alike _cycle_fold.Static, but the static data of another program (hopf_program)
     model_fn: Callable
     theta_eq_fn: Callable | None
     parameter: str
@@ -131,6 +128,7 @@ class Static(NamedTuple):
 
 
 class Raw(NamedTuple):
+    # this program's outputs, in its order (alike other programs' Raw, not the same)
     u: Array
     Ju: Array
     Jp: Array
@@ -144,7 +142,7 @@ class Raw(NamedTuple):
 
 # One program per model structure: with the program store on (rbo_jax.enable_compilation_cache)
 # a second process loads it traced (user functions keyed by their code, _programs).
-_program = program(hopf_program, small=True)  # XLA's options for small programs
+_program = program(hopf_program, fast_compile=True)  # XLA options: run in ms, compile fast
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -178,7 +176,7 @@ def _nan_unless(good, x):
     return jnp.where(good, x, jnp.full_like(x, jnp.nan))
 
 
-@jax.jit
+@functools.partial(jit, fast_compile=True)
 def finish(raw: Raw) -> HopfPoint:
     """The :class:`HopfPoint` of a raw solution (the eigenvector normalised, conjugated where
     Newton found $-\\omega$), NaN values where the status is not successful."""
@@ -234,6 +232,7 @@ def hopf_point(
     parameter: str,
     guess,
     *,
+    # keywords shared with bautin_point, continue_hopf (a public, documented signature)
     theta_eq_fn: Callable[..., object] | None = None,
     theta_guess=None,
     t=0.0,
@@ -273,14 +272,11 @@ def hopf_point(
     nikolai_model(M, friction=b), {"b": 0.1}, "M", 0.1)`` gives the critical follower moment
     $M_{cr} = 2b\sqrt{K(M_{cr})/A_1}$ and $\omega = \sqrt{K/A_1}$.
     """
-    if not callable(model_fn):
-        raise TypeError("model_fn must be a callable model_fn(**params) -> RigidBodyOscillator.")
-    if not isinstance(params, Mapping):
-        raise TypeError(f"params must be a mapping {{name: value}}, got {type(params).__name__}.")
+    check_model_fn(model_fn)
+    check_params(params)
     if not isinstance(parameter, str):
         raise TypeError(f"parameter must be the name of an entry of params, got {parameter!r}.")
-    if theta_eq_fn is not None and not callable(theta_eq_fn):
-        raise TypeError("theta_eq_fn must be a callable theta_eq_fn(**params) -> theta.")
+    check_theta_eq_fn(theta_eq_fn)
     dtype = jnp.result_type(float)
     others = {str(k): v for k, v in params.items() if k != parameter}
     guess = _scalar(guess, dtype)
@@ -288,9 +284,7 @@ def hopf_point(
         raise ValueError(
             f"guess must be a scalar value of {parameter!r}, got shape {jnp.shape(guess)}."
         )
-    theta_guess = (
-        np.zeros(3, dtype) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
-    )
+    theta_guess = theta_guess_vector(theta_guess, dtype)
     names, shapes, p = flat_parameters(others)
     static = Static(
         canonical(model_fn),

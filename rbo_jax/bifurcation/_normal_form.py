@@ -42,10 +42,14 @@ G_{32} &= \big\langle p,\ E(q, q, q, \bar q, \bar q) + D(q, q, q, \bar H_{20})
 
 A $k$-linear form of complex arguments is the sum, over the choices of real or imaginary part of
 each argument, of real directional derivatives $D^kF[t_1, \dots, t_k]$ times $i^m$ ($m$ the
-number of imaginary parts chosen). Every such derivative is one row of a fifth-order nested
-forward-mode jet (:func:`jet5`), and the four stages above (each needing the previous one's
-solves) run in one ``lax.fori_loop`` around a single vmapped copy of it: one traced fifth
-derivative of the vector field, not one per form.
+number of imaginary parts chosen). The first three orders are exact (nested forward mode,
+:func:`._field.jet`); the fourth and fifth are central differences of the exact third derivative
+along $t_4$ and $t_5$ (Richardson's fourth-order stencil in each, steps of $h$ = ``STEP`` along
+the unit vectors: $O(h^4)$ truncation, $O(\epsilon/h^2)$ rounding, ~1e-11 relative; a traced
+fifth derivative made the program's compilation minutes long). So every term is one evaluation
+of the third-order jet at a shifted point, and :class:`Schedule` lists them all, stage by stage
+(each stage needs the previous one's solves): 943 evaluations, one per iteration of a loop
+around ONE traced jet, the same copy that solves the Hopf system in :func:`rbo_jax.bautin_point`.
 """
 
 from __future__ import annotations
@@ -58,9 +62,7 @@ import numpy as np
 
 from ._field import jet
 
-__all__ = ["second_lyapunov_coefficient", "jet5"]
-
-ORDER = 5
+__all__ = ["Schedule", "second_lyapunov_coefficient"]
 
 
 # Richardson's central stencil for a first derivative, error O(h^4): f'(0) ≈ Σ w f(sh)/h
@@ -69,69 +71,71 @@ STENCIL = np.array([-2.0, -1.0, 1.0, 2.0])
 WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
 STEP = 2e-3  # h: truncation ~h^4 ~ 1e-11, rounding ~1e-16/h^2 ~ 1e-11 for the fifth derivative
 
+# The vectors the forms take (module docstring); H11 and H22 are real
+_COMPLEX = ("q", "qb", "H20", "H20b", "H30", "H21", "H21b", "H31")
+_REAL = ("H11", "H22")
+# The forms of each stage: 0 gives H20, H11; 1: H30, G21, H21; 2: H31, H22; 3: G32
+_STAGES = (
+    (("q", "q"), ("q", "qb")),
+    (("q", "q", "q"), ("q", "H20"), ("q", "q", "qb"), ("qb", "H20"), ("q", "H11")),
+    (
+        *[("q", "q", "q", "qb"), ("q", "q", "H11"), ("q", "qb", "H20"), ("H20", "H11")],
+        *[("qb", "H30"), ("q", "H21"), ("q", "q", "qb", "qb"), ("q", "qb", "H11")],
+        *[("qb", "qb", "H20"), ("q", "q", "H20b"), ("H11", "H11"), ("q", "H21b")],
+        *[("qb", "H21"), ("H20b", "H20")],
+    ),
+    (
+        *[("q", "q", "q", "qb", "qb"), ("q", "q", "q", "H20b"), ("q", "qb", "qb", "H20")],
+        *[("q", "q", "qb", "H11"), ("qb", "qb", "H30"), ("q", "q", "H21b"), ("q", "qb", "H21")],
+        *[("q", "H20b", "H20"), ("q", "H11", "H11"), ("qb", "H20", "H11"), ("qb", "H31")],
+        *[("q", "H22"), ("H20b", "H30"), ("H21b", "H20"), ("H11", "H21")],
+    ),
+)
+_G32_WEIGHTS = np.array([1, 1, 3, 6, 1, 3, 6, 3, 6, 6, 2, 3, 1, 3, 6])  # of G32's forms
+# the rows of the basis of directions: real and imaginary parts of the complex vectors, the
+# real ones, and a zero row (unused directions)
+_BASIS = {(a, part): i for i, (a, part) in enumerate([(a, k) for a in _COMPLEX for k in (0, 1)])}
+_BASIS.update({(a, 0): len(_BASIS) + i for i, a in enumerate(_REAL)})
+_ZERO = len(_BASIS)
 
-def jet5(F, y, t):
-    r"""$(D^1F(y)[t_1], \dots, D^5F(y)[t_1, \dots, t_5])$, shape ``(5, n)``, for the rows of
-    ``t`` (shape ``(5, m)``). The first three are exact (:func:`._field.jet`, nested forward
-    mode); the fourth and fifth are central differences of the exact third derivative along
-    $t_4$, $t_5$ (unit steps of $h$ = ``STEP``, Richardson's fourth-order stencil in each, so
-    $O(h^4)$ truncation and $O(\epsilon/h^2)$ rounding, ~1e-11 relative): a traced fifth
-    derivative would make the program's compilation minutes long."""
-    n4, n5 = jnp.linalg.norm(t[3]), jnp.linalg.norm(t[4])
-    u4 = t[3] / jnp.where(n4 > 0, n4, 1.0)
-    u5 = t[4] / jnp.where(n5 > 0, n5, 1.0)
-    h = jnp.asarray(STEP, y.dtype)
-    s = jnp.asarray(STENCIL, y.dtype)
-    w = jnp.asarray(WEIGHTS, y.dtype)
-    one = jnp.concatenate([s[:, None] * u4[None, :], jnp.zeros((1, y.shape[0]), y.dtype)]) * h
-    two = (s[:, None, None] * u4[None, None] + s[None, :, None] * u5[None, None]).reshape(
-        -1, y.shape[0]
-    ) * h
-    shifts = jnp.concatenate([one, two])  # 4 + 1 (the base point) + 16 shifted points
 
-    def third(shift):
-        return jet(F, y + shift, t[0], t[1], t[2])
-
-    f0, d1, d2, d3 = jax.vmap(third)(shifts)
-    d4 = jnp.tensordot(w, d3[:4], 1) / h * n4
-    d5 = jnp.tensordot(jnp.outer(w, w).reshape(-1), d3[5:], 1) / h**2 * n4 * n5
-    return jnp.stack([d1[4], d2[4], d3[4], d4, d5])
-
-
-class _Forms:
-    """A list of complex multilinear forms (each a tuple of 1 to 5 arguments; an argument is a
-    complex or a real vector) expanded into rows of real directions for :func:`jet5`, and
-    their values assembled from the rows' derivatives (module docstring). The structure (which
-    arguments are real, the orders) is static; the arguments are traced."""
-
-    def __init__(self, forms, n, dtype):
-        rows, orders, coeffs, owners = [], [], [], []
-        for f, args in enumerate(forms):
-            parts = [
-                ((jnp.real(a), 0), (jnp.imag(a), 1)) if jnp.iscomplexobj(a) else ((a, 0),)
-                for a in args
-            ]
+def _tables():
+    """The static schedule: for every evaluation of the third-order jet, its stage, its five
+    directions (rows of the basis), its shift along the unit fourth and fifth directions (in
+    steps $h$), its weight, the derivative it contributes (order 1 to 3), the form's order $k$
+    and index, and $i^m$."""
+    cols = {k: [] for k in ("stage", "rows", "a4", "a5", "weight", "pick", "order", "form")}
+    cols["coeff"], forms, first = [], 0, []
+    for stage, stage_forms in enumerate(_STAGES):
+        first.append(forms)
+        for args in stage_forms:
+            parts = [((a, 0), (a, 1)) if a in _COMPLEX else ((a, 0),) for a in args]
+            k = len(args)
+            if k <= 3:
+                shifts = [(0.0, 0.0, 1.0)]
+            elif k == 4:
+                shifts = [(a, 0.0, w) for a, w in zip(STENCIL, WEIGHTS)]
+            else:
+                shifts = [
+                    (a, b, wa * wb)
+                    for a, wa in zip(STENCIL, WEIGHTS)
+                    for b, wb in zip(STENCIL, WEIGHTS)
+                ]
             for choice in itertools.product(*parts):
-                t = [c[0] for c in choice] + [jnp.zeros(n, dtype)] * (ORDER - len(args))
-                rows.append(jnp.stack(t))
-                orders.append(len(args) - 1)
-                coeffs.append(1j ** sum(c[1] for c in choice))
-                owners.append(f)
-        self.rows = jnp.stack(rows)
-        self.orders, self.coeffs = np.array(orders), np.array(coeffs, np.complex128)
-        self.owners, self.count = np.array(owners), len(forms)
+                rows = [_BASIS[c] for c in choice] + [_ZERO] * (5 - k)
+                for a4, a5, w in shifts:
+                    for key, v in zip(cols, (stage, rows, a4, a5, w, min(k, 3) - 1, k, forms)):
+                        cols[key].append(v)
+                    cols["coeff"].append(1j ** sum(part for _, part in choice))
+            forms += 1
+    tables = {key: np.array(v) for key, v in cols.items()}
+    stage = tables["stage"]
+    tables["last"] = np.append(stage[1:] != stage[:-1], True)
+    return tables, tuple(first) + (forms,)
 
-    def padded(self, size, n):
-        pad = jnp.zeros((size - self.rows.shape[0], ORDER, n), self.rows.dtype)
-        return jnp.concatenate([self.rows, pad])
 
-    def values(self, D):
-        """The forms' complex values, shape ``(count, n)``, from the derivatives ``D`` of
-        :func:`jet5` along the (padded) rows, shape ``(R, 5, n)``."""
-        cdtype = np.result_type(D.dtype, np.complex64)
-        picked = D[np.arange(len(self.orders)), self.orders].astype(cdtype)  # (rows, n)
-        terms = jnp.asarray(self.coeffs, cdtype)[:, None] * picked
-        return jax.ops.segment_sum(terms, self.owners, num_segments=self.count)
+_TABLES, _FIRST_FORM = _tables()
+EVALUATIONS = len(_TABLES["stage"])
 
 
 def _solve(L, frequency, rhs):
@@ -149,31 +153,6 @@ def _bordered(L, omega, q, p, rhs):
     bottom = jnp.concatenate([jnp.conj(p), jnp.zeros(1, q.dtype)])[None, :]
     rhs = jnp.concatenate([rhs, jnp.zeros(1, q.dtype)])
     return jnp.linalg.solve(jnp.concatenate([top, bottom]), rhs)[:n]
-
-
-def _stage_forms(s, q, c):
-    """The forms of stage ``s`` (0: H20, H11; 1: H30, G21, H21; 2: H31, H22; 3: G32) from the
-    carry ``c`` of the earlier stages."""
-    qb = jnp.conj(q)
-    if s == 0:
-        return [(q, q), (q, qb)]
-    H20, H11 = c["H20"], c["H11"]
-    if s == 1:
-        return [(q, q, q), (q, H20), (q, q, qb), (qb, H20), (q, H11)]
-    H30, H21 = c["H30"], c["H21"]
-    H20b, H21b = jnp.conj(H20), jnp.conj(H21)
-    if s == 2:
-        return [
-            *[(q, q, q, qb), (q, q, H11), (q, qb, H20), (H20, H11), (qb, H30), (q, H21)],
-            *[(q, q, qb, qb), (q, qb, H11), (qb, qb, H20), (q, q, H20b), (H11, H11)],
-            *[(q, H21b), (qb, H21), (H20b, H20)],
-        ]
-    H31, H22 = c["H31"], c["H22"]
-    return [
-        *[(q, q, q, qb, qb), (q, q, q, H20b), (q, qb, qb, H20), (q, q, qb, H11)],
-        *[(qb, qb, H30), (q, q, H21b), (q, qb, H21), (q, H20b, H20), (q, H11, H11)],
-        *[(qb, H20, H11), (qb, H31), (q, H22), (H20b, H30), (H21b, H20), (H11, H21)],
-    ]
 
 
 _G32_WEIGHTS = np.array([1, 1, 3, 6, 1, 3, 6, 3, 6, 6, 2, 3, 1, 3, 6])  # of G32's forms
@@ -197,39 +176,107 @@ def _stage_update(s, L, omega, q, p, c, v):
     return {**c, "G32": jnp.vdot(p, jnp.tensordot(jnp.asarray(_G32_WEIGHTS, v.dtype), v, 1))}
 
 
+class Schedule:
+    r"""The evaluations of $\ell_2$ (module docstring) as the steps of a loop: the state (a
+    dict) holds the counter, the forms' sums and the stages' results; :meth:`evaluation` gives
+    the shift of the point and the directions $(t_1, t_2, t_3)$ of the next evaluation of the
+    third-order jet, :meth:`advance` adds its derivatives and, after a stage's last one, solves
+    the stage. ``n`` the dimension of the state, $L = J$ the linearization, $Jq = i\omega q$,
+    $|q| = 1$, $J^Tp = -i\omega p$, $\bar p^Tq = 1$."""
+
+    def __init__(self, n, dtype):
+        self.n, self.dtype = n, dtype
+        self.cdtype = np.result_type(dtype, np.complex64)
+
+    def initial_state(self, L, omega, q, p) -> dict:
+        n, cdtype = self.n, self.cdtype
+        zc, zr = jnp.zeros(n, cdtype), jnp.zeros(n, self.dtype)
+        return dict(
+            e=jnp.asarray(0, jnp.int32),
+            acc=jnp.zeros((_FIRST_FORM[-1], n), cdtype),
+            L=jnp.asarray(L, self.dtype),
+            omega=jnp.asarray(omega, self.dtype),
+            q=jnp.asarray(q, cdtype),
+            p=jnp.asarray(p, cdtype),
+            H20=zc,
+            H11=zr,
+            H30=zc,
+            G21=zc[0],
+            H21=zc,
+            H31=zc,
+            H22=zr,
+            G32=zc[0],
+        )
+
+    def _directions(self, st):
+        """The five directions of the next evaluation, ``(5, n)``."""
+        q, vec = st["q"], dict(st)
+        vec.update(qb=jnp.conj(q), H20b=jnp.conj(st["H20"]), H21b=jnp.conj(st["H21"]))
+        rows = [part(vec[a]) for a in _COMPLEX for part in (jnp.real, jnp.imag)]
+        rows += [vec[a] for a in _REAL] + [jnp.zeros(self.n, self.dtype)]
+        e = jnp.minimum(st["e"], EVALUATIONS - 1)
+        return jnp.stack(rows)[jnp.asarray(_TABLES["rows"])[e]]
+
+    def evaluation(self, st):
+        """``(shift, t, scale)``: the jet's point is the base point plus ``shift``, its
+        directions ``t[0]``, ``t[1]``, ``t[2]``; ``scale`` goes to :meth:`advance`."""
+        t = self._directions(st)
+        e = jnp.minimum(st["e"], EVALUATIONS - 1)
+        n4, n5 = jnp.linalg.norm(t[3]), jnp.linalg.norm(t[4])
+        u4 = t[3] / jnp.where(n4 > 0, n4, 1.0)
+        u5 = t[4] / jnp.where(n5 > 0, n5, 1.0)
+        h = jnp.asarray(STEP, self.dtype)
+        a4, a5 = (jnp.asarray(_TABLES[k], self.dtype)[e] for k in ("a4", "a5"))
+        scale = jnp.stack([jnp.ones((), self.dtype), n4 / h, n4 * n5 / h**2])
+        order = jnp.asarray(_TABLES["order"])[e]
+        return h * (a4 * u4 + a5 * u5), t[:3], scale[jnp.clip(order - 3, 0, 2)]
+
+    def advance(self, st, scale, d1, d2, d3):
+        """The state after one evaluation (its derivatives ``d1``, ``d2``, ``d3`` along the
+        directions of :meth:`evaluation`); after a stage's last evaluation, the stage's
+        solves."""
+        e = jnp.minimum(st["e"], EVALUATIONS - 1)
+        table = {k: jnp.asarray(_TABLES[k])[e] for k in ("pick", "form", "last", "stage")}
+        weight = jnp.asarray(_TABLES["weight"], self.dtype)[e] * scale
+        d = jnp.stack([d1, d2, d3])[table["pick"]]
+        term = jnp.asarray(_TABLES["coeff"], self.cdtype)[e] * (weight * d).astype(self.cdtype)
+        st = {**st, "acc": st["acc"].at[table["form"]].add(term), "e": st["e"] + 1}
+
+        def update(k):
+            def f(st):
+                v = st["acc"][_FIRST_FORM[k] : _FIRST_FORM[k + 1]]
+                c = _stage_update(k, st["L"], st["omega"], st["q"], st["p"], st, v)
+                return jax.tree.map(lambda x, y: jnp.asarray(x, y.dtype), c, st)
+
+            return f
+
+        branches = [update(k) for k in range(len(_STAGES))] + [lambda st: st]
+        index = jnp.where(table["last"], table["stage"], len(_STAGES))
+        return jax.lax.switch(index, branches, st)
+
+    def done(self, st):
+        return st["e"] >= EVALUATIONS
+
+    @staticmethod
+    def result(st):
+        r"""$\ell_2 = \mathrm{Re}\,G_{32}/(12\omega)$."""
+        return jnp.real(st["G32"]) / (12 * st["omega"])
+
+
 def second_lyapunov_coefficient(F, x0, omega, q, p):
     r"""Kuznetsov's second Lyapunov coefficient $\ell_2 = \mathrm{Re}\,G_{32}/(12\omega)$ (module
     docstring) of the vector field ``F`` at the Hopf point ``x0``, with $Jq = i\omega q$,
     $|q| = 1$, $J^Tp = -i\omega p$, $\bar p^Tq = 1$. Meaningful where $\ell_1 = 0$ (a Bautin
     point): there $\ell_2 < 0$ means the cycles born on the hard side ($\ell_1 > 0$) turn back
-    at a fold of cycles and a large stable cycle exists. Fifth derivatives of ``F`` along
-    directions only (:func:`jet5`), one traced copy."""
+    at a fold of cycles and a large stable cycle exists. Derivatives of ``F`` along directions
+    only: one traced third-order jet (:func:`._field.jet`) in a loop over :class:`Schedule`."""
     x0 = jnp.asarray(x0)
-    n = x0.shape[0]
-    cdtype = np.result_type(x0.dtype, np.complex64)
-    q, p = jnp.asarray(q, cdtype), jnp.asarray(p, cdtype)
-    L = jax.jacfwd(F)(x0)
-    zc, zr = jnp.zeros(n, cdtype), jnp.zeros(n, x0.dtype)
-    carry = {"H20": zc, "H11": zr, "H30": zc, "G21": zc[0], "H21": zc}
-    carry = {**carry, "H31": zc, "H22": zr, "G32": zc[0]}
-    stages = [_Forms(_stage_forms(s, q, carry), n, x0.dtype) for s in range(4)]
-    size = max(f.rows.shape[0] for f in stages)
+    schedule = Schedule(x0.shape[0], x0.dtype)
+    st = schedule.initial_state(jax.jacfwd(F)(x0), omega, q, p)
 
-    def body(s, c):
-        def rows_of(k):
-            return lambda c: _Forms(_stage_forms(k, q, c), n, x0.dtype).padded(size, n)
+    def body(_, st):
+        shift, t, scale = schedule.evaluation(st)
+        _, d1, d2, d3 = jet(F, x0 + shift, t[0], t[1], t[2])
+        return schedule.advance(st, scale, d1, d2, d3)
 
-        rows = jax.lax.switch(s, [rows_of(k) for k in range(4)], c)
-        D = jax.vmap(lambda t: jet5(F, x0, t))(rows)
-
-        def update(k):
-            def f(c, D):
-                forms = _Forms(_stage_forms(k, q, c), n, x0.dtype)
-                return _stage_update(k, L, omega, q, p, c, forms.values(D))
-
-            return f
-
-        return jax.lax.switch(s, [update(k) for k in range(4)], c, D)
-
-    carry = jax.lax.fori_loop(0, 4, body, carry)
-    return jnp.real(carry["G32"]) / (12 * omega)
+    return Schedule.result(jax.lax.fori_loop(0, EVALUATIONS, body, st))

@@ -72,6 +72,7 @@ from ..loads import AbstractLoad, PotentialLoad
 from ..model import RigidBodyOscillator
 from ..trajectory import SolveStatus
 from ._field import flat_field
+from ._interface import Outcome
 
 __all__ = [
     "OrbitStatus",
@@ -105,13 +106,14 @@ class OrbitStatus(eqx.Enumeration):
     )
 
 
-class PeriodicOrbit(eqx.Module):
+class PeriodicOrbit(Outcome):
     r"""A periodic orbit: the corrected initial state ``theta0``, ``Omega0``, the ``period`` $T$,
     the six Floquet ``multipliers`` (sorted by decreasing modulus), the shooting ``residual``
     (max norm of the shooting system at the solution), Newton's ``num_steps``, the ``status``
     (:class:`OrbitStatus`) and, for conservative shooting, the ``unfolding`` parameter
     $\varepsilon$ at the solution (0 otherwise)."""
 
+    # this result's own fields, declared here (its pytree and its docs); `ok` is Outcome's
     theta0: Float[Array, "3"]
     Omega0: Float[Array, "3"]
     period: Float[Array, ""]
@@ -120,10 +122,6 @@ class PeriodicOrbit(eqx.Module):
     num_steps: Int[Array, ""]
     status: OrbitStatus
     unfolding: Float[Array, ""] = eqx.field(default_factory=lambda: np.zeros(()))
-
-    @property
-    def ok(self):
-        return self.status == OrbitStatus.successful
 
     @property
     def trivial_multiplier(self):

@@ -272,7 +272,10 @@ class _Problem:
         done = _small(step, s["u"][:3], EQUILIBRIUM_TOLERANCE, EQUILIBRIUM_TOLERANCE)
         finite = jnp.all(jnp.isfinite(theta))
         good = done & finite & (distance_to_singularity(theta) > 1e-6)
-        failed = ~finite | (done & ~good) | (~done & (k >= self.max_steps))
+        # a guess on a singular sphere of Z (4.11), where Z is infinite, fails: whether its first
+        # step comes out finite depends on the compiler's rounding (fused multiply-adds)
+        singular = (s["k"] == 0) & (distance_to_singularity(s["u"][:3]) <= 1e-6)
+        failed = ~finite | singular | (done & ~good) | (~done & (k >= self.max_steps))
         new = {
             **s,
             "u": jnp.concatenate([theta, s["u"][3:]]),
@@ -336,14 +339,17 @@ class _Problem:
         trans = jnp.real(jnp.vdot(s["adjoint"], dJq))
         return {**s, "first_lyapunov": l1, "transversality": trans, "phase": jnp.asarray(DONE)}
 
-    def body(self, s):
-        """One row of derivatives (:func:`._field.jet`); after the phase's last row, its step.
-        A row per iteration, not the rows vmapped: XLA compiles the loop's single row faster
-        (about 25 % of the program's compile time), and the solve's run time stays ~1 ms."""
-        u, row = s["u"], s["row"]
+    def evaluation(self, s):
+        """The point $y$ and the row of directions $(t_1, t_2, t_3)$ of this iteration."""
+        u = s["u"]
         y = jnp.concatenate([u[:3], jnp.zeros(3, self.dtype), u[3:4], self.p])
-        t = self.directions(s)[row]
-        f0, d1, d2, d3 = jet(self.field, y, t[0], t[1], t[2])
+        return y, self.directions(s)[s["row"]]
+
+    def advance(self, s, f0, d1, d2, d3):
+        """The state after the row of this iteration (its derivatives ``f0``, ``d1``, ``d2``,
+        ``d3`` by :func:`._field.jet` at :meth:`evaluation`); after the phase's last row, its
+        step."""
+        row = s["row"]
         put = jax.lax.dynamic_update_index_in_dim
         s = {
             **s,
@@ -364,6 +370,44 @@ class _Problem:
         branches.append(lambda s: {**s, "row": s["row"] + 1})
         return jax.lax.switch(
             jnp.where(last, jnp.minimum(s["phase"], LYAPUNOV), len(steps)), branches, s
+        )
+
+    def body(self, s):
+        """One row of derivatives (:func:`._field.jet`); after the phase's last row, its step.
+        A row per iteration, not the rows vmapped: XLA compiles the loop's single row faster
+        (about 25 % of the program's compile time), and the solve's run time stays ~1 ms."""
+        y, t = self.evaluation(s)
+        return self.advance(s, *jet(self.field, y, t[0], t[1], t[2]))
+
+    def first_state(self, theta_eq_fn, alpha0, theta0, u0, w0, warm) -> dict:
+        """The loop's first state: from the equilibrium guess ``theta0`` at ``alpha0``
+        (``theta_eq_fn``: its closed form, refined by Newton), or (``warm``) from the unknowns
+        ``u0`` and normalisation vector ``w0``."""
+        theta_start = theta0
+        if theta_eq_fn is not None:
+            theta_start = _as_vector(theta_eq_fn(**self.point(alpha0)), "theta_eq_fn(...)")
+            theta_start = theta_start.astype(self.dtype)
+        cold = jnp.concatenate([theta_start, alpha0[None], jnp.zeros(13, self.dtype)])
+        return self.initial_state(
+            jnp.where(warm, u0, cold),
+            jnp.where(warm, w0, jnp.zeros(12, self.dtype)),
+            warm,
+            theta_start,
+        )
+
+    def outputs(self, s, alpha0, warm) -> tuple:
+        """``(u, Ju, Jp, residual, num_steps, status, adjoint, first_lyapunov,
+        transversality)`` of a finished state (:func:`hopf_program`)."""
+        return (
+            s["u"],
+            s["Ju"],
+            s["Jp"],
+            s["residual"],
+            s["steps"],
+            self.status(s, alpha0, warm),
+            s["adjoint"],
+            s["first_lyapunov"],
+            s["transversality"],
         )
 
     def status(self, s, alpha0, warm):
@@ -409,27 +453,9 @@ def hopf_program(
     Returns plain arrays: ``(u, Ju, Jp, residual, num_steps, status, adjoint, first_lyapunov,
     transversality)`` with the status code of :class:`HopfStatus`."""
     problem = _Problem(model_fn, parameter, names, shapes, rtol, atol, max_steps, p, t)
-    dtype = p.dtype
-    theta_start = theta0
-    if theta_eq_fn is not None:
-        theta_start = _as_vector(theta_eq_fn(**problem.point(alpha0)), "theta_eq_fn(...)")
-        theta_start = theta_start.astype(dtype)
-    cold = jnp.concatenate([theta_start, alpha0[None], jnp.zeros(13, dtype)])
-    state = problem.initial_state(
-        jnp.where(warm, u0, cold), jnp.where(warm, w0, jnp.zeros(12, dtype)), warm, theta_start
-    )
+    state = problem.first_state(theta_eq_fn, alpha0, theta0, u0, w0, warm)
     s = jax.lax.while_loop(lambda s: s["phase"] < DONE, problem.body, state)
-    return (
-        s["u"],
-        s["Ju"],
-        s["Jp"],
-        s["residual"],
-        s["steps"],
-        problem.status(s, alpha0, warm),
-        s["adjoint"],
-        s["first_lyapunov"],
-        s["transversality"],
-    )
+    return problem.outputs(s, alpha0, warm)
 
 
 def _select(pred, a, b):
