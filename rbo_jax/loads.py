@@ -306,6 +306,13 @@ def as_load(x) -> AbstractLoad:
     :class:`CallableLoad`; anything else raises ``TypeError``."""
     if isinstance(x, AbstractLoad):
         return x
+    if getattr(x, "needs_positions", False):
+        raise TypeError(
+            f"as_load: {type(x).__name__} is a load on bodies that translate; a rigid body "
+            "oscillator and the bodies of a lattice turn about fixed points and have no position "
+            "to apply it at. Build a rod (rbo_jax.lattice.rod(..., loads=...)), or give a moment "
+            "(DeadMoment, FollowerMoment)."
+        )
     if isinstance(x, AbstractFoundation):
         raise TypeError(
             f"as_load: got a foundation ({type(x).__name__}), which is an energy U(theta), not a "

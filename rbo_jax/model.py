@@ -153,7 +153,11 @@ class RigidBodyOscillator(eqx.Module):
                 f"got {type(foundation).__name__}."
             )
         self.foundation = foundation
-        if isinstance(loads, AbstractLoad) or (callable(loads) and not isinstance(loads, Sequence)):
+        if (
+            isinstance(loads, AbstractLoad)
+            or getattr(loads, "needs_positions", False)
+            or (callable(loads) and not isinstance(loads, Sequence))
+        ):
             loads = (loads,)
         self.loads = tuple(as_load(load) for load in loads)
 

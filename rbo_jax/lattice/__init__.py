@@ -7,6 +7,11 @@ energy of their relative turn (:mod:`._lattice`); every body obeys the right for
 DOP853 (:mod:`._integrate`), diffrax, or a symplectic Lie-group splitting (:mod:`._splitting`,
 :mod:`._simulate`); linear waves by the Bloch matrix (:mod:`._dispersion`); nonlinear waves
 (:mod:`._waves`); fits of stiffnesses to fields and dispersion curves (:mod:`._fit`).
+
+Bodies that also translate: rods and chains of links (:mod:`._rod`: Cosserat rods, Beck's,
+Ziegler's and Pflüger's columns), their strains and forces (:mod:`._rod_field`), equilibria by
+Newton with block-tridiagonal solves (:mod:`._rod_statics`, :mod:`._banded`), spectra, critical
+loads and motion (:mod:`._rod_dynamics`); :func:`simulate` takes a rod and its state too.
 """
 
 from .. import _lazy
@@ -35,5 +40,23 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         ),
         "._waves": ("breather", "kink", "twist"),
         "._fit": ("LatticeFit", "fit_dispersion", "fit_field"),
+        "._rod": (
+            "DistributedForce",
+            "Gravity",
+            "Rod",
+            "RodState",
+            "TipForce",
+            "TipMoment",
+            "circular_rod",
+            "pendulum",
+            "rod",
+        ),
+        "._rod_statics": (
+            "RodEquilibrium",
+            "RodEquilibriumStatus",
+            "equilibrium",
+            "solve_equilibrium",
+        ),
+        "._rod_dynamics": ("RodTrajectory", "critical_load", "linearize", "spectrum"),
     },
 )

@@ -37,6 +37,8 @@ from ._field import rates, right_forms, transverse
 from ._halo import BLOCK, HALO, Halo, Whole
 from ._integrate import Config, Problem, solve
 from ._lattice import Lattice
+from ._rod import Rod
+from ._rod_dynamics import simulate_rod
 from ._splitting import split
 from ._trajectory import LatticeTrajectory
 
@@ -359,7 +361,7 @@ def simulate(
     lattice: Lattice,
     theta0,
     Omega0,
-    ts,
+    ts=None,
     *,
     method: str = "dop853",
     rtol: float = 1e-8,
@@ -408,7 +410,28 @@ def simulate(
     **Returns** a :class:`rbo_jax.lattice.LatticeTrajectory`: ``theta``, ``Omega`` (T, N, 3),
     ``turns`` (T, N), ``energy`` (T,), ``status``. jit-, vmap- (ensembles of lattices) and
     forward-mode differentiable (all methods; ``"diffrax"`` also reverse mode).
+
+    **A rod** (:class:`rbo_jax.lattice.Rod`): ``simulate(rod, state0, ts, method="explicit" |
+    "implicit", solver=..., rtol=..., atol=..., max_steps=..., throw=...)`` with a
+    :class:`rbo_jax.lattice.RodState` returns a :class:`rbo_jax.lattice.RodTrajectory`
+    (:func:`rbo_jax.lattice._rod_dynamics.simulate_rod`).
     """
+    if isinstance(lattice, Rod):
+        if ts is not None:
+            raise TypeError("lattice.simulate of a rod takes (rod, state0, ts).")
+        return simulate_rod(
+            lattice,
+            theta0,
+            Omega0,
+            method="explicit" if method == "dop853" else method,
+            solver=solver,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            throw=throw,
+        )
+    if ts is None:
+        raise TypeError("lattice.simulate(lattice, theta0, Omega0, ts): ts is missing.")
     cfg = _config(
         lattice, method, rtol, atol, max_steps, singular_tol, recenter, recenter_margin, dt
     )

@@ -1,0 +1,653 @@
+r"""Bodies that also translate: rods and chains of links made of rigid body oscillators.
+
+A :class:`Rod` is a chain of $N + 1$ rigid bodies $i = 0\dots N$ (body 0 at the base). Every
+body has a turn $\theta_i$ with the right form (4.55)–(4.56) of its rotation, and a position
+$r_i$ of its centre with Newton's law $m_i\ddot r_i = F_i$. Neighbours $(a, b) = (s, s+1)$ are
+coupled at points $a_s$ of body $a$ and $b_s$ of body $b$ (body-frame offsets from the centres)
+through two strains:
+
+* the relative turn $\varphi_s = \mathrm{turn\_vector}(Q_a^T Q_b)$ (bending and twist), as in
+  every lattice (:mod:`._lattice`);
+* the gap between the attachment points seen in the **mid-frame** $Q_m = Q_a\,Q(\varphi_s/2)$,
+  less its rest value $g^0_s$:
+
+  $$\tilde g_s = Q_m^T\,(r_b + Q_b\,b_s - r_a - Q_a\,a_s) - g^0_s.$$
+
+  For a rod's segment the attachment points are the centres and $g^0 = h\,k$, so
+  $\tilde g/h = Q_m^T(r_b - r_a)/h - k$ is the shear and stretch strain $\varepsilon$; for a
+  hinge of two links they are the ends of the links and $g^0 = 0$.
+
+The mid-frame is the rotation half-way along the geodesic from $Q_a$ to $Q_b$; it is the same
+seen from either end ($Q_b\,Q(-\varphi/2) = Q_a\,Q(\varphi/2)$), so the strains are symmetric
+under the exchange of the two bodies (with $\varphi\to-\varphi$, $\tilde g\to -\tilde g$ for a
+symmetric pair) and objective: a rigid motion $Q_a, Q_b \to R\,Q_a, R\,Q_b$,
+$r \to R\,r + c$ leaves $\varphi$ and $\tilde g$ unchanged. It is the interpolation of the
+rotation at the middle of an element whose strains Crisfield and Jelenić showed to be objective
+(Crisfield & Jelenić 1999, Proc. R. Soc. Lond. A 455, 1125–1147; the discrete Cosserat rods of
+Simo & Vu-Quoc 1986 take the same strain measures).
+
+The energy of a coupling is quadratic in its strains,
+$W_s = \tfrac12\,\varphi_s\cdot K^\varphi_s\varphi_s + \tfrac12\,\tilde g_s\cdot K^g_s
+\tilde g_s$ with diagonal stiffnesses in the mid-frame (a rod's segment of length $h$:
+$K^\varphi = \mathrm{diag}(EI, EI, GJ)/h$ and $K^g = \mathrm{diag}(\kappa GA, \kappa GA, EA)/h$,
+i.e. $W = h\,[\tfrac12\kappa\cdot B\kappa + \tfrac12\varepsilon\cdot S\varepsilon]$ with the
+curvature $\kappa = \varphi/h$). Kelvin–Voigt damping adds $\eta\,K\dot s$ to every stress
+resultant $K s$. Bodies may sit on a foundation of their turn, as every rigid body oscillator
+(a rod on an elastic foundation).
+
+The rod of :func:`rod` puts its bodies on the nodes $z_i = i\,h$ of the centreline (body 0, the
+base, at the origin): every segment between two nodes is one coupling, whose strains are those
+at its middle (second order in $h$), a body carries the mass and rotary inertia of half of each
+of its segments, and a tip load acts on the last body with no lever arm.
+:func:`pendulum` builds a chain of links with hinge springs (Ziegler's pendulum) as the same
+object: point masses at the ends of rigid links, the hinges stiff couplings of the gaps.
+
+Base conditions: ``"clamped"`` (body 0 held in position and turn), ``"pinned"`` (held in
+position, free to turn), ``"free"``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._validation import _float_dtype, _is_traced
+from ..foundations import AbstractFoundation, ZeroFoundation
+from ..kinematics import turn_tensor
+
+__all__ = [
+    "BASES",
+    "DistributedForce",
+    "Gravity",
+    "Rod",
+    "RodState",
+    "TipForce",
+    "TipMoment",
+    "circular_rod",
+    "pendulum",
+    "rod",
+]
+
+BASES = ("clamped", "pinned", "free")
+E3 = np.array([0.0, 0.0, 1.0])
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters: concrete values are checked now, traced ones are taken as they are.
+# --------------------------------------------------------------------------------------------
+
+
+def _array(x, name: str, owner: str):
+    if isinstance(x, (list, tuple)):
+        x = np.asarray(x) if not any(_is_traced(e) for e in x) else jnp.stack(x)
+    if not _is_traced(x):
+        x = np.asarray(x)
+        if np.iscomplexobj(x) or not np.issubdtype(x.dtype, np.number):
+            raise TypeError(f"{owner}: {name} must be real numbers, got {x.dtype}.")
+        x = x.astype(_float_dtype())
+    return x
+
+
+def _checked(x, name: str, owner: str, *, low: float = 0.0, strict: bool = True):
+    """``x`` with every entry > ``low`` (or >= when not ``strict``) and finite, or a
+    ``ValueError`` naming ``name``; traced values pass (the solvers report their status)."""
+    if _is_traced(x):
+        return x
+    a = np.asarray(x)
+    ok = np.all(np.isfinite(a)) and (np.all(a > low) if strict else np.all(a >= low))
+    if not ok:
+        op = ">" if strict else ">="
+        raise ValueError(f"{owner}: {name} must be finite and {op} {low}, got {a.tolist()!r}.")
+    return x
+
+
+def _per_segment(x, name: str, n: int, owner: str, *, strict: bool = True):
+    """A constant per unit length: a scalar or one value per segment (shape ``(n,)``), as an
+    ``(n,)`` array, checked."""
+    x = _checked(_array(x, name, owner), name, owner, strict=strict)
+    shape = tuple(np.shape(x))
+    if shape not in ((), (n,)):
+        raise ValueError(
+            f"{owner}: {name} must be a scalar or one value per body (shape ({n},)), got shape "
+            f"{shape}."
+        )
+    return jnp.broadcast_to(jnp.asarray(x), (n,)) if _is_traced(x) else np.broadcast_to(x, (n,))
+
+
+def _xp(*xs):
+    return jnp if any(_is_traced(x) for x in xs) else np
+
+
+# --------------------------------------------------------------------------------------------
+# Loads.
+# --------------------------------------------------------------------------------------------
+
+
+class AbstractRodLoad(eqx.Module):
+    """A load on the bodies of a rod: world-frame forces and body-frame moments, ``(N+1, 3)``
+    each, at the turn-tensors and positions of the bodies. ``needs_positions``: a force needs
+    bodies that translate (a plain lattice of bodies with fixed points refuses it)."""
+
+    needs_positions = True
+
+    def check(self, rod: Rod) -> None:
+        """Refuse a load that does not fit ``rod`` (a body that does not exist)."""
+
+    def forces(self, rod: Rod, rotate, scale):
+        """``(F (N+1, 3) world, M (N+1, 3) body)``; ``rotate(i, x, back)`` turns ``x`` by the
+        turn of body ``i`` (or back)."""
+        raise NotImplementedError
+
+
+def _body_index(body, rod: Rod, owner: str) -> int:
+    nb = rod.n_bodies
+    i = int(body)
+    if not -nb <= i < nb:
+        raise ValueError(
+            f"{owner}: body={body} does not exist: the rod has bodies 0 … {nb - 1} (0 the "
+            f"base, {nb - 1} the tip; negative indices count from the tip)."
+        )
+    i %= nb
+    if i == 0 and rod.base == "clamped":
+        raise ValueError(
+            f"{owner}: body=0 is the clamped base, which no load can move; load bodies 1 … "
+            f"{nb - 1}."
+        )
+    return i
+
+
+class _PointLoad(AbstractRodLoad):
+    vector: Float[Array, "3"]
+    follower: bool = eqx.field(static=True)
+    body: int = eqx.field(static=True)
+
+    def __init__(self, vector, follower: bool = False, *, body: int = -1):
+        owner = type(self).__name__
+        v = _array(vector, self._what, owner)
+        if tuple(np.shape(v)) != (3,):
+            raise ValueError(f"{owner}: {self._what} must be a 3-vector, got shape {np.shape(v)}.")
+        if not _is_traced(v) and not np.all(np.isfinite(v)):
+            raise ValueError(f"{owner}: {self._what} must be finite, got {np.asarray(v).tolist()}.")
+        self.vector = v
+        self.follower = bool(follower)
+        self.body = int(body)
+
+    def check(self, rod: Rod) -> None:
+        _body_index(self.body, rod, type(self).__name__)
+
+
+class TipForce(_PointLoad):
+    r"""A force on the tip body (or on ``body``), at its centre. ``follower=False``: the vector
+    is fixed in space (a dead load, $-F\cdot r$ is its potential); ``follower=True``: it is
+    given in the body's frame and turns with it, $F = Q_{tip}\cdot f$ (Beck's column:
+    ``TipForce([0, 0, -P], follower=True)``, a compressive force along the tip's axis), the
+    force analogue of the follower moment (4.57)."""
+
+    _what = "force"
+
+    @property
+    def force(self):
+        return self.vector
+
+    def forces(self, rod, rotate, scale):
+        i = self.body % rod.n_bodies
+        f = scale * jnp.asarray(self.vector)
+        F = rotate(i, f, False) if self.follower else f
+        Fs = jnp.zeros((rod.n_bodies, 3), F.dtype).at[i].set(F)
+        return Fs, jnp.zeros_like(Fs)
+
+
+class TipMoment(_PointLoad):
+    r"""A moment on the tip body (or on ``body``). ``follower=False``: fixed in space (as
+    :class:`rbo_jax.DeadMoment`); ``follower=True``: given in the body's frame, turning with it
+    (as :class:`rbo_jax.FollowerMoment`, (4.57)). A moment $2\pi EI/L$ about a transverse axis
+    rolls a clamped rod into a circle."""
+
+    _what = "moment"
+
+    @property
+    def moment(self):
+        return self.vector
+
+    def forces(self, rod, rotate, scale):
+        i = self.body % rod.n_bodies
+        m = scale * jnp.asarray(self.vector)
+        M = m if self.follower else rotate(i, m, True)
+        Ms = jnp.zeros((rod.n_bodies, 3), M.dtype).at[i].set(M)
+        return jnp.zeros_like(Ms), Ms
+
+
+class Gravity(AbstractRodLoad):
+    r"""Weight: the force $m_i\,g$ on every body (``g`` a world vector, e.g. ``[0, 0, -9.81]``).
+    Potential $-\sum_i m_i\,g\cdot r_i$ (in the energy)."""
+
+    g: Float[Array, "3"]
+
+    def __init__(self, g=(0.0, 0.0, -9.81)):
+        g = _array(g, "g", "Gravity")
+        if tuple(np.shape(g)) != (3,):
+            raise ValueError(f"Gravity: g must be a 3-vector, got shape {np.shape(g)}.")
+        self.g = g
+
+    def forces(self, rod, rotate, scale):
+        F = scale * jnp.asarray(rod.mass)[:, None] * jnp.asarray(self.g)[None, :]
+        return F, jnp.zeros_like(F)
+
+
+class DistributedForce(AbstractRodLoad):
+    r"""A dead force per unit length ``q`` (world frame) along the whole rod, lumped on the bodies
+    by their shares of the length (half a segment at either end)."""
+
+    q: Float[Array, "3"]
+
+    def __init__(self, q):
+        q = _array(q, "q", "DistributedForce")
+        if tuple(np.shape(q)) != (3,):
+            raise ValueError(f"DistributedForce: q must be a 3-vector, got shape {np.shape(q)}.")
+        self.q = q
+
+    def forces(self, rod, rotate, scale):
+        F = scale * jnp.asarray(rod.share)[:, None] * jnp.asarray(self.q)[None, :]
+        return F, jnp.zeros_like(F)
+
+
+def _as_loads(loads) -> tuple:
+    if isinstance(loads, AbstractRodLoad):
+        loads = (loads,)
+    loads = tuple(loads)
+    for load in loads:
+        if not isinstance(load, AbstractRodLoad):
+            raise TypeError(
+                "rod: loads must be rbo_jax.lattice loads (TipForce, TipMoment, Gravity, "
+                f"DistributedForce), got {type(load).__name__}. Moments of a single body's "
+                "foundation go in `foundation`."
+            )
+    return loads
+
+
+# --------------------------------------------------------------------------------------------
+# The model.
+# --------------------------------------------------------------------------------------------
+
+
+class Rod(eqx.Module):
+    r"""A chain of $N + 1$ bodies that turn and translate, coupled by energies of the relative
+    turn and of the gap in the mid-frame (module docstring). Build one with :func:`rod`,
+    :func:`circular_rod` or :func:`pendulum`.
+
+    Fields (every float leaf may be traced: vmap over a stiffness, grad with respect to a mass):
+    per body ``mass`` (N+1,), ``inertia`` (N+1, 3, 3) (body frame), ``share`` (N+1,) (length
+    carried: distributed loads and the foundation); per coupling ``turn_stiffness``,
+    ``gap_stiffness`` (N, 3) (diagonals in the mid-frame), ``turn_damping``, ``gap_damping``
+    (N,) (Kelvin–Voigt times, s), ``attach_a``, ``attach_b``, ``rest_gap`` (N, 3); ``foundation``
+    (an energy of every body's turn per unit length, or ``None``); ``loads``; ``base_position``,
+    ``base_turn`` (3,); static ``base`` and ``length``-free topology.
+    """
+
+    mass: Float[Array, " B"]
+    inertia: Float[Array, "B 3 3"]
+    share: Float[Array, " B"]
+    turn_stiffness: Float[Array, "S 3"]
+    gap_stiffness: Float[Array, "S 3"]
+    turn_damping: Float[Array, " S"]
+    gap_damping: Float[Array, " S"]
+    attach_a: Float[Array, "S 3"]
+    attach_b: Float[Array, "S 3"]
+    rest_gap: Float[Array, "S 3"]
+    foundation: AbstractFoundation | None
+    loads: tuple
+    base_position: Float[Array, "3"]
+    base_turn: Float[Array, "3"]
+    base: str = eqx.field(static=True)
+
+    def __init__(
+        self,
+        *,
+        mass,
+        inertia,
+        share,
+        turn_stiffness,
+        gap_stiffness,
+        turn_damping,
+        gap_damping,
+        attach_a,
+        attach_b,
+        rest_gap,
+        foundation=None,
+        loads=(),
+        base="clamped",
+        base_position=(0.0, 0.0, 0.0),
+        base_turn=(0.0, 0.0, 0.0),
+    ):
+        if base not in BASES:
+            raise ValueError(f"rod: base must be one of {BASES}, got {base!r}.")
+        if foundation is not None and not isinstance(foundation, AbstractFoundation):
+            raise TypeError(
+                "rod: foundation must be an rbo_jax foundation of the bodies' turns (e.g. "
+                f"QuadraticFoundation(c, d, k)) or None, got {type(foundation).__name__}."
+            )
+        if isinstance(foundation, ZeroFoundation):
+            foundation = None
+        self.mass = mass
+        self.inertia = inertia
+        self.share = share
+        self.turn_stiffness = turn_stiffness
+        self.gap_stiffness = gap_stiffness
+        self.turn_damping = turn_damping
+        self.gap_damping = gap_damping
+        self.attach_a = attach_a
+        self.attach_b = attach_b
+        self.rest_gap = rest_gap
+        self.foundation = foundation
+        self.base = base
+        self.base_position = _array(base_position, "base_position", "rod")
+        self.base_turn = _array(base_turn, "base_turn", "rod")
+        nb = int(np.shape(mass)[0])
+        shapes = {
+            "inertia": (nb, 3, 3),
+            "share": (nb,),
+            "turn_stiffness": (nb - 1, 3),
+            "gap_stiffness": (nb - 1, 3),
+            "turn_damping": (nb - 1,),
+            "gap_damping": (nb - 1,),
+            "attach_a": (nb - 1, 3),
+            "attach_b": (nb - 1, 3),
+            "rest_gap": (nb - 1, 3),
+            "base_position": (3,),
+            "base_turn": (3,),
+        }
+        for name, shape in shapes.items():
+            if tuple(np.shape(getattr(self, name))) != shape:
+                raise ValueError(
+                    f"Rod: {name} must have shape {shape} for {nb} bodies, got "
+                    f"{tuple(np.shape(getattr(self, name)))}."
+                )
+        self.loads = _as_loads(loads)
+        for load in self.loads:
+            load.check(self)
+
+    @property
+    def n_bodies(self) -> int:
+        """N + 1: the bodies, the base included."""
+        return int(np.shape(self.mass)[0])
+
+    @property
+    def n(self) -> int:
+        """N: the couplings (segments or links); the bodies past the base."""
+        return self.n_bodies - 1
+
+    def free_masks(self):
+        """``(turn (N+1,), position (N+1,))`` NumPy booleans: which bodies' turns and positions
+        move (the base's follow ``base``)."""
+        turn = np.ones(self.n_bodies, bool)
+        pos = np.ones(self.n_bodies, bool)
+        if self.base in ("clamped", "pinned"):
+            pos[0] = False
+        if self.base == "clamped":
+            turn[0] = False
+        return turn, pos
+
+    def with_loads(self, loads) -> Rod:
+        """The same rod under other loads."""
+        return eqx.tree_at(lambda r: r.loads, self, _as_loads(loads))
+
+    def straight(self) -> RodState:
+        """The reference state at rest: every body turned as the base, the centres at the base
+        plus the rest gaps (a straight rod along the base's axis)."""
+        return _straight(self)
+
+
+def _straight(rod: Rod) -> RodState:
+    Q0 = turn_tensor(jnp.asarray(rod.base_turn))
+    a, b, g0 = (jnp.asarray(x) for x in (rod.attach_a, rod.attach_b, rod.rest_gap))
+    # r_b = r_a + Q0 (a + g0 - b) for every coupling, the turns all equal to the base's
+    steps = (a + g0 - b) @ Q0.T
+    base = jnp.asarray(rod.base_position)
+    r = jnp.concatenate([base[None], base[None] + jnp.cumsum(steps, axis=0)])
+    theta = jnp.broadcast_to(jnp.asarray(rod.base_turn), r.shape)
+    z = jnp.zeros_like(r)
+    return RodState(theta, r, z, z)
+
+
+class RodState(eqx.Module):
+    r"""The state of a rod: per body (N+1, base first) the turn-vector ``theta``, the position
+    ``r``, the right (body-frame) angular velocity ``Omega`` and the velocity ``v``, each
+    ``(..., N+1, 3)``. ``centreline``: the positions of the N+1 nodes from the base to the tip
+    (the bodies' centres for :func:`rod`)."""
+
+    theta: Float[Array, "... B 3"]
+    r: Float[Array, "... B 3"]
+    Omega: Float[Array, "... B 3"]
+    v: Float[Array, "... B 3"]
+
+    @property
+    def centreline(self):
+        return self.r
+
+    @property
+    def tip(self):
+        """The position of the last body, ``(..., 3)``."""
+        return self.r[..., -1, :]
+
+    @staticmethod
+    def at_rest(theta, r) -> RodState:
+        z = jnp.zeros_like(jnp.asarray(r))
+        return RodState(jnp.asarray(theta), jnp.asarray(r), z, z)
+
+
+# --------------------------------------------------------------------------------------------
+# Constructors.
+# --------------------------------------------------------------------------------------------
+
+
+def _lumped(per_segment, h, xp):
+    """Half of every segment's ``per_segment * h`` to each of its two end bodies: ``(N+1,)``."""
+    seg = per_segment * h
+    z = xp.zeros((1,), dtype=seg.dtype)
+    return 0.5 * (xp.concatenate([seg, z]) + xp.concatenate([z, seg]))
+
+
+def _diag3(a, b, c, xp):
+    return xp.stack([a, b, c], axis=-1)
+
+
+def rod(
+    n: int,
+    length,
+    *,
+    bending,
+    torsion,
+    shear,
+    stretch,
+    mass,
+    rotary,
+    damping=0.0,
+    loads=(),
+    base: str = "clamped",
+    foundation: AbstractFoundation | None = None,
+) -> Rod:
+    r"""A straight rod of ``n`` bodies along $k = e_3$ (plus the base body at the origin, clamped
+    by default): nodes $z_i = i\,L/n$, $i = 0\dots n$.
+
+    **Arguments** (constants per unit length, each a scalar or one value per segment, shape
+    ``(n,)``, segment $i$ between bodies $i-1$ and $i$: a tapered rod):
+
+    - `bending` $EI$, `torsion` $GJ$, `shear` $\kappa GA$, `stretch` $EA$;
+    - `mass` $\rho A$; `rotary` $\rho I$, the rotary inertia per length about a transverse axis
+      (the polar one is $2\rho I$), or a pair ``(rho_I, rho_J)`` given as a Python tuple
+      (a per-segment pair: shape ``(n, 2)``);
+    - `damping`: Kelvin–Voigt time $\eta$ (s): every stress resultant $K s$ gains
+      $\eta K\dot s$;
+    - `loads`: :class:`TipForce`, :class:`TipMoment`, :class:`Gravity`,
+      :class:`DistributedForce`;
+    - `base`: ``"clamped"``, ``"pinned"`` or ``"free"``;
+    - `foundation`: an energy of every body's turn per unit length (a rod on an elastic
+      foundation of rigid body oscillators).
+
+    Every float may be traced (``jax.vmap`` over ``bending``, ``jax.grad`` with respect to
+    ``shear``).
+    """
+    owner = "rod"
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
+        raise TypeError(f"rod: n must be an integer, got {n!r}.")
+    n = int(n)
+    if n < 2:
+        raise ValueError(f"rod: n must be >= 2 bodies past the base, got {n}.")
+    L = _checked(_array(length, "length", owner), "length", owner)
+    if np.shape(L) != ():
+        raise ValueError(f"rod: length must be a scalar, got shape {np.shape(L)}.")
+    EI = _per_segment(bending, "bending", n, owner)
+    GJ = _per_segment(torsion, "torsion", n, owner)
+    kGA = _per_segment(shear, "shear", n, owner)
+    EA = _per_segment(stretch, "stretch", n, owner)
+    rhoA = _per_segment(mass, "mass", n, owner)
+    if isinstance(rotary, tuple) and len(rotary) == 2:
+        rhoI = _per_segment(rotary[0], "rotary", n, owner)
+        rhoJ = _per_segment(rotary[1], "rotary (polar)", n, owner)
+    else:
+        rot = _checked(_array(rotary, "rotary", owner), "rotary", owner)
+        if tuple(np.shape(rot)) == (n, 2):
+            rhoI, rhoJ = rot[:, 0], rot[:, 1]
+        else:
+            rhoI = _per_segment(rot, "rotary", n, owner)
+            rhoJ = 2.0 * rhoI
+    eta = _per_segment(damping, "damping", n, owner, strict=False)
+    xp = _xp(L, EI, GJ, kGA, EA, rhoA, rhoI, rhoJ, eta)
+    h = L / n
+    m = _lumped(rhoA, h, xp)
+    Jt, Jp = _lumped(rhoI, h, xp), _lumped(rhoJ, h, xp)
+    inertia = _diag3(Jt, Jt, Jp, xp)[:, :, None] * xp.eye(3)[None]
+    share = _lumped(xp.ones(n, dtype=m.dtype), h, xp)
+    zeros = xp.zeros((n, 3), dtype=m.dtype)
+    return Rod(
+        mass=m,
+        inertia=inertia,
+        share=share,
+        turn_stiffness=_diag3(EI, EI, GJ, xp) / h,
+        gap_stiffness=_diag3(kGA, kGA, EA, xp) / h,
+        turn_damping=eta,
+        gap_damping=eta,
+        attach_a=zeros,
+        attach_b=zeros,
+        rest_gap=xp.broadcast_to(h * xp.asarray(E3, dtype=m.dtype), (n, 3)) + zeros,
+        foundation=foundation,
+        loads=loads,
+        base=base,
+    )
+
+
+def circular_rod(
+    n: int,
+    length,
+    *,
+    radius,
+    density,
+    youngs_modulus,
+    shear_modulus=None,
+    poisson_ratio: float = 0.5,
+    shear_coefficient=4.0 / 3.0,
+    damping=0.0,
+    loads=(),
+    base: str = "clamped",
+    foundation=None,
+) -> Rod:
+    r"""A rod of circular cross-section from its material, as PyElastica's ``CosseratRod.
+    straight_rod`` takes it: $A = \pi r^2$, $I = \pi r^4/4$, $J = 2I$; $EI$, $GJ = G\cdot 2I$,
+    $\kappa GA$ and $EA$; $\rho A$ and $\rho I$. ``shear_modulus`` defaults to
+    $G = E/(2(1 + \nu))$ with ``poisson_ratio`` $\nu = 0.5$ (PyElastica's default);
+    ``shear_coefficient`` is the factor PyElastica multiplies $GA$ by, $4/3$ by default (its
+    ``alpha_c``), so that ``shear`` $= \tfrac43 GA$ as PyElastica's; Timoshenko's shear
+    coefficient of a solid circle is $\kappa = 6(1+\nu)/(7 + 6\nu)$ — pass that value to
+    compare with the Timoshenko beam."""
+    owner = "circular_rod"
+    r = _checked(_array(radius, "radius", owner), "radius", owner)
+    rho = _checked(_array(density, "density", owner), "density", owner)
+    E = _checked(_array(youngs_modulus, "youngs_modulus", owner), "youngs_modulus", owner)
+    if shear_modulus is None:
+        G = E / (2.0 * (1.0 + poisson_ratio))
+    else:
+        G = _checked(_array(shear_modulus, "shear_modulus", owner), "shear_modulus", owner)
+    kappa = _checked(
+        _array(shear_coefficient, "shear_coefficient", owner), "shear_coefficient", owner
+    )
+    A = math.pi * r**2
+    I = math.pi * r**4 / 4.0  # noqa: E741 - the second moment of area
+    return rod(
+        n,
+        length,
+        bending=E * I,
+        torsion=G * 2.0 * I,
+        shear=kappa * G * A,
+        stretch=E * A,
+        mass=rho * A,
+        rotary=(rho * I, rho * 2.0 * I),
+        damping=damping,
+        loads=loads,
+        base=base,
+        foundation=foundation,
+    )
+
+
+def pendulum(
+    masses: Sequence,
+    lengths: Sequence,
+    stiffness: Sequence,
+    *,
+    damping=0.0,
+    loads=(),
+    torsion=None,
+    rotary: float = 1e-6,
+    penalty: float = 1e6,
+) -> Rod:
+    r"""A chain of rigid massless links with point masses at their ends and hinge springs, the
+    base hinge at the origin (Ziegler's pendulum: ``pendulum([2 m, m], [l, l], [c, c])``).
+
+    Body $i \ge 1$ is the point mass ``masses[i-1]`` at the end of link $i$ (length
+    ``lengths[i-1]``), turning with the link; hinge $i$ joins the end of link $i-1$ (the base
+    for $i = 1$) to the start of link $i$, $-l_i\,k$ in body $i$'s frame, with the rotational
+    spring ``stiffness[i-1]`` (about both transverse axes; about the axis ``torsion``, default
+    the same) and a hinge damper ``damping`` × stiffness (Kelvin–Voigt on the relative turn
+    only). The hinges are stiff couplings of the gap, ``penalty`` × stiffness / l², and a point
+    mass carries a small rotary inertia ``rotary`` × m l²: the rigid pendulum is their limit,
+    approached to O(1/penalty) and O(rotary) (tested).
+    """
+    owner = "pendulum"
+    m = _checked(_array(masses, "masses", owner), "masses", owner)
+    ls = _checked(_array(lengths, "lengths", owner), "lengths", owner)
+    c = _checked(_array(stiffness, "stiffness", owner), "stiffness", owner)
+    n = int(np.shape(m)[0]) if np.ndim(m) == 1 else 0
+    if n < 1 or np.shape(ls) != (n,) or np.shape(c) != (n,):
+        raise ValueError(
+            f"pendulum: masses, lengths and stiffness need one value per link, got shapes "
+            f"{np.shape(m)}, {np.shape(ls)}, {np.shape(c)}."
+        )
+    ct = c if torsion is None else _per_segment(torsion, "torsion", n, owner)
+    eta = _per_segment(damping, "damping", n, owner, strict=False)
+    xp = _xp(m, ls, c, ct, eta)
+    z1 = xp.zeros((1,), dtype=m.dtype)
+    mass = xp.concatenate([z1 + 1.0, m])  # the base body never moves
+    J = rotary * mass * xp.concatenate([z1 + 1.0, ls]) ** 2
+    inertia = J[:, None, None] * xp.eye(3)[None]
+    k = xp.asarray(E3, dtype=m.dtype)
+    zeros = xp.zeros((n, 3), dtype=m.dtype)
+    Kg = penalty * c / ls**2
+    return Rod(
+        mass=mass,
+        inertia=inertia,
+        share=xp.concatenate([z1, ls]),
+        turn_stiffness=_diag3(c, c, ct, xp),
+        gap_stiffness=_diag3(Kg, Kg, Kg, xp),
+        turn_damping=eta,
+        gap_damping=xp.zeros((n,), dtype=m.dtype),
+        attach_a=zeros,
+        attach_b=-ls[:, None] * k[None, :],
+        rest_gap=zeros,
+        foundation=None,
+        loads=loads,
+        base="clamped",
+    )

@@ -1,0 +1,246 @@
+r"""Linear stability and motion of a rod (:mod:`._rod`).
+
+**Linearisation.** About an equilibrium $(\theta^*, r^*)$ the state is perturbed by turn
+increments $\delta_i$ in the bodies' frames and displacements $d_i$ (:mod:`._rod_field`), with
+the first-order system
+
+$$\dot\delta = Z^T(\delta)\cdot\Omega, \quad \dot d = v, \quad
+  A\cdot\dot\Omega = M - \Omega\times A\cdot\Omega, \quad m\,\dot v = F,$$
+
+whose Jacobian at zero (forward-mode autodiff, the held coordinates of the base left out)
+holds the mass, the Kelvin–Voigt damping, the gyroscopic terms and the stiffness, non-symmetric
+under a follower load (circulatory forces): the eigenvalues $p$ of :func:`spectrum` decide
+stability by Lyapunov's first method as (4.69) does for one body. :func:`critical_load` finds
+the smallest load at which an eigenvalue crosses into $\mathrm{Re}\,p > 0$: divergence
+(Euler's buckling) or flutter (Beck's column, Ziegler's pendulum).
+
+**Motion.** :func:`simulate` integrates the rod's equations (:func:`._rod_field.rates`) with
+diffrax: an explicit Runge–Kutta method (``Dopri8``, default) or, for the stiff stretch and
+shear waves of a slender rod, an implicit one (``Kvaerno5``).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _programs
+from ..kinematics import Turn
+from ..maps import critical_value
+from ..trajectory import SolveStatus
+from ._rod import Rod, RodState
+from ._rod_field import body_forces, energy, kinetic_moment, rates
+from ._rod_statics import solve_equilibrium
+
+__all__ = ["RodTrajectory", "critical_load", "linearize", "simulate_rod", "spectrum"]
+
+
+def _free_index(rod: Rod):
+    turn, pos = rod.free_masks()
+    return np.flatnonzero(turn), np.flatnonzero(pos)
+
+
+def linearize(rod: Rod, state: RodState):
+    r"""The Jacobian of the first-order system at the equilibrium ``state`` (module docstring):
+    a square matrix over ``[delta, d, Omega, v]`` of the bodies that move (the base's held
+    coordinates left out)."""
+    it, ip = _free_index(rod)
+    theta, r = jnp.asarray(state.theta), jnp.asarray(state.r)
+    nt, npos = 3 * len(it), 3 * len(ip)
+    A = jnp.asarray(rod.inertia)
+    m = jnp.asarray(rod.mass)
+
+    def field(x):
+        delta = jnp.zeros_like(theta).at[it].set(x[:nt].reshape(-1, 3))
+        d = jnp.zeros_like(r).at[ip].set(x[nt : nt + npos].reshape(-1, 3))
+        Om = jnp.zeros_like(theta).at[it].set(x[nt + npos : 2 * nt + npos].reshape(-1, 3))
+        v = jnp.zeros_like(r).at[ip].set(x[2 * nt + npos :].reshape(-1, 3))
+        M, F = body_forces(rod, theta, r, delta, d, Om, v)
+        AOm = jnp.einsum("bij,bj->bi", A, Om)
+        Om_dot = jnp.linalg.solve(A, (M - jnp.cross(Om, AOm))[..., None])[..., 0]
+        delta_dot = jax.vmap(lambda de, w: Turn(de).ZT(w))(delta, Om)
+        v_dot = F / m[:, None]
+        return jnp.concatenate(
+            [
+                delta_dot[it].ravel(),
+                v[ip].ravel(),
+                Om_dot[it].ravel(),
+                v_dot[ip].ravel(),
+            ]
+        )
+
+    return jax.jacfwd(field)(jnp.zeros(2 * (nt + npos), theta.dtype))
+
+
+def _sorted_spectrum(rod, state):
+    p = jnp.linalg.eigvals(linearize(rod, state))
+    return p[jnp.lexsort((p.imag, p.real))]
+
+
+_spectrum = _programs.jit(_sorted_spectrum, fast_compile=True)
+
+
+def spectrum(rod: Rod, state: RodState | None = None, **equilibrium_kwargs):
+    r"""The eigenvalues of the linearisation at the equilibrium ``state`` (solved by
+    :func:`rbo_jax.lattice.equilibrium` when ``None``, with ``equilibrium_kwargs``), sorted by
+    real then imaginary part: $2\cdot 6N$ of them for a clamped rod of $N$ bodies past the base.
+    Mass, damping, gyroscopic and circulatory (follower) terms included."""
+    if not isinstance(rod, Rod):
+        raise TypeError(f"spectrum: expected a Rod, got {type(rod).__name__}.")
+    if state is None:
+        sol = solve_equilibrium(rod, **equilibrium_kwargs)
+        state = RodState.at_rest(
+            eqx.error_if(sol.state.theta, ~sol.ok, "lattice.spectrum: no equilibrium found."),
+            sol.state.r,
+        )
+    return _spectrum(rod, state)
+
+
+def _abscissa_ratio(p):
+    return jnp.max(p.real) / jnp.maximum(jnp.max(jnp.abs(p)), 1.0)
+
+
+def critical_load(
+    rod_fn,
+    load_max: float,
+    *,
+    load_min: float = 0.0,
+    guess: RodState | None = None,
+    n_scan: int = 32,
+    n_bisect: int = 40,
+    rtol: float = 1e-9,
+    steps: int = 1,
+):
+    r"""The smallest load $P \in (P_{min}, P_{max}]$ at which the equilibrium of ``rod_fn(P)``
+    (a :class:`Rod` for every load value, traced) loses stability: the spectral abscissa of
+    :func:`spectrum` exceeds ``rtol`` × the largest $|p|$ (flutter or divergence). A scan at
+    ``n_scan`` loads, then ``n_bisect`` bisections (:func:`rbo_jax.critical_value`); ``inf`` if
+    the rod stays stable. Equilibria by Newton from ``guess`` (the straight rod) in ``steps``
+    load steps; a load whose equilibrium fails counts as unstable."""
+
+    def run(lo, hi):
+        def unstable(P):
+            rod = rod_fn(P)
+            sol = solve_equilibrium(rod, guess, steps=steps)
+            ratio = _abscissa_ratio(jnp.linalg.eigvals(linearize(rod, sol.state)))
+            return (ratio > rtol) | ~sol.ok
+
+        return critical_value(unstable, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
+
+    if not load_max > load_min:
+        raise ValueError(f"critical_load: load_max ({load_max}) must exceed load_min ({load_min}).")
+    return _programs.jit(run, fast_compile=True)(
+        jnp.asarray(float(load_min)), jnp.asarray(float(load_max))
+    )
+
+
+class RodTrajectory(eqx.Module):
+    r"""Samples of a rod's motion (:func:`rbo_jax.lattice.simulate` of a :class:`Rod`): ``ts``
+    (T,), ``states`` (a :class:`RodState` with a leading axis T), ``rod``, ``status`` (a
+    :class:`rbo_jax.SolveStatus`), ``num_steps``. Derived: ``centreline`` (T, N+1, 3),
+    ``energy`` (T,) (conserved without damping and follower loads), ``kinetic_moment`` (T, 3)
+    about the origin (conserved by a free rod without loads)."""
+
+    ts: jax.Array
+    states: RodState
+    rod: Rod
+    status: SolveStatus
+    num_steps: jax.Array
+
+    @property
+    def centreline(self):
+        return self.states.r
+
+    @property
+    def energy(self):
+        return jax.vmap(lambda s: energy(self.rod, s))(self.states)
+
+    @property
+    def kinetic_moment(self):
+        return jax.vmap(lambda s: kinetic_moment(self.rod, s))(self.states)
+
+    @property
+    def ok(self):
+        from .. import _enumeration as enum  # noqa: PLC0415
+
+        return np.asarray(enum.code(self.status)) == np.asarray(enum.code(SolveStatus.successful))
+
+
+@eqx.filter_jit
+def _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0):
+    term = diffrax.ODETerm(lambda t, y, args: rates(rod, y))
+    sol = diffrax.diffeqsolve(
+        term,
+        solver,
+        ts[0],
+        ts[-1],
+        dt0,
+        state0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        max_steps=max_steps,
+        throw=False,
+    )
+    ok = sol.result == diffrax.RESULTS.successful
+    steps = sol.result == diffrax.RESULTS.max_steps_reached
+    code = jnp.where(ok, 0, jnp.where(steps, 1, 2))
+    return sol.ys, code, sol.stats["num_accepted_steps"]
+
+
+def simulate_rod(
+    rod: Rod,
+    state0: RodState,
+    ts,
+    *,
+    method: str = "explicit",
+    solver: diffrax.AbstractSolver | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    dt0: float | None = None,
+    throw: bool = True,
+) -> RodTrajectory:
+    r"""The motion of ``rod`` from ``state0`` sampled at ``ts`` (module docstring).
+
+    ``method``: ``"explicit"`` (diffrax ``Dopri8``, default) or ``"implicit"`` (``Kvaerno5``,
+    for stiff stretch and shear); or any diffrax ``solver``. ``rtol``, ``atol``: the step-size
+    controller's tolerances. A failed solve raises with ``throw=True``, else reports
+    ``status`` (samples after the failure are ``inf``)."""
+    if not isinstance(state0, RodState):
+        raise TypeError(
+            f"lattice.simulate(rod, state0, ts): state0 must be a RodState (e.g. "
+            f"rod.straight() or lattice.equilibrium(rod)), got {type(state0).__name__}."
+        )
+    shape = (rod.n_bodies, 3)
+    for name in ("theta", "r", "Omega", "v"):
+        if tuple(np.shape(getattr(state0, name))) != shape:
+            raise ValueError(
+                f"lattice.simulate: state0.{name} must have shape {shape}, got "
+                f"{np.shape(getattr(state0, name))}."
+            )
+    ts = jnp.asarray(ts, dtype=jnp.result_type(float))
+    if ts.ndim != 1 or ts.shape[0] < 2 or not bool(jnp.all(jnp.diff(ts) > 0)):
+        raise ValueError(
+            "lattice.simulate: ts must be a strictly increasing 1-D array of >= 2 times."
+        )
+    if solver is None:
+        if method == "explicit":
+            solver = diffrax.Dopri8()
+        elif method == "implicit":
+            solver = diffrax.Kvaerno5()
+        else:
+            raise ValueError(
+                f"lattice.simulate: method must be 'explicit' or 'implicit' for a rod, got "
+                f"{method!r}."
+            )
+    dt0 = float(ts[1] - ts[0]) / 10.0 if dt0 is None else float(dt0)
+    state0 = jax.tree_util.tree_map(jnp.asarray, state0)
+    ys, code, steps = _solve(rod, state0, ts, solver, float(rtol), float(atol), int(max_steps), dt0)
+    status = [SolveStatus.successful, SolveStatus.max_steps_reached, SolveStatus.solver_error]
+    code = int(code)
+    if throw and code != 0:
+        raise RuntimeError(f"lattice.simulate: the rod's solve failed: {status[code]!r}.")
+    return RodTrajectory(ts, ys, rod, status[code], steps)
