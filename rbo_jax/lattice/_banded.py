@@ -27,10 +27,8 @@ def tridiagonal_jacobian(fn, x):
     colour = jnp.arange(N) % 3
     eye = jnp.eye(m, dtype=x.dtype)
     # tangents (3 m, N, m): colour c, direction j on every block of colour c
-    tangents = (colour[None, None, :, None] == jnp.arange(3)[:, None, None, None]) * eye[
-        None, :, None, :
-    ]
-    tangents = tangents.reshape(3 * m, N, m).astype(x.dtype)
+    same = colour[None, None, :, None] == jnp.arange(3)[:, None, None, None]
+    tangents = jnp.where(same, eye[None, :, None, :], 0.0).reshape(3 * m, N, m)
     _, lin = jax.linearize(fn, x)
     out = jax.vmap(lin)(tangents).reshape(3, m, N, m)  # [colour, j, i, row]
 
@@ -40,9 +38,9 @@ def tridiagonal_jacobian(fn, x):
         b = out[c, :, jnp.arange(N), :]  # (N, j, row)
         return jnp.swapaxes(b, 1, 2)  # (N, row, j)
 
-    valid_lo = (jnp.arange(N) > 0)[:, None, None]
-    valid_hi = (jnp.arange(N) < N - 1)[:, None, None]
-    return block(-1) * valid_lo, block(0), block(1) * valid_hi
+    lo = jnp.where((jnp.arange(N) > 0)[:, None, None], block(-1), 0.0)
+    hi = jnp.where((jnp.arange(N) < N - 1)[:, None, None], block(1), 0.0)
+    return lo, block(0), hi
 
 
 def _factor(L, D, U):

@@ -56,22 +56,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._validation import _float_dtype, _is_traced
+from .._validation import _is_traced
 from ..foundations import AbstractFoundation, ZeroFoundation
 from ..kinematics import turn_tensor
+from ._rod_loads import as_rod_loads, real_array
 
-__all__ = [
-    "BASES",
-    "DistributedForce",
-    "Gravity",
-    "Rod",
-    "RodState",
-    "TipForce",
-    "TipMoment",
-    "circular_rod",
-    "pendulum",
-    "rod",
-]
+__all__ = ["BASES", "Rod", "RodState", "circular_rod", "pendulum", "rod"]
 
 BASES = ("clamped", "pinned", "free")
 E3 = np.array([0.0, 0.0, 1.0])
@@ -80,17 +70,6 @@ E3 = np.array([0.0, 0.0, 1.0])
 # --------------------------------------------------------------------------------------------
 # Parameters: concrete values are checked now, traced ones are taken as they are.
 # --------------------------------------------------------------------------------------------
-
-
-def _array(x, name: str, owner: str):
-    if isinstance(x, (list, tuple)):
-        x = np.asarray(x) if not any(_is_traced(e) for e in x) else jnp.stack(x)
-    if not _is_traced(x):
-        x = np.asarray(x)
-        if np.iscomplexobj(x) or not np.issubdtype(x.dtype, np.number):
-            raise TypeError(f"{owner}: {name} must be real numbers, got {x.dtype}.")
-        x = x.astype(_float_dtype())
-    return x
 
 
 def _checked(x, name: str, owner: str, *, low: float = 0.0, strict: bool = True):
@@ -109,7 +88,7 @@ def _checked(x, name: str, owner: str, *, low: float = 0.0, strict: bool = True)
 def _per_segment(x, name: str, n: int, owner: str, *, strict: bool = True):
     """A constant per unit length: a scalar or one value per segment (shape ``(n,)``), as an
     ``(n,)`` array, checked."""
-    x = _checked(_array(x, name, owner), name, owner, strict=strict)
+    x = _checked(real_array(x, name, owner), name, owner, strict=strict)
     shape = tuple(np.shape(x))
     if shape not in ((), (n,)):
         raise ValueError(
@@ -121,153 +100,6 @@ def _per_segment(x, name: str, n: int, owner: str, *, strict: bool = True):
 
 def _xp(*xs):
     return jnp if any(_is_traced(x) for x in xs) else np
-
-
-# --------------------------------------------------------------------------------------------
-# Loads.
-# --------------------------------------------------------------------------------------------
-
-
-class AbstractRodLoad(eqx.Module):
-    """A load on the bodies of a rod: world-frame forces and body-frame moments, ``(N+1, 3)``
-    each, at the turn-tensors and positions of the bodies. ``needs_positions``: a force needs
-    bodies that translate (a plain lattice of bodies with fixed points refuses it)."""
-
-    needs_positions = True
-
-    def check(self, rod: Rod) -> None:
-        """Refuse a load that does not fit ``rod`` (a body that does not exist)."""
-
-    def forces(self, rod: Rod, rotate, scale):
-        """``(F (N+1, 3) world, M (N+1, 3) body)``; ``rotate(i, x, back)`` turns ``x`` by the
-        turn of body ``i`` (or back)."""
-        raise NotImplementedError
-
-
-def _body_index(body, rod: Rod, owner: str) -> int:
-    nb = rod.n_bodies
-    i = int(body)
-    if not -nb <= i < nb:
-        raise ValueError(
-            f"{owner}: body={body} does not exist: the rod has bodies 0 … {nb - 1} (0 the "
-            f"base, {nb - 1} the tip; negative indices count from the tip)."
-        )
-    i %= nb
-    if i == 0 and rod.base == "clamped":
-        raise ValueError(
-            f"{owner}: body=0 is the clamped base, which no load can move; load bodies 1 … "
-            f"{nb - 1}."
-        )
-    return i
-
-
-class _PointLoad(AbstractRodLoad):
-    vector: Float[Array, "3"]
-    follower: bool = eqx.field(static=True)
-    body: int = eqx.field(static=True)
-
-    def __init__(self, vector, follower: bool = False, *, body: int = -1):
-        owner = type(self).__name__
-        v = _array(vector, self._what, owner)
-        if tuple(np.shape(v)) != (3,):
-            raise ValueError(f"{owner}: {self._what} must be a 3-vector, got shape {np.shape(v)}.")
-        if not _is_traced(v) and not np.all(np.isfinite(v)):
-            raise ValueError(f"{owner}: {self._what} must be finite, got {np.asarray(v).tolist()}.")
-        self.vector = v
-        self.follower = bool(follower)
-        self.body = int(body)
-
-    def check(self, rod: Rod) -> None:
-        _body_index(self.body, rod, type(self).__name__)
-
-
-class TipForce(_PointLoad):
-    r"""A force on the tip body (or on ``body``), at its centre. ``follower=False``: the vector
-    is fixed in space (a dead load, $-F\cdot r$ is its potential); ``follower=True``: it is
-    given in the body's frame and turns with it, $F = Q_{tip}\cdot f$ (Beck's column:
-    ``TipForce([0, 0, -P], follower=True)``, a compressive force along the tip's axis), the
-    force analogue of the follower moment (4.57)."""
-
-    _what = "force"
-
-    @property
-    def force(self):
-        return self.vector
-
-    def forces(self, rod, rotate, scale):
-        i = self.body % rod.n_bodies
-        f = scale * jnp.asarray(self.vector)
-        F = rotate(i, f, False) if self.follower else f
-        Fs = jnp.zeros((rod.n_bodies, 3), F.dtype).at[i].set(F)
-        return Fs, jnp.zeros_like(Fs)
-
-
-class TipMoment(_PointLoad):
-    r"""A moment on the tip body (or on ``body``). ``follower=False``: fixed in space (as
-    :class:`rbo_jax.DeadMoment`); ``follower=True``: given in the body's frame, turning with it
-    (as :class:`rbo_jax.FollowerMoment`, (4.57)). A moment $2\pi EI/L$ about a transverse axis
-    rolls a clamped rod into a circle."""
-
-    _what = "moment"
-
-    @property
-    def moment(self):
-        return self.vector
-
-    def forces(self, rod, rotate, scale):
-        i = self.body % rod.n_bodies
-        m = scale * jnp.asarray(self.vector)
-        M = m if self.follower else rotate(i, m, True)
-        Ms = jnp.zeros((rod.n_bodies, 3), M.dtype).at[i].set(M)
-        return jnp.zeros_like(Ms), Ms
-
-
-class Gravity(AbstractRodLoad):
-    r"""Weight: the force $m_i\,g$ on every body (``g`` a world vector, e.g. ``[0, 0, -9.81]``).
-    Potential $-\sum_i m_i\,g\cdot r_i$ (in the energy)."""
-
-    g: Float[Array, "3"]
-
-    def __init__(self, g=(0.0, 0.0, -9.81)):
-        g = _array(g, "g", "Gravity")
-        if tuple(np.shape(g)) != (3,):
-            raise ValueError(f"Gravity: g must be a 3-vector, got shape {np.shape(g)}.")
-        self.g = g
-
-    def forces(self, rod, rotate, scale):
-        F = scale * jnp.asarray(rod.mass)[:, None] * jnp.asarray(self.g)[None, :]
-        return F, jnp.zeros_like(F)
-
-
-class DistributedForce(AbstractRodLoad):
-    r"""A dead force per unit length ``q`` (world frame) along the whole rod, lumped on the bodies
-    by their shares of the length (half a segment at either end)."""
-
-    q: Float[Array, "3"]
-
-    def __init__(self, q):
-        q = _array(q, "q", "DistributedForce")
-        if tuple(np.shape(q)) != (3,):
-            raise ValueError(f"DistributedForce: q must be a 3-vector, got shape {np.shape(q)}.")
-        self.q = q
-
-    def forces(self, rod, rotate, scale):
-        F = scale * jnp.asarray(rod.share)[:, None] * jnp.asarray(self.q)[None, :]
-        return F, jnp.zeros_like(F)
-
-
-def _as_loads(loads) -> tuple:
-    if isinstance(loads, AbstractRodLoad):
-        loads = (loads,)
-    loads = tuple(loads)
-    for load in loads:
-        if not isinstance(load, AbstractRodLoad):
-            raise TypeError(
-                "rod: loads must be rbo_jax.lattice loads (TipForce, TipMoment, Gravity, "
-                f"DistributedForce), got {type(load).__name__}. Moments of a single body's "
-                "foundation go in `foundation`."
-            )
-    return loads
 
 
 # --------------------------------------------------------------------------------------------
@@ -286,7 +118,7 @@ class Rod(eqx.Module):
     ``gap_stiffness`` (N, 3) (diagonals in the mid-frame), ``turn_damping``, ``gap_damping``
     (N,) (Kelvin–Voigt times, s), ``attach_a``, ``attach_b``, ``rest_gap`` (N, 3); ``foundation``
     (an energy of every body's turn per unit length, or ``None``); ``loads``; ``base_position``,
-    ``base_turn`` (3,); static ``base`` and ``length``-free topology.
+    ``base_turn`` (3,) (the held values of the base body); static ``base``.
     """
 
     mass: Float[Array, " B"]
@@ -345,8 +177,8 @@ class Rod(eqx.Module):
         self.rest_gap = rest_gap
         self.foundation = foundation
         self.base = base
-        self.base_position = _array(base_position, "base_position", "rod")
-        self.base_turn = _array(base_turn, "base_turn", "rod")
+        self.base_position = real_array(base_position, "base_position", "rod")
+        self.base_turn = real_array(base_turn, "base_turn", "rod")
         nb = int(np.shape(mass)[0])
         shapes = {
             "inertia": (nb, 3, 3),
@@ -367,7 +199,7 @@ class Rod(eqx.Module):
                     f"Rod: {name} must have shape {shape} for {nb} bodies, got "
                     f"{tuple(np.shape(getattr(self, name)))}."
                 )
-        self.loads = _as_loads(loads)
+        self.loads = as_rod_loads(loads)
         for load in self.loads:
             load.check(self)
 
@@ -394,7 +226,10 @@ class Rod(eqx.Module):
 
     def with_loads(self, loads) -> Rod:
         """The same rod under other loads."""
-        return eqx.tree_at(lambda r: r.loads, self, _as_loads(loads))
+        loads = as_rod_loads(loads)
+        for load in loads:
+            load.check(self)
+        return eqx.tree_at(lambda r: r.loads, self, loads)
 
     def straight(self) -> RodState:
         """The reference state at rest: every body turned as the base, the centres at the base
@@ -470,6 +305,7 @@ def rod(
     loads=(),
     base: str = "clamped",
     foundation: AbstractFoundation | None = None,
+    tip_mass=0.0,
 ) -> Rod:
     r"""A straight rod of ``n`` bodies along $k = e_3$ (plus the base body at the origin, clamped
     by default): nodes $z_i = i\,L/n$, $i = 0\dots n$.
@@ -487,7 +323,9 @@ def rod(
       :class:`DistributedForce`;
     - `base`: ``"clamped"``, ``"pinned"`` or ``"free"``;
     - `foundation`: an energy of every body's turn per unit length (a rod on an elastic
-      foundation of rigid body oscillators).
+      foundation of rigid body oscillators);
+    - `tip_mass`: a point mass added to the tip body (Pflüger's column: Beck's column with a
+      tip mass), no rotary inertia of its own.
 
     Every float may be traced (``jax.vmap`` over ``bending``, ``jax.grad`` with respect to
     ``shear``).
@@ -498,7 +336,7 @@ def rod(
     n = int(n)
     if n < 2:
         raise ValueError(f"rod: n must be >= 2 bodies past the base, got {n}.")
-    L = _checked(_array(length, "length", owner), "length", owner)
+    L = _checked(real_array(length, "length", owner), "length", owner)
     if np.shape(L) != ():
         raise ValueError(f"rod: length must be a scalar, got shape {np.shape(L)}.")
     EI = _per_segment(bending, "bending", n, owner)
@@ -510,16 +348,20 @@ def rod(
         rhoI = _per_segment(rotary[0], "rotary", n, owner)
         rhoJ = _per_segment(rotary[1], "rotary (polar)", n, owner)
     else:
-        rot = _checked(_array(rotary, "rotary", owner), "rotary", owner)
+        rot = _checked(real_array(rotary, "rotary", owner), "rotary", owner)
         if tuple(np.shape(rot)) == (n, 2):
             rhoI, rhoJ = rot[:, 0], rot[:, 1]
         else:
             rhoI = _per_segment(rot, "rotary", n, owner)
             rhoJ = 2.0 * rhoI
     eta = _per_segment(damping, "damping", n, owner, strict=False)
-    xp = _xp(L, EI, GJ, kGA, EA, rhoA, rhoI, rhoJ, eta)
+    M_tip = _checked(real_array(tip_mass, "tip_mass", owner), "tip_mass", owner, strict=False)
+    if np.shape(M_tip) != ():
+        raise ValueError(f"rod: tip_mass must be a scalar, got shape {np.shape(M_tip)}.")
+    xp = _xp(L, EI, GJ, kGA, EA, rhoA, rhoI, rhoJ, eta, M_tip)
     h = L / n
     m = _lumped(rhoA, h, xp)
+    m = m + M_tip * xp.asarray(np.arange(n + 1) == n, dtype=m.dtype)
     Jt, Jp = _lumped(rhoI, h, xp), _lumped(rhoJ, h, xp)
     inertia = _diag3(Jt, Jt, Jp, xp)[:, :, None] * xp.eye(3)[None]
     share = _lumped(xp.ones(n, dtype=m.dtype), h, xp)
@@ -565,15 +407,15 @@ def circular_rod(
     coefficient of a solid circle is $\kappa = 6(1+\nu)/(7 + 6\nu)$ — pass that value to
     compare with the Timoshenko beam."""
     owner = "circular_rod"
-    r = _checked(_array(radius, "radius", owner), "radius", owner)
-    rho = _checked(_array(density, "density", owner), "density", owner)
-    E = _checked(_array(youngs_modulus, "youngs_modulus", owner), "youngs_modulus", owner)
+    r = _checked(real_array(radius, "radius", owner), "radius", owner)
+    rho = _checked(real_array(density, "density", owner), "density", owner)
+    E = _checked(real_array(youngs_modulus, "youngs_modulus", owner), "youngs_modulus", owner)
     if shear_modulus is None:
         G = E / (2.0 * (1.0 + poisson_ratio))
     else:
-        G = _checked(_array(shear_modulus, "shear_modulus", owner), "shear_modulus", owner)
+        G = _checked(real_array(shear_modulus, "shear_modulus", owner), "shear_modulus", owner)
     kappa = _checked(
-        _array(shear_coefficient, "shear_coefficient", owner), "shear_coefficient", owner
+        real_array(shear_coefficient, "shear_coefficient", owner), "shear_coefficient", owner
     )
     A = math.pi * r**2
     I = math.pi * r**4 / 4.0  # noqa: E741 - the second moment of area
@@ -617,9 +459,9 @@ def pendulum(
     approached to O(1/penalty) and O(rotary) (tested).
     """
     owner = "pendulum"
-    m = _checked(_array(masses, "masses", owner), "masses", owner)
-    ls = _checked(_array(lengths, "lengths", owner), "lengths", owner)
-    c = _checked(_array(stiffness, "stiffness", owner), "stiffness", owner)
+    m = _checked(real_array(masses, "masses", owner), "masses", owner)
+    ls = _checked(real_array(lengths, "lengths", owner), "lengths", owner)
+    c = _checked(real_array(stiffness, "stiffness", owner), "stiffness", owner)
     n = int(np.shape(m)[0]) if np.ndim(m) == 1 else 0
     if n < 1 or np.shape(ls) != (n,) or np.shape(c) != (n,):
         raise ValueError(

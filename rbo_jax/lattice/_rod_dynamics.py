@@ -111,12 +111,16 @@ def critical_load(
     guess: RodState | None = None,
     n_scan: int = 32,
     n_bisect: int = 40,
-    rtol: float = 1e-9,
+    rtol: float = 1e-14,
     steps: int = 1,
 ):
     r"""The smallest load $P \in (P_{min}, P_{max}]$ at which the equilibrium of ``rod_fn(P)``
     (a :class:`Rod` for every load value, traced) loses stability: the spectral abscissa of
-    :func:`spectrum` exceeds ``rtol`` × the largest $|p|$ (flutter or divergence). A scan at
+    :func:`spectrum` exceeds ``rtol`` × the largest $|p|$ (flutter or divergence). The largest
+    $|p|$ of a rod is a stiff stretch or shear mode, many times the bending frequencies, and the
+    eigenvalues' rounding is about $10^{-16}$ of it (seen: 1.3e-16 on Ziegler's pendulum): the
+    default ``rtol`` = 1e-14 stays two orders of magnitude above the rounding and still sees
+    the slow growth that a small damping gives near its boundary (Ziegler's paradox). A scan at
     ``n_scan`` loads, then ``n_bisect`` bisections (:func:`rbo_jax.critical_value`); ``inf`` if
     the rod stays stable. Equilibria by Newton from ``guess`` (the straight rod) in ``steps``
     load steps; a load whose equilibrium fails counts as unstable."""
@@ -141,8 +145,8 @@ class RodTrajectory(eqx.Module):
     r"""Samples of a rod's motion (:func:`rbo_jax.lattice.simulate` of a :class:`Rod`): ``ts``
     (T,), ``states`` (a :class:`RodState` with a leading axis T), ``rod``, ``status`` (a
     :class:`rbo_jax.SolveStatus`), ``num_steps``. Derived: ``centreline`` (T, N+1, 3),
-    ``energy`` (T,) (conserved without damping and follower loads), ``kinetic_moment`` (T, 3)
-    about the origin (conserved by a free rod without loads)."""
+    ``energy`` (T,) (conserved without damping, follower loads and dead moments),
+    ``kinetic_moment`` (T, 3) about the origin (conserved by a free rod without loads)."""
 
     ts: jax.Array
     states: RodState

@@ -30,7 +30,8 @@ import numpy as np
 
 from .._validation import _is_traced
 from ..kinematics import _ATANC, _X2_SWITCH, Turn, _horner, cross3, turn_tensor, turn_vector
-from ._rod import Gravity, Rod, RodState, TipForce
+from ._rod import Rod, RodState
+from ._rod_loads import DistributedForce, Gravity, TipForce
 
 __all__ = [
     "body_forces",
@@ -45,17 +46,17 @@ __all__ = [
 
 
 def tensors(theta):
-    """The turn-tensors $Q(\theta_i)$ (4.3) of rows of turn-vectors, ``(B, 3, 3)``."""
+    r"""The turn-tensors $Q(\theta_i)$ (4.3) of rows of turn-vectors, ``(B, 3, 3)``."""
     return jax.vmap(turn_tensor)(theta)
 
 
 def composed(theta, delta):
-    """$Q(\theta_i)\cdot Q(\delta_i)$, ``(B, 3, 3)``."""
+    r"""$Q(\theta_i)\cdot Q(\delta_i)$, ``(B, 3, 3)``."""
     return jnp.einsum("bij,bjk->bik", tensors(theta), tensors(delta))
 
 
 def rotate(Q, x, back: bool = False):
-    """$Q_i\cdot x_i$ (or $Q_i^T\cdot x_i$) for rows."""
+    r"""$Q_i\cdot x_i$ (or $Q_i^T\cdot x_i$) for rows."""
     return jnp.einsum("bji,bj->bi" if back else "bij,bj->bi", Q, x)
 
 
@@ -73,7 +74,7 @@ def log_unit(w, v):
 
 
 def _quaternion_of(R):
-    """The unit quaternion $(w > 0, v)$ of rotations $R$ turning by less than $\pi$
+    r"""The unit quaternion $(w > 0, v)$ of rotations $R$ turning by less than $\pi$
     ($1 + \mathrm{tr}\,R > 0$; NaN otherwise, reported by the solvers)."""
     w = 0.5 * jnp.sqrt(1.0 + R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2])
     v = jnp.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
@@ -81,7 +82,7 @@ def _quaternion_of(R):
 
 
 def _matrix_of(w, v):
-    """The rotation of unit quaternions $(w, v)$: $(w^2 - v^2)E + 2vv^T + 2w\,v\times$."""
+    r"""The rotation of unit quaternions $(w, v)$: $(w^2 - v^2)E + 2vv^T + 2w\,v\times$."""
     vx = jnp.stack(
         [
             jnp.stack([0.0 * w, -v[:, 2], v[:, 1]], -1),
@@ -90,7 +91,7 @@ def _matrix_of(w, v):
         ],
         1,
     )
-    diag = (w * w - jnp.sum(v * v, -1))[:, None, None] * jnp.eye(3, dtype=w.dtype)
+    diag = (w * w - jnp.sum(v * v, -1))[:, None, None] * jnp.eye(3, dtype=w.dtype)[None]
     return diag + 2.0 * v[:, :, None] * v[:, None, :] + 2.0 * w[:, None, None] * vx
 
 
@@ -141,11 +142,15 @@ def site_energy(rod: Rod, q):
 
 
 def _load_potential(rod: Rod, r):
-    """The potential of the conservative forces: gravity and dead tip forces."""
+    """The potential of the dead forces (gravity, distributed dead forces, dead tip forces). A
+    dead moment (:class:`TipMoment` with ``follower=False``) has none in general: it is not in
+    the energy."""
     V = jnp.zeros((), r.dtype)
     for load in rod.loads:
         if isinstance(load, Gravity):
             V = V - jnp.sum(jnp.asarray(rod.mass)[:, None] * r * jnp.asarray(load.g)[None, :])
+        elif isinstance(load, DistributedForce):
+            V = V - jnp.sum(jnp.asarray(rod.share)[:, None] * r * jnp.asarray(load.q)[None, :])
         elif isinstance(load, TipForce) and not load.follower:
             V = V - jnp.dot(jnp.asarray(load.force), r[load.body % rod.n_bodies])
     return V
@@ -227,7 +232,8 @@ def potential_energy(rod: Rod, state: RodState):
 
 
 def energy(rod: Rod, state: RodState):
-    """Kinetic plus potential energy: conserved without damping and non-potential loads."""
+    """Kinetic plus potential energy: conserved without damping, follower loads and dead
+    moments."""
     return kinetic_energy(rod, state) + potential_energy(rod, state)
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import _enumeration as enum
 from .. import _programs
-from ..kinematics import compose
+from ..kinematics import compose, integrating_tensor_inv
 from ._banded import tridiagonal_jacobian, tridiagonal_solve
 from ._rod import Rod, RodState
 from ._rod_field import body_forces
@@ -63,13 +63,19 @@ class RodEquilibrium(eqx.Module):
 
 
 def _residual(rod: Rod, theta, r, x, scale):
-    """The moment and force balance of every body at the increments ``x`` (N+1, 6); on the held
-    coordinates of the base the increment itself (so that its Newton step is zero)."""
+    r"""The moment and force balance of every body at the increments ``x`` (N+1, 6); on the held
+    coordinates of the base their distance from the held values, $d_0 + r_0 - r_{base}$ and
+    $\delta_0 + Z^{-T}(	heta_0)(	heta_0 - 	heta_{base})$ (zero there; and so the base's
+    position and turn are parameters that the implicit derivatives see)."""
     M, F = body_forces(rod, theta, r, x[:, :3], x[:, 3:], scale=scale)
     turn, pos = rod.free_masks()
     fixed_t = jnp.asarray(~turn, x.dtype)[:, None]
     fixed_p = jnp.asarray(~pos, x.dtype)[:, None]
-    return jnp.concatenate([M + fixed_t * x[:, :3], F + fixed_p * x[:, 3:]], axis=1)
+    to_turn = integrating_tensor_inv(theta[0]).T @ (theta[0] - jnp.asarray(rod.base_turn))
+    to_pos = r[0] - jnp.asarray(rod.base_position)
+    held_t = x[:, :3] + jnp.zeros_like(x[:, :3]).at[0].set(to_turn)
+    held_p = x[:, 3:] + jnp.zeros_like(x[:, 3:]).at[0].set(to_pos)
+    return jnp.concatenate([M + fixed_t * held_t, F + fixed_p * held_p], axis=1)
 
 
 def _newton_step(rod, theta, r, scale):
@@ -141,6 +147,8 @@ def _solution_jvp(primals, tangents, *, steps, rtol, max_steps):
     x0 = jnp.zeros(theta_s.shape[:-1] + (6,), theta_s.dtype)
     L, D, U = (jax.lax.stop_gradient(b) for b in out[5])  # the last Newton step's Jacobian
     _, dR = eqx.filter_jvp(lambda rd: _residual(rd, theta_s, r_s, x0, 1.0), (rod,), (tangents[0],))
+    if dR is None:  # the balance does not depend on the differentiated parameters
+        dR = jnp.zeros_like(x0)
     dx = -tridiagonal_solve(L, D, U, dR)
     d_theta = jax.jvp(lambda de: jax.vmap(compose)(theta_s, de), (x0[:, :3],), (dx[:, :3],))[1]
     zeros = tuple(jnp.zeros_like(o) if eqx.is_inexact_array(o) else None for o in out[2:5])

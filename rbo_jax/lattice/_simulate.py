@@ -38,7 +38,7 @@ from ._halo import BLOCK, HALO, Halo, Whole
 from ._integrate import Config, Problem, solve
 from ._lattice import Lattice
 from ._rod import Rod
-from ._rod_dynamics import simulate_rod
+from ._rod_dynamics import RodTrajectory, simulate_rod
 from ._splitting import split
 from ._trajectory import LatticeTrajectory
 
@@ -357,10 +357,32 @@ def _trusted(lattice, method, solver, adjoint) -> bool:
     return method == "diffrax" and _trusted_solve(lattice, solver, adjoint)
 
 
+def _simulate_rod(rod, state0, ts, extra, method, solver, rtol, atol, max_steps, throw):
+    """``simulate(rod, state0, ts)``: the rod's arguments sit where a lattice's ``theta0`` and
+    ``Omega0`` do (``ts`` may also be given by name)."""
+    if ts is not None and extra is not None:
+        raise TypeError("lattice.simulate of a rod takes (rod, state0, ts).")
+    ts = extra if ts is None else ts
+    if ts is None:
+        raise TypeError("lattice.simulate(rod, state0, ts): ts is missing.")
+    method = "explicit" if method == "dop853" else method
+    return simulate_rod(
+        rod,
+        state0,
+        ts,
+        method=method,
+        solver=solver,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        throw=throw,
+    )
+
+
 def simulate(
     lattice: Lattice,
     theta0,
-    Omega0,
+    Omega0=None,
     ts=None,
     *,
     method: str = "dop853",
@@ -376,7 +398,7 @@ def simulate(
     dtype=None,
     devices=None,
     throw: bool = True,
-) -> LatticeTrajectory:
+) -> LatticeTrajectory | RodTrajectory:
     r"""Integrate a lattice (every body's (4.55)–(4.56) with the gradient of the total energy)
     from ``(theta0, Omega0)`` at ``ts[0]`` and sample it at ``ts``.
 
@@ -417,21 +439,11 @@ def simulate(
     (:func:`rbo_jax.lattice._rod_dynamics.simulate_rod`).
     """
     if isinstance(lattice, Rod):
-        if ts is not None:
-            raise TypeError("lattice.simulate of a rod takes (rod, state0, ts).")
-        return simulate_rod(
-            lattice,
-            theta0,
-            Omega0,
-            method="explicit" if method == "dop853" else method,
-            solver=solver,
-            rtol=rtol,
-            atol=atol,
-            max_steps=max_steps,
-            throw=throw,
+        return _simulate_rod(
+            lattice, theta0, Omega0, ts, method, solver, rtol, atol, max_steps, throw
         )
-    if ts is None:
-        raise TypeError("lattice.simulate(lattice, theta0, Omega0, ts): ts is missing.")
+    if ts is None or Omega0 is None:
+        raise TypeError("lattice.simulate(lattice, theta0, Omega0, ts): Omega0 and ts are needed.")
     cfg = _config(
         lattice, method, rtol, atol, max_steps, singular_tol, recenter, recenter_margin, dt
     )
