@@ -410,7 +410,7 @@ def test_ziegler_paradox_with_hinge_dampers(b):
     """Equal hinge dampers b (Kelvin-Voigt time b/c): the pendulum built of two bodies that
     translate has the rigid pendulum's critical load to 1e-5, near 41/28 c/l, far below the
     undamped (7/2 - sqrt 2) c/l (Ziegler's paradox)."""
-    Pc = float(lattice.critical_load(lambda P: _ziegler(P, b), 5.0))
+    Pc = float(lattice.critical_load(lambda P: _ziegler(P, b), 5.0, rtol=1e-14))
     np.testing.assert_allclose(Pc, ziegler_reference(b), rtol=1e-5)
     assert abs(Pc - 41 / 28) < 0.01
 
