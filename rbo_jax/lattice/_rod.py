@@ -306,6 +306,7 @@ def rod(
     base: str = "clamped",
     foundation: AbstractFoundation | None = None,
     tip_mass=0.0,
+    shear_damping=None,
 ) -> Rod:
     r"""A straight rod of ``n`` bodies along $k = e_3$ (plus the base body at the origin, clamped
     by default): nodes $z_i = i\,L/n$, $i = 0\dots n$.
@@ -318,7 +319,10 @@ def rod(
       (the polar one is $2\rho I$), or a pair ``(rho_I, rho_J)`` given as a Python tuple
       (a per-segment pair: shape ``(n, 2)``);
     - `damping`: Kelvin–Voigt time $\eta$ (s): every stress resultant $K s$ gains
-      $\eta K\dot s$;
+      $\eta K\dot s$; `shear_damping`: another time for the shear and stretch resultants
+      (default `damping`; 0 damps bending and twist only, the internal damping of Bolotin's
+      Beck column: a stiff shear or stretch with a small rotary inertia makes the damped
+      spectrum badly conditioned, see :func:`rbo_jax.lattice.critical_load`);
     - `loads`: :class:`TipForce`, :class:`TipMoment`, :class:`Gravity`,
       :class:`DistributedForce`;
     - `base`: ``"clamped"``, ``"pinned"`` or ``"free"``;
@@ -355,10 +359,15 @@ def rod(
             rhoI = _per_segment(rot, "rotary", n, owner)
             rhoJ = 2.0 * rhoI
     eta = _per_segment(damping, "damping", n, owner, strict=False)
+    eta_g = (
+        eta
+        if shear_damping is None
+        else _per_segment(shear_damping, "shear_damping", n, owner, strict=False)
+    )
     M_tip = _checked(real_array(tip_mass, "tip_mass", owner), "tip_mass", owner, strict=False)
     if np.shape(M_tip) != ():
         raise ValueError(f"rod: tip_mass must be a scalar, got shape {np.shape(M_tip)}.")
-    xp = _xp(L, EI, GJ, kGA, EA, rhoA, rhoI, rhoJ, eta, M_tip)
+    xp = _xp(L, EI, GJ, kGA, EA, rhoA, rhoI, rhoJ, eta, eta_g, M_tip)
     h = L / n
     m = _lumped(rhoA, h, xp)
     m = m + M_tip * xp.asarray(np.arange(n + 1) == n, dtype=m.dtype)
@@ -373,7 +382,7 @@ def rod(
         turn_stiffness=_diag3(EI, EI, GJ, xp) / h,
         gap_stiffness=_diag3(kGA, kGA, EA, xp) / h,
         turn_damping=eta,
-        gap_damping=eta,
+        gap_damping=eta_g,
         attach_a=zeros,
         attach_b=zeros,
         rest_gap=xp.broadcast_to(h * xp.asarray(E3, dtype=m.dtype), (n, 3)) + zeros,

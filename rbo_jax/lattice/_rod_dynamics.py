@@ -122,7 +122,11 @@ def critical_load(
     it on undamped rods (Euler's, Beck's and Pflüger's columns, tested). A small damping makes
     the growth near its boundary slow, and ``rtol`` must be smaller to see it: Ziegler's
     pendulum with hinge dampers b = 0.01 c·s needs 1e-14 (its rounding was 1.3e-16 of
-    max |p|; tested). A scan at
+    max |p|; tested). Kelvin–Voigt damping on a stiff shear or stretch with a small rotary
+    inertia gives modes as fast as $\eta\kappa GA/(\rho I h^2)$, whose rounding hides the slow
+    ones (Beck's column with $\eta = 10^{-3}$ on every resultant, $\kappa GA = EA = 10^6$,
+    $\rho I = 10^{-8}$: 18.85 instead of 11.05): damp bending only there
+    (``shear_damping=0`` in :func:`rod`). A scan at
     ``n_scan`` loads, then ``n_bisect`` bisections (:func:`rbo_jax.critical_value`); ``inf`` if
     the rod stays stable. Equilibria by Newton from ``guess`` (the straight rod) in ``steps``
     load steps; a load whose equilibrium fails counts as unstable."""
