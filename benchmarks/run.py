@@ -26,6 +26,7 @@ SMOKE_ARGS = {
     "stability": ["--n-per-axis", "4", "--numpy-sample", "5", "--chunk", "32"],
     "fitting": ["--samples", "20", "--trajectories", "1"],
     "lattice": ["--smoke"],
+    "rod": ["--smoke"],  # PyElastica's rows skipped without it (the `bench` extra)
     "dask": ["--smoke"],  # skipped without distributed (the `dask` extra)
     "cores": ["--smoke", "--rows", "map"],  # three fresh processes
 }
@@ -172,6 +173,61 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                     f"jax {r['compile_jax']:.1f}",
                 )
             )
+    ro = results.get("rod")
+    if ro:
+        st = ro["statics"]
+        rj = st["rbo_jax"]
+        if st.get("pyelastica"):
+            rows.append(
+                (
+                    "rod",
+                    f"lattice.equilibrium (n = {st['n']}) vs PyElastica's Timoshenko example "
+                    f"(damped dynamics to t = {st['final_time']:g}; 1 core each)",
+                    _fmt(st["ratio"], ".0f") + "x",
+                    f"jax {rj['compile']:.1f}",
+                )
+            )
+            rows.append(
+                (
+                    "rod",
+                    "lattice.equilibrium vs PyElastica until its deflection settles (0.1 %)",
+                    _fmt(st["ratio_settled"], ".0f") + "x",
+                    "",
+                )
+            )
+        else:
+            rows.append(("rod", "pyelastica not installed, skipped", "-", ""))
+        compiles = {
+            (r["code"], r["n"]): r["first"] - r["seconds"]
+            for r in ro["vibration"]["rows"]
+            if r["first"] is not None
+        }
+        for e in ro["vibration"]["equal_accuracy"]:
+            what = (
+                "per simulated second"
+                if e["per_sim"]
+                else f"vs its whole run ({ro['vibration']['T']:g} s simulated)"
+            )
+            rows.append(
+                (
+                    "rod",
+                    f"{e['code']} (n = {e['n']}) vs PyElastica PositionVerlet (n = {e['pe_n']}), "
+                    f"{what}, at equal accuracy of the first two frequencies",
+                    _fmt(e["ratio"], ".2f") + "x",
+                    f"jax {compiles.get((e['code'], e['n']), float('nan')):.1f}",
+                )
+            )
+        sc = ro["scaling"]
+        if len(sc) > 1:
+            rows.append(
+                (
+                    "rod",
+                    f"lattice.equilibrium: us per body, n = {sc[0]['n']} / n = {sc[-1]['n']} "
+                    "(1: O(n))",
+                    _fmt(sc[0]["us_per_body"] / sc[-1]["us_per_body"], ".2f"),
+                    "",
+                )
+            )
     co = results.get("cores")
     if co:
         for r in co["rows"]:
@@ -299,7 +355,7 @@ def main(argv=None) -> int:
         "--only",
         nargs="*",
         default=None,
-        help="subset of: sweep simulate stability fitting lattice dask cores",
+        help="subset of: sweep simulate stability fitting lattice rod dask cores",
     )
     parser.add_argument("--no-write", action="store_true", help="do not write README.md")
     args = parser.parse_args(argv)
@@ -314,6 +370,7 @@ def main(argv=None) -> int:
         "stability": "bench_stability",
         "fitting": "bench_fitting",
         "lattice": "bench_lattice",
+        "rod": "bench_rod",
         "dask": "bench_dask",
         "cores": "bench_cores",
     }

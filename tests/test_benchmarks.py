@@ -49,6 +49,7 @@ def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
         "=== stability ===",
         "=== fitting ===",
         "=== lattice ===",
+        "=== rod ===",
         "=== dask ===",
         "=== cores ===",
         "speed-up over one core",
@@ -80,6 +81,23 @@ def test_the_lattice_takes_the_numba_stencils_steps(smoke_output):
     assert "accepted steps equal on every N: True" in smoke_output
     rel = _floats(r"max \|f_jax - f_numba\| / max \|f_jax\| = ([0-9.e+-]+)", smoke_output)
     assert rel[0] < 1e-13
+
+
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
+def test_the_rod_benchmark_matches_the_beam_theories(smoke_output):
+    """bench_rod: the equilibrium of PyElastica's Timoshenko beam (n = 100) is within 1e-3 of
+    the closed form, and the spectrum's first two frequencies of the cantilever (n = 10) are
+    within 5e-3 of the Timoshenko beam's (3.4e-4: mostly the geometric nonlinearity that the
+    linear closed form leaves out; 2.7e-3: second order in 1/n)."""
+    part = smoke_output.split("=== rod ===")[1].split("=== ")[0]
+    (err,) = _floats(r"rbo_jax equilibrium, n = 100: [^\n]*?error ([0-9.e+-]+)\)", part)
+    assert abs(err) < 1e-3
+    m = re.search(r"rbo_jax spectrum +10 +\S+ +\S+ +- +([0-9.e+-]+) ([0-9.e+-]+)", part)
+    assert m, "no spectrum row"
+    assert max(abs(float(m.group(1))), abs(float(m.group(2)))) < 5e-3
+    if "pyelastica not installed" in part:
+        pytest.skip("pyelastica (the `bench` extra) is not installed: its rows were skipped")
+    assert "PyElastica run 1:" in part and "PyElastica PositionVerlet" in part
 
 
 @pytest.mark.slow  # integration: the benchmarks' smoke runs
