@@ -97,13 +97,13 @@ def test_lumped_masses_and_the_straight_state():
 
 
 def test_circular_rod_conventions():
-    """A = pi r^2, I = pi r^4/4, J = 2I, shear = 4/3 G A (PyElastica's alpha_c)."""
+    """A = pi r^2, I = pi r^4/4, J = 2I, shear = 27/28 G A (PyElastica 1.0's alpha_c)."""
     r, E, G, rho = 0.01, 1e6, 4e5, 1000.0
     rod = lattice.circular_rod(4, 1.0, radius=r, density=rho, youngs_modulus=E, shear_modulus=G)
     A, I = math.pi * r**2, math.pi * r**4 / 4  # noqa: E741 - the second moment of area
     h = 0.25
     np.testing.assert_allclose(rod.turn_stiffness[0], [E * I / h, E * I / h, G * 2 * I / h])
-    np.testing.assert_allclose(rod.gap_stiffness[0], [4 / 3 * G * A / h] * 2 + [E * A / h])
+    np.testing.assert_allclose(rod.gap_stiffness[0], [27 / 28 * G * A / h] * 2 + [E * A / h])
     np.testing.assert_allclose(rod.mass[1], rho * A * h)
     np.testing.assert_allclose(np.diag(rod.inertia[1]), [rho * I * h] * 2 + [rho * 2 * I * h])
 

@@ -401,7 +401,7 @@ def circular_rod(
     youngs_modulus,
     shear_modulus=None,
     poisson_ratio: float = 0.5,
-    shear_coefficient=4.0 / 3.0,
+    shear_coefficient=27.0 / 28.0,
     damping=0.0,
     loads=(),
     base: str = "clamped",
@@ -411,10 +411,11 @@ def circular_rod(
     straight_rod`` takes it: $A = \pi r^2$, $I = \pi r^4/4$, $J = 2I$; $EI$, $GJ = G\cdot 2I$,
     $\kappa GA$ and $EA$; $\rho A$ and $\rho I$. ``shear_modulus`` defaults to
     $G = E/(2(1 + \nu))$ with ``poisson_ratio`` $\nu = 0.5$ (PyElastica's default);
-    ``shear_coefficient`` is the factor PyElastica multiplies $GA$ by, $4/3$ by default (its
-    ``alpha_c``), so that ``shear`` $= \tfrac43 GA$ as PyElastica's; Timoshenko's shear
-    coefficient of a solid circle is $\kappa = 6(1+\nu)/(7 + 6\nu)$ — pass that value to
-    compare with the Timoshenko beam."""
+    ``shear_coefficient`` is the factor PyElastica multiplies $GA$ by, $27/28$ by default (its
+    ``alpha_c`` in PyElastica 1.0's ``straight_rod``), so that ``shear`` $= \tfrac{27}{28} GA$ as
+    PyElastica's; Timoshenko's shear coefficient of a solid circle is
+    $\kappa = 6(1+\nu)/(7 + 6\nu)$ (0.9 at $\nu = 1/2$): pass it to compare with other
+    Timoshenko beams."""
     owner = "circular_rod"
     r = _checked(real_array(radius, "radius", owner), "radius", owner)
     rho = _checked(real_array(density, "density", owner), "density", owner)
