@@ -165,6 +165,7 @@ class Rod(eqx.Module):
             )
         if isinstance(foundation, ZeroFoundation):
             foundation = None
+        # the fields one by one (a loop over names would hide them from type checkers)
         self.mass = mass
         self.inertia = inertia
         self.share = share

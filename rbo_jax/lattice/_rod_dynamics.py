@@ -200,6 +200,7 @@ def _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0):
     return sol.ys, code, sol.stats["num_accepted_steps"]
 
 
+# keyword arguments named as rbo_jax.simulate's: each public solver spells out its own signature
 def simulate_rod(
     rod: Rod,
     state0: RodState,

@@ -124,11 +124,6 @@ def _solve(rod: Rod, theta, r, steps: int, rtol, max_steps: int):
     return theta, r, total, failed, res[-1], blocks
 
 
-def _held(tree):
-    arrays, rest = eqx.partition(tree, eqx.is_array)
-    return eqx.combine(jax.lax.stop_gradient(arrays), rest)
-
-
 @eqx.filter_custom_jvp
 def _solution(rod, theta, r, *, steps, rtol, max_steps):
     return _solve(rod, theta, r, steps, rtol, max_steps)
