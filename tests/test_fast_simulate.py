@@ -258,6 +258,46 @@ def test_forward_derivatives_match_finite_differences():
     np.testing.assert_allclose(dy[:, 2], fd_y, rtol=1e-6, atol=1e-7)
 
 
+def test_jacfwd_traces_the_loop_of_its_directions_only(monkeypatch):
+    """jax.jacfwd runs its K directions in one loop (the batching rule of the tangent solver);
+    the loop for one direction, which its program does not hold, is not traced first (~0.25 s
+    of tracing in a fit's fresh process). A single jax.jvp traces that one; vmap over
+    trajectories of jacfwd and jacfwd over trajectories run the loop of K directions per
+    trajectory. The probe that tells them apart: True only where a vmap batches an argument."""
+    import rbo_jax.ensemble as ens
+
+    directions = []
+    real = ens.solve_one_tangents
+    monkeypatch.setattr(
+        ens, "solve_one_tangents", lambda *a: directions.append(a[-1].shape[0]) or real(*a)
+    )
+    ts = jnp.array([0.0, 1.0])
+
+    def final(c, y0):
+        return fast_simulate(make_model(c=c), y0[:3], y0[3:], ts, throw=False).theta[-1]
+
+    y0 = jnp.concatenate([THETA0, OMEGA0])
+    jax.jit(jax.jacfwd(final, argnums=(0, 1))).lower(1.0, y0)
+    assert directions == [7]  # c and the six components of the state, in one trace
+    directions.clear()
+    jax.jit(lambda c: jax.jvp(lambda c: final(c, y0), (c,), (1.0,))).lower(1.0)
+    assert directions == [1]
+    directions.clear()
+    jax.jit(jax.vmap(jax.jacfwd(final), (0, None))).lower(jnp.ones(3), y0)
+    assert directions == [1]  # vmap of the loop of one direction over the 3 trajectories
+    x, seen = jnp.ones(3), []
+    for f in (
+        lambda x: ens._batched((x,)),  # eager: False
+        jax.jit(lambda x: seen.append(ens._batched((x,))) or x),  # inside jit alone: False
+        jax.vmap(lambda x: seen.append(ens._batched((x, y0))) or x),  # batched by the vmap
+        jax.vmap(lambda x: seen.append(ens._batched((y0,))) or x),  # not batched by it
+    ):
+        out = f(x)
+        if isinstance(out, bool):
+            seen.append(out)
+    assert seen == [False, False, True, False]
+
+
 @pytest.mark.slow
 def test_batched_forward_derivatives():
     """vmap of jacfwd (lockstep per-trajectory loops) equals the per-point derivatives."""

@@ -63,6 +63,8 @@ def test_import_loads_no_layer_and_no_heavy_dependency():
             ("diffrax", "optimistix", "optax", "xarray", "zarr", "matplotlib"),
         ),
         ("from rbo_jax.fitting import TrajectoryData", ("diffrax", "optax", "xarray", "zarr")),
+        # the least-squares fit integrates with fast_simulate: diffrax and optax on demand
+        ("from rbo_jax import fit", ("diffrax", "optimistix", "optax", "xarray", "zarr")),
         (
             "from rbo_jax.batch import POINT_DIM, status_counts",
             ("diffrax", "optax", "xarray", "zarr"),

@@ -36,6 +36,7 @@ from .._programs import stored
 from ..model import RigidBodyOscillator
 from ..trajectory import SolveStatus, Trajectory, finish, prepare_inputs
 from ._problem import Problem
+from ._problem import code as status_code
 from ._solve import Config, solve_lanes, solve_one
 from ._tangents import solve_one_tangents
 
@@ -117,10 +118,37 @@ def _instantiate(t):
     return jnp.zeros(t.shape, t.dtype)
 
 
+@jax.custom_batching.custom_vmap
+def _batched_probe(args):
+    return np.False_
+
+
+@_batched_probe.def_vmap
+def _batched_probe_rule(axis_size, in_batched, args):
+    return np.True_, False
+
+
+def _batched(args) -> bool:
+    """Whether a ``jax.vmap`` being traced batches one of the arrays in ``args`` here, so that
+    a :func:`jax.custom_batching.custom_vmap` function called with them now would run its rule,
+    not its function: a custom_vmap probe, whose rule answers True as a constant (False, or a
+    traced value inside ``jit`` alone, otherwise)."""
+    out = _batched_probe(args)
+    return not isinstance(out, jax.core.Tracer) and bool(out)
+
+
 def _tangent_solver(cfg: Config, static):
     """``(dyn, y0, ts, d_dyn, dy0) -> (samples, status, steps, tangents of the samples)`` for
     one tangent direction; batched over directions alone (``jax.jacfwd``) it runs them all in
-    one loop (:mod:`._tangents`), otherwise (a batch of trajectories) it is ``vmap`` of that."""
+    one loop (:mod:`._tangents`), otherwise (a batch of trajectories) it is ``vmap`` of that.
+
+    A custom_vmap function is traced when it is called, also where a ``vmap`` then runs its
+    rule instead: for ``jax.jacfwd`` (a fit's Jacobian) that traced the loop for one direction
+    (~0.25 s of a fresh process's tracing of a fit, which the program does not hold) before the
+    rule traced it for K. Where :func:`_batched` says a vmap batches the arguments, the call
+    goes to a custom_vmap with the same rule whose function only gives the outputs' shapes (NaN
+    samples, never run: the same vmap runs the rule); elsewhere to the one that runs the loop
+    for one direction."""
 
     def one_direction(dyn, y0, ts, d_dyn, dy0):
         d_dyn = jax.tree_util.tree_map(lambda x: x[None], d_dyn)
@@ -131,7 +159,12 @@ def _tangent_solver(cfg: Config, static):
     def solver(dyn, y0, ts, d_dyn, dy0):
         return one_direction(dyn, y0, ts, d_dyn, dy0)
 
-    @solver.def_vmap
+    @jax.custom_batching.custom_vmap
+    def batched_solver(dyn, y0, ts, d_dyn, dy0):
+        nan = jnp.full((ts.shape[0], 6), jnp.nan, ts.dtype)
+        failed = jnp.asarray(status_code("nonfinite_state"), jnp.int32)
+        return nan, failed, jnp.zeros((), jnp.int32), nan
+
     def _rule(axis_size, in_batched, dyn, y0, ts, d_dyn, dy0):
         primal_batched = any(jax.tree_util.tree_leaves(in_batched[:3]))
         if primal_batched:
@@ -149,7 +182,13 @@ def _tangent_solver(cfg: Config, static):
         )
         return solve_one_tangents(dyn, static, y0, ts, cfg, d_dyn, dy0), (False, False, False, True)
 
-    return solver
+    solver.def_vmap(_rule)
+    batched_solver.def_vmap(_rule)
+
+    def call(*args):
+        return (batched_solver if _batched(args) else solver)(*args)
+
+    return call
 
 
 def _solve(cfg: Config, model: RigidBodyOscillator, throw: bool, theta0, Omega0, ts):

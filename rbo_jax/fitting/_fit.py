@@ -13,7 +13,6 @@ import numpy as np
 from ..model import RigidBodyOscillator
 from ._data import TrajectoryData
 from ._least_squares import run_least_squares
-from ._optax import run_optax
 from ._residuals import (
     INTEGRATORS,
     Spec,
@@ -220,6 +219,8 @@ def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, v
                 verbose,
             )
         else:
+            from ._optax import run_optax  # optax: only for the first-order optimizers
+
             u, steps, converged, message = run_optax(
                 u,
                 model,

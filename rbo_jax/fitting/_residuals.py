@@ -1,11 +1,16 @@
 """Residuals of a fit and the reparametrisation of its parameters; the compiled programs every
-solver of :func:`rbo_jax.fit` uses."""
+solver of :func:`rbo_jax.fit` uses.
+
+diffrax and :func:`rbo_jax.simulate` are imported when a fit integrates with ``simulate`` (the
+optax optimizers, or ``integrator="simulate"``): the least-squares fits integrate with
+:func:`rbo_jax.fast_simulate`, and a process that loads their program from the program store
+never traces it (diffrax's import: ~0.25 s of ``rbo-jax fit``'s warm process).
+"""
 
 from __future__ import annotations
 
 import dataclasses
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -15,7 +20,6 @@ from .._programs import program
 from ..ensemble import fast_simulate
 from ..kinematics import turn_tensor, turn_vector
 from ..model import RigidBodyOscillator
-from ..simulate import simulate
 from ..trajectory import Trajectory
 from ._data import TrajectoryData
 
@@ -45,6 +49,8 @@ def residuals(
     theta0 = data.theta0 if theta0 is None else theta0
     Omega0 = data.Omega0 if Omega0 is None else Omega0
     if integrator == "simulate":
+        from ..simulate import simulate
+
         traj = simulate(
             model,
             theta0,
@@ -211,6 +217,8 @@ def stack_residuals(model, datas, states, spec: Spec):
     if spec.integrator == "fast_simulate":
         adjoint = None  # forward mode only (custom_jvp)
     else:
+        import diffrax
+
         adjoint = diffrax.ForwardMode() if spec.forward else diffrax.RecursiveCheckpointAdjoint()
     return jnp.concatenate(
         [
