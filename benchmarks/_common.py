@@ -46,6 +46,17 @@ def run_in_chunks(fn, points: np.ndarray, chunk: int):
     return jax.tree_util.tree_map(lambda *x: np.concatenate(x)[:n], *outs), elapsed, t_compile
 
 
+def cpu_name() -> str:
+    """The processor's model name (``/proc/cpuinfo``), else Python's guess."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if "model name" in line)
+    except (OSError, StopIteration):
+        pass
+    return cpu
+
+
 def versions() -> str:
     """``rbo_jax X, jax Y, MACHINE, N BACKEND device(s)``."""
     import jax

@@ -53,7 +53,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import versions, write_json
+from _common import cpu_name, versions, write_json
 from _pinning import pinned
 
 import rbo_jax
@@ -158,17 +158,9 @@ def closed_form(alpha):
     return abs(F) * Lr / (alpha * G * A) + abs(F) * Lr**3 / (3.0 * E * I)
 
 
-def pe_timoshenko(final_time, *, record=True):
-    """PyElastica's Timoshenko example run to ``final_time``: (seconds of ``ea.integrate``, tip
-    x at the end, alpha, [(simulated t, wall s, tip x)] every 500 steps)."""
-    n, Lr, r, rho, E, G = (TIMO[k] for k in ("n", "length", "radius", "density", "E", "G"))
-    A = math.pi * r**2
-
-    class Sim(ea.BaseSystemCollection, ea.Constraints, ea.Forcing, ea.CallBacks, ea.Damping):
-        pass
-
-    sim = Sim()
-    rod = ea.CosseratRod.straight_rod(
+def _pe_straight_rod(n, Lr, r, rho, E, G):
+    """PyElastica's straight rod along e3 from the origin, normal e2 (both of its cases)."""
+    return ea.CosseratRod.straight_rod(
         n,
         np.zeros(3),
         np.array([0.0, 0.0, 1.0]),
@@ -179,6 +171,19 @@ def pe_timoshenko(final_time, *, record=True):
         youngs_modulus=E,
         shear_modulus=G,
     )
+
+
+def pe_timoshenko(final_time, *, record=True):
+    """PyElastica's Timoshenko example run to ``final_time``: (seconds of ``ea.integrate``, tip
+    x at the end, alpha, [(simulated t, wall s, tip x)] every 500 steps)."""
+    n, Lr, r, rho, E, G = (TIMO[k] for k in ("n", "length", "radius", "density", "E", "G"))
+    A = math.pi * r**2
+
+    class Sim(ea.BaseSystemCollection, ea.Constraints, ea.Forcing, ea.CallBacks, ea.Damping):
+        pass
+
+    sim = Sim()
+    rod = _pe_straight_rod(n, Lr, r, rho, E, G)
     sim.append(rod)
     dt = 0.07 * Lr / n
     sim.dampen(rod).using(
@@ -418,17 +423,7 @@ def pe_vibration(n, T):
         pass
 
     sim = Sim()
-    rod = ea.CosseratRod.straight_rod(
-        n,
-        np.zeros(3),
-        np.array([0.0, 0.0, 1.0]),
-        np.array([0.0, 1.0, 0.0]),
-        Lr,
-        r,
-        rho,
-        youngs_modulus=E,
-        shear_modulus=G,
-    )
+    rod = _pe_straight_rod(n, Lr, r, rho, E, G)
     sim.append(rod)
     sim.constrain(rod).using(
         ea.OneEndFixedBC, constrained_position_idx=(0,), constrained_director_idx=(0,)
@@ -742,12 +737,7 @@ def options_study(alpha):
 
 
 def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if "model name" in line)
-    except (OSError, StopIteration):
-        pass
+    cpu = cpu_name()
     pe = getattr(ea, "__version__", None) if ea is not None else None
     if ea is not None and pe is None:
         from importlib.metadata import version

@@ -376,6 +376,17 @@ def test_ziegler_pendulum_flutter():
     np.testing.assert_allclose(float(Pc), 3.5 - math.sqrt(2), rtol=1e-5)
 
 
+def first_unstable(unstable, loads, n_bisect=60):
+    """The smallest load of the grid ``loads`` past which ``unstable`` holds, refined by
+    bisection on the first change (the references below, in NumPy)."""
+    k = next(k for k, P in enumerate(loads) if unstable(P))
+    lo, hi = loads[k - 1], loads[k]
+    for _ in range(n_bisect):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if unstable(mid) else (mid, hi)
+    return hi
+
+
 def ziegler_reference(b):
     """The critical load of Ziegler's rigid double pendulum (masses 2m, m; links l; hinge springs c
     and dampers b; m = l = c = 1) from its own linear equations M q'' + B q' + (K - P N) q = 0 in
@@ -394,13 +405,7 @@ def ziegler_reference(b):
         )
         return np.linalg.eigvals(A).real.max() > 1e-13
 
-    Ps = np.linspace(0.01, 5.0, 2000)
-    k = next(k for k, P in enumerate(Ps) if unstable(P))
-    lo, hi = Ps[k - 1], Ps[k]
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if unstable(mid) else (mid, hi)
-    return hi
+    return first_unstable(unstable, np.linspace(0.01, 5.0, 2000), 60)
 
 
 def test_ziegler_reference_has_the_paradox():
@@ -437,13 +442,7 @@ def pfluger_galerkin(mass_ratio, K=10):
         w2 = np.linalg.eigvals(np.linalg.solve(M, Kst - P * G + P * F))
         return np.any(np.abs(w2.imag) > 1e-9 * np.abs(w2).max()) or np.any(w2.real < 0)
 
-    Ps = np.linspace(0.01, 40.0, 4001)
-    k = next(k for k, P in enumerate(Ps) if unstable(P))
-    lo, hi = Ps[k - 1], Ps[k]
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if unstable(mid) else (mid, hi)
-    return hi
+    return first_unstable(unstable, np.linspace(0.01, 40.0, 4001), 60)
 
 
 def beck_kelvin_voigt_galerkin(eta, K=10):
@@ -465,13 +464,7 @@ def beck_kelvin_voigt_galerkin(eta, K=10):
         )
         return np.linalg.eigvals(A).real.max() > 1e-12
 
-    Ps = np.linspace(0.5, 30.0, 600)
-    k = next(k for k, P in enumerate(Ps) if unstable(P))
-    lo, hi = Ps[k - 1], Ps[k]
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if unstable(mid) else (mid, hi)
-    return hi
+    return first_unstable(unstable, np.linspace(0.5, 30.0, 600), 50)
 
 
 def test_beck_galerkin_reference_has_the_paradox():
