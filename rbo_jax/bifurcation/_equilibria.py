@@ -212,28 +212,32 @@ def _progress(progress, total):
 
 
 def _detect(special, index, u, v, tau, tau_new, bp, bp_new, p, p_new):
+    """Folds, branch points and Hopf points between the points ``u`` and ``v`` (the parameter
+    last, as the tangents ``tau``; also the rods' :func:`rbo_jax.lattice.continue_equilibrium`)."""
+
     def interpolate(f0, f1):
         w = float(f0 / (f0 - f1))
-        return float(u[3] + w * (v[3] - u[3]))
+        return float(u[-1] + w * (v[-1] - u[-1]))
 
-    if float(tau[3]) * float(tau_new[3]) < 0:
-        special.append(("fold", interpolate(tau[3], tau_new[3]), index))
+    if float(tau[-1]) * float(tau_new[-1]) < 0:
+        special.append(("fold", interpolate(tau[-1], tau_new[-1]), index))
     if float(bp) * float(bp_new) < 0:
         special.append(("branch_point", interpolate(bp, bp_new), index))
     if _counts(np.asarray(p))[0] != _counts(np.asarray(p_new))[0]:
-        special.append(("hopf", float(0.5 * (u[3] + v[3])), index))
+        special.append(("hopf", float(0.5 * (u[-1] + v[-1])), index))
 
 
 def _refine_folds(special, rows):
     """A fold's parameter as the vertex of the parabola alpha(sigma) through three points of
-    the branch around it (sigma the arclength along their chords): error O(s^3)."""
+    the branch around it (sigma the arclength along their chords; the parameter the last entry of
+    every point): error O(s^3)."""
     for i, (kind, value, index) in enumerate(special):
         lo = max(index - 1, 0)
         if kind != "fold" or lo + 3 > len(rows):
             continue
         U = np.stack([np.asarray(rows[j][0]) for j in range(lo, lo + 3)])
         sigma = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(U, axis=0), axis=1))])
-        a, b, c = np.polyfit(sigma, U[:, 3], 2)
+        a, b, c = np.polyfit(sigma, U[:, -1], 2)
         if a != 0 and sigma[0] <= -b / (2 * a) <= sigma[-1]:
             special[i] = (kind, float(c - b * b / (4 * a)), index)
 
