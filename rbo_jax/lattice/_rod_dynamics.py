@@ -30,7 +30,7 @@ import numpy as np
 from .. import _programs
 from ..kinematics import Turn
 from ..maps import critical_value
-from ..trajectory import SolveStatus
+from ..trajectory import SolveStatus, warn_if_float32
 from ._rod import Rod, RodState
 from ._rod_field import body_forces, energy, kinetic_moment, rates
 from ._rod_statics import solve_equilibrium
@@ -249,6 +249,7 @@ def simulate_rod(
             )
     dt0 = float(ts[1] - ts[0]) / 10.0 if dt0 is None else float(dt0)
     state0 = jax.tree_util.tree_map(jnp.asarray, state0)
+    warn_if_float32(state0.r.dtype, rtol, atol)  # a float32 rod (JAX_ENABLE_X64=0)
     ys, code, steps = _solve(rod, state0, ts, solver, float(rtol), float(atol), int(max_steps), dt0)
     status = [SolveStatus.successful, SolveStatus.max_steps_reached, SolveStatus.solver_error]
     code = int(code)

@@ -90,10 +90,16 @@ def _apply(theta, r, step):
     return jax.vmap(compose)(theta, step[:, :3]), r + step[:, 3:]
 
 
+# Newton's step cannot fall below the rounding of the balance: the tolerance is at least this many
+# units of the state's machine epsilon (1.2e-5 in float32; 2.2e-14 in float64, below the default)
+_RESOLUTION = 100
+
+
 def _solve(rod: Rod, theta, r, steps: int, rtol, max_steps: int):
     """Newton's method over the load steps: ``(theta, r, iterations, failed, max |R|, blocks)``,
     ``blocks`` the Jacobian of the last step (the implicit function theorem reuses it)."""
     length = jnp.maximum(jnp.max(jnp.abs(r)), 1.0)
+    rtol = max(rtol, _RESOLUTION * float(jnp.finfo(theta.dtype).eps))  # float32: 1.2e-5
     nb = theta.shape[0]
     no_blocks = tuple(jnp.zeros((nb, 6, 6), theta.dtype) for _ in range(3))
 
@@ -183,7 +189,9 @@ def solve_equilibrium(
 
     **Arguments:** `guess` (a :class:`RodState`; the straight rod by default), `steps` (load
     steps), `rtol` (Newton stops when no turn increment exceeds it and no displacement exceeds
-    it times the rod's size), `max_steps` (Newton steps per load step).
+    it times the rod's size; never below 100 machine epsilons of the state's precision, so
+    that a float32 rod, with ``JAX_ENABLE_X64=0``, stops at 1.2e-5), `max_steps` (Newton
+    steps per load step).
 
     Returns a :class:`RodEquilibrium`; a solve that fails reports ``status`` (the state is the
     last iterate), never NaN silently. Differentiable with respect to every float of ``rod`` by
