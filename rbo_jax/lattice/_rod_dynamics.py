@@ -180,7 +180,10 @@ class RodTrajectory(eqx.Module):
 
 
 @eqx.filter_jit
-def _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0):
+def _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint=None):
+    """The diffrax solve: ``(states at ts, code, accepted steps)``; ``adjoint``: diffrax's
+    (``diffrax.ForwardMode()`` for ``jax.jacfwd``, as :func:`rbo_jax.lattice.fit_trajectory`)."""
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     term = diffrax.ODETerm(lambda t, y, args: rates(rod, y))
     sol = diffrax.diffeqsolve(
         term,
@@ -193,6 +196,7 @@ def _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0):
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         max_steps=max_steps,
         throw=False,
+        adjoint=adjoint,
     )
     ok = sol.result == diffrax.RESULTS.successful
     steps = sol.result == diffrax.RESULTS.max_steps_reached

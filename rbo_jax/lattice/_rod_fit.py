@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -24,10 +25,11 @@ import numpy as np
 from ..fitting._least_squares import run_least_squares
 from ..fitting._residuals import jacobian_matrix
 from ._fit import _residuals_and_jacobian, _start
-from ._rod_dynamics import linearize
+from ._rod import RodState
+from ._rod_dynamics import _solve, linearize
 from ._rod_statics import solve_equilibrium
 
-__all__ = ["RodFit", "fit_spectrum"]
+__all__ = ["RodFit", "fit_spectrum", "fit_trajectory"]
 
 
 class RodFit(eqx.Module):
@@ -89,6 +91,13 @@ def fit_spectrum(
     def evaluate(u):
         return _residuals_and_jacobian(residuals, u, data)
 
+    return _fitted(evaluate, u0, tol, max_steps, mask.ravel())
+
+
+def _fitted(evaluate, u0, tol, max_steps, mask) -> RodFit:
+    r"""Levenberg–Marquardt from ``u0`` (logarithms), then the Gauss–Newton standard errors
+    $s^2 (J^TJ)^{-1}$, $s^2 = |r|^2/(m - p)$ over the ``mask``ed residuals, carried to every
+    parameter by the delta method ($\sigma_p = p\,\sigma_{\log p}$)."""
     u, steps, converged, message = run_least_squares(
         evaluate, u0, "levenberg_marquardt", tol, max_steps, []
     )
@@ -104,8 +113,70 @@ def fit_spectrum(
     return RodFit(
         params=values,
         stderr=stderr,
-        rms=float(np.sqrt(np.mean(r[mask.ravel()] ** 2))),
+        rms=float(np.sqrt(np.mean(r[mask] ** 2))),
         num_steps=int(steps),
         converged=bool(converged),
         message=message,
     )
+
+
+def _trajectory_residuals(rod_fn, settings, u, data):
+    """The simulated positions of the measured body at ``ts`` minus the measured ones."""
+    ts, target, state0 = data
+    solver, rtol, atol, max_steps, dt0, body = settings
+    rod = rod_fn(**{k: jnp.exp(v) for k, v in u.items()})
+    adjoint = diffrax.ForwardMode()  # few parameters: forward mode through the solve
+    ys, _, _ = _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint)
+    return jnp.ravel(ys.r[:, body, :] - target)
+
+
+def fit_trajectory(
+    rod_fn: Callable,
+    params: Mapping[str, float],
+    ts,
+    positions,
+    state0: RodState,
+    *,
+    body: int = -1,
+    solver: diffrax.AbstractSolver | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    tol: float = 1e-12,
+    max_fit_steps: int = 100,
+) -> RodFit:
+    r"""Fit ``params`` (name -> starting value > 0, fitted as logarithms) so that the motion of
+    ``rod_fn(**params)`` from ``state0`` (a :class:`RodState`, held fixed: e.g. a measured
+    deflected shape at rest) passes through the measured ``positions`` (T, 3) of one body
+    (``body``, the tip by default) at the times ``ts`` (T,), ``ts[0]`` the time of ``state0``.
+
+    The residuals are the simulated positions (:func:`rbo_jax.lattice.simulate`'s diffrax solve,
+    ``solver`` default ``Dopri8`` with ``rtol``, ``atol``, ``max_steps``) minus the measured
+    ones; Levenberg–Marquardt (:func:`rbo_jax.fit`'s) with forward-mode derivatives through the
+    solve (``diffrax.ForwardMode``: one tangent per parameter); ``tol``, ``max_fit_steps``: its
+    tolerance and iterations. Standard errors: Gauss–Newton, $s^2 (J^TJ)^{-1}$ with the residual
+    variance $s^2 = |r|^2/(3T - p)$, by the delta method. Returns a :class:`RodFit` (``rms`` in
+    the positions' units)."""
+    u0 = _start(params)
+    ts = np.asarray(ts, dtype=float)
+    target = np.asarray(positions, dtype=float)
+    if ts.ndim != 1 or ts.size < 2 or not np.all(np.diff(ts) > 0):
+        raise ValueError("fit_trajectory: ts must be a strictly increasing 1-D array of >= 2.")
+    if target.shape != (ts.size, 3) or not np.all(np.isfinite(target)):
+        raise ValueError(
+            f"fit_trajectory: positions must be finite, shape {(ts.size, 3)} (one row per "
+            f"time), got {target.shape}."
+        )
+    if not isinstance(state0, RodState):
+        raise TypeError(f"fit_trajectory: state0 must be a RodState, got {type(state0)}.")
+    solver = diffrax.Dopri8() if solver is None else solver
+    dt0 = float(ts[1] - ts[0]) / 10.0
+    settings = (solver, float(rtol), float(atol), int(max_steps), dt0, int(body))
+    state0 = jax.tree_util.tree_map(jnp.asarray, state0)
+    data = (jnp.asarray(ts), jnp.asarray(target), state0)
+    residuals = jax.tree_util.Partial(_trajectory_residuals, rod_fn, settings)
+
+    def evaluate(u):
+        return _residuals_and_jacobian(residuals, u, data)
+
+    return _fitted(evaluate, u0, tol, int(max_fit_steps), np.ones(target.size, bool))
