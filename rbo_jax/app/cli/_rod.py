@@ -147,7 +147,8 @@ def _initial_state(rod, s):
     else:
         state, what = rod.straight(), "the straight rod at rest, released under the loads"
     s_over_L = jnp.arange(rod.n_bodies, dtype=state.r.dtype) / rod.n
-    v = state.v + s.rod_perturbation * s_over_L[:, None] * jnp.asarray([1.0, 0.0, 0.0])
+    e1 = jnp.asarray([[1.0, 0.0, 0.0]], dtype=state.v.dtype)
+    v = state.v + s.rod_perturbation * s_over_L[:, None] * e1
     state = RodState(state.theta, state.r, state.Omega, v)
     return state, f"{what}; velocities + {s.rod_perturbation:g} (s/L) e1"
 
