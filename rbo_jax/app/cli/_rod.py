@@ -68,7 +68,7 @@ def _refuse_body_options(args: argparse.Namespace) -> None:
             default = False
         if isinstance(default, list):
             value = list(value)
-        if flag == "--integrator" or value == default:
+        if value == default:
             continue
         raise Failure(
             f"{flag} is an option of one body (or of --lattice); a rod (--rod) takes its "
