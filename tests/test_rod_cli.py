@@ -332,7 +332,7 @@ def test_rod_stability_sweep_beck_stable_below_flutter_unstable_above(tmp_path):
 def test_rod_critical_load_sweep_is_becks_load(tmp_path):
     r"""rod_critical_load of a unit follower force: the load factor is Beck's flutter load of
     the 5-body column, equal to :func:`rbo_jax.lattice.critical_load` on the same rod, and
-    within the discretisation of Beck's 20.05 EI/L² (20.196 at N = 20; coarser here)."""
+    off Beck's 20.05 EI/L² by the discretisation (second order in 1/N: 20.196 at N = 20)."""
     from rbo_jax.app.config import run_config
 
     cfg = tmp_path / "crit.toml"
@@ -358,6 +358,11 @@ def test_rod_critical_load_sweep_is_becks_load(tmp_path):
     )
     direct = float(L.critical_load(beck, 60.0))
     np.testing.assert_allclose(crit[0], direct, rtol=1e-9)
-    np.testing.assert_allclose(crit[0], 20.05, rtol=0.1)
+    # Beck's 20.0509 approached at second order in 1/N: the error times N^2 is that of the
+    # 20-body column (20.196, docs/topics/rods.md "Checks") to 15 % (measured: 22.555 at N = 5)
+    beck_load = 20.0509
+    np.testing.assert_allclose(
+        (crit[0] - beck_load) * 5**2, (20.196 - beck_load) * 20**2, rtol=0.15
+    )
     # P_cr scales with EI (Beck's load is 20.05 EI/L^2; GJ, the mass and the stretch fixed)
     np.testing.assert_allclose(crit[1] / crit[0], 2.0, rtol=2e-2)
