@@ -29,6 +29,7 @@ from ..plotting import plot_sweep, pyplot
 from ._cluster import dask_client
 from ._outputs import save_figure
 from ._reader import Reader, SpecError
+from ._rod_sweep import ONE_CPU_DEVICE, ROD, make_rod_quantity, read_rod_settings
 from .quantities import (
     DEFAULT_PLOT,
     INTEGRATORS,
@@ -38,11 +39,23 @@ from .quantities import (
     Settings,
     make_quantity,
 )
+from .rodspec import RodSpec
 from .spec import LatticeSpec, ModelSpec
 
 __all__ = ["QUANTITIES", "ConfigError", "SweepConfig", "load_config", "run_config"]
 
-_TABLES = ("sweep", "axes", "points", "model", "lattice", "initial", "solver", "equilibrium")
+_TABLES = (
+    "sweep",
+    "axes",
+    "points",
+    "model",
+    "lattice",
+    "rod",
+    "initial",
+    "solver",
+    "equilibrium",
+    "stability",
+)
 _EQUILIBRIUM_ONLY = ("spectral_abscissa", *LATTICE)  # no simulation: no [initial], [solver]
 
 
@@ -60,7 +73,9 @@ class SweepConfig:
     names), ``canonical`` (the parsed configuration as canonical JSON, stored with the results
     so that ``--resume`` refuses a changed configuration), ``model`` (the
     :class:`~rbo_jax.app.spec.ModelSpec`), ``lattice`` (the
-    :class:`~rbo_jax.app.spec.LatticeSpec` of the Bloch quantities, else None).
+    :class:`~rbo_jax.app.spec.LatticeSpec` of the Bloch quantities, else None), ``rod`` (the
+    :class:`~rbo_jax.app.rodspec.RodSpec` of the rod quantities, else None; ``model`` is None
+    then).
     """
 
     source: Path
@@ -76,6 +91,7 @@ class SweepConfig:
     canonical: str
     model: ModelSpec | None = None
     lattice: LatticeSpec | None = None
+    rod: RodSpec | None = None
 
 
 def _axis_values(r: Reader, spec, where: str, grid: bool) -> np.ndarray:
@@ -242,6 +258,30 @@ def _read_lattice(r: Reader, cfg: Mapping, name: str) -> LatticeSpec | None:
     return LatticeSpec.from_mapping(cfg["lattice"], reader=r)
 
 
+def _read_rod(r: Reader, cfg: Mapping, name: str):
+    """``(RodSpec, RodSettings)`` of a rod quantity; ``None`` (and no ``[rod]``,
+    ``[stability]``) for the others."""
+    if name not in ROD:
+        for table in ("rod", "stability"):
+            if table in cfg:
+                r.fail(
+                    f"[{table}]",
+                    f"is only used by the quantities {', '.join(ROD)}; quantity {name!r} is of "
+                    "one body.",
+                )
+        return None
+    if "rod" not in cfg:
+        r.fail(
+            "config",
+            f"missing required key 'rod': quantity {name!r} needs a [rod] table (n, length, "
+            "bending, ..., loads).",
+        )
+    for table in ("model", "lattice", "initial", "solver", "equilibrium"):
+        if table in cfg:
+            r.fail(f"[{table}]", f"is not used by quantity {name!r} (of a [rod]); remove it.")
+    return RodSpec.from_mapping(cfg["rod"], reader=r), read_rod_settings(r, cfg, name)
+
+
 def _check_table_names(cfg: Mapping):
     for k in cfg:
         if k not in _TABLES:
@@ -266,7 +306,10 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
     quantities ``[solver]`` (``t1``, ``rtol``, ``atol``, ``max_steps``, ``samples``,
     ``integrator`` = ``"fast_simulate"`` (the default) or ``"simulate"``) and
     ``[initial]`` (``theta0``, ``Omega0``, ``about_equilibrium``); ``[equilibrium]``
-    (``theta_guess``, ``classify_rtol``).
+    (``theta_guess``, ``classify_rtol``). The rod quantities (``rod_stability``,
+    ``rod_critical_load``) take a ``[rod]`` table (:class:`~rbo_jax.app.rodspec.RodSpec`) and
+    a ``[stability]`` table (:mod:`rbo_jax.app._rod_sweep`) instead of ``[model]`` and the
+    others.
 
     Every number of ``[model]``, ``[initial]``, ``[solver]`` and ``[equilibrium]`` may instead be
     the name of an axis (a string); every axis must be used. Relative paths are relative to the
@@ -280,20 +323,26 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
         r = Reader(values)
         sw = _read_sweep_table(r, cfg)
         name = sw["quantity"]
-        model = ModelSpec.from_mapping(r.table(cfg, "model", "config", required=True), reader=r)
-        lattice = _read_lattice(r, cfg, name)
-        settings = _read_settings(r, cfg, name)
+        rod = _read_rod(r, cfg, name)
+        model = lattice = None
+        if rod is None:
+            model = ModelSpec.from_mapping(r.table(cfg, "model", "config", required=True), reader=r)
+            lattice = _read_lattice(r, cfg, name)
+            settings = _read_settings(r, cfg, name)
         unused = [n for n in values if n not in r.used]
         if unused:
             r.fail(
                 f"[{key}] {unused[0]}",
                 "this axis is not used by any parameter; refer to it "
                 f'by name, e.g. c = "{unused[0]}" in '
-                "[model.foundation].",
+                + ("[rod]." if rod is not None else "[model.foundation]."),
             )
     except SpecError as e:
         raise ConfigError(f"{path}: {e}") from None
-    quantity, dims = make_quantity(name, model, settings, lattice)
+    if rod is None:
+        quantity, dims = make_quantity(name, model, settings, lattice)
+    else:
+        quantity, dims = make_rod_quantity(name, *rod)
     output = path.parent / sw["output"]
     png = path.parent / sw["png"] if "png" in sw else output.with_suffix(".png")
     return SweepConfig(
@@ -310,6 +359,7 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
         canonical=json.dumps(cfg, sort_keys=True),
         model=model,
         lattice=lattice,
+        rod=None if rod is None else rod[0],
     )
 
 
@@ -335,9 +385,14 @@ def run_config(
     scheduler, or ``workers`` a local cluster of that many processes (closed at the end), or
     ``client`` a :class:`distributed.Client` (at most one of the three); this process still
     writes the store. ``devices``: the number of local devices (each worker's, on Dask) to
-    compute on (default all). Returns ``(dataset, png path or None)``."""
+    compute on (default all; one CPU device for the quantities of
+    :data:`~rbo_jax.app._rod_sweep.ONE_CPU_DEVICE`). Returns ``(dataset, png path or None)``."""
     cfg = config if isinstance(config, SweepConfig) else load_config(config)
     out = Path(output) if output is not None else cfg.output
+    local = client is None and scheduler is None and workers is None
+    if cfg.quantity_name in ONE_CPU_DEVICE and devices is None and local:
+        if jax.default_backend() == "cpu":
+            devices = 1
     if client is not None and (scheduler is not None or workers is not None):
         raise ValueError("give a client, a scheduler or workers, not several.")
     with (

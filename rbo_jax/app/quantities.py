@@ -15,7 +15,9 @@ calls on a :class:`~rbo_jax.app.spec.ModelSpec`.
   band over $q$ and the load);
 - ``bloch_frequencies``: the three non-negative frequencies $\mathrm{Im}\,\lambda(q)$ of the
   branches (the three largest, in increasing order; at rest $\omega_k(q) \ge 0$), with
-  ``bloch_growth``.
+  ``bloch_growth``;
+- ``rod_stability``, ``rod_critical_load``: of a ``[rod]`` (:mod:`rbo_jax.app._rod_sweep`), the
+  stability of its equilibrium and its critical load factor.
 
 Every quantity returns its values and a status: the solver's
 (:class:`rbo_jax.SolveStatus`) for the simulations, the equilibrium's
@@ -34,6 +36,7 @@ from ..maps import equilibrium_stability
 from ..simulate import simulate
 from ..stability import EquilibriumStatus, solve_equilibrium
 from ._reader import Ref
+from ._rod_sweep import ROD_DEFAULT_PLOT, ROD_OUTPUTS, ROD_QUANTITIES
 from .spec import LatticeSpec, ModelSpec
 
 QUANTITIES = {
@@ -45,6 +48,7 @@ QUANTITIES = {
     "equilibrium",
     "bloch_frequencies": "the three non-negative frequencies Im lambda(q) of the Bloch waves of "
     "the [lattice] (and bloch_growth)",
+    **ROD_QUANTITIES,
 }
 OUTPUTS = {
     "final_state": ("theta", "Omega", "num_steps"),
@@ -53,6 +57,7 @@ OUTPUTS = {
     "spectral_abscissa": ("spectral_abscissa", "kind", "theta_eq"),
     "bloch_growth": ("bloch_growth", "theta_eq"),
     "bloch_frequencies": ("bloch_frequencies", "bloch_growth", "theta_eq"),
+    **ROD_OUTPUTS,
 }
 DEFAULT_PLOT = {
     "final_state": "theta",
@@ -61,6 +66,7 @@ DEFAULT_PLOT = {
     "spectral_abscissa": "spectral_abscissa",
     "bloch_growth": "bloch_growth",
     "bloch_frequencies": "bloch_frequencies",
+    **ROD_DEFAULT_PLOT,
 }
 SIMULATION = ("final_state", "energy_drift", "max_deviation")
 LATTICE = ("bloch_growth", "bloch_frequencies")

@@ -1,7 +1,7 @@
 """``rbo-jax simulate``: one trajectory of the model given by the options, as a table and a
 dataset; with ``--lattice SPEC`` a chain or grid of copies of that body (:mod:`._lattice`, which
 shares the initial state, the table and the solver's options with this module through
-:mod:`._samples`)."""
+:mod:`._samples`); with ``--rod SPEC`` a rod (:mod:`._rod`)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from ._common import (
 )
 from ._lattice import refuse_lattice_options, simulate_lattice
 from ._memory import BYTES_PER_SAMPLE, check_memory
+from ._rod import refuse_rod_options, simulate_rod_command
 from ._samples import check_reached, initial_state, print_samples, solver_options
 
 OUT_SUFFIXES = (".nc", ".zarr", ".csv")
@@ -78,6 +79,12 @@ def simulate_command(args: argparse.Namespace) -> int:
     from ... import fast_simulate, simulate
     from .._io import write_dataset, write_trajectory_csv
 
+    if args.rod is not None:  # the rod's own checks refuse the options of one body
+        if args.out is not None:
+            check_output(args.out, "--out", OUT_SUFFIXES)
+        check_solve_options(args)
+        return simulate_rod_command(args)
+    refuse_rod_options(args)
     if args.lattice is None:
         refuse_lattice_options(args)
     _check_options(args)
