@@ -211,6 +211,55 @@ def _cases(quick: bool):
     return np.array(rows), np.array(rtol), mus, etas
 
 
+def _damping_checks(etas, Pc_eta) -> list[Check]:
+    """Beck's column with Kelvin-Voigt damping against the Galerkin reference at the same η, the
+    reference against Beck's load and the limit η → 0, and the paradox."""
+    checks = []
+    galerkin_eta = [ref.column_galerkin(0.0, eta) for eta in etas]
+    for eta, ours, exact in zip(etas, Pc_eta, galerkin_eta, strict=True):
+        checks.append(
+            Check(
+                SECTION,
+                f"Beck's column, Kelvin–Voigt damping η = {eta:g} in bending (N = {N_COLUMN}): "
+                "flutter load, relative",
+                f"{exact:.4f} (Galerkin at η)",
+                fmt(ours),
+                _rel(ours, exact),
+                2e-2,
+            )
+        )
+    beck, limit = ref.column_galerkin(0.0), ref.column_galerkin(0.0, 1e-5)
+    checks += [
+        Check(
+            SECTION,
+            f"the reference: Galerkin ({ref.MODES} modes) of Beck's column",
+            f"{ref.BECK} EI/L² (Beck)",
+            f"{beck:.4f}",
+            _rel(beck, ref.BECK),
+            1e-4,
+        ),
+        Check(
+            SECTION,
+            f"the reference: Galerkin ({ref.MODES} modes) at η = 1e-5",
+            f"{ref.BECK_KV_LIMIT} EI/L² (η → 0)",
+            f"{limit:.4f}",
+            _rel(limit, ref.BECK_KV_LIMIT),
+            1e-3,
+        ),
+    ]
+    checks.append(
+        Check(
+            SECTION,
+            f"the paradox: Beck's column at η = {etas[0]:g} against the limit η → 0, relative",
+            f"{ref.BECK_KV_LIMIT} EI/L² (undamped: {ref.BECK})",
+            fmt(Pc_eta[0]),
+            _rel(Pc_eta[0], ref.BECK_KV_LIMIT),
+            2e-2,
+        )
+    )
+    return checks
+
+
 def _column_checks(quick: bool):
     """Euler, Beck, Pflüger, Beck with Kelvin-Voigt damping, the frequencies; returns the checks,
     the results the figures need and the critical load of the rod that moves."""
@@ -263,50 +312,8 @@ def _column_checks(quick: bool):
                 1e-2,
             )
         )
-    Pc_eta = Pc[2 + len(mus) : -1]
-    galerkin_eta = [ref.column_galerkin(0.0, eta) for eta in etas]
-    for eta, ours, exact in zip(etas, Pc_eta, galerkin_eta, strict=True):
-        checks.append(
-            Check(
-                SECTION,
-                f"Beck's column, Kelvin–Voigt damping η = {eta:g} in bending ({n}): "
-                "flutter load, relative",
-                f"{exact:.4f} (Galerkin at η)",
-                fmt(ours),
-                _rel(ours, exact),
-                2e-2,
-            )
-        )
-    beck, limit = ref.column_galerkin(0.0), ref.column_galerkin(0.0, 1e-5)
-    checks += [
-        Check(
-            SECTION,
-            f"the reference: Galerkin ({ref.MODES} modes) of Beck's column",
-            f"{ref.BECK} EI/L² (Beck)",
-            f"{beck:.4f}",
-            _rel(beck, ref.BECK),
-            1e-4,
-        ),
-        Check(
-            SECTION,
-            f"the reference: Galerkin ({ref.MODES} modes) at η = 1e-5",
-            f"{ref.BECK_KV_LIMIT} EI/L² (η → 0)",
-            f"{limit:.4f}",
-            _rel(limit, ref.BECK_KV_LIMIT),
-            1e-3,
-        ),
-    ]
-    checks.append(
-        Check(
-            SECTION,
-            f"the paradox: Beck's column at η = {etas[0]:g} against the limit η → 0, relative",
-            f"{ref.BECK_KV_LIMIT} EI/L² (undamped: {ref.BECK})",
-            fmt(Pc_eta[0]),
-            _rel(Pc_eta[0], ref.BECK_KV_LIMIT),
-            2e-2,
-        )
-    )
-    results = dict(Pc=Pc, mus=mus, etas=etas, galerkin_mu=galerkin_mu, galerkin_eta=galerkin_eta)
+    checks += _damping_checks(etas, Pc[2 + len(mus) : -1])
+    results = dict(Pc=Pc, mus=mus, etas=etas)
     return checks, results, float(Pc[-1]), rows[-1]
 
 
