@@ -70,8 +70,11 @@ def flutter_figure(plt, out, motion):
     a1.set_title(f"Beck's column at P = {motion['P']:.3f} = 1.05 P_c: flutter")
     a2.semilogy(ts, np.abs(x), lw=0.6, label="|x_tip|")
     a2.semilogy(motion["tp"], motion["hp"], "o", ms=3, label="peaks fitted")
-    scale = motion["hp"][0] * np.exp(-p.real * motion["tp"][0])
-    a2.semilogy(ts, scale * np.exp(p.real * ts), "k--", lw=0.8, label=f"e^(σt), σ = {p.real:.3f}")
+    if len(motion["hp"]):
+        scale = motion["hp"][0] * np.exp(-p.real * motion["tp"][0])
+        a2.semilogy(
+            ts, scale * np.exp(p.real * ts), "k--", lw=0.8, label=f"e^(σt), σ = {p.real:.3f}"
+        )
     a2.set(xlabel="t √(EI/ρAL⁴)", ylim=(1e-7, 1.0))
     a2.set_title("growth against the spectrum's Re p")
     a2.legend(fontsize=8)
