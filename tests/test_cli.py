@@ -59,7 +59,7 @@ def test_reproduce_exit_status_reflects_failed_checks(monkeypatch, tmp_path, cap
     assert not Check("s", "q", "p", "o", float("nan"), 1.0).passed
 
 
-@pytest.mark.slow  # integration: reproduce --quick, ~1 min
+@pytest.mark.slow  # integration: reproduce --quick, ~3 min
 def test_reproduce_quick_passes_and_writes_the_report(tmp_path):
     """The full chain of `make demo` at --quick size: every check of the paper passes, the report
     lists them and the figures exist."""
@@ -74,6 +74,9 @@ def test_reproduce_quick_passes_and_writes_the_report(tmp_path):
         "nikolai_growth.png",
         "simplest_oscillator.png",
         "precession_growth.png",
+        "rods_statics.png",
+        "rods_stability.png",
+        "rods_flutter.png",
     ]:
         assert (tmp_path / name).stat().st_size > 1000
 

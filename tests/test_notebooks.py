@@ -18,6 +18,7 @@ NOTEBOOKS = [
     "04_fitting.ipynb",
     "05_bifurcation.ipynb",
     "06_lattice.ipynb",
+    "07_rods.ipynb",
 ]
 KERNEL = "python3"
 

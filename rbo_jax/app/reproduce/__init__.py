@@ -7,7 +7,9 @@ the report. The exit status is non-zero if any check fails. One module per part 
 ``_kinematics`` (4.2), ``_nikolai`` (4.4–4.5), ``_dynamics`` (4.3–4.6), ``_precession`` (4.7),
 ``_fitting``, ``_bifurcation`` (Hopf points, Floquet multipliers, continuation), ``_flutter``
 (Bautin point, folds of cycles, hysteresis; full run only), ``_lattice``
-(4.8: chains of bodies, their waves, the sine-Gordon kink and Kelvin's medium).
+(4.8: chains of bodies, their waves, the sine-Gordon kink and Kelvin's medium), ``_rods`` (rods
+of bodies that turn and translate: the elastica, Euler's, Beck's, Pflüger's columns, Ziegler's
+pendulum, flutter motion).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from ._kinematics import kinematics
 from ._lattice import lattice
 from ._nikolai import nikolai
 from ._precession import precession
+from ._rods import rods
 
 __all__ = ["Check", "run_reproduction"]
 
@@ -67,6 +70,10 @@ def run_reproduction(
         (
             "lattices of bodies (4.8): waves, kink, Kelvin's medium",
             lambda: lattice(out, plt, quick),
+        ),
+        (
+            "rods: elastica, Euler, Beck, Pflüger, Ziegler, flutter motion",
+            lambda: rods(out, plt, quick),
         ),
     ]
     checks: list[Check] = []
@@ -129,6 +136,16 @@ def _write_report(out, checks, elapsed, quick, figures):
             (
                 "lattice_kink.png",
                 "Space-time image of a moving sine-Gordon kink on a ring of bodies, with x0 + vt",
+            ),
+            ("rods_statics.png", "Rods: the elastica at α = 1, 2, 5, 10 and the closed circle"),
+            (
+                "rods_stability.png",
+                "Rods: Beck's column against Kelvin–Voigt damping (the flutter load halves), "
+                "Pflüger's against its tip mass, Ziegler's pendulum against its dampers",
+            ),
+            (
+                "rods_flutter.png",
+                "Rods: Beck's column past its flutter load, the tip's growth against the spectrum",
             ),
         ]:
             if os.path.exists(os.path.join(out, name)):
