@@ -112,12 +112,33 @@ def local_function(closed, out_tree):
     return chunk_program
 
 
-def _chunked_rule(prim, original, block: int):
-    """A batching rule of ``prim`` that runs a batch larger than ``block`` as ``lax.map`` over
-    blocks of ``block`` (each block by the original rule)."""
+def _element_block(prim, vals, dims) -> int:
+    """The most elements of this batched call that jaxlib never splits: :func:`block_size` of
+    one element (its operands without the batch axis; a batch nested inside the element, e.g.
+    a ``vmap`` inside the point function, counts as its matrices)."""
+    if prim.name == "fft":
+        return 1
+    shapes = [
+        tuple(s for k, s in enumerate(jnp.shape(v)) if k != d)
+        for v, d in zip(vals, dims)
+        if jnp.ndim(v) >= 1
+    ]
+    n = max((max(s[-2:]) for s in shapes if len(s) >= 1), default=1)
+    first = shapes[0] if shapes else ()
+    matrices = math.prod(first[:-2]) if len(first) >= 2 else 1
+    work = COST_PER_N3 * int(n) ** 3 * int(matrices)
+    return max(1, (SPLIT_WORK - 1) // work)
+
+
+def _chunked_rule(prim, original, block: int | None):
+    """A batching rule of ``prim`` that runs a batch larger than ``block`` (``None``: the
+    largest that jaxlib never splits, from the operands' shapes, :func:`_element_block`) as
+    ``lax.map`` over blocks (each block by the original rule)."""
 
     def rule(axis_data, vals, dims, **params):
-        if axis_data.size <= block or all(d is None for d in dims):
+        limit = _element_block(prim, vals, dims)
+        limit = limit if block is None else min(block, limit)
+        if axis_data.size <= limit or all(d is None for d in dims):
             return original(axis_data, vals, dims, **params)
         which = [i for i, d in enumerate(dims) if d is not None]
         moved = tuple(jnp.moveaxis(vals[i], dims[i], 0) for i in which)
@@ -130,7 +151,7 @@ def _chunked_rule(prim, original, block: int):
 
         # the largest block that divides the batch: no second copy of the call for a remainder
         size = int(axis_data.size)
-        even = next(b for b in range(block, 0, -1) if size % b == 0)
+        even = next(b for b in range(limit, 0, -1) if size % b == 0)
         out = lax.map(one, moved, batch_size=even)
         return out, ([0] * len(out) if prim.multiple_results else 0)
 
@@ -138,14 +159,16 @@ def _chunked_rule(prim, original, block: int):
 
 
 @contextlib.contextmanager
-def lapack_in_blocks(block: int):
+def lapack_in_blocks(block: int | None):
     """While a chunk program is traced: every LAPACK primitive batched over more than ``block``
-    matrices runs in blocks of ``block`` (:func:`_chunked_rule`), so that jaxlib never splits
-    a call over the intra-op pool; the rest of the quantity stays one ``vmap`` over the
-    device's points (the refilled lanes of :func:`rbo_jax.fast_simulate` keep all of them).
-    JAX's caches of batched sub-jaxprs are cleared around it, so that no program traced
-    before or after takes the other's. One trace at a time (a lock): the rules are global."""
-    if not block:
+    matrices (``None``: over more than jaxlib would run unsplit, from the shapes of each call)
+    runs in blocks (:func:`_chunked_rule`), so that jaxlib never splits a call over the
+    intra-op pool; the rest of the quantity stays one ``vmap`` over the device's points (the
+    refilled lanes of :func:`rbo_jax.fast_simulate` keep all of them). ``0``: nothing to do
+    (the quantity calls no LAPACK). JAX's caches of batched sub-jaxprs are cleared around it,
+    so that no program traced before or after takes the other's. One trace at a time (a
+    lock): the rules are global."""
+    if block == 0:
         yield
         return
     rules = batching.fancy_primitive_batchers
@@ -287,9 +310,13 @@ def undeal(values: np.ndarray, n_devices: int) -> np.ndarray:
 
 
 def trace_point(point, n: int):
-    """One point's closed jaxpr and output tree: ``point(x)`` of a ``(n,)`` vector."""
+    """One point's closed jaxpr and output tree: ``point(x)`` of a ``(n,)`` vector. Traced with
+    LAPACK in blocks too: a ``vmap`` inside the point (e.g. the spectra of a scan of loads in
+    :func:`rbo_jax.lattice.critical_load`) would otherwise hold a batched call that jaxlib
+    splits over the intra-op pool, which waits forever when every pool thread is a device."""
     dtype = jnp.result_type(float)
-    closed, shape = jax.make_jaxpr(point, return_shape=True)(jax.ShapeDtypeStruct((n,), dtype))
+    with lapack_in_blocks(None):
+        closed, shape = jax.make_jaxpr(point, return_shape=True)(jax.ShapeDtypeStruct((n,), dtype))
     return closed, jax.tree_util.tree_structure(shape)
 
 

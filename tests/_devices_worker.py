@@ -64,6 +64,35 @@ def newton_map():
     }
 
 
+def inner_eig():
+    """A quantity with a ``vmap`` inside one point (32 eigenproblems of 60 x 60, as the spectra
+    of a scan of loads in ``rbo_jax.lattice.critical_load``): jaxlib splits such a call over the
+    intra-op pool, which waited forever on every device of the process. It must end, and give
+    the one-device bits."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import rbo_jax as rbo
+
+    grid = jnp.arange(60.0)
+
+    def abscissa(x):
+        k = jnp.arange(32.0)[:, None, None]
+        A = jnp.eye(60) * x + jnp.sin(k + grid[None, :, None] * grid[None, None, :] + x)
+        return jnp.max(jax.vmap(jnp.linalg.eigvals)(A).real, axis=-1)
+
+    axes = {"x": np.linspace(0.0, 1.0, 64)}
+    many = rbo.sweep(abscissa, axes, progress=False)
+    one = rbo.sweep(abscissa, axes, progress=False, devices=1)
+    name = next(iter(many.data_vars))
+    return {
+        "devices": len(jax.devices()),
+        "identical": bool(np.array_equal(many[name].values, one[name].values)),
+        "finite": bool(np.isfinite(many[name].values).all()),
+    }
+
+
 def fast_sweep():
     """Final states of fast_simulate (refilled lanes) over 1, 2 and all local devices and two
     chunk sizes: the same bits."""

@@ -104,6 +104,16 @@ def test_stability_map_with_newton_equilibria_ends_on_several_devices(tmp_path, 
     assert report["counts"]["successful"] == 1600
 
 
+@pytest.mark.parametrize("devices", [2, 4])
+def test_a_vmap_inside_a_point_ends_on_several_devices(tmp_path, devices):
+    """LAPACK batched inside one point (the rods' ``critical_load`` scans its spectra over the
+    loads) ran split over XLA's pool and waited forever on 2 CPU devices; it ends now, with the
+    one-device bits."""
+    report = _run(tmp_path, "inner_eig", timeout=120, RBO_JAX_CPU_DEVICES=str(devices))
+    assert report["devices"] == devices
+    assert report["finite"] and report["identical"]
+
+
 @pytest.mark.slow  # cost: ~35 s, six processes compiling sweeps
 def test_fast_simulate_sweep_is_bitwise_the_same_on_any_number_of_devices(tmp_path):
     """Refilled lanes, chunks of 1230 and 500 points, over 1, 2 and 4 devices: one result."""

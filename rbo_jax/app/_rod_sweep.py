@@ -16,8 +16,7 @@ r"""The rod quantities of ``rbo-jax sweep``: functions of one parameter point of
   (``f = [0, 0, -1]``) it is the critical load itself: Beck's flutter load
   $20.05\,EI/L^2$, the Ziegler paradox of a small damping (about $10.94\,EI/L^2$), Pflüger's
   load falling with the tip mass. Its status is always ``successful``: a failed equilibrium
-  counts as unstable, so $\lambda_{cr}$ always has that meaning. A local sweep of it runs on
-  one CPU device unless ``--devices`` says otherwise (:data:`ONE_CPU_DEVICE`).
+  counts as unstable, so $\lambda_{cr}$ always has that meaning.
 
 The ``[stability]`` table: ``rtol`` (default 1e-9; a small damping needs a smaller one, e.g.
 1e-14, see :func:`rbo_jax.lattice.critical_load`), ``steps`` (Newton's load steps, default 1);
@@ -37,7 +36,6 @@ from ._reader import Reader
 from .rodspec import RodSpec
 
 __all__ = [
-    "ONE_CPU_DEVICE",
     "ROD",
     "ROD_DEFAULT_PLOT",
     "ROD_OUTPUTS",
@@ -59,13 +57,6 @@ ROD_OUTPUTS = {
 }
 ROD_DEFAULT_PLOT = {"rod_stability": "spectral_abscissa", "rod_critical_load": "critical_load"}
 ROD = tuple(ROD_QUANTITIES)
-# Quantities a local sweep computes on one CPU device unless told otherwise: the chunk program of
-# rod_critical_load (a scan of Newton solves and spectra, then a bisection: loops in loops) stopped
-# for good, no thread using the processor, on two CPU devices of the 2-core test machine, with
-# rbo_jax.lattice.critical_load and with rbo_jax.maps.critical_value called directly alike
-# (observed twice; one device: 298 s for 2 points, compilation included; the cause in XLA's CPU
-# runtime is not known).
-ONE_CPU_DEVICE = ("rod_critical_load",)
 
 
 @dataclasses.dataclass(frozen=True)

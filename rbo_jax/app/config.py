@@ -29,7 +29,7 @@ from ..plotting import plot_sweep, pyplot
 from ._cluster import dask_client
 from ._outputs import save_figure
 from ._reader import Reader, SpecError
-from ._rod_sweep import ONE_CPU_DEVICE, ROD, make_rod_quantity, read_rod_settings
+from ._rod_sweep import ROD, make_rod_quantity, read_rod_settings
 from .quantities import (
     DEFAULT_PLOT,
     INTEGRATORS,
@@ -385,14 +385,9 @@ def run_config(
     scheduler, or ``workers`` a local cluster of that many processes (closed at the end), or
     ``client`` a :class:`distributed.Client` (at most one of the three); this process still
     writes the store. ``devices``: the number of local devices (each worker's, on Dask) to
-    compute on (default all; one CPU device for the quantities of
-    :data:`~rbo_jax.app._rod_sweep.ONE_CPU_DEVICE`). Returns ``(dataset, png path or None)``."""
+    compute on (default all). Returns ``(dataset, png path or None)``."""
     cfg = config if isinstance(config, SweepConfig) else load_config(config)
     out = Path(output) if output is not None else cfg.output
-    local = client is None and scheduler is None and workers is None
-    if cfg.quantity_name in ONE_CPU_DEVICE and devices is None and local:
-        if jax.default_backend() == "cpu":
-            devices = 1
     if client is not None and (scheduler is not None or workers is not None):
         raise ValueError("give a client, a scheduler or workers, not several.")
     with (

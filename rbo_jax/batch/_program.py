@@ -131,7 +131,7 @@ def _store_key(quantity, names, devices, chunk_points) -> str | None:
     return _programs.program_key(
         repr(
             (
-                "rbo_jax.batch chunk 2",  # 2: the per-device program under shard_map
+                "rbo_jax.batch chunk 3",  # 3: traced with LAPACK in blocks inside the point too
                 text,
                 names,
                 chunk_points,
