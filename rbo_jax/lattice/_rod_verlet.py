@@ -10,13 +10,20 @@ flows solved exactly, as the lattices' splitting (:mod:`._splitting`):
   $\dot\Pi_i = M_i$, $\dot p_i = F_i$ with the body-frame moments and world forces of
   :func:`._rod_field.forces_at` (couplings, foundation, loads), constant over the substep;
 - the **drift** of the translational kinetic energy: $r_i \to r_i + \tau\,v_i$;
-- the **free rotations** about the principal axes $d_k$ of $A_i$ (eigenvalues $a_k$):
-  the body turns by $\alpha = \tau\,d_k\cdot\Pi_i/a_k$ about $d_k$, $Q_i \to Q_i\,Q(\alpha d_k)$,
-  and $\Pi_i \to Q(-\alpha d_k)\,\Pi_i$ (the $\Omega\times A\Omega$ of (4.55), exactly).
+- the **free rotation** of every body, $T = \tfrac12\Pi\cdot A^{-1}\Pi$ split as
+  $\tfrac{1}{2a_1}|\Pi|^2 + \sum_{k=2,3}\tfrac12(1/a_k - 1/a_1)(d_k\cdot\Pi)^2$ ($a_1$ the
+  smallest principal moment, $d_k$ the principal axes): the first flow turns the body about
+  $\Pi$ at the rate $|\Pi|/a_1$ with $\Pi$ constant in its frame, the others about $d_k$ at
+  the rates $(1/a_k - 1/a_1)\,d_k\cdot\Pi$ with $\Pi \to Q(-\alpha d_k)\,\Pi$ (the
+  $\Omega\times A\Omega$ of (4.55)), as $R_h = C_{h/2}\,S_h\,C_{h/2}$. Each turn is taken by
+  the Cayley map: $2\arctan(x)$ instead of $2x$, the exact flow of a kinetic energy that is a
+  function of $|\Pi|$ (or of $d_k\cdot\Pi$) alone and differs at $O(h^2)$, so each flow stays
+  symplectic, and no trigonometric function is evaluated (one ``rsqrt`` per turn). A rod's
+  section ($a_1 = a_2$) skips the flow about $d_2$.
 
 One step of size $h$ is the symmetric (Strang) composition
 
-$$K_{h/2}\;D_h\,T_{1,h/2}\,T_{2,h/2}\,T_{3,h}\,T_{2,h/2}\,T_{1,h/2}\;K_{h/2},$$
+$$K_{h/2}\;D_h\,R_h\;K_{h/2},$$
 
 position Verlet's kick–drift–kick on the Lie group: second order, and for a conservative rod
 (no follower load, no dead moment, no damping) symplectic and time-reversible, so its energy

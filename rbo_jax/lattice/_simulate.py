@@ -435,7 +435,9 @@ def simulate(
     forward-mode differentiable (all methods; ``"diffrax"`` also reverse mode).
 
     **A rod** (:class:`rbo_jax.lattice.Rod`): ``simulate(rod, state0, ts, method="explicit" |
-    "implicit", solver=..., rtol=..., atol=..., max_steps=..., throw=...)`` with a
+    "implicit" | "splitting", solver=..., rtol=..., atol=..., max_steps=..., dt=...,
+    throw=...)`` (``"splitting"``: the Lie-group position Verlet of
+    :mod:`rbo_jax.lattice._rod_verlet`, fixed steps of at most ``dt``) with a
     :class:`rbo_jax.lattice.RodState` returns a :class:`rbo_jax.lattice.RodTrajectory`
     (:func:`rbo_jax.lattice._rod_dynamics.simulate_rod`).
     """
