@@ -263,3 +263,41 @@ def test_beck_column_flutters_at_the_spectral_abscissa():
     half = len(env) // 2  # after the stable modes' transient
     rate = np.polyfit(t[half:], np.log(env[half:]), 1)[0]
     assert abs(rate / alpha - 1.0) < 0.03, (rate, alpha)
+
+
+# ------------------------------------------------------------------------------------------
+# The step's force path.
+# ------------------------------------------------------------------------------------------
+
+
+def test_tangent_forces_equal_the_autodiff_forces():
+    r"""``forces_tangent`` (increments entering as $Q(E + \delta\times)$, the integrator's
+    path) against ``forces_at`` (increments through $Q\cdot Q(\delta)$ and $Z(\delta)$) at a
+    bent, stretched, moving state of a damped rod on a foundation under a follower force,
+    gravity and a dead moment: equal to 1e-12 of the largest force and moment."""
+    from rbo_jax import QuadraticFoundation
+    from rbo_jax.lattice import _rod_field
+
+    rod = lattice.rod(
+        5, 1.0, bending=1.3, torsion=0.8, shear=40.0, stretch=90.0, mass=1.0, rotary=2e-2,
+        damping=0.05, foundation=QuadraticFoundation(0.7, 0.4, jnp.array([0.0, 0.0, 1.0])),
+        loads=(
+            lattice.TipForce(jnp.array([0.4, 0.1, -2.0]), follower=True),
+            lattice.Gravity(jnp.array([0.0, -9.81, 0.0])),
+            lattice.TipMoment(jnp.array([0.0, 0.3, 0.2])),
+        ),
+    )  # fmt: skip
+    rng = np.random.default_rng(3)
+    s = rod.straight()
+    theta = jnp.asarray(0.4 * rng.standard_normal((6, 3)))
+    r = s.r + jnp.asarray(0.05 * rng.standard_normal((6, 3)))
+    Om, v = (jnp.asarray(rng.standard_normal((6, 3))) for _ in range(2))
+    Q = _rod_field.tensors(theta)
+    z = jnp.zeros_like(r)
+    for args in ((), (Om, v)):
+        M0, F0 = eqx.filter_jit(_rod_field.forces_at)(rod, Q, r, z, z, *args)
+        M1, F1 = eqx.filter_jit(_rod_field.forces_tangent)(rod, Q, r, *args)
+        scale = max(float(jnp.max(jnp.abs(M0))), float(jnp.max(jnp.abs(F0))))
+        assert scale > 1.0
+        assert float(jnp.max(jnp.abs(M1 - M0))) < 1e-12 * scale
+        assert float(jnp.max(jnp.abs(F1 - F0))) < 1e-12 * scale

@@ -8,7 +8,7 @@ flows solved exactly, as the lattices' splitting (:mod:`._splitting`):
 
 - the **kick** of the potential, turns and positions fixed:
   $\dot\Pi_i = M_i$, $\dot p_i = F_i$ with the body-frame moments and world forces of
-  :func:`._rod_field.forces_at` (couplings, foundation, loads), constant over the substep;
+  :func:`._rod_field.forces_tangent` (couplings, foundation, loads), constant over the substep;
 - the **drift** of the translational kinetic energy: $r_i \to r_i + \tau\,v_i$;
 - the **free rotation** of every body, $T = \tfrac12\Pi\cdot A^{-1}\Pi$ split as
   $\tfrac{1}{2a_1}|\Pi|^2 + \sum_{k=2,3}\tfrac12(1/a_k - 1/a_1)(d_k\cdot\Pi)^2$ ($a_1$ the
@@ -72,7 +72,7 @@ from jax import lax
 from .._validation import _is_traced
 from ..kinematics import cross3
 from ._rod import Rod, RodState
-from ._rod_field import _attached, _matrix_of, forces_at, log_unit, strains, tensors
+from ._rod_field import _attached, _matrix_of, forces_tangent, log_unit, strains, tensors
 
 __all__ = ["SAFETY", "stable_step", "verlet"]
 
@@ -181,9 +181,10 @@ def _omega_bound(rod: Rod, state: RodState):
     return jnp.sqrt(jnp.max(per_body))
 
 
+@eqx.filter_jit
 def stable_step(rod: Rod, state: RodState, safety: float = SAFETY):
     r"""The default step of :func:`verlet` (module docstring): $s\cdot 2(\sqrt{1 +
-    \eta^2\bar\omega^2} - \eta\bar\omega)/\bar\omega$."""
+    \eta^2\bar\omega^2} - \eta\bar\omega)/\bar\omega$ (one compiled program)."""
     w = _omega_bound(rod, state)
     eta = jnp.maximum(jnp.max(jnp.asarray(rod.turn_damping)), jnp.max(jnp.asarray(rod.gap_damping)))
     return safety * 2.0 * (jnp.sqrt(1.0 + (eta * w) ** 2) - eta * w) / w
@@ -275,10 +276,9 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
 
     def forces(q, r, Pi, v):
         Q = _matrix_of(q[0], jnp.stack(q[1:], axis=-1))
-        z = jnp.zeros_like(r)
         if damped:
-            return forces_at(rod, Q, r, z, z, omega(Pi), v)
-        return forces_at(rod, Q, r, z, z)
+            return forces_tangent(rod, Q, r, omega(Pi), v)
+        return forces_tangent(rod, Q, r)
 
     def step(carry, h):
         q, r, Pi, v, M, F = carry
