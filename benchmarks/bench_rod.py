@@ -33,11 +33,15 @@ PyElastica's own cases, side by side in one process, float64, every thread pinne
    call per size.
 4. **Compile time** of one call: the first calls above less their best warm calls.
 
+``--parts pairs`` (with the vibration): PyElastica and the splitting at equal accuracy
+(PyElastica n = 50 / splitting n = 5, n = 100 / n = 10) timed in turn, five rounds, so that both
+see the same load on a shared machine.
+
 Without PyElastica (``pip install pyelastica``, the ``bench`` extra) its rows are skipped.
 
 Usage: ``python benchmarks/bench_rod.py [--final-time 5000] [--vib-t 2] [--pe-n 50,100]
 [--explicit-n 5,10,50] [--implicit-n 5,10] [--splitting-n 5,10,20,50] [--spectrum-n 5,10,50,100]
-[--scaling-n 100,1000,10000] [--repeat 3] [--core C] [--parts statics,vibration,scaling]
+[--scaling-n 100,1000,10000] [--repeat 3] [--core C] [--parts statics,vibration,pairs,scaling]
 [--json PATH] [--smoke]``
 """
 
@@ -125,7 +129,7 @@ def _parse(argv):
     p.add_argument("--json", default=None, help="also write the figures to this file")
     p.add_argument(
         "--parts",
-        default="statics,vibration,scaling",
+        default="statics,vibration,pairs,scaling",
         help="which parts to run (the profile follows the vibration)",
     )
     p.add_argument("--smoke", action="store_true", help="a tiny run (tests)")
@@ -576,6 +580,34 @@ def vibration(args, alpha):
     return out
 
 
+def interleaved(args, alpha, pairs=((50, 5), (100, 10)), rounds=5):
+    """PyElastica at n_pe and the splitting at n_rj (the equal-accuracy pairs) timed in turn,
+    ``rounds`` times, so that both see the same load: the best of each and the ratio of the
+    bests, and the median of the per-round ratios."""
+    T = args.vib_t
+    ts = np.arange(int(round(T / SAMPLE_DT)) + 1) * SAMPLE_DT
+    out = []
+    for n_pe, n_rj in pairs:
+        rod = vib_rod(n_rj, alpha)
+        s0 = rj_initial_state(rod)
+        rj_simulate(rod, s0, ts, "splitting", None)  # compiled first
+        pe, rj = [], []
+        for _ in range(rounds):
+            pe.append(pe_vibration(n_pe, T)[0])
+            rj.append(_timed(lambda: rj_simulate(rod, s0, ts, "splitting", None))[0])
+        ratios = sorted(a / b for a, b in zip(pe, rj))
+        e = {"pe_n": n_pe, "n": n_rj, "pe": pe, "rj": rj, "best_ratio": min(pe) / min(rj)}
+        e["median_ratio"] = ratios[len(ratios) // 2]
+        out.append(e)
+        print(
+            f"PyElastica n = {n_pe} / splitting n = {n_rj}, in turn x{rounds}: best "
+            f"{min(pe):.4f} s / {min(rj):.4f} s = {e['best_ratio']:.2f}x, median of the rounds' "
+            f"ratios {e['median_ratio']:.2f}x (ratios {', '.join(f'{r:.2f}' for r in ratios)})",
+            flush=True,
+        )
+    return out
+
+
 def equal_accuracy(rows):
     """For each PyElastica row and rbo_jax route: rbo_jax's smallest n with both errors no
     larger, and the ratio of PyElastica's seconds per simulated second to rbo_jax's (the
@@ -663,11 +695,12 @@ def _rates_cost(rod, state, evaluations=200):
 def _splitting_parts(rod, state, evaluations=2000):
     """Seconds of the two parts of a splitting step, each in a compiled loop of its own (best
     of three): one evaluation of the forces (``_rod_field.forces_at`` at the turn-tensors of
-    quaternions, as in the step) and the free rotations of every body (Cayley maps)."""
+    quaternions, as in the step: ``_rod_field.forces_tangent``) and the free rotations of
+    every body (Cayley maps)."""
     import equinox as eqx
 
     from rbo_jax.lattice import _rod_verlet as V
-    from rbo_jax.lattice._rod_field import _matrix_of, forces_at
+    from rbo_jax.lattice._rod_field import _matrix_of, forces_tangent
 
     stripped, _ = V._static_zeros(rod)
     w, u = V._quaternion_of_vector(state.theta)
@@ -678,7 +711,7 @@ def _splitting_parts(rod, state, evaluations=2000):
     def forces(rod, q, r):
         def body(i, c):
             q, r = c
-            M, F = forces_at(rod, _matrix_of(q[0], jnp.stack(q[1:], -1)), r, 0 * r, 0 * r)
+            M, F = forces_tangent(rod, _matrix_of(q[0], jnp.stack(q[1:], -1)), r)
             return tuple(x + 1e-12 * M[:, min(j, 2)] for j, x in enumerate(q)), r + 1e-12 * F
 
         return jax.lax.fori_loop(0, evaluations, body, (q, r))
@@ -835,6 +868,9 @@ def main(argv=None):
         if "vibration" in parts:
             print("\n-- free vibration of a cantilever: the first two bending frequencies")
             out["vibration"] = vibration(args, alpha)
+        if "pairs" in parts and ea is not None:
+            print("\n-- PyElastica and the splitting at equal accuracy, timed in turn")
+            out["pairs"] = interleaved(args, alpha)
         if "scaling" in parts:
             print("\n-- lattice.equilibrium against the number of bodies (the Timoshenko rod)")
             out["scaling"] = scaling(args, alpha)
@@ -848,11 +884,14 @@ def main(argv=None):
         openblas_threads(blas_before[0][1])
     load1 = os.getloadavg()
     out["load_end"] = load1
-    compiles = [
-        (f"equilibrium n = {r['n']}", r["compile"])
-        for r in [out["statics"]["rbo_jax"]]
-        if "statics" in out
-    ]
+    compiles = []
+    if "statics" in out:
+        compiles += [
+            (
+                f"equilibrium n = {out['statics']['rbo_jax']['n']}",
+                out["statics"]["rbo_jax"]["compile"],
+            )
+        ]
     compiles += [
         (f"{r['code'].split()[-1]} n = {r['n']}", r["first"] - r["seconds"])
         for r in out.get("vibration", {}).get("rows", [])

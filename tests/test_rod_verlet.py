@@ -270,6 +270,7 @@ def test_beck_column_flutters_at_the_spectral_abscissa():
 # ------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # compiles two force programs (a foundation, damping, three loads)
 def test_tangent_forces_equal_the_autodiff_forces():
     r"""``forces_tangent`` (increments entering as $Q(E + \delta\times)$, the integrator's
     path) against ``forces_at`` (increments through $Q\cdot Q(\delta)$ and $Z(\delta)$) at a
