@@ -49,9 +49,11 @@ many times the bending frequencies. The default step is
 
 $$h = s\cdot 2\,(\sqrt{1 + \eta^2\bar\omega^2} - \eta\bar\omega)/\bar\omega$$
 
-with the safety factor $s$ = :data:`SAFETY` and $\bar\omega^2$ a Gershgorin bound of the
-couplings' stiffness scaled by the masses,
-$\bar\omega^2 = \max_i \sum_j |K_{ij}|/\sqrt{D_i D_j} \ge \omega_{max}^2$ ($K$ summed from every
+with the safety factor $s$ = :data:`SAFETY` and $\bar\omega^2$ the block Gershgorin bound
+(Feingold & Varga 1962) of the couplings' stiffness scaled by the masses,
+$S = D^{-1/2} K D^{-1/2}$ in the $6\times 6$ blocks of the bodies:
+$\bar\omega^2 = \max_i \lambda_{max}(S_{ii}) + \sum_{j \ne i}\|S_{ij}\|_2 \ge
+\omega_{max}^2$ ($K$ summed from every
 coupling's $B_s^T\,\mathrm{diag}(K^\varphi_s, K^g_s)\,B_s$, $B_s$ the Jacobian of its strains
 with respect to the turn increments and displacements of its two bodies at the initial state;
 $D$ the masses and the smallest principal moments of inertia, $\eta$ the largest Kelvin–Voigt
@@ -158,7 +160,8 @@ def _coupling_jacobians(rod: Rod, Q, r):
 
 
 def _omega_bound(rod: Rod, state: RodState):
-    r"""$\bar\omega$ (module docstring): the Gershgorin bound of the mass-scaled stiffness."""
+    r"""$\bar\omega$ (module docstring): the block Gershgorin bound of the mass-scaled
+    stiffness."""
     Q = tensors(jnp.asarray(state.theta))
     B = _coupling_jacobians(rod, Q, jnp.asarray(state.r))
     turn, pos = (jnp.asarray(x, B.dtype) for x in rod.free_masks())
@@ -173,10 +176,15 @@ def _omega_bound(rod: Rod, state: RodState):
     m = jnp.asarray(rod.mass)
     D = jnp.stack([a_min, a_min, a_min, m, m, m], axis=1)  # (N+1, 6)
     D = jnp.concatenate([D[:-1], D[1:]], axis=1)
-    S = jnp.abs(K) / jnp.sqrt(D[:, :, None] * D[:, None, :])
-    rows = jnp.sum(S, axis=2)  # (N, 12)
+    S = K / jnp.sqrt(D[:, :, None] * D[:, None, :])  # the couplings' parts of D^-1/2 K D^-1/2
+    # block Gershgorin (Feingold & Varga 1962; symmetric diagonal blocks): every eigenvalue is
+    # at most lambda_max(S_ii) + sum_j |S_ij|_2 for some body i
+    zero = jnp.zeros((rod.n_bodies, 6, 6), B.dtype)
+    diag = zero.at[:-1].add(S[:, :6, :6]).at[1:].add(S[:, 6:, 6:])
+    off = jnp.linalg.norm(S[:, :6, 6:], ord=2, axis=(1, 2))  # (N,): |S_{s,s+1}|_2
+    z1 = jnp.zeros((1,), B.dtype)
     per_body = (
-        jnp.zeros((rod.n_bodies, 6), B.dtype).at[:-1].add(rows[:, :6]).at[1:].add(rows[:, 6:])
+        jnp.linalg.eigvalsh(diag)[:, -1] + jnp.concatenate([off, z1]) + jnp.concatenate([z1, off])
     )
     return jnp.sqrt(jnp.max(per_body))
 
