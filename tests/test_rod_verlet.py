@@ -91,6 +91,9 @@ def test_max_steps_is_checked_before_the_run():
         lattice.simulate(
             rod, rod.straight(), jnp.array([0.0, 1.0]), method="splitting", dt=1e-3, max_steps=999
         )
+    # 10^15 steps: counted in float64 (no int32 overflow slipping past the check)
+    with pytest.raises(ValueError, match="needs 1000000000000000 steps"):
+        lattice.simulate(rod, rod.straight(), jnp.array([0.0, 1e3]), method="splitting", dt=1e-12)
 
 
 def test_unknown_method_names_splitting():

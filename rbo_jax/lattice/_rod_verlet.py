@@ -72,7 +72,6 @@ import numpy as np
 from jax import lax
 
 from .._validation import _is_traced
-from ..kinematics import cross3
 from ._rod import Rod, RodState
 from ._rod_field import _attached, _matrix_of, forces_tangent, log_unit, strains, tensors
 
@@ -83,7 +82,7 @@ TWO_PI = 2.0 * math.pi
 
 
 # --------------------------------------------------------------------------------------------
-# Quaternions by rows (B, 4 as (w (B,), v (B, 3))).
+# Unit quaternions: (w (B,), v (B, 3)) by rows, or components (w, q1, q2, q3) in the step.
 # --------------------------------------------------------------------------------------------
 
 
@@ -91,18 +90,9 @@ def _dot(a, b):
     return jnp.sum(a * b, axis=-1)
 
 
-def _cross(a, b):
-    return cross3(a.T, b.T).T
-
-
-def _product(p, q):
-    (w1, v1), (w2, v2) = p, q
-    return w1 * w2 - _dot(v1, v2), w1[:, None] * v2 + w2[:, None] * v1 + _cross(v1, v2)
-
-
 def _quaternion_of_vector(theta):
-    r"""$(\cos(|\theta|/2), \sin(|\theta|/2)\,\hat\theta)$ by rows, from the turn-tensor (exact
-    at $\theta = 0$ and its derivatives irrelevant here)."""
+    r"""$(\cos(|\theta|/2), \sin(|\theta|/2)\,\hat\theta)$ by rows: the unit quaternions of
+    turn-vectors (the identity at $\theta = 0$; not differentiated)."""
     t = jnp.sqrt(_dot(theta, theta))
     safe = jnp.where(t > 0, t, 1.0)
     return jnp.cos(0.5 * t), jnp.where(
@@ -340,20 +330,21 @@ def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000)
     r"""``(states, ok, steps, dt)``: the motion of ``rod`` from ``state0`` sampled at ``ts``
     (module docstring) with steps of at most ``dt`` (default :func:`stable_step` at
     ``state0``), every interval between samples in equal steps."""
-    if dt is None:
-        dt = float(stable_step(rod, state0))
-    dt = float(dt)
+    given = dt is not None
+    dt = float(stable_step(rod, state0)) if dt is None else float(dt)
     if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {dt}.")
-    span = np.diff(np.asarray(ts))
-    counts = np.maximum(np.ceil(span / dt - 1e-9), 1).astype(np.int32)
-    total = int(np.sum(counts, dtype=np.int64))
+        what = "dt" if given else "the default step (from the stiffnesses and masses)"
+        raise ValueError(f"lattice.simulate: {what} must be finite and > 0, got {dt}.")
+    span = np.diff(np.asarray(ts, dtype=np.float64))
+    counts = np.maximum(np.ceil(span / dt - 1e-9), 1.0)
+    total = int(min(np.sum(counts), 2.0**62))
     if total > max_steps:
         raise ValueError(
             f"lattice.simulate: method='splitting' needs {total} steps of dt = {dt:.3g} s for "
             f"ts, more than max_steps = {max_steps}: raise max_steps or dt."
         )
     h = jnp.asarray(span / counts, dtype=ts.dtype)
+    counts = counts.astype(np.int32)
     stripped, damped = _static_zeros(rod)
     states, ok = _run_jit(stripped, state0, ts, jnp.asarray(counts), h, damped, _skipped_axes(rod))
     return states, ok, total, dt
