@@ -16,7 +16,9 @@ the smallest load at which an eigenvalue crosses into $\mathrm{Re}\,p > 0$: dive
 
 **Motion.** :func:`simulate` integrates the rod's equations (:func:`._rod_field.rates`) with
 diffrax: an explicit Runge–Kutta method (``Dopri8``, default) or, for the stiff stretch and
-shear waves of a slender rod, an implicit one (``Kvaerno5``).
+shear waves of a slender rod, an implicit one (``Kvaerno5``); or, with
+``method="splitting"``, the fixed-step Lie-group position Verlet of :mod:`._rod_verlet` (one
+force evaluation per step: the fast one where the stiffest mode holds every explicit step).
 """
 
 from __future__ import annotations
