@@ -870,7 +870,8 @@ def main(argv=None):
             out["vibration"] = vibration(args, alpha)
         if "pairs" in parts and ea is not None:
             print("\n-- PyElastica and the splitting at equal accuracy, timed in turn")
-            out["pairs"] = interleaved(args, alpha)
+            smoke = {"pairs": ((50, 5),), "rounds": 1} if args.smoke else {}
+            out["pairs"] = interleaved(args, alpha, **smoke)
         if "scaling" in parts:
             print("\n-- lattice.equilibrium against the number of bodies (the Timoshenko rod)")
             out["scaling"] = scaling(args, alpha)
