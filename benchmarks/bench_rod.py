@@ -25,18 +25,24 @@ PyElastica's own cases, side by side in one process, float64, every thread pinne
    transfer matrix (scipy's ``expm``); the Euler-Bernoulli values 3.51602 and 22.0345
    √(EI/(ρAL⁴)) are printed too. PyElastica: ``PositionVerlet`` at dt = 0.5 (L/n)/√(E/ρ)
    (0.7 blew up at n = 50), its stepping loop timed; rbo_jax: ``lattice.simulate`` explicit
-   (Dopri8) and implicit (Kvaerno5), and ``lattice.spectrum`` (the eigenvalues of the
+   (Dopri8), implicit (Kvaerno5) and ``method="splitting"`` (the Lie-group position Verlet at
+   its default step), and ``lattice.spectrum`` (the eigenvalues of the
    linearisation: the frequencies with no simulation at all). Equal accuracy: for each
    PyElastica size, rbo_jax's smallest size whose errors in both frequencies are no larger.
 3. **O(n)**: ``lattice.equilibrium`` of the Timoshenko rod at n = 10², 10³, 10⁴ bodies, best warm
    call per size.
 4. **Compile time** of one call: the first calls above less their best warm calls.
 
+``--parts pairs`` (with the vibration): PyElastica and the splitting at equal accuracy
+(PyElastica n = 50 / splitting n = 5, n = 100 / n = 10) timed in turn, five rounds, so that both
+see the same load on a shared machine.
+
 Without PyElastica (``pip install pyelastica``, the ``bench`` extra) its rows are skipped.
 
 Usage: ``python benchmarks/bench_rod.py [--final-time 5000] [--vib-t 2] [--pe-n 50,100]
-[--explicit-n 5,10,50] [--implicit-n 5,10] [--spectrum-n 5,10,50,100]
-[--scaling-n 100,1000,10000] [--repeat 3] [--core C] [--json PATH] [--smoke]``
+[--explicit-n 5,10,50] [--implicit-n 5,10] [--splitting-n 5,10,20,50] [--spectrum-n 5,10,50,100]
+[--scaling-n 100,1000,10000] [--repeat 3] [--core C] [--parts statics,vibration,pairs,scaling]
+[--json PATH] [--smoke]``
 """
 
 from __future__ import annotations
@@ -108,6 +114,7 @@ def _parse(argv):
     p.add_argument("--pe-n", type=ints, default=[50, 100], help="PyElastica's vibrating sizes")
     p.add_argument("--explicit-n", type=ints, default=[5, 10, 50])
     p.add_argument("--implicit-n", type=ints, default=[5, 10])
+    p.add_argument("--splitting-n", type=ints, default=[5, 10, 20, 50], help="Lie-group Verlet")
     p.add_argument("--spectrum-n", type=ints, default=[5, 10, 50, 100])
     p.add_argument("--scaling-n", type=ints, default=[100, 1000, 10000])
     p.add_argument("--explicit-rtol", type=float, default=1e-6)
@@ -120,11 +127,17 @@ def _parse(argv):
         "--options-study", action="store_true", help="the rod programs under XLA's options"
     )
     p.add_argument("--json", default=None, help="also write the figures to this file")
+    p.add_argument(
+        "--parts",
+        default="statics,vibration,pairs,scaling",
+        help="which parts to run (the profile follows the vibration)",
+    )
     p.add_argument("--smoke", action="store_true", help="a tiny run (tests)")
     args = p.parse_args(argv)
     if args.smoke:
         args.final_time, args.vib_t, args.repeat = 20.0, 0.2, 1
         args.pe_n, args.explicit_n, args.implicit_n = [50], [5], []
+        args.splitting_n = [5]
         args.spectrum_n, args.scaling_n, args.statics_n = [10], [100], []
     if args.core is None:
         args.core = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
@@ -460,7 +473,10 @@ def rj_initial_state(rod):
 
 
 def rj_simulate(rod, state0, ts, method, rtol):
-    traj = L.simulate(rod, state0, ts, method=method, rtol=rtol, atol=rtol * 1e-3)
+    if method == "splitting":  # fixed steps: the default dt (0.9 of a bound of the limit)
+        traj = L.simulate(rod, state0, ts, method=method)
+    else:
+        traj = L.simulate(rod, state0, ts, method=method, rtol=rtol, atol=rtol * 1e-3)
     tip = np.asarray(jax.block_until_ready(traj.states.r)[:, -1, 0])
     return tip, int(traj.num_steps)
 
@@ -533,14 +549,16 @@ def vibration(args, alpha):
     for method, ns, rtol in (
         ("explicit", args.explicit_n, args.explicit_rtol),
         ("implicit", args.implicit_n, args.implicit_rtol),
+        ("splitting", args.splitting_n, None),
     ):
         for n in ns:
             rod = vib_rod(n, alpha)
             s0 = rj_initial_state(rod)
             first, _ = _timed(lambda: rj_simulate(rod, s0, ts, method, rtol))
             best, (tip, steps) = _best(lambda: rj_simulate(rod, s0, ts, method, rtol), args.repeat)
-            name = "rbo_jax Dopri8" if method == "explicit" else "rbo_jax Kvaerno5"
-            row(name, n, first, best, T, two_frequencies(tip), steps, f"rtol {rtol:g}")
+            name = {"explicit": "Dopri8", "implicit": "Kvaerno5", "splitting": "splitting"}
+            note = f"dt {T / steps:.3g}" if rtol is None else f"rtol {rtol:g}"
+            row(f"rbo_jax {name[method]}", n, first, best, T, two_frequencies(tip), steps, note)
     for n in args.spectrum_n:
         rod = vib_rod(n, alpha)
         first, _ = _timed(lambda: spectrum_frequencies(rod))
@@ -562,6 +580,34 @@ def vibration(args, alpha):
     return out
 
 
+def interleaved(args, alpha, pairs=((50, 5), (100, 10)), rounds=5):
+    """PyElastica at n_pe and the splitting at n_rj (the equal-accuracy pairs) timed in turn,
+    ``rounds`` times, so that both see the same load: the best of each and the ratio of the
+    bests, and the median of the per-round ratios."""
+    T = args.vib_t
+    ts = np.arange(int(round(T / SAMPLE_DT)) + 1) * SAMPLE_DT
+    out = []
+    for n_pe, n_rj in pairs:
+        rod = vib_rod(n_rj, alpha)
+        s0 = rj_initial_state(rod)
+        rj_simulate(rod, s0, ts, "splitting", None)  # compiled first
+        pe, rj = [], []
+        for _ in range(rounds):
+            pe.append(pe_vibration(n_pe, T)[0])
+            rj.append(_timed(lambda: rj_simulate(rod, s0, ts, "splitting", None))[0])
+        ratios = sorted(a / b for a, b in zip(pe, rj))
+        e = {"pe_n": n_pe, "n": n_rj, "pe": pe, "rj": rj, "best_ratio": min(pe) / min(rj)}
+        e["median_ratio"] = ratios[len(ratios) // 2]
+        out.append(e)
+        print(
+            f"PyElastica n = {n_pe} / splitting n = {n_rj}, in turn x{rounds}: best "
+            f"{min(pe):.4f} s / {min(rj):.4f} s = {e['best_ratio']:.2f}x, median of the rounds' "
+            f"ratios {e['median_ratio']:.2f}x (ratios {', '.join(f'{r:.2f}' for r in ratios)})",
+            flush=True,
+        )
+    return out
+
+
 def equal_accuracy(rows):
     """For each PyElastica row and rbo_jax route: rbo_jax's smallest n with both errors no
     larger, and the ratio of PyElastica's seconds per simulated second to rbo_jax's (the
@@ -571,7 +617,7 @@ def equal_accuracy(rows):
     for pe in (r for r in rows if r["code"].startswith("PyElastica")):
         if not np.all(np.isfinite(pe["error"])):
             continue
-        for code in ("rbo_jax Dopri8", "rbo_jax Kvaerno5", "rbo_jax spectrum"):
+        for code in ("rbo_jax Dopri8", "rbo_jax Kvaerno5", "rbo_jax splitting", "rbo_jax spectrum"):
             cands = [
                 r
                 for r in rows
@@ -646,6 +692,48 @@ def _rates_cost(rod, state, evaluations=200):
     return _best(lambda: jax.block_until_ready(loop(state)), 3)[0] / evaluations
 
 
+def _splitting_parts(rod, state, evaluations=2000):
+    """Seconds of the two parts of a splitting step, each in a compiled loop of its own (best
+    of three): one evaluation of the forces (``_rod_field.forces_at`` at the turn-tensors of
+    quaternions, as in the step: ``_rod_field.forces_tangent``) and the free rotations of
+    every body (Cayley maps)."""
+    import equinox as eqx
+
+    from rbo_jax.lattice import _rod_verlet as V
+    from rbo_jax.lattice._rod_field import _matrix_of, forces_tangent
+
+    stripped, _ = V._static_zeros(rod)
+    w, u = V._quaternion_of_vector(state.theta)
+    q0 = (w, u[:, 0], u[:, 1], u[:, 2])
+    principal = (*jnp.linalg.eigh(jnp.asarray(rod.inertia)), V._skipped_axes(rod))
+
+    @eqx.filter_jit
+    def forces(rod, q, r):
+        def body(i, c):
+            q, r = c
+            M, F = forces_tangent(rod, _matrix_of(q[0], jnp.stack(q[1:], -1)), r)
+            return tuple(x + 1e-12 * M[:, min(j, 2)] for j, x in enumerate(q)), r + 1e-12 * F
+
+        return jax.lax.fori_loop(0, evaluations, body, (q, r))
+
+    @jax.jit
+    def rotations(q, Pi):
+        def body(i, c):
+            return V._free_rotation(principal, *c, 1e-4)
+
+        return jax.lax.fori_loop(0, evaluations, body, (q, Pi))
+
+    Pi0 = tuple(state.Omega[:, j] + 0.1 for j in range(3))
+    out = {}
+    for key, fn in (
+        ("per_force", lambda: forces(stripped, q0, state.r)),
+        ("per_rotation", lambda: rotations(q0, Pi0)),
+    ):
+        jax.block_until_ready(fn())
+        out[key] = _best(lambda fn=fn: jax.block_until_ready(fn()), 3)[0] / evaluations
+    return out
+
+
 def _jacobian_cost(rod, state):
     """Seconds of one dense Jacobian of the equations (``jax.jacfwd``, what diffrax's implicit
     stages build), best of three."""
@@ -689,6 +777,13 @@ def profile(args, alpha, vib):
                 f"; one evaluation of the equations {e['per_eval'] * 1e6:.1f} us "
                 f"({per_step / e['per_eval']:.1f} per step)"
             )
+            if "splitting" in r["code"]:
+                e.update(_splitting_parts(rod, s0))
+                text += (
+                    f"; in its step: the forces {e['per_force'] * 1e6:.1f} us, the free "
+                    f"rotations {e['per_rotation'] * 1e6:.2f} us, the rest "
+                    f"{(per_step - e['per_force'] - e['per_rotation']) * 1e6:.1f} us"
+                )
             if "Kvaerno5" in r["code"]:
                 e["jacobian"] = _jacobian_cost(rod, s0)
                 text += (
@@ -766,14 +861,23 @@ def main(argv=None):
         if ea is not None:
             # PyElastica's shear coefficient, and its numba kernels compiled (or loaded) first
             alpha = pe_timoshenko(1.0, record=False)[2]
-        print(f"\n-- statics: PyElastica's Timoshenko beam (shear coefficient α = {alpha:.6f})")
-        out["statics"] = statics(args, alpha)
-        print("\n-- free vibration of a cantilever: the first two bending frequencies")
-        out["vibration"] = vibration(args, alpha)
-        print("\n-- lattice.equilibrium against the number of bodies (the Timoshenko rod)")
-        out["scaling"] = scaling(args, alpha)
-        print("\n-- where a simulated second goes")
-        out["profile"] = profile(args, alpha, out["vibration"])
+        parts = args.parts.split(",")
+        if "statics" in parts:
+            print(f"\n-- statics: PyElastica's Timoshenko beam (shear coefficient α = {alpha:.6f})")
+            out["statics"] = statics(args, alpha)
+        if "vibration" in parts:
+            print("\n-- free vibration of a cantilever: the first two bending frequencies")
+            out["vibration"] = vibration(args, alpha)
+        if "pairs" in parts and ea is not None:
+            print("\n-- PyElastica and the splitting at equal accuracy, timed in turn")
+            smoke = {"pairs": ((50, 5),), "rounds": 1} if args.smoke else {}
+            out["pairs"] = interleaved(args, alpha, **smoke)
+        if "scaling" in parts:
+            print("\n-- lattice.equilibrium against the number of bodies (the Timoshenko rod)")
+            out["scaling"] = scaling(args, alpha)
+        if "vibration" in parts:
+            print("\n-- where a simulated second goes")
+            out["profile"] = profile(args, alpha, out["vibration"])
         if args.options_study:
             print("\n-- the rod programs under rbo_jax's XLA options")
             out["options"] = options_study(alpha)
@@ -781,10 +885,17 @@ def main(argv=None):
         openblas_threads(blas_before[0][1])
     load1 = os.getloadavg()
     out["load_end"] = load1
-    compiles = [(f"equilibrium n = {r['n']}", r["compile"]) for r in [out["statics"]["rbo_jax"]]]
+    compiles = []
+    if "statics" in out:
+        compiles += [
+            (
+                f"equilibrium n = {out['statics']['rbo_jax']['n']}",
+                out["statics"]["rbo_jax"]["compile"],
+            )
+        ]
     compiles += [
         (f"{r['code'].split()[-1]} n = {r['n']}", r["first"] - r["seconds"])
-        for r in out["vibration"]["rows"]
+        for r in out.get("vibration", {}).get("rows", [])
         if r["first"] is not None
     ]
     out["compile"] = compiles

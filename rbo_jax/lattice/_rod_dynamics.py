@@ -16,7 +16,9 @@ the smallest load at which an eigenvalue crosses into $\mathrm{Re}\,p > 0$: dive
 
 **Motion.** :func:`simulate` integrates the rod's equations (:func:`._rod_field.rates`) with
 diffrax: an explicit Runge–Kutta method (``Dopri8``, default) or, for the stiff stretch and
-shear waves of a slender rod, an implicit one (``Kvaerno5``).
+shear waves of a slender rod, an implicit one (``Kvaerno5``); or, with
+``method="splitting"``, the fixed-step Lie-group position Verlet of :mod:`._rod_verlet` (one
+force evaluation per step: the fast one where the stiffest mode holds every explicit step).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from ..trajectory import SolveStatus, warn_if_float32
 from ._rod import Rod, RodState
 from ._rod_field import body_forces, energy, kinetic_moment, rates
 from ._rod_statics import solve_equilibrium
+from ._rod_verlet import verlet
 
 __all__ = ["RodTrajectory", "critical_load", "linearize", "simulate_rod", "spectrum"]
 
@@ -216,14 +219,19 @@ def simulate_rod(
     atol: float = 1e-10,
     max_steps: int = 100_000,
     dt0: float | None = None,
+    dt: float | None = None,
     throw: bool = True,
 ) -> RodTrajectory:
     r"""The motion of ``rod`` from ``state0`` sampled at ``ts`` (module docstring).
 
-    ``method``: ``"explicit"`` (diffrax ``Dopri8``, default) or ``"implicit"`` (``Kvaerno5``,
-    for stiff stretch and shear); or any diffrax ``solver``. ``rtol``, ``atol``: the step-size
-    controller's tolerances. A failed solve raises with ``throw=True``, else reports
-    ``status`` (samples after the failure are ``inf``)."""
+    ``method``: ``"explicit"`` (diffrax ``Dopri8``, default), ``"implicit"`` (``Kvaerno5``,
+    for stiff stretch and shear), or ``"splitting"``: the Lie-group position Verlet of
+    :mod:`._rod_verlet` (fixed steps of at most ``dt``, default its stable step from the
+    stiffnesses and masses; one force evaluation per step; symplectic on a conservative rod);
+    or any diffrax ``solver``. ``rtol``, ``atol``: the step-size controller's tolerances;
+    ``max_steps``: the most steps (``"splitting"``: checked before the run). A failed solve
+    (``"splitting"``: a non-finite state, the step too long for stability) raises with
+    ``throw=True``, else reports ``status`` (samples after the failure are ``inf``)."""
     if not isinstance(state0, RodState):
         raise TypeError(
             f"lattice.simulate(rod, state0, ts): state0 must be a RodState (e.g. "
@@ -241,6 +249,8 @@ def simulate_rod(
         raise ValueError(
             "lattice.simulate: ts must be a strictly increasing 1-D array of >= 2 times."
         )
+    if method == "splitting" and solver is None:
+        return _splitting(rod, state0, ts, dt, max_steps, throw)
     if solver is None:
         if method == "explicit":
             solver = diffrax.Dopri8()
@@ -248,8 +258,8 @@ def simulate_rod(
             solver = diffrax.Kvaerno5()
         else:
             raise ValueError(
-                f"lattice.simulate: method must be 'explicit' or 'implicit' for a rod, got "
-                f"{method!r}."
+                f"lattice.simulate: method must be 'explicit', 'implicit' or 'splitting' for a "
+                f"rod, got {method!r}."
             )
     dt0 = float(ts[1] - ts[0]) / 10.0 if dt0 is None else float(dt0)
     state0 = jax.tree_util.tree_map(jnp.asarray, state0)
@@ -260,3 +270,19 @@ def simulate_rod(
     if throw and code != 0:
         raise RuntimeError(f"lattice.simulate: the rod's solve failed: {status[code]!r}.")
     return RodTrajectory(ts, ys, rod, status[code], steps)
+
+
+def _splitting(rod, state0, ts, dt, max_steps, throw):
+    """``simulate_rod(..., method="splitting")``: :func:`._rod_verlet.verlet`."""
+    if max_steps == 100_000:  # the adaptive methods' default; fixed steps are cheap: more room
+        max_steps = 10_000_000
+    state0 = jax.tree_util.tree_map(jnp.asarray, state0)
+    states, ok, steps, dt = verlet(rod, state0, ts, dt, max_steps)
+    if throw and not bool(ok):
+        raise RuntimeError(
+            f"lattice.simulate: the rod's state became non-finite (method='splitting', dt = "
+            f"{dt:.3g} s): the step is past the stability limit or the motion blew up; pass a "
+            f"smaller dt."
+        )
+    status = SolveStatus.successful if bool(ok) else SolveStatus.solver_error
+    return RodTrajectory(ts, states, rod, status, jnp.asarray(steps))

@@ -96,7 +96,10 @@ def _matrix_of(w, v):
 
 
 def _attached(x) -> bool:
-    """Whether attachment offsets may be nonzero (traced, or concrete and nonzero)."""
+    """Whether attachment offsets may be nonzero (traced, or concrete and nonzero; ``None``:
+    known to be zero before tracing, see :func:`._rod_verlet.verlet`)."""
+    if x is None:
+        return False
     return _is_traced(x) or bool(np.any(np.asarray(x) != 0))
 
 
@@ -176,9 +179,18 @@ def body_forces(rod: Rod, theta, r, delta, d, Omega=None, v=None, scale=1.0):
     velocities $\Omega_i$ and velocities $v_i$ (``None``: at rest, no damping traced): the
     couplings (elastic and Kelvin–Voigt), the foundation, and the loads times ``scale``. Zero on
     the held coordinates of the base."""
+    return forces_at(rod, tensors(theta), r, delta, d, Omega, v, scale)
+
+
+def forces_at(rod: Rod, Q, r, delta, d, Omega=None, v=None, scale=1.0):
+    r""":func:`body_forces` at the turn-tensors ``Q`` (N+1, 3, 3) instead of turn-vectors (the
+    explicit integrator of :mod:`._rod_verlet` keeps its turns as quaternions)."""
+
+    def composed_q(delta):
+        return jnp.einsum("bij,bjk->bik", Q, tensors(delta))
 
     def strain_of(delta, d):
-        return strains(rod, composed(theta, delta), r + d)
+        return strains(rod, composed_q(delta), r + d)
 
     (phi, gap), pull = jax.vjp(strain_of, delta, d)
     Kp, Kg = jnp.asarray(rod.turn_stiffness), jnp.asarray(rod.gap_stiffness)
@@ -189,13 +201,52 @@ def body_forces(rod: Rod, theta, r, delta, d, Omega=None, v=None, scale=1.0):
         gap = gap + jnp.asarray(rod.gap_damping)[:, None] * gap_dot
     G_delta, G_d = pull((Kp * phi, Kg * gap))
     if rod.foundation is not None:
-        G_delta = G_delta + jax.grad(lambda de: site_energy(rod, composed(theta, de)))(delta)
-    q = composed(theta, delta)
+        G_delta = G_delta + jax.grad(lambda de: site_energy(rod, composed_q(de)))(delta)
+    q = composed_q(delta)
     F_ex, M_ex = _external(rod, q, scale)
     M = -jax.vmap(lambda de, g: Turn(de).Z(g))(delta, G_delta) + M_ex
     F = -G_d + F_ex
     turn, pos = _free(rod)
     return M * turn[:, None], F * pos[:, None]
+
+
+def _skew(x):
+    r"""$x\times$ by rows, ``(B, 3, 3)``."""
+    z = jnp.zeros_like(x[:, 0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -x[:, 2], x[:, 1]], -1),
+            jnp.stack([x[:, 2], z, -x[:, 0]], -1),
+            jnp.stack([-x[:, 1], x[:, 0], z], -1),
+        ],
+        1,
+    )
+
+
+def forces_tangent(rod: Rod, Q, r, Omega=None, v=None, scale=1.0):
+    r""":func:`forces_at` at zero increments ($\delta = d = 0$), the fast path of the explicit
+    integrator (:mod:`._rod_verlet`): the forces are first derivatives at $\delta = 0$, where
+    $Q\cdot Q(\delta)$ and $Q\cdot(E + \delta\times)$ have the same tangent and
+    $Z(0) = Z^T(0) = E$, so the increments enter linearly (no turn-tensor series, no $Z$); equal
+    to :func:`forces_at` to rounding (tested)."""
+
+    def strain_of(delta, d):
+        return strains(rod, Q + jnp.einsum("bij,bjk->bik", Q, _skew(delta)), r + d)
+
+    z = jnp.zeros_like(r)
+    (phi, gap), pull = jax.vjp(strain_of, z, z)
+    Kp, Kg = jnp.asarray(rod.turn_stiffness), jnp.asarray(rod.gap_stiffness)
+    if Omega is not None:
+        phi_dot, gap_dot = jax.jvp(strain_of, (z, z), (Omega, v))[1]
+        phi = phi + jnp.asarray(rod.turn_damping)[:, None] * phi_dot
+        gap = gap + jnp.asarray(rod.gap_damping)[:, None] * gap_dot
+    G_delta, G_d = pull((Kp * phi, Kg * gap))
+    if rod.foundation is not None:
+        grow = jax.grad(lambda de: site_energy(rod, Q + jnp.einsum("bij,bjk->bik", Q, _skew(de))))
+        G_delta = G_delta + grow(z)
+    F_ex, M_ex = _external(rod, Q, scale)
+    turn, pos = _free(rod)
+    return (M_ex - G_delta) * turn[:, None], (F_ex - G_d) * pos[:, None]
 
 
 def rates(rod: Rod, state: RodState, scale=1.0) -> RodState:

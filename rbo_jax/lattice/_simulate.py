@@ -357,7 +357,7 @@ def _trusted(lattice, method, solver, adjoint) -> bool:
     return method == "diffrax" and _trusted_solve(lattice, solver, adjoint)
 
 
-def _simulate_rod(rod, state0, ts, extra, method, solver, rtol, atol, max_steps, throw):
+def _simulate_rod(rod, state0, ts, extra, method, solver, rtol, atol, max_steps, dt, throw):
     """``simulate(rod, state0, ts)``: the rod's arguments sit where a lattice's ``theta0`` and
     ``Omega0`` do (``ts`` may also be given by name)."""
     if ts is not None and extra is not None:
@@ -375,6 +375,7 @@ def _simulate_rod(rod, state0, ts, extra, method, solver, rtol, atol, max_steps,
         rtol=rtol,
         atol=atol,
         max_steps=max_steps,
+        dt=dt,
         throw=throw,
     )
 
@@ -434,13 +435,15 @@ def simulate(
     forward-mode differentiable (all methods; ``"diffrax"`` also reverse mode).
 
     **A rod** (:class:`rbo_jax.lattice.Rod`): ``simulate(rod, state0, ts, method="explicit" |
-    "implicit", solver=..., rtol=..., atol=..., max_steps=..., throw=...)`` with a
+    "implicit" | "splitting", solver=..., rtol=..., atol=..., max_steps=..., dt=...,
+    throw=...)`` (``"splitting"``: the Lie-group position Verlet of
+    :mod:`rbo_jax.lattice._rod_verlet`, fixed steps of at most ``dt``) with a
     :class:`rbo_jax.lattice.RodState` returns a :class:`rbo_jax.lattice.RodTrajectory`
     (:func:`rbo_jax.lattice._rod_dynamics.simulate_rod`).
     """
     if isinstance(lattice, Rod):
         return _simulate_rod(
-            lattice, theta0, Omega0, ts, method, solver, rtol, atol, max_steps, throw
+            lattice, theta0, Omega0, ts, method, solver, rtol, atol, max_steps, dt, throw
         )
     if ts is None or Omega0 is None:
         raise TypeError("lattice.simulate(lattice, theta0, Omega0, ts): Omega0 and ts are needed.")
