@@ -11,8 +11,8 @@ DOP853 (:mod:`._integrate`), diffrax, or a symplectic Lie-group splitting (:mod:
 Bodies that also translate: rods and chains of links (:mod:`._rod`: Cosserat rods, Beck's,
 Ziegler's and Pflüger's columns), their strains and forces (:mod:`._rod_field`), equilibria by
 Newton with block-tridiagonal solves (:mod:`._rod_statics`, :mod:`._banded`), spectra, critical
-loads and motion (:mod:`._rod_dynamics`), fits to measured eigenvalues (:mod:`._rod_fit`);
-:func:`simulate` takes a rod and its state too.
+loads and motion (:mod:`._rod_dynamics`), flutter points (:mod:`._rod_hopf`), fits to measured
+eigenvalues (:mod:`._rod_fit`); :func:`simulate` takes a rod and its state too.
 """
 
 from .. import _lazy
@@ -51,5 +51,6 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         ),
         "._rod_dynamics": ("RodTrajectory", "critical_load", "linearize", "spectrum"),
         "._rod_fit": ("RodFit", "fit_spectrum"),
+        "._rod_hopf": ("RodHopfPoint", "rod_continue_hopf", "rod_hopf_point"),
     },
 )
