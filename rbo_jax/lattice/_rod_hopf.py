@@ -147,6 +147,11 @@ def _real(M):
     return jnp.block([[M.real, -M.imag], [M.imag, M.real]])
 
 
+def _times_i(z):
+    """$i z$ (no implicit promotion of a real ``z``)."""
+    return jax.lax.complex(-jnp.imag(z), jnp.real(z))
+
+
 def _split(z):
     return jnp.concatenate([z.real, z.imag])
 
@@ -162,7 +167,7 @@ def _residual_of(kind, A, y, C):
     """The residual $F$ (real) of the module docstring's system at ``A``."""
     m = A.shape[0]
     v, u, omega, _ = _unknowns(kind, y, m)
-    M = A.astype(v.dtype) - 1j * omega * jnp.eye(m, dtype=v.dtype)
+    M = A.astype(v.dtype) - _times_i(omega) * jnp.eye(m, dtype=v.dtype)
     e1 = jnp.zeros(C.shape[1], v.dtype).at[0].set(1.0)
     if kind == "hopf":
         return jnp.concatenate([_split(M @ v), _split(C.conj().T @ v - e1)])
@@ -176,19 +181,19 @@ def _jacobian_of(kind, A, A_P, y, C):
     P), real."""
     m = A.shape[0]
     v, u, omega, _ = _unknowns(kind, y, m)
-    M = A.astype(v.dtype) - 1j * omega * jnp.eye(m, dtype=v.dtype)
+    M = A.astype(v.dtype) - _times_i(omega) * jnp.eye(m, dtype=v.dtype)
     Ch = C.conj().T
     dv_P = A_P.astype(v.dtype) @ v
     if kind == "hopf":
-        top = jnp.concatenate([_real(M), _split(-1j * v)[:, None], _split(dv_P)[:, None]], 1)
+        top = jnp.concatenate([_real(M), _split(-_times_i(v))[:, None], _split(dv_P)[:, None]], 1)
         bottom = jnp.concatenate([_real(Ch), jnp.zeros((2 * Ch.shape[0], 2), A.dtype)], 1)
         return jnp.concatenate([top, bottom], 0)
     du_P = A_P.astype(v.dtype) @ u
     Z, E = jnp.zeros_like(M), jnp.eye(m, dtype=v.dtype)
     Zc, zk = jnp.zeros_like(Ch), jnp.zeros((2 * Ch.shape[0], 2), A.dtype)
     rows = [
-        [_real(M), _real(Z), _split(-1j * v)[:, None], _split(dv_P)[:, None]],
-        [_real(-E), _real(M), _split(-1j * u)[:, None], _split(du_P)[:, None]],
+        [_real(M), _real(Z), _split(-_times_i(v))[:, None], _split(dv_P)[:, None]],
+        [_real(-E), _real(M), _split(-_times_i(u))[:, None], _split(du_P)[:, None]],
         [_real(Ch), _real(Zc), zk],
         [_real(Zc), _real(Ch), zk],
     ]
