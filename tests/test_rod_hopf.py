@@ -247,7 +247,8 @@ def test_continue_hopf_follows_pfluger_column_over_the_tip_mass():
         Pc = float(lattice.critical_load(lambda P, mu=mu: pfluger(P, mu), 30.0))
         assert 0 <= Pc - value < 5e-6 * Pc  # the search stops just past the collision
     assert np.all(np.diff(values) < 0)
-    np.testing.assert_allclose(values[0], 20.0509, rtol=2e-2)  # Beck's, at n = 8
+    # Beck's 20.0509 at n = 8: the error is second order in 1/n, 0.145 at n = 20 (above)
+    np.testing.assert_allclose(values[0], 20.0509, rtol=5e-2)
 
 
 # ------------------------------------------------------------------------------------------
