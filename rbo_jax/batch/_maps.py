@@ -18,6 +18,7 @@ from ..kinematics import _as_vector
 from ..maps import STABILITY_KIND_NAMES, critical_value, equilibrium_stability, is_unstable
 from ..model import RigidBodyOscillator
 from ._engine import sweep
+from ._rod_maps import returns_rod, rod_critical_load, rod_stability_map
 
 __all__ = ["stability_map", "critical_load", "STABILITY_KIND_NAMES"]
 
@@ -45,6 +46,13 @@ def _check_axes(axes: Mapping[str, object]) -> dict[str, np.ndarray]:
             raise ValueError(f"axis {name!r} contains non-finite values.")
         out[str(name)] = v
     return out
+
+
+def _no_rigid_options(theta_eq_fn, theta_guess) -> None:
+    for name, value in (("theta_eq_fn", theta_eq_fn), ("theta_guess", theta_guess)):
+        if value is not None:
+            raise ValueError(f"{name} does not apply to a rod (its equilibrium is solved from "
+                             "the straight rod by rbo_jax.lattice.solve_equilibrium).")  # fmt: skip
 
 
 def _guess(theta_guess) -> tuple[float, float, float]:
@@ -133,8 +141,23 @@ def stability_map(
     ``kind`` (int8 codes of :class:`rbo_jax.StabilityKind`, names in its ``flag_meanings``),
     ``equilibrium_status`` (int8 codes of :class:`rbo_jax.EquilibriumStatus`, the sweep's
     per-point status) and ``theta_eq``.
+
+    **Rods.** A ``model_fn`` returning a :class:`rbo_jax.lattice.Rod` is mapped the same way
+    (:mod:`rbo_jax.batch._rod_maps`): the equilibrium by :func:`rbo_jax.lattice.solve_equilibrium`
+    (``equilibrium_kwargs`` such as ``steps=``), all $12N$ eigenvalues of
+    :func:`rbo_jax.lattice.linearize` over ``mode`` (a clamped rod of $N$ bodies past the base),
+    ``tip`` (component) in place of ``theta_eq``, and ``equilibrium_status`` the codes of
+    :class:`rbo_jax.lattice.RodEquilibriumStatus` (failed points: NaN spectra, kind
+    ``undefined``). ``theta_eq_fn``, ``theta_guess`` and ``fast`` do not apply.
     """
     axes = _check_axes(axes)
+    if returns_rod(model_fn, axes):
+        _no_rigid_options(theta_eq_fn, theta_guess)
+        options = dict(chunk_size=chunk_size, store=store, resume=resume, overwrite=overwrite)
+        return rod_stability_map(
+            model_fn, axes, rtol=float(rtol), eq_items=_items(equilibrium_kwargs),
+            progress=progress, devices=devices, **options,
+        )  # fmt: skip
     quantity = _map_quantity(
         model_fn,
         theta_eq_fn,
@@ -213,12 +236,23 @@ def critical_load(
     ``b`` (with damping the paradox disappears below a critical load that tends to 0 with
     ``b``). Points whose equilibrium cannot be computed (classification ``undefined``) count as
     not unstable; check them with :func:`stability_map` when equilibria are solved by Newton.
+
+    **Rods.** A ``model_fn`` returning a :class:`rbo_jax.lattice.Rod` is searched the same way
+    with the rod's equilibrium and spectrum (:func:`stability_map`); as in
+    :func:`rbo_jax.lattice.critical_load`, a load whose equilibrium fails counts as unstable.
     """
     axes = _check_axes(axes)
     if load in axes:
         raise ValueError(f"{load!r} is the searched parameter; it cannot also be an axis.")
     if not load_max > load_min:
         raise ValueError(f"load_max ({load_max}) must exceed load_min ({load_min}).")
+    if returns_rod(model_fn, {**axes, load: load_max}):
+        _no_rigid_options(theta_eq_fn, theta_guess)
+        return rod_critical_load(
+            model_fn, axes, load, float(load_min), float(load_max), rtol=float(rtol),
+            eq_items=_items(equilibrium_kwargs), n_scan=int(n_scan), n_bisect=int(n_bisect),
+            chunk_size=chunk_size, progress=progress,
+        )  # fmt: skip
     quantity = _critical_quantity(
         model_fn,
         theta_eq_fn,

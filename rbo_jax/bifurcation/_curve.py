@@ -30,6 +30,7 @@ from .._sharding import map_points
 from ..kinematics import _as_vector
 from ..model import RigidBodyOscillator
 from ._hopf import HopfStatus, Static, canonical, finish, solution
+from ._interface import model_solver
 from ._system import normalisation_vector
 
 _SUCCESSFUL = int(np.asarray(enum.code(HopfStatus.successful)))
@@ -87,6 +88,7 @@ def continue_hopf(
     ds_max: float | None = None,
     max_points: int = 200,
     progress: bool = False,
+    **options,
 ):
     r"""The Hopf boundary of ``parameter`` = α against ``along`` = β (module docstring), as an
     :class:`xarray.Dataset`.
@@ -123,7 +125,24 @@ def continue_hopf(
     point before it), ``special_frequency`` and ``special_first_lyapunov`` (NaN where not
     computed); ``attrs``: ``parameter``, ``along``, ``method`` and ``stop_reason``. Not
     differentiable (a loop in Python around compiled steps).
+
+    **Other models.** A ``model_fn`` that returns a :class:`rbo_jax.lattice.Rod` is handed to
+    :func:`rbo_jax.lattice.rod_continue_hopf` (natural continuation only, with ``options``
+    such as ``kind=`` and ``steps=``; protocol of
+    :func:`rbo_jax.bifurcation._interface.model_solver`). ``options`` are refused for a rigid
+    body oscillator.
     """
+    first = {**params, parameter: guess, along: np.ravel(np.asarray(values))[0]}
+    own = model_solver(model_fn, first, "rbo_continue_hopf")
+    if own is not None:
+        shared = dict(theta_eq_fn=theta_eq_fn, theta_guess=theta_guess, t=t, rtol=rtol)
+        return own(model_fn, params, parameter, guess, along, values, method=method, **shared,
+                   atol=atol, max_steps=max_steps, **options)  # fmt: skip
+    if options:
+        raise TypeError(
+            f"continue_hopf: unexpected keyword arguments {sorted(options)} for a "
+            "RigidBodyOscillator (they are the options of other models' solvers, e.g. a rod's)."
+        )
     others, batch, values, guess, theta_guess = _arguments(
         params, parameter, along, values, guess, theta_guess
     )

@@ -52,7 +52,14 @@ from .. import _enumeration as enum
 from .._callables import callable_key
 from .._programs import jit, program
 from ..model import RigidBodyOscillator
-from ._interface import Outcome, check_model_fn, check_params, check_theta_eq_fn, theta_guess_vector
+from ._interface import (
+    Outcome,
+    check_model_fn,
+    check_params,
+    check_theta_eq_fn,
+    model_solver,
+    theta_guess_vector,
+)
 from ._lyapunov import first_lyapunov_coefficient
 from ._system import HopfStatus, hopf_program
 
@@ -239,6 +246,7 @@ def hopf_point(
     rtol: float = 1e-10,
     atol: float = 1e-10,
     max_steps: int = 64,
+    **options,
 ) -> HopfPoint:
     r"""The Hopf point nearest ``guess`` of the equilibria of ``model_fn(**params)`` as the
     parameter ``parameter`` varies: where a complex pair of eigenvalues of the linearization
@@ -268,6 +276,13 @@ def hopf_point(
     identical ``model_fn`` reuses the program; so does the gradient), and kept by the program
     store when it is on (:func:`rbo_jax.enable_compilation_cache`).
 
+    **Other models.** A ``model_fn`` that returns a :class:`rbo_jax.lattice.Rod` is handed to
+    :func:`rbo_jax.lattice.rod_hopf_point` (the protocol of
+    :func:`rbo_jax.bifurcation._interface.model_solver`), with ``options`` (``kind=``,
+    ``steps=``, ``frequency=``, ...): it returns a :class:`rbo_jax.lattice.RodHopfPoint` with
+    ``value``, ``frequency``, ``eigenvector``, ``state``, ``residual``, ``num_steps`` and
+    ``status``. ``options`` are refused for a rigid body oscillator.
+
     Example: the Nikolai problem with friction (4.84), ``hopf_point(lambda M, b:
     nikolai_model(M, friction=b), {"b": 0.1}, "M", 0.1)`` gives the critical follower moment
     $M_{cr} = 2b\sqrt{K(M_{cr})/A_1}$ and $\omega = \sqrt{K/A_1}$.
@@ -276,6 +291,16 @@ def hopf_point(
     check_params(params)
     if not isinstance(parameter, str):
         raise TypeError(f"parameter must be the name of an entry of params, got {parameter!r}.")
+    own = model_solver(model_fn, {**params, parameter: guess}, "rbo_hopf_point")
+    if own is not None:
+        shared = dict(theta_eq_fn=theta_eq_fn, theta_guess=theta_guess, t=t, rtol=rtol)
+        return own(model_fn, params, parameter, guess, **shared, atol=atol, **options,
+                   max_steps=max_steps)  # fmt: skip
+    if options:
+        raise TypeError(
+            f"hopf_point: unexpected keyword arguments {sorted(options)} for a "
+            "RigidBodyOscillator (they are the options of other models' solvers, e.g. a rod's)."
+        )
     check_theta_eq_fn(theta_eq_fn)
     dtype = jnp.result_type(float)
     others = {str(k): v for k, v in params.items() if k != parameter}

@@ -12,8 +12,16 @@ import numpy as np
 
 from .. import _enumeration as enum
 from ..kinematics import _as_vector
+from ..model import RigidBodyOscillator
 
-__all__ = ["Outcome", "check_model_fn", "check_params", "check_theta_eq_fn", "theta_guess_vector"]
+__all__ = [
+    "Outcome",
+    "check_model_fn",
+    "check_params",
+    "check_theta_eq_fn",
+    "model_solver",
+    "theta_guess_vector",
+]
 
 
 class Outcome(eqx.Module):
@@ -49,3 +57,24 @@ def check_params(params) -> None:
 def theta_guess_vector(theta_guess, dtype):
     """The equilibrium guess as a (3,) vector (``None``: zero)."""
     return np.zeros(3, dtype) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
+
+
+def model_solver(model_fn, point: Mapping, name: str):
+    """The model's own solver ``name``, or ``None`` for a rigid body oscillator.
+
+    The protocol by which models of higher layers (a :class:`rbo_jax.lattice.Rod`) go through
+    :func:`rbo_jax.hopf_point` and :func:`rbo_jax.continue_hopf` without this package importing
+    them: ``model_fn(**point)`` is traced once abstractly (:func:`equinox.filter_eval_shape`,
+    every value a float array of its shape), and where the model's class defines the static
+    method ``name`` (``rbo_hopf_point``, ``rbo_continue_hopf``) the call is handed to it with
+    the same arguments. A model function that cannot be traced so is left to the rigid body's
+    solver, which reports its own error.
+    """
+    try:
+        zeros = {str(k): np.zeros(np.shape(v)) for k, v in point.items()}
+        model = eqx.filter_eval_shape(lambda p: model_fn(**p), zeros)
+    except Exception:  # noqa: BLE001 - the rigid body's path reports it
+        return None
+    if isinstance(model, RigidBodyOscillator):
+        return None
+    return getattr(type(model), name, None)

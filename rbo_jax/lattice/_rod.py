@@ -237,6 +237,25 @@ class Rod(eqx.Module):
         plus the rest gaps (a straight rod along the base's axis)."""
         return _straight(self)
 
+    # The protocol of rbo_jax.bifurcation._interface.model_solver: hopf_point and continue_hopf
+    # of a model_fn returning a Rod come here (bifurcation does not import lattice). The solvers
+    # are taken from this package's public namespace, loaded on first use as every public name
+    # is (_lazy): the module that defines them imports this one.
+    @staticmethod
+    def rbo_hopf_point(*args, **kwargs):
+        """:func:`rbo_jax.lattice.rod_hopf_point` (what :func:`rbo_jax.hopf_point` calls)."""
+        from . import rod_hopf_point  # noqa: PLC0415
+
+        return rod_hopf_point(*args, **kwargs)
+
+    @staticmethod
+    def rbo_continue_hopf(*args, **kwargs):
+        """:func:`rbo_jax.lattice.rod_continue_hopf` (what :func:`rbo_jax.continue_hopf`
+        calls)."""
+        from . import rod_continue_hopf  # noqa: PLC0415
+
+        return rod_continue_hopf(*args, **kwargs)
+
 
 def _straight(rod: Rod) -> RodState:
     Q0 = turn_tensor(jnp.asarray(rod.base_turn))
