@@ -8,9 +8,9 @@ base, where a rigid body has 6), classified by :func:`rbo_jax.classify` as a rig
 are (Lyapunov's first method, real parts within ``rtol`` × max|p| of zero count as zero).
 A point whose equilibrium fails has NaN eigenvalues, the kind ``undefined`` and its
 :class:`rbo_jax.lattice.RodEquilibriumStatus` in ``equilibrium_status``; for a critical load
-it counts as unstable, as in :func:`rbo_jax.lattice.critical_load`. A critical load runs the
-search point by point (a vmapped search of a rod inside the sweep engine did not finish in
-30 minutes on the 2-core machine: not understood yet).
+it counts as unstable, as in :func:`rbo_jax.lattice.critical_load`. Both are quantities of the
+sweep engine: chunks over every local device (the spectra of a critical load's scan are batched
+inside one point; the engine runs such LAPACK calls in blocks, :mod:`rbo_jax._sharding`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _enumeration as enum
-from .. import _programs
 from ..lattice._rod import Rod
 from ..lattice._rod_dynamics import linearize
 from ..lattice._rod_statics import solve_equilibrium
@@ -95,33 +94,16 @@ def _critical(model_fn, load, point, lo, hi, rtol, eq_items, n_scan, n_bisect):
     return critical_value(unstable, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
 
 
-_critical_program = _programs.jit(_critical, fast_compile=True)
-
-
 def rod_critical_load(model_fn, axes, load, load_min, load_max, *, rtol, eq_items, **options):
     """The critical load of :func:`rbo_jax.critical_load` for a rod (module docstring): the
-    search of :func:`rbo_jax.lattice.critical_load` at each point of the grid in turn, one
-    compiled program for all of them (not the sweep engine: no chunks, stores or devices)."""
-    import xarray as xr
-
+    search of :func:`rbo_jax.lattice.critical_load` at every point of the grid, a quantity of
+    the sweep engine (chunks over every local device, as the rigid body's)."""
     n_scan, n_bisect = int(options.pop("n_scan")), int(options.pop("n_bisect"))
-    names = list(axes)
-    shape = tuple(len(v) for v in axes.values())
-    out = np.empty(shape)
-    dtype = jnp.result_type(float)
-    for index in np.ndindex(*shape):
-        point = {k: jnp.asarray(axes[k][i], dtype) for k, i in zip(names, index)}
-        out[index] = float(
-            _critical_program(
-                model_fn,
-                load,
-                point,
-                jnp.asarray(load_min, dtype),
-                jnp.asarray(load_max, dtype),
-                rtol,
-                eq_items,
-                n_scan,
-                n_bisect,
-            )  # fmt: skip
-        )
-    return xr.DataArray(out, coords=dict(axes), dims=names, name=f"critical_{load}")
+
+    def critical(**point):
+        lo, hi = jnp.asarray(load_min), jnp.asarray(load_max)
+        return {"critical": _critical(model_fn, load, point, lo, hi, rtol, eq_items,
+                                      n_scan, n_bisect)}  # fmt: skip
+
+    ds = sweep(critical, axes, desc=f"critical {load} (rod)", **options)
+    return ds["critical"].drop_attrs().rename(f"critical_{load}")
