@@ -71,3 +71,27 @@ def damped_nikolai(M, b, c, A3):
     import rbo_jax as rbo
 
     return rbo.nikolai_model(M, c, 2.0, A1=1.0, A3=A3, friction=b)
+
+
+def run_cli(capsys, argv):
+    """``rbo-jax ARGV`` in-process: (exit status, stdout, stderr)."""
+    from rbo_jax.app import cli
+
+    try:
+        code = cli.main(argv)
+    except SystemExit as e:  # argparse: usage errors
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def open_output(path):
+    """A command's netCDF or zarr output, loaded."""
+    import xarray as xr
+
+    path = str(path)
+    if path.endswith(".zarr"):
+        with xr.open_zarr(path) as ds:
+            return ds.load()
+    with xr.open_dataset(path) as ds:
+        return ds.load()

@@ -14,10 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import open_output as _open
+from helpers import run_cli as _run
 
 import rbo_jax
 from rbo_jax import lattice as L
-from rbo_jax.app import cli
 from rbo_jax.app.config import ConfigError, load_config
 from rbo_jax.app.spec import LatticeSpec
 
@@ -36,27 +37,6 @@ CHAIN = [
     "--samples",
     "5",
 ]
-
-
-def _run(capsys, argv):
-    """``rbo-jax ARGV`` in-process: (exit status, stdout, stderr)."""
-    try:
-        code = cli.main(argv)
-    except SystemExit as e:  # argparse: usage errors
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def _open(path):
-    import xarray as xr
-
-    path = str(path)
-    if path.endswith(".zarr"):
-        with xr.open_zarr(path) as ds:
-            return ds.load()
-    with xr.open_dataset(path) as ds:
-        return ds.load()
 
 
 def test_simulate_chain_prints_a_conserved_energy_and_writes_the_lattice(capsys, tmp_path):

@@ -18,6 +18,8 @@ import shlex
 
 import numpy as np
 import pytest
+from helpers import open_output as _open
+from helpers import run_cli as _run
 from sweep_quantities import SMALL_CONFIG
 
 from rbo_jax.app import _outputs, cli
@@ -54,16 +56,6 @@ def computed(monkeypatch):
     monkeypatch.setattr(reproduce, "run_reproduction", stub("run_reproduction"))
     monkeypatch.setattr(config, "run_config", stub("run_config"))
     return calls
-
-
-def _run(capsys, argv):
-    """``rbo-jax ARGV`` in-process: (exit status, stdout, stderr)."""
-    try:
-        code = cli.main(argv)
-    except SystemExit as e:  # argparse: usage errors
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def _refused(capsys, computed, argv, *names):
@@ -535,14 +527,6 @@ def _dataset(value: float):
     import xarray as xr
 
     return xr.Dataset({"x": ("t", np.full(4, value))}, coords={"t": np.arange(4.0)})
-
-
-def _open(path):
-    import xarray as xr
-
-    opener = xr.open_zarr if str(path).endswith(".zarr") else xr.open_dataset
-    with opener(path) as ds:
-        return ds.load()
 
 
 @pytest.mark.parametrize("name", ["out.nc", "out.zarr"])

@@ -20,6 +20,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import open_output as _open
+from helpers import run_cli as _run
 
 from rbo_jax import lattice as L
 from rbo_jax.app import cli
@@ -30,23 +32,6 @@ from rbo_jax.app.rodspec import RodSpec
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "examples" / "beck_ziegler_pflueger.toml"
 BECK = 'loads = [{ type = "tip_force", f = [0.0, 0.0, -1.0], scale = "P", follower = true }]'
-
-
-def _run(capsys, argv):
-    """``rbo-jax ARGV`` in-process: (exit status, stdout, stderr)."""
-    try:
-        code = cli.main(argv)
-    except SystemExit as e:  # argparse: usage errors
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def _open(path):
-    import xarray as xr
-
-    with xr.open_dataset(str(path)) as ds:
-        return ds.load()
 
 
 # ---------------------------------------------------------------------------------------------

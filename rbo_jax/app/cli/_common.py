@@ -22,6 +22,21 @@ class Failure(Exception):
         self.code = code
 
 
+def flag(dest: str) -> str:
+    """The option of an argparse destination: ``rod_start`` -> ``--rod-start``."""
+    return "--" + dest.replace("_", "-")
+
+
+def refuse_group(args: argparse.Namespace, dests, option: str, what: str, example: str) -> None:
+    """Without ``option``: none of its group's options (``dests``) may be given."""
+    given = [d for d in dests if getattr(args, d) is not None]
+    if given:
+        raise Failure(
+            f"{flag(given[0])} belongs to {option} ({what}); give {option} SPEC too, "
+            f"e.g. {example}."
+        )
+
+
 def floats(text: str) -> tuple[float, ...]:
     """``"x,y,z"`` -> floats (any count: the model description checks the shape)."""
     try:

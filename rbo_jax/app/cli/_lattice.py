@@ -16,7 +16,7 @@ import time
 from .._io import DATASET_SUFFIXES
 from .._reader import SpecError
 from ..spec import LatticeSpec, ModelSpec
-from ._common import Failure, check_suffix
+from ._common import Failure, check_suffix, flag, refuse_group
 from ._memory import BYTES_PER_BODY, BYTES_PER_BODY_SAMPLE, check_memory
 from ._samples import check_reached, initial_state, print_samples, solver_options
 
@@ -40,18 +40,9 @@ _WAVE_OPTIONS = {
 _KAPPA = {"[lattice] kappa_b": "--coupling-kb", "[lattice] kappa_t": "--coupling-kt"}
 
 
-def _flag(dest: str) -> str:
-    return "--" + dest.replace("_", "-")
-
-
 def refuse_lattice_options(args: argparse.Namespace) -> None:
     """One body (no ``--lattice``): none of the lattice options may be given."""
-    given = [d for d in DEFAULTS if getattr(args, d) is not None]
-    if given:
-        raise Failure(
-            f"{_flag(given[0])} belongs to --lattice (a chain or grid of bodies); "
-            f"give --lattice SPEC too, e.g. --lattice chain:32."
-        )
+    refuse_group(args, DEFAULTS, "--lattice", "a chain or grid of bodies", "--lattice chain:32")
 
 
 def _settings(args: argparse.Namespace) -> argparse.Namespace:
@@ -61,7 +52,7 @@ def _settings(args: argparse.Namespace) -> argparse.Namespace:
     )
     for dest, wave in _WAVE_OPTIONS.items():
         if getattr(args, dest) is not None and s.wave != wave:
-            raise Failure(f"{_flag(dest)} belongs to --wave {wave}, not --wave {s.wave}.")
+            raise Failure(f"{flag(dest)} belongs to --wave {wave}, not --wave {s.wave}.")
     if s.method == "splitting" and s.dt is None:
         raise Failure("--method splitting needs --dt, its fixed step (e.g. --dt 0.01).")
     if s.method != "splitting" and s.dt is not None:

@@ -25,7 +25,7 @@ from pathlib import Path
 from .._io import DATASET_SUFFIXES
 from .._reader import SpecError
 from ..rodspec import RodSpec
-from ._common import Failure, check_number, check_suffix
+from ._common import Failure, check_number, check_suffix, refuse_group
 from ._memory import BYTES_PER_BODY, BYTES_PER_BODY_SAMPLE, check_memory
 from ._options import table
 from ._samples import print_samples
@@ -37,18 +37,9 @@ _BODY_GROUPS = ("model", "loads", "lattice")
 _BODY_OPTIONS = ("--theta0", "--Omega0", "--about-equilibrium", "--integrator", "--progress")
 
 
-def _flag(dest: str) -> str:
-    return "--" + dest.replace("_", "-")
-
-
 def refuse_rod_options(args: argparse.Namespace) -> None:
     """Without ``--rod``: none of the rod options may be given."""
-    given = [d for d in DEFAULTS if getattr(args, d) is not None]
-    if given:
-        raise Failure(
-            f"{_flag(given[0])} belongs to --rod (a rod, rbo_jax.lattice.rod); give --rod "
-            f"SPEC too, e.g. --rod 'n = 8'."
-        )
+    refuse_group(args, DEFAULTS, "--rod", "a rod, rbo_jax.lattice.rod", "--rod 'n = 8'")
 
 
 def _options_of_one_body():
