@@ -7,6 +7,8 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import open_output as _open
+from helpers import run_cli as _run
 from helpers import spectrum_match_error
 
 from rbo_jax.app import cli
@@ -90,28 +92,6 @@ def test_reproduce_quick_passes_and_writes_the_report(tmp_path):
 # the quadratic foundation without loads always runs with 21 samples at the default tolerances.
 K = (0.0, 0.0, 1.0)
 N_QUAD = "21"
-
-
-def _run(capsys, argv):
-    """``rbo-jax ARGV`` in-process: (exit status, stdout, stderr)."""
-    try:
-        code = cli.main(argv)
-    except SystemExit as e:  # argparse: --help and usage errors
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def _open(path):
-    """A dataset written by the CLI (netCDF or zarr), loaded into memory."""
-    import xarray as xr
-
-    path = str(path)
-    if path.endswith(".zarr"):
-        with xr.open_zarr(path) as ds:  # consolidated: no warning (pytest turns them into errors)
-            return ds.load()
-    with xr.open_dataset(path) as ds:
-        return ds.load()
 
 
 def _estimates(path) -> dict[str, tuple[float, float]]:
