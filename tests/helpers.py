@@ -95,3 +95,17 @@ def open_output(path):
             return ds.load()
     with xr.open_dataset(path) as ds:
         return ds.load()
+
+
+def ziegler_pendulum(P, b=0.0):
+    """Ziegler's double pendulum (rbo_jax.lattice.pendulum): masses 2m, m, links l, hinge
+    springs c (m = l = c = 1), hinge dampers b, a follower force P at the tip."""
+    from rbo_jax import lattice
+
+    return lattice.pendulum(
+        [2.0, 1.0],
+        [1.0, 1.0],
+        [1.0, 1.0],
+        damping=b,
+        loads=lattice.TipForce(jnp.stack([0.0, 0.0, -P]), follower=True),
+    )

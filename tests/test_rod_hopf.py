@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import ziegler_pendulum as ziegler
 
 import rbo_jax
 from rbo_jax import lattice
@@ -40,18 +41,6 @@ def column(P, n, *, tip_mass=0.0, damping=0.0):
         tip_mass=tip_mass,
         damping=damping,
         shear_damping=0.0,
-        loads=lattice.TipForce(jnp.stack([0.0, 0.0, -P]), follower=True),
-    )
-
-
-def ziegler(P, b=0.0):
-    """Ziegler's double pendulum: masses 2m, m, links l, hinge springs c (m = l = c = 1),
-    hinge dampers b, a follower force P at the tip."""
-    return lattice.pendulum(
-        [2.0, 1.0],
-        [1.0, 1.0],
-        [1.0, 1.0],
-        damping=b,
         loads=lattice.TipForce(jnp.stack([0.0, 0.0, -P]), follower=True),
     )
 

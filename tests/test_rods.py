@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import ziegler_pendulum as _ziegler
 
 import rbo_jax
 from rbo_jax import lattice
@@ -355,16 +356,6 @@ def test_beck_column_flutter():
     p = np.asarray(lattice.spectrum(below))
     w = np.unique(np.round(np.sort(np.abs(p.imag[p.imag > 1e-6])), 5))
     assert 10.5 < w[0] < w[1] < 11.5
-
-
-def _ziegler(P, b=0.0):
-    return lattice.pendulum(
-        [2.0, 1.0],
-        [1.0, 1.0],
-        [1.0, 1.0],
-        damping=b,
-        loads=lattice.TipForce(jnp.stack([0.0, 0.0, -P]), follower=True),
-    )
 
 
 @pytest.mark.slow  # a scan and bisection of spectra (a vmapped Newton loop and eig)
