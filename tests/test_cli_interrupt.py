@@ -108,6 +108,24 @@ def test_ctrl_c_stops_a_long_simulation_inside_its_compiled_solve(tmp_path):
     assert _files(tmp_path) == []
 
 
+@pytest.mark.slow  # fault test: SIGINT to a real process
+def test_ctrl_c_stops_a_rod_simulation(tmp_path):
+    """``simulate --rod`` over 10^6 time units (Dopri8 on a stiff rod: hours), interrupted 3 s
+    after it printed its rod: exit status 130 within 2 s, the one line, no file."""
+    out = tmp_path / "rod.nc"
+    argv = ["simulate", "--rod", "n = 4", "--t1", "1e6", "--max-steps", "1000000000"]
+    proc = _start([*argv, "--out", str(out)], tmp_path)
+    _wait_for_line(proc, "Rod (rbo_jax.lattice.rod)")  # printed just before the solve
+    time.sleep(3.0)
+    assert proc.poll() is None, "the solve ended before it could be interrupted"
+    code, seconds, err = _interrupt(proc)
+    assert code == 130, err
+    assert seconds < LIMIT_S, f"{seconds:.2f} s"
+    assert err.strip().splitlines()[-1].startswith("rbo-jax simulate: interrupted (SIGINT)")
+    assert "Traceback" not in err
+    assert _files(tmp_path) == []
+
+
 @pytest.mark.slow  # fault test: SIGTERM to a real process
 def test_sigterm_stops_a_stability_map_with_143(tmp_path):
     """SIGTERM (a batch system ending a job) as Ctrl-C, with 143 = 128 + 15: a map of 3e5 points

@@ -91,7 +91,13 @@ def simulate_command(args: argparse.Namespace) -> int:
     spec = spec_from_args(args)
     if args.lattice is not None:
         return simulate_lattice(args, spec)
-    model = spec.build()
+    try:
+        model = spec.build()
+    except ValueError as e:  # e.g. --A1 1e-300: positive, but A not positive definite in floats
+        inertia = "--principal" if args.principal is not None else "--A1 and --A3"
+        raise Failure(
+            f"{inertia} (the inertia tensor (4.39)): {' '.join(str(e).split())}"
+        ) from None
     print(f"Rigid body oscillator, right form (4.55)-(4.56): {spec.describe()}")
     theta0, Omega0 = initial_state(args, model)
     ts = jnp.linspace(0.0, args.t1, args.samples)
