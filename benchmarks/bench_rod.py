@@ -242,17 +242,22 @@ def settled(trace, final_tip, tol=1e-3):
     return float(trace[i, 0]), float(trace[i, 1])
 
 
-def timoshenko_rod(n, alpha):
+def case_rod(case, n, alpha, **kw):
+    """The rbo_jax rod of a PyElastica case (TIMO, VIB): its circular section and moduli."""
     return L.circular_rod(
         n,
-        TIMO["length"],
-        radius=TIMO["radius"],
-        density=TIMO["density"],
-        youngs_modulus=TIMO["E"],
-        shear_modulus=TIMO["G"],
+        case["length"],
+        radius=case["radius"],
+        density=case["density"],
+        youngs_modulus=case["E"],
+        shear_modulus=case["G"],
         shear_coefficient=alpha,
-        loads=L.TipForce([TIMO["force"], 0.0, 0.0]),
+        **kw,
     )
+
+
+def timoshenko_rod(n, alpha):
+    return case_rod(TIMO, n, alpha, loads=L.TipForce([TIMO["force"], 0.0, 0.0]))
 
 
 def rj_equilibrium(rod):
@@ -416,15 +421,7 @@ def two_frequencies(tip, dt=SAMPLE_DT):
 
 
 def vib_rod(n, alpha):
-    return L.circular_rod(
-        n,
-        VIB["length"],
-        radius=VIB["radius"],
-        density=VIB["density"],
-        youngs_modulus=VIB["E"],
-        shear_modulus=VIB["G"],
-        shear_coefficient=alpha,
-    )
+    return case_rod(VIB, n, alpha)
 
 
 def pe_vibration(n, T):

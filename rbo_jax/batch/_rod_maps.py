@@ -15,11 +15,11 @@ inside one point; the engine runs such LAPACK calls in blocks, :mod:`rbo_jax._sh
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from .. import _enumeration as enum
+from ..bifurcation._interface import abstract_model
 from ..lattice._rod import Rod
 from ..lattice._rod_dynamics import linearize
 from ..lattice._rod_statics import solve_equilibrium
@@ -33,11 +33,7 @@ __all__ = ["returns_rod", "rod_critical_load", "rod_stability_map"]
 def returns_rod(model_fn, point) -> bool:
     """Whether ``model_fn(**point)`` builds a :class:`rbo_jax.lattice.Rod` (traced abstractly
     once; a function that cannot be traced so is left to the rigid body's path)."""
-    try:
-        zeros = {str(k): np.zeros(()) for k in point}
-        return isinstance(eqx.filter_eval_shape(lambda p: model_fn(**p), zeros), Rod)
-    except Exception:  # noqa: BLE001 - the rigid body's path reports it
-        return False
+    return isinstance(abstract_model(model_fn, {str(k): () for k in point}), Rod)
 
 
 def _stability(model_fn, rtol, eq_items, point):

@@ -16,6 +16,7 @@ from ..model import RigidBodyOscillator
 
 __all__ = [
     "Outcome",
+    "abstract_model",
     "check_model_fn",
     "check_params",
     "check_theta_eq_fn",
@@ -70,11 +71,18 @@ def model_solver(model_fn, point: Mapping, name: str):
     the same arguments. A model function that cannot be traced so is left to the rigid body's
     solver, which reports its own error.
     """
-    try:
-        zeros = {str(k): np.zeros(np.shape(v)) for k, v in point.items()}
-        model = eqx.filter_eval_shape(lambda p: model_fn(**p), zeros)
-    except Exception:  # noqa: BLE001 - the rigid body's path reports it
-        return None
-    if isinstance(model, RigidBodyOscillator):
+    model = abstract_model(model_fn, {str(k): np.shape(v) for k, v in point.items()})
+    if model is None or isinstance(model, RigidBodyOscillator):
         return None
     return getattr(type(model), name, None)
+
+
+def abstract_model(model_fn, shapes: Mapping):
+    """``model_fn(**point)`` traced abstractly (:func:`equinox.filter_eval_shape`), every value
+    a float array of the shape in ``shapes``; ``None`` where it cannot be traced so (the rigid
+    body's solvers then call it concretely and report its own error)."""
+    try:
+        zeros = {k: np.zeros(shape) for k, shape in shapes.items()}
+        return eqx.filter_eval_shape(lambda p: model_fn(**p), zeros)
+    except Exception:  # noqa: BLE001 - any error of the user's function: reported by that path
+        return None
