@@ -21,8 +21,6 @@ import numpy as np
 from .. import _enumeration as enum
 from ..bifurcation._interface import abstract_model
 from ..lattice._rod import Rod
-from ..lattice._rod_dynamics import linearize
-from ..lattice._rod_statics import solve_equilibrium
 from ..maps import critical_value
 from ..stability import StabilityKind, classify
 from ._engine import sweep
@@ -37,6 +35,11 @@ def returns_rod(model_fn, point) -> bool:
 
 
 def _stability(model_fn, rtol, eq_items, point):
+    # imported here: the rods' solvers pull in diffrax, which a rigid body's map does not need
+    # (0.17 s of every first stability_map)
+    from ..lattice._rod_dynamics import linearize
+    from ..lattice._rod_statics import solve_equilibrium
+
     rod = model_fn(**point)
     if not isinstance(rod, Rod):
         raise TypeError(f"model_fn must return a Rod at every point, got {type(rod).__name__}.")
