@@ -218,7 +218,10 @@ class Layout:
     × :data:`VECTOR`, so that every device's share is a multiple of VECTOR)."""
 
     def __init__(self, devices, block: int, chunk_points: int):
-        self.devices, self.block = tuple(devices), int(block)
+        self.devices = tuple(devices)
+        # jaxlib splits LAPACK batches on a CPU only; a GPU's solvers run whole batches
+        cpu = all(d.platform == "cpu" for d in self.devices)
+        self.block = int(block) if cpu else 0
         unit = VECTOR * len(self.devices)
         self.batch = -(-int(chunk_points) // unit) * unit
         self.mesh = jax.sharding.Mesh(np.array(self.devices, dtype=object), (BATCH_AXIS,))

@@ -243,3 +243,39 @@ def test_the_current_table_goes_between_the_markers(tmp_path):
     second = readme.read_text()
     assert "1.80x" in second and "1.50x" not in second and second.count(run.BEGIN) == 1
     assert second.endswith("## History\n\nold figures\n")
+
+
+@pytest.mark.slow  # integration: ~2 min, ten small programs compiled
+def test_the_gpu_benchmark_runs_on_whatever_jax_has(tmp_path):
+    """``benchmarks/bench_gpu.py --smoke`` (issue 31 D) on the CPU: every row runs without an
+    error, the loop and the unrolled stages take the same steps, float32's final states are
+    float64's to its tolerance, and the table is printed."""
+    out = tmp_path / "gpu.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "benchmarks", "bench_gpu.py"),
+            "--smoke",
+            "--stages",
+            "loop,unrolled",
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        cwd=os.path.join(ROOT, "benchmarks"),
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| ensemble | stages |" in proc.stdout and "| lattice | stages |" in proc.stdout
+    result = json.loads(out.read_text())
+    assert result["errors"] == [] and result["skipped"] == []
+    rows = {(r["dtype"], r["n"], r["lanes"], r["stages"]): r for r in result["ensemble"]}
+    for (dtype, n, lanes, stages), r in rows.items():
+        assert r["successful"] == 1.0
+        if stages == "unrolled":
+            assert r["steps_mean"] == rows[(dtype, n, lanes, "loop")]["steps_mean"]
+    assert all(r["finite"] and r["status"] == "successful" for r in result["lattice"])
+    assert result["sweep"]["finite"] == 1.0
+    assert 0 < result["float32_vs_float64"]["64"] < 1e-3

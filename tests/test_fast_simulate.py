@@ -16,7 +16,7 @@ import scipy.integrate
 from scipy.integrate._ivp import dop853_coefficients as scipy_tableau
 
 from rbo_jax import ensemble, fast_simulate
-from rbo_jax.ensemble import _tableau
+from rbo_jax.ensemble import _dop853, _tableau
 from rbo_jax.foundations import BarrierFoundation, QuadraticFoundation
 from rbo_jax.inertia import transversely_isotropic_inertia
 from rbo_jax.loads import Friction, SemiTangentialMoment
@@ -68,6 +68,33 @@ def test_tableau_is_scipys():
     np.testing.assert_array_equal(np.asarray(_tableau.E3), scipy_tableau.E3)
     np.testing.assert_array_equal(np.asarray(_tableau.E5), scipy_tableau.E5)
     np.testing.assert_array_equal(np.asarray(_tableau.D), scipy_tableau.D)
+
+
+@pytest.mark.parametrize("last", [_dop853.NS + 1, _dop853.N_EXT, "traced"])
+@pytest.mark.parametrize("first", [0, 1, "traced"])
+def test_unrolled_stages_are_the_loop_of_stages(monkeypatch, first, last):
+    """The stages of a DOP853 step unrolled (``_dop853.UNROLL``, an option for GPUs) are the
+    loop's: the same 16 slopes and new state on a nonlinear field of six components and eight
+    lanes, the dense output's extra rows and a first slope made again included, with ``first``
+    and ``last`` static or traced."""
+    rng = np.random.default_rng(3)
+    y = tuple(jnp.asarray(rng.normal(size=8)) for _ in range(6))
+
+    def f(t, y):
+        return tuple(jnp.sin(y[(i + 1) % 6]) * y[i] + t * jnp.cos(y[(i + 2) % 6]) for i in range(6))
+
+    f0 = f(0.3, y)
+    store = _dop853.Store(1.0)
+
+    def run(unroll):
+        monkeypatch.setattr(_dop853, "UNROLL", unroll)
+        fi = jnp.asarray(0) if first == "traced" else first
+        la = jnp.asarray(_dop853.N_EXT) if last == "traced" else last
+        return _dop853.stages(f, 0.3, y, f0, 0.05, store, la, first=fi)
+
+    (y_loop, K_loop), (y_unr, K_unr) = run(False), run(True)
+    for a, b in zip(y_loop + K_loop, y_unr + K_unr):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-14, atol=1e-15)
 
 
 @pytest.mark.parametrize("tol", [pytest.param(1e-6, marks=pytest.mark.slow), 1e-10])

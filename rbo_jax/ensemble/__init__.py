@@ -8,7 +8,8 @@ takes the steps ``scipy.integrate.solve_ivp(method="DOP853")`` takes.
 
 It is written for one trajectory and batched with ``jax.vmap``, as :func:`rbo_jax.simulate`; a
 batching rule (:func:`jax.custom_batching.custom_vmap`) then runs the batch as a structure of
-arrays on up to 1000 refilled lanes (``_solve.py``, where the layout is explained and measured).
+arrays on up to 1000 refilled lanes on a CPU, 2¹⁸ on a GPU (``_solve.py``, where the layout is
+explained and measured).
 Forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``, also under ``vmap``) are a
 :func:`jax.custom_jvp` rule: with respect to model parameters and the initial state, one loop
 carries the primal and all tangent directions (``_tangents.py``: ``jax.jacfwd`` does not batch a
@@ -43,6 +44,16 @@ from ._tangents import solve_one_tangents
 __all__ = ["fast_simulate"]
 
 LANES = 1000  # measured best on CPU (benchmarks/README.md)
+# Lanes on an accelerator: enough to fill a GPU (an H100/H200 holds ~270,000 resident threads);
+# each loop iteration is a host-driven sequence of kernel launches, so fewer, wider iterations
+# win there (benchmarks/README.md, "GPUs").
+ACCELERATOR_LANES = 2**18
+
+
+def lanes() -> int:
+    """The number of refilled lanes of a batch (:func:`._solve.solve_lanes`) on JAX's default
+    backend: :data:`LANES` on a CPU, :data:`ACCELERATOR_LANES` on a GPU or TPU."""
+    return LANES if jax.default_backend() == "cpu" else ACCELERATOR_LANES
 
 
 def _per_trajectory(cfg: Config):
@@ -74,7 +85,7 @@ def _integrator(cfg: Config):
             return jax.vmap(one, in_axes=axes)(problem, y0, ts), (True, True, True)
         if not y_batched:
             y0 = jnp.broadcast_to(y0, (axis_size, 6))
-        out = solve_lanes(problem, p_batched, tuple(y0[:, i] for i in range(6)), ts, cfg, LANES)
+        out = solve_lanes(problem, p_batched, tuple(y0[:, i] for i in range(6)), ts, cfg, lanes())
         return out, (True, True, True)
 
     integrate = jax.custom_jvp(batched)

@@ -104,6 +104,15 @@ def _row_sum(cols, coefs, k):
     return acc
 
 
+# The stages of a step as one loop (False, the default) or unrolled (True). On a GPU each
+# iteration of a loop is a host-driven launch of its kernels and a test of its condition on the
+# host: unrolled, the ensemble ran 1.32-1.35x faster on an H200 (10^6 trajectories) but compiled
+# in twice the time (7.5 -> 15.5 s), and the lattice (10^6 bodies, float64) gained nothing for
+# 3x the compile (benchmarks/README.md, "GPUs"); so the loop stays the default everywhere, and
+# a long GPU run may set this to True before its first call.
+UNROLL: bool = False
+
+
 def stages(f, t, y, f0, h, store: Store, last=NS + 1, first=1):
     """``rk_step`` with the stages in one loop: K[0] = f0, K[s] = f(t + c_s h, y + h Σ_j A[s, j]
     K[j]) for s = 1 … ``last`` − 1, y_new = y + h Σ B K. Row 12 of the tableau is B and c_12 = 1,
@@ -121,6 +130,8 @@ def stages(f, t, y, f0, h, store: Store, last=NS + 1, first=1):
     run time of a batch). ``first = 0`` (traced or not) makes the first slope again, K[0] =
     f(t, y) (row 0 of the tableau is zero), in place of ``f0``: after the state was changed
     between steps (a lattice's re-centred turn-vectors)."""
+    if UNROLL:
+        return _stages_unrolled(f, t, y, f0, h, store, last, first)
     n = len(y)
     dtype = jnp.result_type(*y)
     cols, coefs = jnp.asarray(_COLS), jnp.asarray(_COEFS, dtype)
@@ -134,6 +145,44 @@ def stages(f, t, y, f0, h, store: Store, last=NS + 1, first=1):
         return tuple(K[i].at[s].set(k[i]) for i in range(n))
 
     K = lax.fori_loop(first, last, body, K0)
+    y_new = store(tuple(y[i] + h * _combine(T.B, K, i) for i in range(n)))
+    return y_new, K
+
+
+def _stages_unrolled(f, t, y, f0, h, store: Store, last, first):
+    """:func:`stages` with the rows of the tableau unrolled (:data:`UNROLL`): the same sums in
+    the same order, the vector field traced once per row; the dense output's three extra rows in
+    a ``lax.cond`` when ``last`` is traced. K in the same layout, one ``(16, *shape)`` array per
+    component."""
+    n = len(y)
+    C = T.C
+
+    def row(rows, s):
+        ys = store(tuple(y[i] + _combine(T.A[s], [[r[i] for r in rows]], 0) * h for i in range(n)))
+        return store(f(t + C[s] * h, ys))
+
+    def again():  # K[0] = f(t, y) again (row 0 of the tableau is zero)
+        return store(f(t + C[0] * h, store(tuple(y))))
+
+    if isinstance(first, (int, np.integer)):
+        rows = [again() if first == 0 else tuple(f0)]
+    else:
+        rows = [lax.cond(first == 0, again, lambda: tuple(f0))]
+    for s in range(1, NS + 1):
+        rows.append(row(rows, s))
+
+    def extra(done):
+        done = list(done)
+        for s in range(NS + 1, N_EXT):
+            done.append(row(done, s))
+        return tuple(done[NS + 1 :])
+
+    zeros = tuple(tuple(jnp.zeros_like(v) for v in rows[0]) for _ in range(N_EXT - NS - 1))
+    if isinstance(last, (int, np.integer)):
+        rows += list(extra(rows)) if last > NS + 1 else list(zeros)
+    else:
+        rows += list(lax.cond(last > NS + 1, extra, lambda _: zeros, tuple(rows)))
+    K = tuple(jnp.stack([r[i] for r in rows]) for i in range(n))
     y_new = store(tuple(y[i] + h * _combine(T.B, K, i) for i in range(n)))
     return y_new, K
 

@@ -50,7 +50,9 @@ METHODS = ("dop853", "diffrax", "splitting")
 def _state(x, lattice: Lattice, name: str, dtype):
     """``x`` (``(N, 3)`` or ``(*shape, 3)``) as a component-major ``(3, N)`` array."""
     traced = _is_traced(x)
-    a = x if traced else np.asarray(x)
+    # a JAX array stays where it is (a GPU's input is not copied to the host and back)
+    on_device = isinstance(x, jax.Array) and not traced
+    a = x if traced or on_device else np.asarray(x)
     n = lattice.size
     if tuple(a.shape) not in ((n, 3), tuple(lattice.shape) + (3,)):
         raise ValueError(
@@ -61,9 +63,11 @@ def _state(x, lattice: Lattice, name: str, dtype):
     if not traced:
         if np.iscomplexobj(a):
             raise TypeError(f"lattice.simulate: {name} must be real.")
-        if not np.all(np.isfinite(a)):
+        xp = jnp if on_device else np
+        if not bool(xp.all(xp.isfinite(a))):
             raise ValueError(f"lattice.simulate: {name} must be finite.")
-        return jax.device_put(np.ascontiguousarray(a.reshape(n, 3).T.astype(dtype)))
+        if not on_device:
+            return jax.device_put(np.ascontiguousarray(a.reshape(n, 3).T.astype(dtype)))
     return jnp.reshape(a, (n, 3)).T.astype(dtype)
 
 
@@ -316,8 +320,10 @@ def _layout(lattice: Lattice, devices, traced: bool) -> Layout:
                     f"devices only if they divide it evenly with at least {HALO} bodies "
                     f"each; choose another number of devices."
                 )
-    halo = chain and (len(chosen) > 1 or n >= HALO_MIN)
-    return Layout(tuple(d.id for d in chosen), halo)
+    # blocks that fit a CPU's cache; a GPU steps whole arrays (its kernels stream them)
+    cpu = all(d.platform == "cpu" for d in chosen)
+    halo = chain and (len(chosen) > 1 or (cpu and n >= HALO_MIN))
+    return Layout(tuple(d.id for d in chosen), halo, BLOCK if cpu else n)
 
 
 def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout):
