@@ -7,6 +7,8 @@ derivatives), and for every failure status. The batched path (refilled lanes) mu
 trajectory exactly what it gets alone.
 """
 
+import importlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -28,6 +30,8 @@ TS = jnp.linspace(0.0, 8.0, 17)
 THETA0 = jnp.array([0.5, -0.4, 0.3])
 OMEGA0 = jnp.array([0.3, 0.9, 0.6])
 RUNTIME_ERRORS = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)
+# the module (``rbo_jax.ensemble._solve`` is also the name of a function in the package)
+LANES_SOLVER = importlib.import_module("rbo_jax.ensemble._solve")
 
 
 def make_model(c=1.0, d=2.0, alpha=2.0, beta=1.5, A1=1.0, A3=0.6, M=0.3, b=0.05):
@@ -198,6 +202,33 @@ def test_batch_equals_single_trajectories(monkeypatch, lanes):
         np.testing.assert_allclose(Omega[i], tr.Omega, rtol=1e-13, atol=1e-13)
         assert int(steps[i]) == int(tr.num_steps)
     assert np.all(np.asarray(status == SolveStatus.successful))
+
+
+@pytest.mark.parametrize("lanes", [pytest.param(256, marks=pytest.mark.slow), 48])
+def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes):
+    """Once the queue is empty, the running lanes are gathered into narrower loops (issue 31:
+    the tail of a batch no longer costs every lane): every trajectory's samples, status and
+    accepted steps are those of the run without compaction, bit for bit, bad points included
+    (a NaN start, invalid parameters, a barrier crossing)."""
+    monkeypatch.setattr(ensemble, "LANES", lanes)
+    n = 3 * lanes + 5
+    rng = np.random.default_rng(lanes)
+    ps = np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n)], 1)
+    y0s = rng.uniform(-0.6, 0.6, (n, 6)) * rng.uniform(0.1, 1.0, (n, 1))  # unequal lengths
+    y0s[7, 2], ps[11, 0], y0s[13] = np.nan, -1.0, [0.0, 2.1, 0.0, 0.0, 0.2, 0.0]
+    ps, y0s = jnp.asarray(ps), jnp.asarray(y0s)
+    monkeypatch.setattr(LANES_SOLVER, "COMPACT_FROM", 10**9)
+    ref = _batch(_model_of, ps, y0s, TS)
+    monkeypatch.setattr(LANES_SOLVER, "COMPACT_FROM", 0)
+    assert len(LANES_SOLVER.tail_widths(LANES_SOLVER._round_up(lanes, LANES_SOLVER.VECTOR), n)) >= 1
+    got = _batch(_model_of, ps, y0s, TS)
+    for i in (0, 1, 3):  # theta, Omega, steps
+        np.testing.assert_array_equal(np.asarray(got[i]), np.asarray(ref[i]))
+    assert bool(jnp.all(got[2] == ref[2]))  # the statuses
+    assert len(set(np.asarray(ref[3]).tolist())) > 10  # the trajectories' lengths differ
+    assert bool((ref[2] == SolveStatus.nonfinite_input)[7])
+    assert bool((ref[2] == SolveStatus.invalid_parameters)[11])
+    assert bool((ref[2] == SolveStatus.domain_error)[13])
 
 
 def test_bad_points_are_flagged_and_the_rest_solved(monkeypatch):

@@ -8,7 +8,9 @@ r"""The two loops of the ensemble integrator, around one shape-polymorphic step 
   SciPy's step sequence per lane), and when at least R lanes are idle, up to R of them take the
   next trajectories from the queue ("refill"). Lockstep batching wastes the iterations that
   fast lanes spend waiting for the slowest (measured: 40 % of the work); refilling keeps ~92 % of
-  lane work useful.
+  lane work useful. When the queue is empty, a large batch's running lanes are gathered into
+  narrower loops (:func:`tail_widths`), so that its last, longest trajectories do not cost every
+  lane.
 
 Why this layout (measured with a stand-alone prototype of this integrator on the Nikolai
 benchmark, one core, against a hand-written numba DOP853 at 23.2 µs per trajectory):
@@ -281,6 +283,62 @@ def _round_up(n: int, m: int) -> int:
     return -(-int(n) // m) * m
 
 
+# The tail (issue 31): once the queue is empty the lanes finish one by one, and each iteration
+# still costs all B of them while the last, longest trajectories run on few (with 2 devices each
+# has a tail as long as one device's). From :data:`COMPACT_FROM` trajectories on (a batch of
+# several waves: a long run), the running lanes are then gathered into narrower loops, each a
+# quarter of the one before, down to B/64 lanes (1008 -> 256, 64, 16 on a CPU): one more traced
+# copy of the step per width (~3 s of XLA's compilation each on the 2-core machine), so smaller
+# batches, whose first answer matters more than their tail, keep the one loop. Measured on one
+# pinned core, 2,965 Nikolai trajectories of 1k-320k steps (a 2-device share of the
+# `rbo-jax sweep` benchmark, t1 = 300): 42.0 s -> 27.4 s, the same bits (benchmarks/README.md).
+COMPACT_FROM = 2048
+COMPACT_STEP = 4
+
+
+def tail_widths(B: int, N: int) -> tuple[int, ...]:
+    """The narrower widths the B lanes are compacted to once the queue is empty (none for fewer
+    than :data:`COMPACT_FROM` trajectories): multiples of :data:`VECTOR`, so that every lane
+    keeps its bits."""
+    if N < COMPACT_FROM:
+        return ()
+    widths, w, floor = [], B, max(VECTOR, B // 64)
+    while w > floor:
+        w = max(floor, _round_up(w // COMPACT_STEP, VECTOR))
+        widths.append(w)
+    return tuple(widths)
+
+
+def _record(c, N):
+    """The statuses and step counts of the lanes that hold a finished trajectory."""
+    done = c["st"]["status"] != RUNNING
+    tid = jnp.where(done, c["tid"], N)
+    c = dict(c)
+    c["status_out"] = c["status_out"].at[tid].set(c["st"]["status"], mode="drop")
+    c["nacc_out"] = c["nacc_out"].at[tid].set(c["st"]["nacc"], mode="drop")
+    return c
+
+
+def _compact(c, batched, N, width: int):
+    """The running lanes of ``c`` (at most ``width``), gathered into ``width`` lanes; the others'
+    results recorded first. Lanes past the running ones hold no trajectory (tid N, idle)."""
+    c = _record(c, N)
+    B = c["tid"].shape[0]
+    running = c["st"]["status"] == RUNNING
+    pick = jnp.nonzero(running, size=width, fill_value=B)[0]
+    held = pick < B
+    at = jnp.minimum(pick, B - 1)
+    new = dict(c)
+    new["st"] = jax.tree_util.tree_map(lambda a: a[at], c["st"])
+    new["st"]["status"] = jnp.where(held, new["st"]["status"], code("successful"))
+    new["problem"] = jax.tree_util.tree_map(
+        lambda x, b: x[..., at] if b else x, c["problem"], batched
+    )
+    new["tid"] = jnp.where(held, c["tid"][at], N)
+    new["idx"] = c["idx"][at]
+    return new
+
+
 def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000):
     """N trajectories (``pool``: leaves with a leading axis N where ``batched``; ``y0``: six
     ``(N,)`` components) on ``min(N, lanes_)`` refilled lanes. Returns ``(samples (N, n_ts, 6),
@@ -327,12 +385,7 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
             n_idle = jnp.sum(c["st"]["status"] != RUNNING)
             return (c["next"] < N) & ((n_idle >= R) | (n_idle == B))
 
-        def body(c):
-            # first the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
-            # in the first iteration)
-            c = lax.while_loop(
-                wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R, store), c
-            )
+        def step(c):
             c = dict(c)
             st, step = attempt(
                 fns.f(c["problem"]),
@@ -354,9 +407,24 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
             c["st"] = st
             return c
 
+        def body(c):
+            # first the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
+            # in the first iteration)
+            c = lax.while_loop(
+                wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R, store), c
+            )
+            return step(c)
+
+        def running_over(width):
+            return lambda c: jnp.sum(c["st"]["status"] == RUNNING) > width
+
+        widths = tail_widths(B, N)
         c = lax.while_loop(
-            lambda c: jnp.any(c["st"]["status"] == RUNNING) | (c["next"] < N), body, c
+            lambda c: (c["next"] < N) | running_over(widths[0] if widths else 0)(c), body, c
         )
-    status = c["status_out"].at[c["tid"]].set(c["st"]["status"], mode="drop")
-    nacc = c["nacc_out"].at[c["tid"]].set(c["st"]["nacc"], mode="drop")
-    return c["out"], status, nacc
+        for i, width in enumerate(widths):  # the tail: narrower loops, no queue left
+            c = _compact(c, batched, N, width)
+            narrower = widths[i + 1] if i + 1 < len(widths) else 0
+            c = lax.while_loop(running_over(narrower), step, c)
+    c = _record(c, N)
+    return c["out"], c["status_out"], c["nacc_out"]
