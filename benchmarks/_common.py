@@ -8,7 +8,11 @@ here imports JAX at import (``bench_sweep.py`` sets JAX's device count before JA
 from __future__ import annotations
 
 import json
+import os
 import platform
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
@@ -75,3 +79,45 @@ def write_json(path, result, **options) -> None:
     if path:
         with open(path, "w") as f:
             json.dump(result, f, **options)
+
+
+# A benchmark's ``main(argv)`` in a fresh process: its stdout passed through, its returned dict
+# back as JSON (NumPy values as lists and floats).
+_CHILD = """
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+import importlib
+result = importlib.import_module(sys.argv[2]).main(sys.argv[4:])
+def plain(x):
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return str(x)
+with open(sys.argv[3], "w") as f:
+    json.dump(result, f, default=plain)
+"""
+
+
+def run_child(module: str, argv, core: int | None = None) -> dict:
+    """``module.main(argv)`` (a benchmark of this folder) in a fresh Python process, pinned to
+    ``core`` from its start when given (``os.sched_setaffinity`` before the interpreter starts,
+    as ``taskset -c core`` does: ``import rbo_jax`` then makes one CPU device, and XLA sizes its
+    thread pools for one core). Per-core figures come from such processes: a process started on
+    every core and pinned later keeps pools sized for all of them, whose tasks then queue on one
+    core (measured: ``jax.vmap(fast_simulate)`` 42 us per trajectory pinned later against 24 us
+    in a process started on the one core). Returns what ``main`` returned."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES",)}
+
+    def pin():
+        if core is not None and hasattr(os, "sched_setaffinity"):
+            os.sched_setaffinity(0, {core})
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "result.json")
+        cmd = [sys.executable, "-c", _CHILD, here, module, out, *argv]
+        subprocess.run(cmd, check=True, env=env, preexec_fn=pin, cwd=here)
+        with open(out) as f:
+            return json.load(f)

@@ -18,18 +18,20 @@ less the best run. Then ``--repeat`` rounds of one call of each side, alternatin
 change of the machine's load hits both, the best of each kept (JAX: ``simulate`` from NumPy
 inputs to ``jax.block_until_ready(traj.theta)``; numba: the compiled solver from the flat state,
 compiled once on a tiny chain first). JAX's fixed cost of a call (checks, dispatch, the loop's
-iterations) is printed as the best call on a chain of 8 bodies: it weighs on small N. Every
-thread of the process is pinned to one core for all of it (``_pinning.py``; ``--core``, default
-the first core the process may use, so that ``taskset -c 1 python ...`` runs on core 1). A
-body-step is one accepted step of one body: µs per body-step = time / (N × accepted steps). The
-ratio is numba's time / JAX's (> 1: JAX faster).
+iterations) is printed as the best call on a chain of 8 bodies: it weighs on small N. The
+per-core table runs in a fresh process started on one core (``--core``, default the first core
+this process may use; ``_common.run_child``), as ``taskset -c`` would start it: a process
+started on every core and pinned afterwards keeps XLA's thread pools sized for all of them
+(its tasks then queue on the one core), which is not what a user who pins a run gets. A
+body-step is one accepted step of one body: µs per body-step = time / (N × accepted steps).
+The ratio is numba's time / JAX's (> 1: JAX faster).
 
-**All cores** (``--all-n``, default 10⁶ bodies; 0 skips it): the process asks JAX for one CPU
+**All cores** (``--all-n``, default 10⁶ bodies; 0 skips it): this process asks JAX for one CPU
 device per core it may use (``jax_num_cpu_devices``, before JAX starts; ``--devices`` chooses
-another number), and the per-core table runs with ``devices=1``. The last row is the same chain
-split over all devices (``lattice.simulate(..., devices=None)``: a shard per device, halos of
-the neighbours, one error norm), unpinned, against ``devices=1`` pinned to one core,
-alternating, best of ``--repeat``; the states of both are compared.
+another number). The row is the chain split over all devices (``lattice.simulate(...,
+devices=None)``: a shard per device, halos of the neighbours, one error norm), unpinned, best of
+``--repeat``, against the same chain's row of the per-core table; the final states of the split
+and of one device are compared.
 
 Usage: ``python benchmarks/bench_lattice.py [--n 1000,10000,100000,1000000] [--t1 2]
 [--rtol 1e-8] [--atol 1e-10] [--repeat 3] [--core C] [--all-n 1000000] [--devices D]
@@ -46,7 +48,7 @@ import time
 import equinox as eqx
 import jax
 import numpy as np
-from _common import write_json
+from _common import run_child, write_json
 from _pinning import pinned
 
 import rbo_jax
@@ -154,25 +156,20 @@ def jax_call(lat, theta0, Omega0, args, devices=1):
     return traj
 
 
-def all_cores(args) -> dict:
-    """The chain of ``args.all_n`` bodies split over all devices (unpinned) against one device
-    pinned to ``args.core``: first calls alone, then ``args.repeat`` alternating rounds."""
+def all_cores(args, one_core_seconds: float) -> dict:
+    """The chain of ``args.all_n`` bodies split over all devices, unpinned (best of
+    ``args.repeat``), against ``one_core_seconds``: the same chain's best call in a process
+    started on one core (the per-core table's row, :func:`main`). The final states of the split
+    and of one device (this process, not timed) are compared."""
     n = args.all_n
     lat, _ = build_lattice(n)
     theta0, Omega0 = initial_state(n)
     d = jax.local_device_count()
     split = d if n % d == 0 and n // d >= 16 else None  # None: the default's choice
+    one = jax_call(lat, theta0, Omega0, args)
     many = lambda: jax_call(lat, theta0, Omega0, args, devices=split)  # noqa: E731
-    with pinned((args.core,)):
-        jax_call(lat, theta0, Omega0, args)
     t_many = many()
-    best_one = best_many = np.inf
-    for _ in range(args.repeat):
-        with pinned((args.core,)):
-            one, s = timed(lambda: jax_call(lat, theta0, Omega0, args))
-        best_one = min(best_one, s)
-        t_many, s = timed(many)
-        best_many = min(best_many, s)
+    best_many = min(timed(many)[1] for _ in range(args.repeat))
     shards = len(t_many.theta.sharding.device_set)
     diff = max(
         float(np.max(np.abs(np.asarray(one.theta) - np.asarray(t_many.theta)))),
@@ -184,11 +181,11 @@ def all_cores(args) -> dict:
         "devices": d,
         "shards": shards,
         "steps": [steps, int(t_many.num_steps)],
-        "seconds_one_core": best_one,
+        "seconds_one_core": one_core_seconds,
         "seconds_all": best_many,
-        "us_per_body_step_one_core": best_one / (n * steps) * 1e6,
+        "us_per_body_step_one_core": one_core_seconds / (n * steps) * 1e6,
         "us_per_body_step_all": best_many / (n * steps) * 1e6,
-        "ratio": best_one / best_many,
+        "ratio": one_core_seconds / best_many,
         "max_diff": diff,
     }
 
@@ -294,9 +291,9 @@ def row_text(r) -> str:
     )
 
 
-def main(argv=None) -> dict:
-    _ask_devices(argv)
-    args = _parse(argv)
+def per_core(args, extra_n=()) -> dict:
+    """The per-core table: every N of ``args.n`` and ``extra_n`` (the all-cores row's chain)
+    against numba, every thread pinned to ``args.core``."""
     rows = []
     numba_compile = None
     rhs_diff = None
@@ -306,7 +303,7 @@ def main(argv=None) -> dict:
         header(args, is_pinned, numba_compile)
         print(COLUMNS)
         print("-" * len(COLUMNS))
-        for n in args.n:
+        for n in list(args.n) + list(extra_n):
             lat, body = build_lattice(n)
             params = numba_params(body)
             theta0, Omega0 = initial_state(n)
@@ -343,16 +340,6 @@ def main(argv=None) -> dict:
             rows.append(r)
             print(row_text(r), flush=True)
         overhead = None if args.smoke else jax_overhead(args)
-    every = all_cores(args) if args.all_n else None
-    if every is not None:
-        print(
-            f"all cores: N = {every['n']}, {every['shards']} shard(s) on {every['devices']} "
-            f"CPU device(s), unpinned: {every['us_per_body_step_all']:.3f} us/body-step; one "
-            f"device pinned to core {args.core}: {every['us_per_body_step_one_core']:.3f}; "
-            f"all/one = {every['ratio']:.2f}x; steps {every['steps'][0]}/{every['steps'][1]}; "
-            f"max |diff| {every['max_diff']:.1e}",
-            flush=True,
-        )
     print(
         "(steps: accepted; us/body-step: best call time / (N x accepted steps); numba/jax > 1: "
         "jax faster; jax compile: first call less the best call; max |diff|: final state, "
@@ -373,13 +360,12 @@ def main(argv=None) -> dict:
             f"jax fixed cost of a call (best call on a chain of 8 bodies, same t1 and "
             f"tolerances): {overhead * 1e3:.2f} ms"
         )
-    out = {
+    return {
         "t1": args.t1,
         "rtol": args.rtol,
         "atol": args.atol,
         "repeat": args.repeat,
         "jax_overhead": overhead,
-        "all_cores": every,
         "core": args.core,
         "pinned": is_pinned,
         "numba_compile": numba_compile,
@@ -391,6 +377,32 @@ def main(argv=None) -> dict:
             "numba": numba_lattice.NUMBA_VERSION if numba_lattice else None,
         },
     }
+
+
+def main(argv=None) -> dict:
+    _ask_devices(argv)
+    args = _parse(argv)
+    n_all = [args.all_n] if args.all_n and args.all_n not in args.n else []
+    if _cores() > 1 and not args.smoke:
+        # the per-core table in a fresh process started on the core (_common.run_child)
+        child = ["--n", ",".join(str(n) for n in args.n + n_all), "--all-n", "0"]
+        for name in ("t1", "rtol", "atol", "repeat", "core"):
+            child += [f"--{name}", str(getattr(args, name))]
+        out = run_child("bench_lattice", child, core=args.core)
+    else:
+        out = per_core(args, n_all)
+    rows = {r["n"]: r for r in out["rows"]}
+    every = all_cores(args, rows[args.all_n]["seconds_jax"]) if args.all_n else None
+    if every is not None:
+        print(
+            f"all cores: N = {every['n']}, {every['shards']} shard(s) on {every['devices']} "
+            f"CPU device(s), unpinned: {every['us_per_body_step_all']:.3f} us/body-step; one "
+            f"device in a process started on core {args.core}: "
+            f"{every['us_per_body_step_one_core']:.3f}; all/one = {every['ratio']:.2f}x; steps "
+            f"{every['steps'][0]}/{every['steps'][1]}; max |diff| {every['max_diff']:.1e}",
+            flush=True,
+        )
+    out["all_cores"] = every
     write_json(args.json, out, indent=2, default=float)
     return out
 

@@ -21,7 +21,9 @@ Final states are compared (independent checks of the vector field), numba's func
 counts against scipy's (same algorithm: they should be equal), and the per-trajectory time ratios
 are printed. Compilation is timed separately (JAX: the first call; numba: a first call on one
 point) and not included in the per-trajectory times. The one-core rows (everything but numba's
-``prange``) run with every thread of the process pinned to core 0 (``_pinning.py``, Linux).
+``prange``) run in a fresh process started on core 0 (``_common.run_child``, as ``taskset -c 0``
+starts one: ``import rbo_jax`` then makes one CPU device and XLA sizes its pools for one core),
+when this process may use several cores; numba's ``prange`` then runs here, on all of them.
 The error of each method against a tight reference (``simulate`` at rtol = atol = 1e-13) is
 printed for the scipy sample.
 
@@ -32,13 +34,15 @@ Usage: ``python benchmarks/bench_simulate.py [--n 10000] [--scipy-sample 20] [--
 from __future__ import annotations
 
 import argparse
+import os
 import platform
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import run_in_chunks, write_json
+from _common import run_child, run_in_chunks, write_json
 
 try:
     import _numba_reference as numba_ref
@@ -132,6 +136,8 @@ def main(argv=None) -> dict:
 
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
+    if len(os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else [0]) > 1:
+        return _one_core_child_and_prange(args, list(argv or sys.argv[1:]))
 
     points = parameter_points(args.n)
     ns = args.scipy_sample
@@ -301,6 +307,34 @@ def main(argv=None) -> dict:
     else:
         print("numba not installed, skipped (pip install numba, or the 'bench' extra)")
     print(f"max |final state difference| jax vs scipy on the sample: {err:.2e}")
+    write_json(args.json, out, indent=2, default=float)
+    return out
+
+
+def _one_core_child_and_prange(args, argv) -> dict:
+    """The one-core rows in a fresh process started on core 0, numba's prange here (all
+    cores), compared with the child's per-trajectory times."""
+    child = [a for a in argv if a != "--no-numba-parallel"] + ["--no-numba-parallel"]
+    if "--json" in child:
+        i = child.index("--json")
+        del child[i : i + 2]
+    out = run_child("bench_simulate", child, core=0)
+    if numba_ref is not None and not args.no_numba_parallel and out["numba"]:
+        par = run_numba(parameter_points(args.n), parallel=True)
+        per = par["seconds"] / args.n
+        out["numba"].update(
+            per_prange=per,
+            compile_prange=par["compile_s"],
+            threads=par["threads"],
+            ratio_prange=per / out["per_jax"],
+        )
+        out["fast"]["ratio_numba_prange"] = per / out["fast"]["per"]
+        print(
+            f"numba DOP853, prange ({par['threads']} threads, this process): {per:.3e} s per "
+            f"trajectory; fast_simulate (1 core) vs numba prange: "
+            f"{out['fast']['ratio_numba_prange']:.2f}x; vmap(simulate) (1 core) vs numba "
+            f"prange: {out['numba']['ratio_prange']:.2f}x"
+        )
     write_json(args.json, out, indent=2, default=float)
     return out
 

@@ -1,7 +1,8 @@
-"""Run every benchmark in one process and print their tables (``make bench``), then one summary
-table of the headline ratios and compile times collected from the benchmarks' results, and write
-that table, with the machine, the commit and the date, at the top of ``benchmarks/README.md``
-(between its ``current table`` markers; the dated history below it is left as it is).
+"""Run every benchmark, each in a fresh process, and print their tables (``make bench``), then
+one summary table of the headline ratios and compile times collected from the benchmarks'
+results, and write that table, with the machine, the commit and the date, at the top of
+``benchmarks/README.md`` (between its ``current table`` markers; the dated history below it is
+left as it is).
 
 ``--smoke`` runs each at a tiny size (used by the test suite to keep the scripts working) and
 writes nothing; ``--no-write`` prints only.
@@ -18,7 +19,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from _common import cpu_name  # noqa: E402
+from _common import cpu_name, run_child  # noqa: E402
 
 import rbo_jax  # noqa: E402,F401  (float64 on before anything else)
 
@@ -32,6 +33,9 @@ SMOKE_ARGS = {
     "dask": ["--smoke"],  # skipped without distributed (the `dask` extra)
     "cores": ["--smoke", "--rows", "map"],  # three fresh processes
 }
+# run in a process started on one core (the first this process may use)
+PINNED = {"rod"}
+ONE_CORE = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
 README = os.path.join(os.path.dirname(os.path.abspath(__file__)), "README.md")
 BEGIN, END = "<!-- current table: begin (make bench) -->", "<!-- current table: end -->"
 
@@ -356,11 +360,11 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--no-write", action="store_true", help="do not write README.md")
     args = parser.parse_args(argv)
-    import importlib
-
     import jax
 
-    # sweep first: it splits the CPU into 2 XLA devices, which must happen before JAX starts
+    # every benchmark in a fresh process (_common.run_child), started as a user starts one:
+    # on every core, or on one core for the per-core figures (bench_simulate and bench_lattice
+    # start their own one-core processes; the rods' benchmark is one core throughout)
     modules = {
         "sweep": "bench_sweep",
         "simulate": "bench_simulate",
@@ -384,10 +388,8 @@ def main(argv=None) -> int:
         if args.only and name not in args.only:
             continue
         print(f"\n=== {name} ===", flush=True)
-        # imported here: a benchmark module may create arrays at import, which starts JAX (the
-        # sweep benchmark must set the CPU device count before that)
         fargs = SMOKE_ARGS[name] if args.smoke else []
-        results[name] = importlib.import_module(module).main(fargs)
+        results[name] = run_child(module, fargs, core=ONE_CORE if name in PINNED else None)
     print_summary(results)
     load_end = os.getloadavg()[0]
     print(f"load average at the end: {load_end:.2f}")

@@ -204,13 +204,30 @@ def test_batch_equals_single_trajectories(monkeypatch, lanes):
     assert np.all(np.asarray(status == SolveStatus.successful))
 
 
-@pytest.mark.parametrize("lanes", [pytest.param(256, marks=pytest.mark.slow), 48])
-def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes):
+def test_final_state_only_takes_the_same_steps_without_dense_output():
+    """With only the two ends of the interval sampled the program holds no dense output (the
+    final sample is the last step's own state): the same steps and final state as a run that
+    also samples inside the interval."""
+    model = make_model()
+    full = fast_simulate(model, THETA0, OMEGA0, TS)
+    final = fast_simulate(model, THETA0, OMEGA0, TS[jnp.array([0, -1])])
+    assert int(final.num_steps) == int(full.num_steps)
+    np.testing.assert_allclose(final.theta[-1], full.theta[-1], rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(final.Omega[-1], full.Omega[-1], rtol=1e-13, atol=1e-14)
+
+
+@pytest.mark.parametrize(
+    "lanes, divisors", [(48, None), pytest.param(256, (2, 8, 32), marks=pytest.mark.slow)]
+)
+def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes, divisors):
     """Once the queue is empty, the running lanes are gathered into narrower loops (issue 31:
-    the tail of a batch no longer costs every lane): every trajectory's samples, status and
-    accepted steps are those of the run without compaction, bit for bit, bad points included
-    (a NaN start, invalid parameters, a barrier crossing)."""
+    the tail of a batch no longer costs every lane; the default one loop of a quarter of the
+    lanes, or several): every trajectory's samples, status and accepted steps are those of the
+    run without compaction, bit for bit, bad points included (a NaN start, invalid parameters,
+    a barrier crossing)."""
     monkeypatch.setattr(ensemble, "LANES", lanes)
+    if divisors is not None:
+        monkeypatch.setattr(LANES_SOLVER, "COMPACT_DIVISORS", divisors)
     n = 3 * lanes + 5
     rng = np.random.default_rng(lanes)
     ps = np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n)], 1)
@@ -220,7 +237,8 @@ def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes):
     monkeypatch.setattr(LANES_SOLVER, "COMPACT_FROM", 10**9)
     ref = _batch(_model_of, ps, y0s, TS)
     monkeypatch.setattr(LANES_SOLVER, "COMPACT_FROM", 0)
-    assert len(LANES_SOLVER.tail_widths(LANES_SOLVER._round_up(lanes, LANES_SOLVER.VECTOR), n)) >= 1
+    widths = LANES_SOLVER.tail_widths(LANES_SOLVER._round_up(lanes, LANES_SOLVER.VECTOR), n)
+    assert len(widths) == (1 if divisors is None else 3)
     got = _batch(_model_of, ps, y0s, TS)
     for i in (0, 1, 3):  # theta, Omega, steps
         np.testing.assert_array_equal(np.asarray(got[i]), np.asarray(ref[i]))

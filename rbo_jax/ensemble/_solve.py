@@ -8,8 +8,8 @@ r"""The two loops of the ensemble integrator, around one shape-polymorphic step 
   SciPy's step sequence per lane), and when at least R lanes are idle, up to R of them take the
   next trajectories from the queue ("refill"). Lockstep batching wastes the iterations that
   fast lanes spend waiting for the slowest (measured: 40 % of the work); refilling keeps ~92 % of
-  lane work useful. When the queue is empty, a large batch's running lanes are gathered into
-  narrower loops (:func:`tail_widths`), so that its last, longest trajectories do not cost every
+  lane work useful. When the queue is empty, a large batch's running lanes are gathered into a
+  narrower loop (:func:`tail_widths`), so that its last, longest trajectories do not cost every
   lane.
 
 Why this layout (measured with a stand-alone prototype of this integrator on the Nikolai
@@ -80,12 +80,16 @@ def attempt(
     Runge–Kutta map, :func:`._dop853.stages` or one that also pushes tangents through it.
     ``wants_dense(t_new)``: whether a lane has a sample in (t, t_new]; if any running lane has,
     the stage loop also makes the dense output's three extra stages (used only if the step is
-    accepted: a rejected step with a sample wastes them, a rare case)."""
+    accepted: a rejected step with a sample wastes them, a rare case); ``False``: never (only
+    the ends of the interval are sampled, :func:`samplers`)."""
     t, y, f0, rej, status = st["t"], st["y"], st["f"], st["rej"], st["status"]
     running = status == RUNNING
     t_new, h, h_abs, too_small = D.trial_step(t, st["h"], rej, t_bound)
-    dense = running if wants_dense is None else running & wants_dense(t_new)
-    last = jnp.where(jnp.any(dense), D.N_EXT, D.NS + 1)
+    if wants_dense is False:
+        last = D.NS + 1
+    else:
+        dense = running if wants_dense is None else running & wants_dense(t_new)
+        last = jnp.where(jnp.any(dense), D.N_EXT, D.NS + 1)
     y_new, K = stages(f, t, y, f0, h, store, last)
     err = lax.stop_gradient(D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol))
     accept, h_next = D.controller(err, h_abs, rej)
@@ -144,6 +148,17 @@ def dense_sampler(step, ts, t_new):
     return sampler
 
 
+def samplers(ts, idx):
+    """``(wants_dense, sampler(step, t_new))`` of a loop sampling at ``ts`` (next sample
+    ``ts[idx]``): :func:`sample_ahead` and :func:`dense_sampler`; when ``ts`` holds only the two
+    ends of the interval (a final state: the last step ends at ``ts[-1]`` exactly), no dense
+    output at all, the sample being the step's own new state (the program holds neither the
+    dense output's three stages nor its interpolant)."""
+    if ts.shape[0] == 2:
+        return False, lambda step, t_new: lambda: lambda i: jnp.stack(step[3], axis=-1)
+    return sample_ahead(idx, ts), lambda step, t_new: dense_sampler(step, ts, t_new)
+
+
 def _emit(step, ts, idx, out, t_new, write, sampler):
     """Write every sample of ts in (t_old, t_new] of the committing lanes: ``sampler()``
     returns ``value(idx)``, the samples at ``ts[idx]`` (:func:`dense_sampler`); ``write(out,
@@ -195,10 +210,9 @@ def solve_one(problem: Problem, y0, ts, cfg: Config):
 
         def body(c):
             st, idx, out = c
-            st, step = attempt(
-                f, problem.failure, st, t_bound, cfg, store, wants_dense=sample_ahead(idx, ts)
-            )
-            idx, out = _emit(step, ts, idx, out, st["t"], write, dense_sampler(step, ts, st["t"]))
+            wants, sampler = samplers(ts, idx)
+            st, step = attempt(f, problem.failure, st, t_bound, cfg, store, wants_dense=wants)
+            idx, out = _emit(step, ts, idx, out, st["t"], write, sampler(step, st["t"]))
             return st, idx, out
 
         st, _, out = lax.while_loop(
@@ -286,27 +300,25 @@ def _round_up(n: int, m: int) -> int:
 # The tail (issue 31): once the queue is empty the lanes finish one by one, and each iteration
 # still costs all B of them while the last, longest trajectories run on few (with 2 devices each
 # has a tail as long as one device's). From :data:`COMPACT_FROM` trajectories on (a batch of
-# several waves: a long run), the running lanes are then gathered into narrower loops, each a
-# quarter of the one before, down to B/64 lanes (1008 -> 256, 64, 16 on a CPU): one more traced
-# copy of the step per width (~3 s of XLA's compilation each on the 2-core machine), so smaller
-# batches, whose first answer matters more than their tail, keep the one loop. Measured on one
-# pinned core, 2,965 Nikolai trajectories of 1k-320k steps (a 2-device share of the
-# `rbo-jax sweep` benchmark, t1 = 300): 42.0 s -> 27.4 s, the same bits (benchmarks/README.md).
+# several waves: a long run), the running lanes are then gathered into a narrower loop of B/4
+# lanes (1008 -> 256 on a CPU). Each width is one more traced copy of the step: measured on one
+# pinned core, a 2-device share of the `rbo-jax sweep` benchmark (2,965 Nikolai trajectories of
+# 500-160k steps, t1 = 150, final states): one loop 7.0-7.8 s to run, 6.5 s to compile; B/4
+# 4.6-4.7 s, 10.7 s; B/2, B/16: 4.5-4.9 s, 14.5 s; B/2, B/8, B/32: 4.4-5.0 s, 17-19 s; the same
+# bits. One narrower loop keeps most of the gain for the least compilation; smaller batches,
+# whose first answer matters more than their tail, keep the one loop.
 COMPACT_FROM = 2048
-COMPACT_STEP = 4
+COMPACT_DIVISORS = (4,)
 
 
 def tail_widths(B: int, N: int) -> tuple[int, ...]:
     """The narrower widths the B lanes are compacted to once the queue is empty (none for fewer
-    than :data:`COMPACT_FROM` trajectories): multiples of :data:`VECTOR`, so that every lane
-    keeps its bits."""
+    than :data:`COMPACT_FROM` trajectories): B / :data:`COMPACT_DIVISORS`, rounded up to
+    multiples of :data:`VECTOR`, so that every lane keeps its bits."""
     if N < COMPACT_FROM:
         return ()
-    widths, w, floor = [], B, max(VECTOR, B // 64)
-    while w > floor:
-        w = max(floor, _round_up(w // COMPACT_STEP, VECTOR))
-        widths.append(w)
-    return tuple(widths)
+    widths = sorted({_round_up(max(1, B // k), VECTOR) for k in COMPACT_DIVISORS}, reverse=True)
+    return tuple(w for w in widths if w < B)
 
 
 def _record(c, N):
@@ -337,6 +349,20 @@ def _compact(c, batched, N, width: int):
     new["tid"] = jnp.where(held, c["tid"][at], N)
     new["idx"] = c["idx"][at]
     return new
+
+
+def _running_over(width: int):
+    return lambda c: jnp.sum(c["st"]["status"] == RUNNING) > width
+
+
+def _tail(c, step, batched, N, widths):
+    """The loops of the tail (no queue left): ``step`` on the running lanes compacted to each
+    of ``widths`` in turn, until none runs."""
+    for i, width in enumerate(widths):
+        c = _compact(c, batched, N, width)
+        narrower = widths[i + 1] if i + 1 < len(widths) else 0
+        c = lax.while_loop(_running_over(narrower), step, c)
+    return c
 
 
 def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000):
@@ -387,14 +413,10 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
 
         def step(c):
             c = dict(c)
+            wants, sampler = samplers(ts, c["idx"])
+            problem = c["problem"]
             st, step = attempt(
-                fns.f(c["problem"]),
-                fns.failure(c["problem"]),
-                c["st"],
-                ts[-1],
-                cfg,
-                store,
-                wants_dense=sample_ahead(c["idx"], ts),
+                fns.f(problem), fns.failure(problem), c["st"], ts[-1], cfg, store, wants_dense=wants
             )
             tid = c["tid"]
 
@@ -402,7 +424,7 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
                 return out.at[jnp.where(mask, tid, N), idx].set(values, mode="drop")
 
             c["idx"], c["out"] = _emit(
-                step, ts, c["idx"], c["out"], st["t"], write, dense_sampler(step, ts, st["t"])
+                step, ts, c["idx"], c["out"], st["t"], write, sampler(step, st["t"])
             )
             c["st"] = st
             return c
@@ -415,16 +437,10 @@ def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000)
             )
             return step(c)
 
-        def running_over(width):
-            return lambda c: jnp.sum(c["st"]["status"] == RUNNING) > width
-
         widths = tail_widths(B, N)
         c = lax.while_loop(
-            lambda c: (c["next"] < N) | running_over(widths[0] if widths else 0)(c), body, c
+            lambda c: (c["next"] < N) | _running_over(widths[0] if widths else 0)(c), body, c
         )
-        for i, width in enumerate(widths):  # the tail: narrower loops, no queue left
-            c = _compact(c, batched, N, width)
-            narrower = widths[i + 1] if i + 1 < len(widths) else 0
-            c = lax.while_loop(running_over(narrower), step, c)
+        c = _tail(c, step, batched, N, widths)
     c = _record(c, N)
     return c["out"], c["status_out"], c["nacc_out"]
