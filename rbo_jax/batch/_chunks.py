@@ -12,6 +12,7 @@ in the chunk's ``errors`` (with their coordinates); every other point of the chu
 from __future__ import annotations
 
 import re
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import numpy as np
@@ -164,15 +165,25 @@ class Chunks:
 
     def run(self, chunk_ids, consume, bar=None):
         """Compute the chunks and hand each result to ``consume(cid, slices, result)``; one chunk
-        is computed while the previous one is consumed."""
+        is computed while the previous one is consumed.
+
+        The next chunk is dispatched from a worker thread: a program over several CPU devices
+        can block its caller until the devices are free (measured: 23 ms of a 10⁶-point
+        stability map's 29 ms chunks on 2 devices), which in this thread would hold up the
+        previous chunk's host work (its outputs, statuses, store) until then; dispatched
+        there, that work overlaps the next chunk's computation."""
         pending = None
-        for cid in chunk_ids:
-            launched = self.launch(cid)
+        pool = ThreadPoolExecutor(1, thread_name_prefix="rbo_jax-dispatch")
+        try:
+            for cid in chunk_ids:
+                launched = pool.submit(self.launch, cid)
+                if pending is not None:
+                    self._consume(pending, consume, bar)
+                pending = launched.result()
             if pending is not None:
                 self._consume(pending, consume, bar)
-            pending = launched
-        if pending is not None:
-            self._consume(pending, consume, bar)
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
 
     def _consume(self, pending, consume, bar):
         cid, slices = pending[0], pending[1]
