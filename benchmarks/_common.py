@@ -106,10 +106,11 @@ def run_child(module: str, argv, core: int | None = None) -> dict:
     as ``taskset -c core`` does: ``import rbo_jax`` then makes one CPU device, and XLA sizes its
     thread pools for one core). Per-core figures come from such processes: a process started on
     every core and pinned later keeps pools sized for all of them, whose tasks then queue on one
-    core (measured: ``jax.vmap(fast_simulate)`` 42 us per trajectory pinned later against 24 us
-    in a process started on the one core). Returns what ``main`` returned."""
+    core (measured: ``jax.vmap(fast_simulate)`` 42 us per trajectory pinned later against 22-27
+    us in a process started on the one core). Returns what ``main`` returned."""
     here = os.path.dirname(os.path.abspath(__file__))
     env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES",)}
+    env["PYTHONUNBUFFERED"] = "1"  # its lines as they come
 
     def pin():
         if core is not None and hasattr(os, "sched_setaffinity"):

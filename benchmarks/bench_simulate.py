@@ -137,7 +137,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
     if len(os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else [0]) > 1:
-        return _one_core_child_and_prange(args, list(argv or sys.argv[1:]))
+        return _one_core_child_and_prange(args, list(sys.argv[1:] if argv is None else argv))
 
     points = parameter_points(args.n)
     ns = args.scipy_sample

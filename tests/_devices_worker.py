@@ -94,13 +94,21 @@ def inner_eig():
 
 
 def fast_sweep():
-    """Final states of fast_simulate (refilled lanes) over 1, 2 and all local devices and two
-    chunk sizes: the same bits."""
+    """Final states of fast_simulate (refilled lanes) over the device counts of
+    ``RBO_TEST_DEVICE_COUNTS`` (default 1, 2 and all local devices) and two chunk sizes: the
+    same bits. The tail of a share is compacted from 256 trajectories on here (the default is
+    2048), so that some of these sweeps compact and others do not. Each device's share of a
+    chunk is recorded (the layout's, every device the same)."""
+    import importlib
+
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     import rbo_jax as rbo
+    from rbo_jax import _sharding
+
+    importlib.import_module("rbo_jax.ensemble._solve").COMPACT_FROM = 256
 
     k = jnp.array([0.0, 0.0, 1.0])
 
@@ -113,16 +121,21 @@ def fast_sweep():
         return {"theta": traj.theta[-1], "Omega": traj.Omega[-1]}, traj.status
 
     axes = {"M": np.linspace(0.05, 0.8, 30), "c": np.linspace(0.5, 2.0, 41)}
-    runs = {}
-    for devices in sorted({1, 2, len(jax.devices())}):
+    counts = os.environ.get("RBO_TEST_DEVICE_COUNTS")
+    counts = [int(c) for c in counts.split(",")] if counts else [1, 2, len(jax.devices())]
+    runs, shares = {}, {}
+    for devices in sorted(set(counts)):
         for chunk in (1230, 500):
             ds = rbo.sweep(final, axes, chunk_size=chunk, devices=devices, progress=False)
             runs[f"{devices}/{chunk}"] = np.concatenate(
                 [ds["theta"].values.ravel(), ds["Omega"].values.ravel()]
             )
+            layout = _sharding.Layout(jax.local_devices()[:devices], 0, chunk)
+            shares[f"{devices}/{chunk}"] = layout.batch // devices
     first = next(iter(runs.values()))
     return {
         "devices": len(jax.devices()),
+        "shares": shares,
         "runs": sorted(runs),
         "differ": sorted(k for k, v in runs.items() if not np.array_equal(v, first)),
         "finite": bool(np.isfinite(first).all()),

@@ -114,10 +114,30 @@ def test_a_vmap_inside_a_point_ends_on_several_devices(tmp_path, devices):
     assert report["finite"] and report["identical"]
 
 
-@pytest.mark.slow  # cost: ~35 s, six processes compiling sweeps
+@pytest.mark.slow  # cost: ~35 s, six sweeps compiled
 def test_fast_simulate_sweep_is_bitwise_the_same_on_any_number_of_devices(tmp_path):
-    """Refilled lanes, chunks of 1230 and 500 points, over 1, 2 and 4 devices: one result."""
+    """Refilled lanes, chunks of 1230 and 500 points, over 1, 2 and 4 devices, some with their
+    tails compacted: one result."""
     report = _run(tmp_path, "fast_sweep", RBO_JAX_CPU_DEVICES="4")
     assert report["devices"] == 4 and len(report["runs"]) == 6
     assert report["finite"]
     assert report["differ"] == []
+
+
+@pytest.mark.slow  # cost: ~60 s, six sweeps compiled for up to 16 devices
+def test_sweeps_on_8_and_16_devices_end_with_the_same_bits(tmp_path):
+    """Issue 31: 8 and 16 CPU devices on this machine's cores (more devices than cores) end,
+    every device holds an equal share of a chunk (a multiple of 16 points), and the results are
+    the one-device bits."""
+    report = _run(
+        tmp_path,
+        "fast_sweep",
+        timeout=600,
+        RBO_JAX_CPU_DEVICES="16",
+        RBO_TEST_DEVICE_COUNTS="1,8,16",
+    )
+    assert report["devices"] == 16 and len(report["runs"]) == 6
+    assert report["finite"] and report["differ"] == []
+    for key, share in report["shares"].items():
+        devices, chunk = (int(x) for x in key.split("/"))
+        assert share % 16 == 0 and share * devices >= chunk > (share - 16) * devices
