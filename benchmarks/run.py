@@ -179,6 +179,17 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                     f"jax {r['compile_jax']:.1f}",
                 )
             )
+        every = la.get("all_cores")
+        if every:
+            rows.append(
+                (
+                    "lattice",
+                    f"lattice.simulate (DOP853, N = {every['n']}) on {every['shards']} devices "
+                    "(all cores) vs one core",
+                    _fmt(every["ratio"], ".2f") + "x",
+                    f"max diff {every['max_diff']:.1e}",
+                )
+            )
     ro = results.get("rod")
     if ro:
         st = ro["statics"]
