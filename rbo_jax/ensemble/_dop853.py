@@ -196,23 +196,35 @@ def _identity(x):
     return x
 
 
-def error_norm(K, y, y_new, h_abs, rtol, atol, total=_identity, size=1):
-    """``DOP853._estimate_error_norm`` (RMS over the n components). Each component is one lane's
-    scalar (``total`` the identity), or an array of ``size`` scalars of one system (a lattice's
-    bodies) that ``total`` sums: the norm is then over all ``n × size`` scalars, as SciPy's."""
-    n = len(y)
+def error_sums(K, y, y_new, rtol, atol):
+    """The two sums of squares of ``DOP853._estimate_error_norm`` over the n components, element
+    by element: ``(s5, s3)``, each of the components' shape (:func:`error_norm` totals them)."""
     s5 = s3 = None
-    for i in range(n):
+    for i in range(len(y)):
         scale = atol + jnp.maximum(jnp.abs(y[i]), jnp.abs(y_new[i])) * rtol
         a = _combine(T.E5, K, i) / scale
         b = _combine(T.E3, K, i) / scale
         s5 = a * a if s5 is None else s5 + a * a
         s3 = b * b if s3 is None else s3 + b * b
+    return s5, s3
+
+
+def error_of_sums(t5, t3, h_abs, count):
+    """The error norm from the totals ``t5``, ``t3`` of :func:`error_sums` over ``count``
+    scalars."""
     # SciPy squares np.linalg.norm: the square of the square root, rounded alike
-    e5, e3 = jnp.sqrt(total(s5)) ** 2, jnp.sqrt(total(s3)) ** 2
+    e5, e3 = jnp.sqrt(t5) ** 2, jnp.sqrt(t3) ** 2
     zero = (e5 == 0.0) & (e3 == 0.0)
     denom = jnp.where(zero, 1.0, e5 + 0.01 * e3)
-    return jnp.where(zero, 0.0, h_abs * e5 / jnp.sqrt(denom * (n * size)))
+    return jnp.where(zero, 0.0, h_abs * e5 / jnp.sqrt(denom * count))
+
+
+def error_norm(K, y, y_new, h_abs, rtol, atol, total=_identity, size=1):
+    """``DOP853._estimate_error_norm`` (RMS over the n components). Each component is one lane's
+    scalar (``total`` the identity), or an array of ``size`` scalars of one system (a lattice's
+    bodies) that ``total`` sums: the norm is then over all ``n × size`` scalars, as SciPy's."""
+    s5, s3 = error_sums(K, y, y_new, rtol, atol)
+    return error_of_sums(total(s5), total(s3), h_abs, len(y) * size)
 
 
 def controller(err, h_abs, rejected):

@@ -135,14 +135,16 @@ def _sample(F, step, ts, idx, t_new):
     return jnp.stack([jnp.where(tj == t_new, a, b) for a, b in zip(y_new, value)], axis=-1)
 
 
-def dense_sampler(step, ts, t_new):
+def dense_sampler(step, ts, t_new, slope=D.slope, sums=D.dense_sums):
     """The ``sampler`` of :func:`_emit` for the state: the step's dense output from its 16
     slopes (the three extra stages were made by the step's stage loop,
-    ``attempt(wants_dense=...)``)."""
+    ``attempt(wants_dense=...)``). ``slope(K, j)`` and ``sums(K, i)`` read the step's slopes
+    (:func:`rbo_jax.ensemble._dop853.slope`, ``dense_sums``), or what another layout keeps of
+    them (a lattice's blocks: :mod:`rbo_jax.lattice._halo`)."""
 
     def sampler():
         commit, t_old, y_old, y_new, K, h = step
-        F = D.interpolant(K, y_old, y_new, D.slope(K, 0), D.slope(K, D.NS), h)
+        F = D.interpolant(K, y_old, y_new, slope(K, 0), slope(K, D.NS), h, sums=sums)
         return lambda idx: _sample(F, step, ts, idx, t_new)
 
     return sampler

@@ -11,7 +11,9 @@ for bit — the same operations on the same operands. This makes
 
 - **blocks**: the step of a long chain is a loop over blocks of ``block`` bodies whose 16 slopes
   and every intermediate of the right-hand side stay in the cache, one pass over memory per step
-  instead of one per XLA kernel and stage (the state of $10^6$ bodies is 48 MB per slope);
+  instead of one per XLA kernel and stage (the state of $10^6$ bodies is 48 MB per slope); a
+  block adds its bodies' terms to the error norm's sums and writes out only the slopes the
+  step needs afterwards (6 of 16 rows: K[0], K[12], the dense output's four sums);
 - **shards**: a chain split over devices (``jax.shard_map``), each device integrating its own
   bodies with halos of $H$ bodies from its two neighbours (``lax.ppermute``, once per step), the
   error norm one ``psum`` of the shards' sums: every shard takes the same step, SciPy's step of
@@ -54,8 +56,18 @@ class Whole(NamedTuple):
     def field(self, problem):
         return problem.f
 
-    def stages(self, problem, t, y, f0, h, store, last, first):
-        return D.stages(problem.f, t, y, f0, h, store, last, first=first)
+    def step(self, problem, t, y, f0, h, h_abs, store, last, first, cfg):
+        """``(y_new, K, err)``: :func:`rbo_jax.ensemble._dop853.stages` and the error norm of
+        the whole state."""
+        y_new, K = D.stages(problem.f, t, y, f0, h, store, last, first=first)
+        err = D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol, total=self.sum, size=self.size)
+        return y_new, K, err
+
+    def slope(self, K, j):
+        return D.slope(K, j)
+
+    def dense_sums(self, K, i):
+        return D.dense_sums(K, i)
 
 
 def _open_field(problem, weight):
@@ -132,18 +144,27 @@ class Halo(NamedTuple):
 
         return f
 
-    def stages(self, problem, t, y, f0, h, store, last, first):
-        """:func:`rbo_jax.ensemble._dop853.stages` of this device's bodies, block by block:
-        ``(y_new, K)`` as there, K one ``(16, n)`` array per component."""
+    def step(self, problem, t, y, f0, h, h_abs, store, last, first, cfg):
+        """:func:`rbo_jax.ensemble._dop853.stages` of this device's bodies, block by block, and
+        the error norm of the whole chain: ``(y_new, R, err)``. The 16 slopes of a block stay in
+        the cache: the block adds its bodies' terms to the two sums of the error norm
+        (:func:`~rbo_jax.ensemble._dop853.error_sums`; the last block counts only the bodies the
+        others did not) and keeps of its slopes only what the step needs afterwards, ``R`` one
+        ``(6, n)`` array per component: the first slope K[0], the slope at the new point K[12]
+        (the next first slope) and the four sums of the dense output
+        (:func:`~rbo_jax.ensemble._dop853.dense_sums`; read by :meth:`slope` and
+        :meth:`dense_sums`). Written out whole, the slopes were 16 × 6 numbers a body per step,
+        read again by the norm: the traffic that bounded a chain too large for the cache."""
         H, n = HALO, self.local
         ext = self._extend(jnp.stack(tuple(y) + tuple(f0)))  # (12, n + 2H)
         w_ext = self._weights(ext.dtype)
         nb = math.ceil(n / self.block)
         B = math.ceil(n / nb)  # equal blocks: the last overlaps its neighbour by < nb bodies
         dtype = ext.dtype
+        inner = slice(H, H + B)
 
         def one(b, carry):
-            K, y_new = carry
+            R, y_new, t5, t3 = carry
             s = jnp.minimum(b * B, n - B)  # the last block overlaps its neighbour: same values
             seg = lax.dynamic_slice_in_dim(ext, s, B + 2 * H, axis=1)
             w = lax.dynamic_slice_in_dim(w_ext, s, B + 2 * H)
@@ -157,20 +178,35 @@ class Halo(NamedTuple):
                 last,
                 first=first,
             )
-            K = tuple(
-                lax.dynamic_update_slice_in_dim(Kg, kb[:, H : H + B], s, axis=1)
-                for Kg, kb in zip(K, Kb)
-            )
+            Kb = tuple(k[:, inner] for k in Kb)
+            yb = tuple(v[inner] for v in yb)
+            y0b = tuple(v[inner] for v in seg[:6])
+            s5, s3 = D.error_sums(Kb, y0b, yb, cfg.rtol, cfg.atol)
+            new = (s + jnp.arange(B)) >= b * B  # bodies no earlier block counted
+            t5 = t5 + jnp.sum(jnp.where(new, s5, 0.0))
+            t3 = t3 + jnp.sum(jnp.where(new, s3, 0.0))
+            kept = tuple(jnp.stack([k[0], k[D.NS], *D.dense_sums(Kb, i)]) for i, k in enumerate(Kb))
+            R = tuple(lax.dynamic_update_slice_in_dim(Rg, r, s, axis=1) for Rg, r in zip(R, kept))
             y_new = tuple(
-                lax.dynamic_update_slice_in_dim(yg, v[H : H + B], s, axis=0)
-                for yg, v in zip(y_new, yb)
+                lax.dynamic_update_slice_in_dim(yg, v, s, axis=0) for yg, v in zip(y_new, yb)
             )
-            return K, y_new
+            return R, y_new, t5, t3
 
-        K0 = tuple(jnp.zeros((D.N_EXT, n), dtype) for _ in range(6))
+        zero = jnp.zeros((), dtype)
+        R0 = tuple(jnp.zeros((6, n), dtype) for _ in range(6))
         y0 = tuple(jnp.zeros((n,), dtype) for _ in range(6))
         if nb == 1:
-            K, y_new = one(0, (K0, y0))
+            R, y_new, t5, t3 = one(0, (R0, y0, zero, zero))
         else:
-            K, y_new = lax.fori_loop(0, nb, one, (K0, y0))
-        return y_new, K
+            R, y_new, t5, t3 = lax.fori_loop(0, nb, one, (R0, y0, zero, zero))
+        err = D.error_of_sums(self.sum(t5), self.sum(t3), h_abs, 6 * self.size)
+        return y_new, R, err
+
+    def slope(self, R, j):
+        """K[0] or K[12] from :meth:`step`'s ``R``."""
+        row = {0: 0, D.NS: 1}[j]
+        return tuple(r[row] for r in R)
+
+    def dense_sums(self, R, i):
+        """The four dense-output sums of component ``i`` from :meth:`step`'s ``R``."""
+        return tuple(R[i][2 + r] for r in range(4))

@@ -5,8 +5,8 @@ The lattice is one ODE system: one step size, one error norm over all $6N$ scala
 steps ``scipy.integrate.solve_ivp(method="DOP853")`` takes on the flattened system. The step is
 :mod:`rbo_jax.ensemble._dop853`'s (the same tableau, stages in one loop, dense output on steps
 with samples), with the state as six ``(N,)`` component arrays; only the norms sum over the
-bodies. Memory is bounded: the sixteen slopes of a step, ``16 × 6 × N`` numbers, and the
-samples asked for.
+bodies. Memory is bounded: the sixteen slopes of a step, ``16 × 6 × N`` numbers (a chain in
+blocks keeps ``6 × 6 × N`` of them, :mod:`._halo`), and the samples asked for.
 
 **Turns across the singular spheres.** $Z(\theta)$ (4.11) is singular at $|\theta| = 2\pi k$;
 a body in plane motion ($\theta\times\Omega = 0$) crosses these spheres harmlessly (a kink of a
@@ -113,16 +113,14 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
     it passes written, the step's checks, and the re-centring after it: the new carry.
     ``plan``: how the stages are made and the bodies summed (:mod:`._halo`)."""
     c = dict(c)
-    N, nts, t_bound = plan.size, ts.shape[0], ts[-1]
+    nts, t_bound = ts.shape[0], ts[-1]
     t, y, f0, rej, idx = c["t"], c["y"], c["f"], c["rej"], c["idx"]
     t_new, h, h_abs, too_small = D.trial_step(t, c["h"], rej, t_bound)
     dense = (idx < nts) & (ts[jnp.minimum(idx, nts - 1)] <= t_new)
     last = jnp.where(dense, D.N_EXT, D.NS + 1)
     f_start = tuple(jnp.where(c["first"] == 0, jnp.zeros_like(v), v) for v in f0)
-    y_new, K = plan.stages(problem, t, y, f_start, h, store, last, c["first"])
-    err = lax.stop_gradient(
-        D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol, total=plan.sum, size=N)
-    )
+    y_new, K, err = plan.step(problem, t, y, f_start, h, h_abs, store, last, c["first"], cfg)
+    err = lax.stop_gradient(err)
     accept, h_next = D.controller(err, h_abs, rej)
     go = ~too_small
     commit = go & accept
@@ -136,7 +134,13 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
         return out, tout
 
     c["idx"], (c["out"], c["turns_out"]) = _emit(
-        step, ts, idx, (c["out"], c["turns_out"]), t_new, write, dense_sampler(step, ts, t_new)
+        step,
+        ts,
+        idx,
+        (c["out"], c["turns_out"]),
+        t_new,
+        write,
+        dense_sampler(step, ts, t_new, plan.slope, plan.dense_sums),
     )
     status = jnp.where(too_small, code("step_size_collapse"), c["status"])
     status = jnp.where(~jnp.isfinite(err), code("nonfinite_state"), status)
@@ -147,7 +151,7 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
     )
     y_next = tuple(jnp.where(commit, a, b) for a, b in zip(y_new, y))
     # the next first slope: K[12] at the new point, or K[0] (the slope at (t, y)) after a reject
-    f_next = tuple(jnp.where(commit, a, b) for a, b in zip(D.slope(K, D.NS), D.slope(K, 0)))
+    f_next = tuple(jnp.where(commit, a, b) for a, b in zip(plan.slope(K, D.NS), plan.slope(K, 0)))
     first_next = jnp.asarray(1, jnp.int32)
     if cfg.recenter:
         y_rec, k, moved = problem.recenter(y_next, cfg, plan)
