@@ -272,6 +272,23 @@ def whole_loops(devices, share: int):
         _pin_all(before)
 
 
+def compile_program(traced, layout: Layout):
+    """Lower and compile a traced chunk program of ``layout``: lowered with LAPACK in blocks
+    too, compiled with whole loops (:func:`whole_loops`).
+
+    Some primitives trace their batched implementation only when they are lowered: lineax's
+    linear solve keeps the solver's ``lu_solve`` inside its primitive until then, so that the
+    program's jaxpr holds no ``triangular_solve`` and the batching of tracing time never saw
+    it. Lowered outside :func:`lapack_in_blocks`, a Newton stability map's chunk of 65,536 points
+    on 2 devices held two ``lapack_dtrsm_ffi`` calls of 32,768 matrices each, which jaxlib split
+    over the intra-op pool: both devices' threads waited there for good (issue 31, found
+    2026-11-27; 16,384-point chunks stayed just below jaxlib's split)."""
+    with lapack_in_blocks(layout.block):
+        lowered = traced.lower()
+    with whole_loops(layout.devices, layout.batch // len(layout.devices)):
+        return lowered.compile()
+
+
 def _can_pin() -> bool:
     return hasattr(os, "sched_setaffinity") and os.path.isdir("/proc/self/task")
 
@@ -348,8 +365,7 @@ def map_points(fn, points: dict, devices=None):
     block = np.empty((layout.batch, len(names)))
     block[:] = x[0]
     block[: len(x)] = x
-    with whole_loops(layout.devices, layout.batch // len(layout.devices)):
-        compiled = traced.lower().compile()
+    compiled = compile_program(traced, layout)
     n_dev = len(layout.devices)
     out = compiled(jax.device_put(deal(block, n_dev), layout.sharding))
     return jax.tree_util.tree_map(lambda a: undeal(np.asarray(a), n_dev)[: len(x)], out)

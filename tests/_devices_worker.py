@@ -64,6 +64,32 @@ def newton_map():
     }
 
 
+def newton_map_large_chunks():
+    """The Newton map in one chunk of 65,536 points over every device (32,768 a device on two):
+    lineax's ``lu_solve``, traced only when the program is lowered, held triangular solves of a
+    whole share, which jaxlib split over XLA's pool and waited forever. Compared with the
+    default chunks on one device."""
+    import jax
+    import numpy as np
+
+    import rbo_jax as rbo
+
+    axes = {"M": np.linspace(-0.8, 0.8, 256), "c": np.linspace(0.5, 2.0, 256)}
+
+    def model_fn(M, c):
+        return rbo.nikolai_model(M, c, 2.0, A3=0.6)
+
+    many = rbo.stability_map(model_fn, axes, chunk_size=65536)
+    one = rbo.stability_map(model_fn, axes, devices=1)
+    return {
+        "devices": len(jax.devices()),
+        "counts": many.attrs["status_counts"],
+        "identical": all(
+            np.array_equal(many[v].values, one[v].values, equal_nan=True) for v in many.data_vars
+        ),
+    }
+
+
 def inner_eig():
     """A quantity with a ``vmap`` inside one point (32 eigenproblems of 60 x 60, as the spectra
     of a scan of loads in ``rbo_jax.lattice.critical_load``): jaxlib splits such a call over the

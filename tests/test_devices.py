@@ -104,6 +104,19 @@ def test_stability_map_with_newton_equilibria_ends_on_several_devices(tmp_path, 
     assert report["counts"]["successful"] == 1600
 
 
+@pytest.mark.slow  # cost: ~30 s, two Newton maps of 65,536 points compiled
+def test_a_newton_map_in_chunks_of_65536_points_ends_on_2_devices(tmp_path):
+    """A chunk of 65,536 points on 2 devices waited forever in ``lapack_dtrsm_ffi``: lineax's
+    ``lu_solve`` is traced only when the program is lowered, and was lowered outside the
+    LAPACK-in-blocks rules, so each device's share of 32,768 triangular solves was one call that
+    jaxlib split over XLA's pool. It ends now (the test's timeout fails a hang), with the
+    one-device bits."""
+    report = _run(tmp_path, "newton_map_large_chunks", timeout=240, RBO_JAX_CPU_DEVICES="2")
+    assert report["devices"] == 2
+    assert report["identical"]
+    assert sum(report["counts"].values()) == 65536
+
+
 @pytest.mark.parametrize("devices", [2, 4])
 def test_a_vmap_inside_a_point_ends_on_several_devices(tmp_path, devices):
     """LAPACK batched inside one point (the rods' ``critical_load`` scans its spectra over the
