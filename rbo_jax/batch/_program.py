@@ -25,10 +25,10 @@ or 4 CPU devices waited forever at 0 % CPU (issue 31; native stacks: every ``tf_
 thread in ``BlockingCounter::Wait`` under ``lapack_dgeev_ffi``). While a chunk program is traced,
 the batching rules of the LAPACK primitives are therefore replaced by ones that run a batch in
 blocks small enough that no kernel is ever split (:func:`lapack_in_blocks`); the rest of the
-quantity stays one ``vmap`` over the device's points. The program is also lowered under them
-(:func:`rbo_jax._sharding.compile_program`): lineax's linear solve traces its batched
-``lu_solve`` only then, and a Newton map's chunk of 65,536 points on 2 devices waited forever
-in ``lapack_dtrsm_ffi`` when it was lowered outside.
+quantity stays one ``vmap`` over the device's points. A program for several devices is also
+lowered under them (:func:`rbo_jax._sharding.compile_program`): lineax's linear solve traces
+its batched ``lu_solve`` only then, and a Newton map's chunk of 65,536 points on 2 devices
+waited forever in ``lapack_dtrsm_ffi`` when it was lowered outside.
 
 **The same bits on any number of devices.** A point's value must not depend on where it sits in
 the batch: XLA's CPU code rounds some fused expressions differently in the scalar remainder of a
