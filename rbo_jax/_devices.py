@@ -102,15 +102,17 @@ def use_every_core() -> int | None:
 
 def warn_if_few_devices(devices) -> None:
     """Once per process: a sweep over fewer CPU devices than cores, although the user asked for
-    neither (JAX started before ``import rbo_jax``), says what to do."""
+    neither (JAX started before ``import rbo_jax``), says what to do. Fewer devices that the user
+    asked for (``RBO_JAX_CPU_DEVICES=n``, JAX's own settings) are not warned about."""
     global _warned
     if _warned or devices is not None:
         return
     local = jax.local_devices()
     n = cores()
-    if local[0].platform != "cpu" or len(local) >= n or user_choice() is not None:
+    if local[0].platform != "cpu" or user_choice() is not None:
         return
-    if requested() is None:
+    want = requested()  # RBO_JAX_CPU_DEVICES's count (every core when unset)
+    if want is None or len(local) >= min(n, want):
         return
     _warned = True
     warnings.warn(

@@ -282,10 +282,10 @@ def compile_program(traced, layout: Layout):
     it. Lowered outside :func:`lapack_in_blocks`, a Newton stability map's chunk of 65,536 points
     on 2 devices held two ``lapack_dtrsm_ffi`` calls of 32,768 matrices each, which jaxlib split
     over the intra-op pool: both devices' threads waited there for good (issue 31, found
-    2026-11-27; 16,384-point chunks stayed just below jaxlib's split). One device cannot wait
-    so (its pool's other threads run the split's tasks), and lowering under the rules cost it
-    0.3-0.4 s of a warm first answer (the Newton map of ``latency.py``), so a program for one
-    device is lowered as it is."""
+    2026-11-27; 16,384-point chunks stayed just below jaxlib's split). One device did not wait
+    so (that chunk on one device ended, pinned to one core and on two), and lowering under the
+    rules cost it 0.3-0.4 s of a warm first answer (the Newton map of ``latency.py``), so a
+    program for one device is lowered as it is."""
     block = layout.block if len(layout.devices) > 1 else 0
     with lapack_in_blocks(block):
         lowered = traced.lower()

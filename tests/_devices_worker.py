@@ -64,6 +64,20 @@ def newton_map():
     }
 
 
+def chosen_sweep():
+    """A sweep after ``import rbo_jax``, whatever RBO_JAX_CPU_DEVICES asked for: the warnings
+    it gives."""
+    import jax
+    import numpy as np
+
+    import rbo_jax
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rbo_jax.sweep(lambda x: x * 2.0, {"x": np.arange(4.0)}, progress=False)
+    return {"devices": len(jax.devices()), "warnings": [str(w.message) for w in caught]}
+
+
 def newton_map_large_chunks():
     """The Newton map in one chunk of 65,536 points over every device (32,768 a device on two):
     lineax's ``lu_solve``, traced only when the program is lowered, held triangular solves of a

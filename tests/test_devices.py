@@ -80,6 +80,14 @@ def test_a_bad_setting_is_named(tmp_path):
     assert res.returncode != 0 and "RBO_JAX_CPU_DEVICES='many'" in res.stderr
 
 
+def test_fewer_devices_asked_for_are_not_warned_about(tmp_path):
+    """``RBO_JAX_CPU_DEVICES=1`` on a machine of several cores: one device, as asked, and no
+    warning that JAX started first (it said so, wrongly, before 2026-11-27)."""
+    report = _run(tmp_path, "chosen_sweep", RBO_JAX_CPU_DEVICES="1")
+    assert report["devices"] == 1
+    assert report["warnings"] == []
+
+
 def test_jax_started_first_is_said_once(tmp_path):
     """A computation before ``import rbo_jax`` fixes one device; the first sweep on a machine
     of several cores says what to do, once."""
