@@ -154,7 +154,8 @@ class Halo(NamedTuple):
         (the next first slope) and the four sums of the dense output
         (:func:`~rbo_jax.ensemble._dop853.dense_sums`; read by :meth:`slope` and
         :meth:`dense_sums`). Written out whole, the slopes were 16 × 6 numbers a body per step,
-        read again by the norm: the traffic that bounded a chain too large for the cache."""
+        read again by the norm; keeping 6 rows made a step of 10⁶ bodies 7 % faster on one core
+        (benchmarks/README.md, 2026-11-27)."""
         H, n = HALO, self.local
         ext = self._extend(jnp.stack(tuple(y) + tuple(f0)))  # (12, n + 2H)
         w_ext = self._weights(ext.dtype)
