@@ -60,6 +60,46 @@ def test_blocks_match_whole_arrays(periodic):
     np.testing.assert_allclose(b["samples"], a["samples"], rtol=0, atol=1e-14)
 
 
+W = 2.0
+
+
+def spinning(n, seed=3):
+    """A Kelvin chain (no foundation) spinning at W about e_x, transverse to its turn-vectors
+    near 0, with noise: its bodies come near |θ| = 2π off the plane at different steps."""
+    site = rbo_jax.RigidBodyOscillator(
+        rbo_jax.transversely_isotropic_inertia(1.0, 0.6, K), rbo_jax.ZeroFoundation()
+    )
+    lat = L.chain(n, site, rbo_jax.QuadraticFoundation(0.9, 0.4, K))
+    rng = np.random.default_rng(seed)
+    theta = np.tile([0.0, 2e-4, 0.0], (n, 1)) + 1e-5 * rng.standard_normal((n, 3))
+    Omega = np.tile([W, 0.0, 0.0], (n, 1)) + 1e-3 * rng.standard_normal((n, 3))
+    return lat, theta, Omega
+
+
+def test_blocks_recentre_as_whole_arrays():
+    """Re-centring (the re-centred turn-vector of a body off the plane near |θ| = 2π, the
+    integrators' module docstring) decided in blocks: a uniform spin transverse to θ (every body
+    alike, the couplings idle) with noise so that the bodies cross the sphere at different
+    steps; blocks of 15 on a periodic chain of 40 (the last overlapping its neighbour) re-centre
+    the same bodies at the same steps as the whole-array program, and the turn-tensors stay
+    the free rotation's."""
+    n, w = 40, W
+    lat, theta, Omega = spinning(n)
+    y0 = tuple(jnp.asarray(np.concatenate([theta.T, Omega.T])))
+    ts = jnp.linspace(0.0, 6.0, 5)
+    cfg = Config(1e-10, 1e-12, 10_000, 1e-3, True, 0.5)
+    run = eqx.filter_jit(lambda p, y, ts, plan: solve(p, y, ts, cfg, plan))
+    a = run(Problem.of(lat), y0, ts, Whole(n))
+    b = run(Problem.of(lat), y0, ts, Halo(n, n, True, 15))
+    assert int(a["status"]) == int(b["status"]) == 0
+    assert int(a["num_steps"]) == int(b["num_steps"])
+    assert int(a["num_recentred"]) == int(b["num_recentred"]) >= n
+    np.testing.assert_array_equal(b["turns"], a["turns"])
+    np.testing.assert_allclose(b["samples"], a["samples"], rtol=0, atol=1e-12)
+    exact = rbo_jax.turn_tensor(theta[0]) @ rbo_jax.turn_tensor(w * 6.0 * np.eye(3)[0])
+    np.testing.assert_allclose(rbo_jax.turn_tensor(b["samples"][-1, 0, :3]), exact, atol=1e-2)
+
+
 def test_devices_are_checked():
     lat = chain(64, True)
     theta, Omega = start(64)
@@ -81,7 +121,7 @@ CHILD = textwrap.dedent(
     jax.config.update("jax_num_cpu_devices", {d})
     import numpy as np
     sys.path.insert(0, {here!r})
-    from test_lattice_sharded import chain, start
+    from test_lattice_sharded import chain, spinning, start
     from rbo_jax import lattice as L
     out = {{"devices": len(jax.local_devices())}}
     for periodic in (True, False):
@@ -98,6 +138,16 @@ CHILD = textwrap.dedent(
             scale=float(np.max(np.abs(one.theta))),
             shards=len(many.theta.sharding.device_set),
         )
+    lat, theta, Omega = spinning(64)
+    ts = np.linspace(0.0, 6.0, 5)
+    one = L.simulate(lat, theta, Omega, ts, rtol=1e-10, atol=1e-12, devices=1)
+    many = L.simulate(lat, theta, Omega, ts, rtol=1e-10, atol=1e-12, devices={d})
+    out["recentred"] = dict(
+        count=[int(one.num_recentred), int(many.num_recentred)],
+        steps=[int(one.num_steps), int(many.num_steps)],
+        turns=bool(np.array_equal(np.asarray(one.turns), np.asarray(many.turns))),
+        diff=float(np.max(np.abs(np.asarray(one.theta) - np.asarray(many.theta)))),
+    )
     print(json.dumps(out))
     """
 )
@@ -129,3 +179,6 @@ def test_split_over_devices(d):
         assert r["steps"][0] == r["steps"][1]
         assert r["shards"] == d
         assert r["diff"] <= 1e-13 * r["scale"]
+    r = out["recentred"]  # re-centring decided on the shards: the same bodies at the same steps
+    assert r["count"][0] == r["count"][1] >= 64 and r["steps"][0] == r["steps"][1]
+    assert r["turns"] and r["diff"] <= 1e-11

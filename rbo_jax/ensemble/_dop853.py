@@ -245,6 +245,24 @@ def _rms_of(v, total=_identity, size=1):
     return jnp.sqrt(total(s) / (len(v) * size))
 
 
+def initial_guess(d0, d1, interval):
+    """``select_initial_step``'s first guess h0 from the RMS norms d0 = ‖y0/scale‖, d1 =
+    ‖f0/scale‖, clipped at ``interval``: ``(h0, d1)``."""
+    h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / jnp.where(d1 == 0, 1.0, d1))
+    return jnp.minimum(h0, interval), d1
+
+
+def initial_choice(h0, d1, d2, interval):
+    """``select_initial_step``'s step from the guess h0, d1 and d2 = ‖(f1 − f0)/scale‖/h0."""
+    tiny = (d1 <= 1e-15) & (d2 <= 1e-15)
+    h1 = jnp.where(
+        tiny,
+        jnp.maximum(1e-6, h0 * 1e-3),
+        (0.01 / jnp.where(tiny, 1.0, jnp.maximum(d1, d2))) ** INITIAL_EXPONENT,
+    )
+    return lax.stop_gradient(jnp.minimum(jnp.minimum(100 * h0, h1), interval))
+
+
 def initial_step(f, t0, y0, t_bound, rtol, atol, total=_identity, size=1):
     """The first slope f0 = f(t0, y0) and ``common.select_initial_step`` (no maximal step,
     forward direction): ``(f0, h)``. Its two evaluations, f(t0, y0) and f(t0 + h0, y0 + h0 f0),
@@ -260,9 +278,7 @@ def initial_step(f, t0, y0, t_bound, rtol, atol, total=_identity, size=1):
     d0 = _rms([y / s for y, s in zip(y0, scale)])
 
     def first_guess(f0):
-        d1 = _rms([v / s for v, s in zip(f0, scale)])
-        h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / jnp.where(d1 == 0, 1.0, d1))
-        return jnp.minimum(h0, interval), d1
+        return initial_guess(d0, _rms([v / s for v, s in zip(f0, scale)]), interval)
 
     def body(i, slopes):
         f0, _ = slopes
@@ -274,13 +290,7 @@ def initial_step(f, t0, y0, t_bound, rtol, atol, total=_identity, size=1):
     f0, f1 = lax.fori_loop(0, 2, body, (zeros, zeros))
     h0, d1 = first_guess(f0)
     d2 = _rms([(a - b) / s for a, b, s in zip(f1, f0, scale)]) / h0
-    tiny = (d1 <= 1e-15) & (d2 <= 1e-15)
-    h1 = jnp.where(
-        tiny,
-        jnp.maximum(1e-6, h0 * 1e-3),
-        (0.01 / jnp.where(tiny, 1.0, jnp.maximum(d1, d2))) ** INITIAL_EXPONENT,
-    )
-    return f0, lax.stop_gradient(jnp.minimum(jnp.minimum(100 * h0, h1), interval))
+    return f0, initial_choice(h0, d1, d2, interval)
 
 
 def min_step(t):

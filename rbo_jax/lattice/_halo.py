@@ -50,18 +50,20 @@ class Whole(NamedTuple):
     def sum(self, x):
         return jnp.sum(x)
 
-    def any(self, x):
-        return jnp.any(x)
-
-    def field(self, problem):
-        return problem.f
+    def initial(self, problem, t0, y0, t_bound, cfg):
+        """``(f0, h0, flags)``: :func:`rbo_jax.ensemble._dop853.initial_step` and the checks of
+        the initial state (:meth:`._integrate.Problem.flags`)."""
+        f0, h0 = D.initial_step(
+            problem.f, t0, y0, t_bound, cfg.rtol, cfg.atol, total=self.sum, size=self.size
+        )
+        return f0, h0, problem.flags(y0, y0, cfg)
 
     def step(self, problem, t, y, f0, h, h_abs, store, last, first, cfg):
-        """``(y_new, K, err)``: :func:`rbo_jax.ensemble._dop853.stages` and the error norm of
-        the whole state."""
+        """``(y_new, K, err, flags)``: :func:`rbo_jax.ensemble._dop853.stages`, the error norm
+        of the whole state and the checks of the step (:meth:`._integrate.Problem.flags`)."""
         y_new, K = D.stages(problem.f, t, y, f0, h, store, last, first=first)
         err = D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol, total=self.sum, size=self.size)
-        return y_new, K, err
+        return y_new, K, err, problem.flags(y, y_new, cfg)
 
     def slope(self, K, j):
         return D.slope(K, j)
@@ -99,11 +101,13 @@ class Halo(NamedTuple):
         s = jnp.sum(x)
         return s if self.axis is None else lax.psum(s, self.axis)
 
-    def any(self, x):
-        a = jnp.any(x)
+    def _totals(self, sums, flags):
+        """The chain's totals of this shard's ``sums`` (floats) and ``flags`` (bools): one
+        ``psum`` of both over the shards."""
         if self.axis is None:
-            return a
-        return lax.psum(a.astype(jnp.int32), self.axis) > 0
+            return sums, flags
+        v = lax.psum(jnp.concatenate([sums, flags.astype(sums.dtype)]), self.axis)
+        return v[: sums.shape[0]], v[sums.shape[0] :] > 0
 
     def _offset(self):
         if self.axis is None:
@@ -115,6 +119,8 @@ class Halo(NamedTuple):
         neighbouring shards (or this chain's own ends: a periodic chain on one device, or
         positions an open chain's weights leave uncoupled)."""
         H = HALO
+        if x.shape[1] < H:  # the callers split only chains of at least H bodies a segment
+            raise ValueError(f"a segment of a chain needs at least {H} bodies, got {x.shape[1]}")
         if self.axis is None:
             left, right = x[:, -H:], x[:, :H]
         else:
@@ -133,42 +139,108 @@ class Halo(NamedTuple):
             w = (g >= 0) & (g <= self.size - 2) & (p < n + 2 * H - 1)
         return w.astype(dtype)
 
-    def field(self, problem):
-        """The slopes of this device's bodies (the halo exchanged): for the initial step."""
+    def _blocks(self, ext, one, carry):
+        """``one(seg, w, s, new, carry) → carry`` over the blocks of this device's bodies:
+        ``seg`` the block's rows of ``ext`` (:meth:`_extend`) with H bodies either side, ``w``
+        their pairs' weights, ``s`` the block's first body, ``new`` (B,) which of its bodies no
+        earlier block had (the last block overlaps its neighbour by < nb bodies: the same
+        values again, counted once in sums). One block: no loop."""
         H, n = HALO, self.local
+        w_ext = self._weights(ext.dtype)
+        nb = math.ceil(n / self.block)
+        B = math.ceil(n / nb)  # equal blocks
 
-        def f(t, y):
-            ext = self._extend(jnp.stack(y))
-            k = _open_field(problem, self._weights(ext.dtype))(t, tuple(ext))
-            return tuple(v[H : H + n] for v in k)
+        def body(b, carry):
+            s = jnp.minimum(b * B, n - B)
+            seg = lax.dynamic_slice_in_dim(ext, s, B + 2 * H, axis=1)
+            w = lax.dynamic_slice_in_dim(w_ext, s, B + 2 * H)
+            return one(seg, w, s, (s + jnp.arange(B)) >= b * B, carry)
 
-        return f
+        return body(0, carry) if nb == 1 else lax.fori_loop(0, nb, body, carry)
+
+    def _rows(self, values, B):
+        """Inner rows ``[H, H + B)`` of a block's segment values."""
+        return tuple(v[HALO : HALO + B] for v in values)
+
+    def _put(self, arrays, values, s):
+        """``values`` (one block's) written into ``arrays`` from body ``s`` on."""
+        return tuple(
+            lax.dynamic_update_slice_in_dim(a, v, s, axis=a.ndim - 1)
+            for a, v in zip(arrays, values)
+        )
+
+    def initial(self, problem, t0, y0, t_bound, cfg):
+        """:func:`rbo_jax.ensemble._dop853.initial_step` in blocks, and the checks of the initial
+        state: ``(f0, h0, flags)``. Two passes over the blocks: f0 = f(t0, y0) with the sums of
+        squares of the norms d0 = ‖y0/scale‖, d1 = ‖f0/scale‖ and the checks; then, after one
+        ``psum`` gives the first guess h0, f1 = f(t0 + h0, y0 + h0 f0) and the sum of
+        ‖(f1 − f0)/scale‖ (halos of y0 and of f0 exchanged). The sums' order is the blocks', so
+        h0 agrees with the whole arrays' to rounding."""
+        n, dtype = self.local, y0[0].dtype
+        nb = math.ceil(n / self.block)
+        B = math.ceil(n / nb)
+        interval = jnp.abs(t_bound - t0)
+        count = 6 * self.size
+        zero = jnp.zeros((), dtype)
+
+        def scaled_sum(v, y):
+            total = zero
+            for a, b in zip(v, y):
+                x = a / (cfg.atol + jnp.abs(b) * cfg.rtol)
+                total = total + jnp.sum(x * x)
+            return total
+
+        def first(seg, w, s, new, carry):
+            f0, s0, s1, flags = carry
+            yb = tuple(seg[:6])
+            k = self._rows(_open_field(problem, w)(t0, yb), B)
+            y_in = self._rows(yb, B)
+            keep = new.astype(dtype)
+            s0 = s0 + scaled_sum(tuple(v * keep for v in y_in), y_in)
+            s1 = s1 + scaled_sum(tuple(v * keep for v in k), y_in)
+            flags = flags | problem.flags(y_in, y_in, cfg)
+            return self._put(f0, k, s), s0, s1, flags
+
+        f0 = tuple(jnp.zeros((n,), dtype) for _ in range(6))
+        no = jnp.zeros((4,), bool)
+        f0, s0, s1, flags = self._blocks(self._extend(jnp.stack(y0)), first, (f0, zero, zero, no))
+        (s0, s1), flags = self._totals(jnp.stack([s0, s1]), flags)
+        d0, d1 = jnp.sqrt(s0 / count), jnp.sqrt(s1 / count)
+        h0, d1 = D.initial_guess(d0, d1, interval)
+
+        def second(seg, w, s, new, s2):
+            y1 = tuple(a + h0 * b for a, b in zip(seg[:6], seg[6:]))
+            k = self._rows(_open_field(problem, w)(t0 + h0, y1), B)
+            f0b, y_in = self._rows(tuple(seg[6:]), B), self._rows(tuple(seg[:6]), B)
+            keep = new.astype(dtype)
+            return s2 + scaled_sum(tuple((a - b) * keep for a, b in zip(k, f0b)), y_in)
+
+        ext = self._extend(jnp.stack(tuple(y0) + tuple(f0)))
+        s2 = self._blocks(ext, second, zero)
+        d2 = jnp.sqrt(self.sum(s2) / count) / h0
+        return f0, D.initial_choice(h0, d1, d2, interval), flags
 
     def step(self, problem, t, y, f0, h, h_abs, store, last, first, cfg):
-        """:func:`rbo_jax.ensemble._dop853.stages` of this device's bodies, block by block, and
-        the error norm of the whole chain: ``(y_new, R, err)``. The 16 slopes of a block stay in
-        the cache: the block adds its bodies' terms to the two sums of the error norm
-        (:func:`~rbo_jax.ensemble._dop853.error_sums`; the last block counts only the bodies the
-        others did not) and keeps of its slopes only what the step needs afterwards, ``R`` one
-        ``(6, n)`` array per component: the first slope K[0], the slope at the new point K[12]
-        (the next first slope) and the four sums of the dense output
+        """:func:`rbo_jax.ensemble._dop853.stages` of this device's bodies, block by block, the
+        error norm of the whole chain and the step's checks: ``(y_new, R, err, flags)``. The 16
+        slopes of a block stay in the cache: the block adds its bodies' terms to the two sums of
+        the error norm (:func:`~rbo_jax.ensemble._dop853.error_sums`; the last block counts only
+        the bodies the others did not), makes its bodies' checks
+        (:meth:`._integrate.Problem.flags`) and keeps of its slopes only what the step needs
+        afterwards, ``R`` one ``(6, n)`` array per component: the first slope K[0], the slope at
+        the new point K[12] (the next first slope) and the four sums of the dense output
         (:func:`~rbo_jax.ensemble._dop853.dense_sums`; read by :meth:`slope` and
         :meth:`dense_sums`). Written out whole, the slopes were 16 × 6 numbers a body per step,
         read again by the norm; keeping 6 rows made a step of 10⁶ bodies 7 % faster on one core
-        (benchmarks/README.md, 2026-11-27)."""
-        H, n = HALO, self.local
-        ext = self._extend(jnp.stack(tuple(y) + tuple(f0)))  # (12, n + 2H)
-        w_ext = self._weights(ext.dtype)
+        (benchmarks/README.md, 2026-11-27); the checks, two more passes over the state, were
+        another ~20 % of a step there. The shards' sums and checks are one ``psum``."""
+        n = self.local
         nb = math.ceil(n / self.block)
-        B = math.ceil(n / nb)  # equal blocks: the last overlaps its neighbour by < nb bodies
-        dtype = ext.dtype
-        inner = slice(H, H + B)
+        B = math.ceil(n / nb)
+        dtype = y[0].dtype
 
-        def one(b, carry):
-            R, y_new, t5, t3 = carry
-            s = jnp.minimum(b * B, n - B)  # the last block overlaps its neighbour: same values
-            seg = lax.dynamic_slice_in_dim(ext, s, B + 2 * H, axis=1)
-            w = lax.dynamic_slice_in_dim(w_ext, s, B + 2 * H)
+        def one(seg, w, s, new, carry):
+            R, y_new, t5, t3, flags = carry
             yb, Kb = D.stages(
                 _open_field(problem, w),
                 t,
@@ -179,29 +251,24 @@ class Halo(NamedTuple):
                 last,
                 first=first,
             )
-            Kb = tuple(k[:, inner] for k in Kb)
-            yb = tuple(v[inner] for v in yb)
-            y0b = tuple(v[inner] for v in seg[:6])
+            Kb = tuple(k[:, HALO : HALO + B] for k in Kb)
+            yb, y0b = self._rows(yb, B), self._rows(tuple(seg[:6]), B)
             s5, s3 = D.error_sums(Kb, y0b, yb, cfg.rtol, cfg.atol)
-            new = (s + jnp.arange(B)) >= b * B  # bodies no earlier block counted
             t5 = t5 + jnp.sum(jnp.where(new, s5, 0.0))
             t3 = t3 + jnp.sum(jnp.where(new, s3, 0.0))
+            flags = flags | problem.flags(y0b, yb, cfg)
             kept = tuple(jnp.stack([k[0], k[D.NS], *D.dense_sums(Kb, i)]) for i, k in enumerate(Kb))
-            R = tuple(lax.dynamic_update_slice_in_dim(Rg, r, s, axis=1) for Rg, r in zip(R, kept))
-            y_new = tuple(
-                lax.dynamic_update_slice_in_dim(yg, v, s, axis=0) for yg, v in zip(y_new, yb)
-            )
-            return R, y_new, t5, t3
+            return self._put(R, kept, s), self._put(y_new, yb, s), t5, t3, flags
 
         zero = jnp.zeros((), dtype)
         R0 = tuple(jnp.zeros((6, n), dtype) for _ in range(6))
         y0 = tuple(jnp.zeros((n,), dtype) for _ in range(6))
-        if nb == 1:
-            R, y_new, t5, t3 = one(0, (R0, y0, zero, zero))
-        else:
-            R, y_new, t5, t3 = lax.fori_loop(0, nb, one, (R0, y0, zero, zero))
-        err = D.error_of_sums(self.sum(t5), self.sum(t3), h_abs, 6 * self.size)
-        return y_new, R, err
+        ext = self._extend(jnp.stack(tuple(y) + tuple(f0)))  # (12, n + 2H)
+        carry = (R0, y0, zero, zero, jnp.zeros((4,), bool))
+        R, y_new, t5, t3, flags = self._blocks(ext, one, carry)
+        (t5, t3), flags = self._totals(jnp.stack([t5, t3]), flags)
+        err = D.error_of_sums(t5, t3, h_abs, 6 * self.size)
+        return y_new, R, err, flags
 
     def slope(self, R, j):
         """K[0] or K[12] from :meth:`step`'s ``R``."""

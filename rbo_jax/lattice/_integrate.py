@@ -34,7 +34,7 @@ from ..ensemble._problem import code
 from ..ensemble._solve import _emit, _one, dense_sampler
 from ..kinematics import distance_to_singularity, storing
 from ..model import RightForm
-from ._field import rates, recentre, right_forms, transverse
+from ._field import rates, recentre, recentre_due, right_forms, transverse
 from ._halo import Whole
 from ._lattice import Lattice
 
@@ -42,6 +42,8 @@ __all__ = ["Config", "Problem", "solve"]
 
 RUNNING = -1
 TWO_PI = 2.0 * math.pi
+# the checks of a step, in :meth:`Problem.flags`'s order
+NONFINITE, DOMAIN, SINGULAR, RECENTRE = range(4)
 
 
 class Config(NamedTuple):
@@ -74,13 +76,14 @@ class Problem(eqx.Module):
         dth, dOm = rates(self.lattice, self.forms, t, jnp.stack(y[:3]), jnp.stack(y[3:]))
         return (dth[0], dth[1], dth[2], dOm[0], dOm[1], dOm[2])
 
-    def failure(self, y_old, y_new, cfg: Config, plan=None):
-        """The status code of an accepted step that must stop the solve, else ``successful``: a
+    def flags(self, y_old, y_new, cfg: Config):
+        """Whether any of these bodies fails each check of an accepted step, a bool vector
+        indexed by :data:`NONFINITE`, :data:`DOMAIN`, :data:`SINGULAR` and :data:`RECENTRE`: a
         non-finite state; a body outside its foundation's domain; a body off the plane that
         jumped across a singular sphere |θ| = 2πk in the step, or (``recenter=False``) came
-        within ``singular_tol`` of one. ``plan``: how "any body" reduces (over the shards of a
+        within ``singular_tol`` of one; a body that re-centring would move (``recenter=True``,
+        :func:`._field.recentre`). Over the bodies given (the whole lattice, or a block of a
         chain: :mod:`._halo`)."""
-        any_ = jnp.any if plan is None else plan.any
         y_old, y_new = lax.stop_gradient((tuple(y_old), tuple(y_new)))
         theta = jnp.stack(y_new[:3])
         n, n_old = _norm(theta), _norm(jnp.stack(y_old[:3]))
@@ -96,16 +99,30 @@ class Problem(eqx.Module):
         margin = jax.vmap(lambda b, th: b.domain_margin(th), in_axes=(self.lattice.body_axes(), 1))(
             bodies, theta
         )
-        finite = ~any_(~jnp.isfinite(jnp.stack(y_new)))
-        status = jnp.where(any_(~(margin > 0)), code("domain_error"), code("successful"))
-        status = jnp.where(any_(singular & moving), code("singular_point"), status)
-        return jnp.where(finite, status, code("nonfinite_state"))
+        due = jnp.zeros_like(moving)
+        if cfg.recenter:
+            due = recentre_due(n, moving, cfg.recenter_margin)[1]
+        return jnp.stack(
+            [
+                jnp.any(~jnp.isfinite(jnp.stack(y_new))),
+                jnp.any(~(margin > 0)),
+                jnp.any(singular & moving),
+                jnp.any(due),
+            ]
+        )
 
-    def recenter(self, y, cfg: Config, plan=None):
-        """:func:`._field.recentre` on the state tuple: ``(y, k per body, whether any)``."""
+    @staticmethod
+    def status_of(flags):
+        """The status code of an accepted step with these :meth:`flags` (over all bodies): the
+        failure that must stop the solve, else ``successful``."""
+        status = jnp.where(flags[DOMAIN], code("domain_error"), code("successful"))
+        status = jnp.where(flags[SINGULAR], code("singular_point"), status)
+        return jnp.where(flags[NONFINITE], code("nonfinite_state"), status)
+
+    def recenter(self, y, cfg: Config):
+        """:func:`._field.recentre` on the state tuple: ``(y, k per body)``."""
         theta, k = recentre(jnp.stack(y[:3]), jnp.stack(y[3:]), cfg.recenter_margin)
-        any_ = jnp.any if plan is None else plan.any
-        return (theta[0], theta[1], theta[2]) + tuple(y[3:]), k, any_(k > 0)
+        return (theta[0], theta[1], theta[2]) + tuple(y[3:]), k
 
 
 def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
@@ -119,7 +136,7 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
     dense = (idx < nts) & (ts[jnp.minimum(idx, nts - 1)] <= t_new)
     last = jnp.where(dense, D.N_EXT, D.NS + 1)
     f_start = tuple(jnp.where(c["first"] == 0, jnp.zeros_like(v), v) for v in f0)
-    y_new, K, err = plan.step(problem, t, y, f_start, h, h_abs, store, last, c["first"], cfg)
+    y_new, K, err, flags = plan.step(problem, t, y, f_start, h, h_abs, store, last, c["first"], cfg)
     err = lax.stop_gradient(err)
     accept, h_next = D.controller(err, h_abs, rej)
     go = ~too_small
@@ -144,7 +161,7 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
     )
     status = jnp.where(too_small, code("step_size_collapse"), c["status"])
     status = jnp.where(~jnp.isfinite(err), code("nonfinite_state"), status)
-    failed = problem.failure(y, y_new, cfg, plan)
+    failed = problem.status_of(flags)
     status = jnp.where(commit & (failed != code("successful")), failed, status)
     status = jnp.where(
         commit & (t_new >= t_bound) & (status == RUNNING), code("successful"), status
@@ -154,13 +171,20 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
     f_next = tuple(jnp.where(commit, a, b) for a, b in zip(plan.slope(K, D.NS), plan.slope(K, 0)))
     first_next = jnp.asarray(1, jnp.int32)
     if cfg.recenter:
-        y_rec, k, moved = problem.recenter(y_next, cfg, plan)
-        moved = moved & commit & (status == RUNNING)
-        y_next = tuple(jnp.where(moved, a, b) for a, b in zip(y_rec, y_next))
-        c["turns"] = turns + jnp.where(moved, k, 0)
-        c["nrec"] = c["nrec"] + jnp.where(moved, plan.sum((k > 0).astype(jnp.int32)), 0).astype(
-            jnp.int32
-        )
+        # the bodies are re-centred only on a step that found one due (rare: one pass over the
+        # state then, none otherwise); the predicate is the same on every shard of a chain
+        moved = flags[RECENTRE] & commit & (status == RUNNING)
+
+        def move(args):
+            y, turns = args
+            y_rec, k = problem.recenter(y, cfg)
+            return y_rec, turns + k, jnp.sum(k > 0, dtype=jnp.int32)
+
+        def keep(args):
+            return args + (jnp.zeros((), jnp.int32),)
+
+        y_next, c["turns"], count = lax.cond(moved, move, keep, (y_next, turns))
+        c["nrec"] = c["nrec"] + plan.sum(count).astype(jnp.int32)
         first_next = jnp.where(moved, 0, first_next)  # the state changed: a new first slope
     natt = c["natt"] + go.astype(jnp.int32)
     status = jnp.where(
@@ -191,17 +215,8 @@ def solve(problem: Problem, y0, ts, cfg: Config, plan=None):
     plan = Whole(N) if plan is None else plan
     store = D.Store(_one((problem.lattice, y0, ts)))
     with storing(store):
-        f0, h0 = D.initial_step(
-            plan.field(problem),
-            ts[0],
-            y0,
-            ts[-1],
-            cfg.rtol,
-            cfg.atol,
-            total=plan.sum,
-            size=plan.size,
-        )
-        failed = problem.failure(y0, y0, cfg, plan)
+        f0, h0, flags0 = plan.initial(problem, ts[0], y0, ts[-1], cfg)
+        failed = problem.status_of(flags0)
         status0 = jnp.where(failed == code("successful"), RUNNING, failed).astype(jnp.int32)
         status0 = jnp.where(nts == 1, code("successful"), status0)
         first = jnp.where(status0 == RUNNING, jnp.stack(y0, -1), jnp.inf)
