@@ -171,11 +171,13 @@ class Halo(NamedTuple):
 
     def initial(self, problem, t0, y0, t_bound, cfg):
         """:func:`rbo_jax.ensemble._dop853.initial_step` in blocks, and the checks of the initial
-        state: ``(f0, h0, flags)``. Two passes over the blocks: f0 = f(t0, y0) with the sums of
-        squares of the norms d0 = ‖y0/scale‖, d1 = ‖f0/scale‖ and the checks; then, after one
-        ``psum`` gives the first guess h0, f1 = f(t0 + h0, y0 + h0 f0) and the sum of
-        ‖(f1 − f0)/scale‖ (halos of y0 and of f0 exchanged). The sums' order is the blocks', so
-        h0 agrees with the whole arrays' to rounding."""
+        state: ``(f0, h0, flags)``. As there, a loop of two passes (one traced copy of the
+        field): pass 0 makes f0 = f(t0, y0) from zero slopes at h = 0, with the sums of squares
+        of d0 = ‖y0/scale‖ and d1 = ‖f0/scale‖ and the checks; pass 1, at the first guess h0,
+        f1 = f(t0 + h0, y0 + h0 f0) and the sum of d2 = ‖(f1 − f0)/scale‖ (the same sum as d1's,
+        f0 being zero in pass 0). The halos of y0 and f0 are exchanged and the shards' sums
+        totalled (one ``psum``) once a pass. The sums' order is the blocks', so h0 agrees with
+        the whole arrays' to rounding."""
         n, dtype = self.local, y0[0].dtype
         nb = math.ceil(n / self.block)
         B = math.ceil(n / nb)
@@ -183,41 +185,47 @@ class Halo(NamedTuple):
         count = 6 * self.size
         zero = jnp.zeros((), dtype)
 
-        def scaled_sum(v, y):
+        def scaled_sum(v, y, keep):
             total = zero
             for a, b in zip(v, y):
-                x = a / (cfg.atol + jnp.abs(b) * cfg.rtol)
+                x = a * keep / (cfg.atol + jnp.abs(b) * cfg.rtol)
                 total = total + jnp.sum(x * x)
             return total
 
-        def first(seg, w, s, new, carry):
-            f0, s0, s1, flags = carry
-            yb = tuple(seg[:6])
-            k = self._rows(_open_field(problem, w)(t0, yb), B)
-            y_in = self._rows(yb, B)
-            keep = new.astype(dtype)
-            s0 = s0 + scaled_sum(tuple(v * keep for v in y_in), y_in)
-            s1 = s1 + scaled_sum(tuple(v * keep for v in k), y_in)
-            flags = flags | problem.flags(y_in, y_in, cfg)
-            return self._put(f0, k, s), s0, s1, flags
+        def guess(totals):
+            return D.initial_guess(
+                jnp.sqrt(totals[0] / count), jnp.sqrt(totals[1] / count), interval
+            )
+
+        def one_pass(i, carry):
+            f0, totals, flags = carry
+            h0 = jnp.where(i == 0, 0.0, guess(totals)[0])
+
+            def block(seg, w, s, new, carry):
+                f0, sums, flags = carry
+                y1 = tuple(a + h0 * b for a, b in zip(seg[:6], seg[6:]))
+                k = self._rows(_open_field(problem, w)(t0 + h0, y1), B)
+                y_in, f_in = self._rows(tuple(seg[:6]), B), self._rows(tuple(seg[6:]), B)
+                keep = new.astype(dtype)
+                d = tuple(a - b for a, b in zip(k, f_in))  # pass 0: f_in = 0
+                sums = sums + jnp.stack([scaled_sum(y_in, y_in, keep), scaled_sum(d, y_in, keep)])
+                f0 = self._put(f0, tuple(jnp.where(i == 0, a, b) for a, b in zip(k, f_in)), s)
+                return f0, sums, flags | problem.flags(y_in, y_in, cfg)
+
+            ext = self._extend(jnp.stack(tuple(y0) + tuple(f0)))
+            f0, sums, flags = self._blocks(ext, block, (f0, jnp.zeros((2,), dtype), flags))
+            sums, flags = self._totals(sums, flags)
+            # totals: [y0's, f0's (pass 0), f1 − f0's (pass 1)]
+            totals = jnp.where(
+                i == 0, jnp.stack([sums[0], sums[1], zero]), totals.at[2].set(sums[1])
+            )
+            return f0, totals, flags
 
         f0 = tuple(jnp.zeros((n,), dtype) for _ in range(6))
-        no = jnp.zeros((4,), bool)
-        f0, s0, s1, flags = self._blocks(self._extend(jnp.stack(y0)), first, (f0, zero, zero, no))
-        (s0, s1), flags = self._totals(jnp.stack([s0, s1]), flags)
-        d0, d1 = jnp.sqrt(s0 / count), jnp.sqrt(s1 / count)
-        h0, d1 = D.initial_guess(d0, d1, interval)
-
-        def second(seg, w, s, new, s2):
-            y1 = tuple(a + h0 * b for a, b in zip(seg[:6], seg[6:]))
-            k = self._rows(_open_field(problem, w)(t0 + h0, y1), B)
-            f0b, y_in = self._rows(tuple(seg[6:]), B), self._rows(tuple(seg[:6]), B)
-            keep = new.astype(dtype)
-            return s2 + scaled_sum(tuple((a - b) * keep for a, b in zip(k, f0b)), y_in)
-
-        ext = self._extend(jnp.stack(tuple(y0) + tuple(f0)))
-        s2 = self._blocks(ext, second, zero)
-        d2 = jnp.sqrt(self.sum(s2) / count) / h0
+        carry = (f0, jnp.zeros((3,), dtype), jnp.zeros((4,), bool))
+        f0, totals, flags = lax.fori_loop(0, 2, one_pass, carry)
+        h0, d1 = guess(totals)
+        d2 = jnp.sqrt(totals[2] / count) / h0
         return f0, D.initial_choice(h0, d1, d2, interval), flags
 
     def step(self, problem, t, y, f0, h, h_abs, store, last, first, cfg):
