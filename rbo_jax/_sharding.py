@@ -38,9 +38,35 @@ VECTOR = 16
 # jaxlib splits a batched LAPACK call over the intra-op pool from this much work (flop) on
 # (GetLapackBatchChunkSize, kMinWorkPerTask).
 SPLIT_WORK = 200_000
-# An upper bound of jaxlib's cost per matrix of every LAPACK kernel, in units of n³ (its own
-# estimates: LU n³, QR ≤ 2n³, eigh 4n³ (×3 complex), real eig 10n³; 3 × the largest, so that
-# a kernel whose estimate we do not know is still never split).
+# jaxlib's cost per matrix of each LAPACK kernel a primitive lowers to (``cost_per_matrix`` in
+# jaxlib/cpu/lapack_kernels.cc), bounded by a multiple of n³, n the largest matrix dimension of
+# the call's operands: trsm m·k·m, getrf m·n·min, potrf n³/3, geqrf and geqp3 ≤ 2mn·min,
+# orgqr ≤ 4mnk + 4k³/3 (``qr`` runs geqrf and orgqr), ormqr ≤ 4k·m·n, gesdd/gesvd 10mn·min,
+# syevd 5n³ (heevd 4n³ × 3), real geev 10n³, gees 5n³, gehrd 2n³, sytrd 4n³/3, gtsv 5·m·k;
+# complex types × 3 (KERNEL_COMPLEX). A primitive not listed (``cholesky_update``) takes
+# COST_PER_N3, a bound of every kernel. The blocks follow the real estimates: with 30 n³ for
+# every kernel, and every call in the blocks of the costliest, the Newton map's 3 × 3 LU, solves
+# and eig ran in blocks of 200 points (80 calls each for a chunk of 16,000 on one device); now
+# 4 calls for the LU and solves, 25 for the eig (one pinned core: 64 -> 59 ms a chunk,
+# benchmarks/README.md, 2026-11-28).
+KERNEL_COST = {
+    "triangular_solve": 1,
+    "lu": 1,
+    "cholesky": 1,
+    "geqrf": 2,
+    "geqp3": 2,
+    "householder_product": 6,
+    "qr": 6,
+    "ormqr": 4,
+    "svd": 10,
+    "eigh": 5,
+    "eig": 10,
+    "schur": 5,
+    "hessenberg": 2,
+    "tridiagonal": 2,
+    "tridiagonal_solve": 5,
+}
+KERNEL_COMPLEX = 3
 COST_PER_N3 = 30
 # The primitives that lower to LAPACK on CPU (jax._src.lax.linalg), and the FFT (ducc, which
 # also runs on the intra-op pool).
@@ -73,20 +99,30 @@ def _equations(jaxpr):
             yield from _equations(sub)
 
 
-def _lapack_work(eqn) -> int:
-    """An upper bound of jaxlib's work estimate for one point's call ``eqn``: COST_PER_N3 · n³
-    per matrix (n the largest of the operands' matrix dimensions) × the matrices per point."""
-    shapes = [v.aval.shape for v in eqn.invars if hasattr(v.aval, "shape")]
+def _call_work(name, shapes, dtypes) -> int:
+    """A bound of jaxlib's work estimate for one element of a call of primitive ``name`` whose
+    operands have ``shapes`` (without the batch axis) and ``dtypes``: :data:`KERNEL_COST` · n³
+    per matrix (n the largest of the operands' matrix dimensions) × the matrices per element."""
     n = max((max(s[-2:]) for s in shapes if len(s) >= 1), default=1)
     first = shapes[0] if shapes else ()
     matrices = math.prod(first[:-2]) if len(first) >= 2 else 1
-    return COST_PER_N3 * int(n) ** 3 * int(matrices)
+    cost = KERNEL_COST.get(name, COST_PER_N3)
+    if any(jnp.issubdtype(d, jnp.complexfloating) for d in dtypes):
+        cost *= KERNEL_COMPLEX
+    return cost * int(n) ** 3 * int(matrices)
+
+
+def _lapack_work(eqn) -> int:
+    """:func:`_call_work` of one point's call ``eqn``."""
+    avals = [v.aval for v in eqn.invars if hasattr(v.aval, "shape")]
+    return _call_work(eqn.primitive.name, [a.shape for a in avals], [a.dtype for a in avals])
 
 
 def block_size(jaxpr) -> int:
-    """Points per LAPACK call for a quantity whose one-point ``jaxpr`` calls LAPACK (or an FFT):
-    the most points whose batched calls jaxlib never splits over the intra-op pool; 0 when the
-    quantity calls neither."""
+    """The smallest block of a quantity whose one-point ``jaxpr`` calls LAPACK (or an FFT): the
+    most points whose batched costliest call jaxlib never splits over the intra-op pool (each
+    call is run in blocks of its own, :func:`lapack_in_blocks`); 0 when the quantity calls
+    neither (nothing is run in blocks)."""
     work, fft = 0, False
     for eqn in _equations(jaxpr):
         name = eqn.primitive.name
@@ -123,21 +159,17 @@ def _element_block(prim, vals, dims) -> int:
         for v, d in zip(vals, dims)
         if jnp.ndim(v) >= 1
     ]
-    n = max((max(s[-2:]) for s in shapes if len(s) >= 1), default=1)
-    first = shapes[0] if shapes else ()
-    matrices = math.prod(first[:-2]) if len(first) >= 2 else 1
-    work = COST_PER_N3 * int(n) ** 3 * int(matrices)
-    return max(1, (SPLIT_WORK - 1) // work)
+    dtypes = [jnp.result_type(v) for v in vals if jnp.ndim(v) >= 1]
+    return max(1, (SPLIT_WORK - 1) // _call_work(prim.name, shapes, dtypes))
 
 
-def _chunked_rule(prim, original, block: int | None):
-    """A batching rule of ``prim`` that runs a batch larger than ``block`` (``None``: the
-    largest that jaxlib never splits, from the operands' shapes, :func:`_element_block`) as
-    ``lax.map`` over blocks (each block by the original rule)."""
+def _chunked_rule(prim, original):
+    """A batching rule of ``prim`` that runs a batch larger than jaxlib would run unsplit (from
+    the operands' shapes, :func:`_element_block`) as ``lax.map`` over blocks (each block by the
+    original rule)."""
 
     def rule(axis_data, vals, dims, **params):
         limit = _element_block(prim, vals, dims)
-        limit = limit if block is None else min(block, limit)
         if axis_data.size <= limit or all(d is None for d in dims):
             return original(axis_data, vals, dims, **params)
         which = [i for i, d in enumerate(dims) if d is not None]
@@ -160,14 +192,15 @@ def _chunked_rule(prim, original, block: int | None):
 
 @contextlib.contextmanager
 def lapack_in_blocks(block: int | None):
-    """While a chunk program is traced: every LAPACK primitive batched over more than ``block``
-    matrices (``None``: over more than jaxlib would run unsplit, from the shapes of each call)
-    runs in blocks (:func:`_chunked_rule`), so that jaxlib never splits a call over the
-    intra-op pool; the rest of the quantity stays one ``vmap`` over the device's points (the
-    refilled lanes of :func:`rbo_jax.fast_simulate` keep all of them). ``0``: nothing to do
-    (the quantity calls no LAPACK). JAX's caches of batched sub-jaxprs are cleared around it,
-    so that no program traced before or after takes the other's. One trace at a time (a
-    lock): the rules are global."""
+    """While a chunk program is traced: every LAPACK primitive batched over more matrices than
+    jaxlib would run unsplit (each call's own limit, from its shapes and kernel: one block size
+    for all, the smallest, ran cheap 3 × 3 solves in needlessly small blocks) runs in blocks
+    (:func:`_chunked_rule`), so that jaxlib never splits a call over the intra-op pool; the
+    rest of the quantity stays one ``vmap`` over the device's points (the refilled lanes of
+    :func:`rbo_jax.fast_simulate` keep all of them). ``block``: ``0``, nothing to do (the
+    quantity calls no LAPACK, :func:`block_size`); else any. JAX's caches of batched
+    sub-jaxprs are cleared around it, so that no program traced before or after takes the
+    other's. One trace at a time (a lock): the rules are global."""
     if block == 0:
         yield
         return
@@ -177,7 +210,7 @@ def lapack_in_blocks(block: int | None):
         _clear_batching_caches()
         try:
             for p, original in saved.items():
-                rules[p] = _chunked_rule(p, original, block)
+                rules[p] = _chunked_rule(p, original)
             yield
         finally:
             rules.update(saved)

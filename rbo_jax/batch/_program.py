@@ -132,7 +132,8 @@ def _store_key(quantity, names, devices, chunk_points) -> str | None:
     return _programs.program_key(
         repr(
             (
-                "rbo_jax.batch chunk 3",  # 3: traced with LAPACK in blocks inside the point too
+                # 3: traced with LAPACK in blocks inside the point too; 4: each call's own block
+                "rbo_jax.batch chunk 4",
                 text,
                 names,
                 chunk_points,
