@@ -240,8 +240,10 @@ class Halo(NamedTuple):
         (:func:`~rbo_jax.ensemble._dop853.dense_sums`; read by :meth:`slope` and
         :meth:`dense_sums`). Written out whole, the slopes were 16 × 6 numbers a body per step,
         read again by the norm; keeping 6 rows made a step of 10⁶ bodies 7 % faster on one core
-        (benchmarks/README.md, 2026-11-27); the checks, two more passes over the state, were
-        another ~20 % of a step there. The shards' sums and checks are one ``psum``."""
+        (benchmarks/README.md, 2026-11-27). The checks were two more passes over the whole
+        state (~115 ms each at 10⁶ bodies on one core, timed alone); made in the blocks, with
+        the shards' sums and checks one ``psum``, a step of 10⁶ bodies on 2 devices took 15-19 %
+        less time, on one core the same (benchmarks/README.md, 2026-11-28)."""
         n = self.local
         nb = math.ceil(n / self.block)
         B = math.ceil(n / nb)
