@@ -81,8 +81,8 @@ def test_blocks_recentre_as_whole_arrays():
     integrators' module docstring) decided in blocks: a uniform spin transverse to θ (every body
     alike, the couplings idle) with noise so that the bodies cross the sphere at different
     steps; blocks of 15 on a periodic chain of 40 (the last overlapping its neighbour) re-centre
-    the same bodies at the same steps as the whole-array program, and the turn-tensors stay
-    the free rotation's."""
+    the same bodies at the same steps as the whole-array program, and a body's turn-tensor
+    stays near the free rotation's (to 1e-2: the noise, 1e-3 in Ω, sets the couplings to work)."""
     n, w = 40, W
     lat, theta, Omega = spinning(n)
     y0 = tuple(jnp.asarray(np.concatenate([theta.T, Omega.T])))
