@@ -184,7 +184,7 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
             return args + (jnp.zeros((), jnp.int32),)
 
         y_next, c["turns"], count = lax.cond(moved, move, keep, (y_next, turns))
-        c["nrec"] = c["nrec"] + plan.sum(count).astype(jnp.int32)
+        c["nrec"] = c["nrec"] + count  # this shard's bodies: totalled once, at the end
         first_next = jnp.where(moved, 0, first_next)  # the state changed: a new first slope
     natt = c["natt"] + go.astype(jnp.int32)
     status = jnp.where(
@@ -248,5 +248,5 @@ def solve(problem: Problem, y0, ts, cfg: Config, plan=None):
         turns=c["turns_out"],
         status=c["status"],
         num_steps=c["nacc"],
-        num_recentred=c["nrec"],
+        num_recentred=plan.sum(c["nrec"]).astype(jnp.int32),
     )
