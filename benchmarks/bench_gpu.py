@@ -193,7 +193,7 @@ def ensemble_row(n: int, name: str, t1: float, lanes: int | None = None) -> dict
         "dtype": name,
         "rtol": rtol,
         "atol": atol,
-        "lanes": int(lanes if lanes is not None else ensemble.lanes()),
+        "lanes": int(lanes if lanes is not None else ensemble.lanes()[0]),
         "compile_s": t_compile,
         "run_s": seconds,
         "trajectories_per_s": n / seconds,

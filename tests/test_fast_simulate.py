@@ -216,6 +216,26 @@ def test_final_state_only_takes_the_same_steps_without_dense_output():
     np.testing.assert_allclose(final.Omega[-1], full.Omega[-1], rtol=1e-13, atol=1e-14)
 
 
+def test_lane_count_cuts_a_batch_into_waves():
+    """A batch runs on at most ``LANES`` lanes and on no more than a quarter of its trajectories
+    (but 256), so that the queue refills the lanes several times and the longest trajectories do
+    not hold every lane (issue 31); always a multiple of the vector width, never more lanes than
+    the batch needs. On an accelerator one wave, as wide as the batch allows."""
+    count, V = LANES_SOLVER.lane_count, LANES_SOLVER.VECTOR
+    assert count(13, 1000) == 16  # one wave, rounded up to the vector width
+    assert count(200, 1000) == 208
+    assert count(989, 1000) == 256  # the floor: four waves would be 256 - 8 lanes
+    assert count(1483, 1000) == 384  # a quarter, rounded up
+    assert count(2965, 1000) == 752
+    assert count(5929, 1000) == 1008  # the cap, as before this rule
+    assert count(5, 3) == 16  # a cap below the floor wins (tests use tiny caps)
+    assert count(10**6, 2**18, waves=1) == 2**18
+    assert count(1000, 2**18, waves=1) == 1008
+    for n in (1, 17, 255, 257, 1023, 4001, 10**5):
+        b = count(n, 1000)
+        assert b % V == 0 and b <= LANES_SOLVER._round_up(n, V) and b <= 1008
+
+
 @pytest.mark.parametrize(
     "lanes, divisors", [(48, None), pytest.param(256, (2, 8, 32), marks=pytest.mark.slow)]
 )

@@ -132,8 +132,9 @@ def _store_key(quantity, names, devices, chunk_points) -> str | None:
     return _programs.program_key(
         repr(
             (
-                # 3: traced with LAPACK in blocks inside the point too; 4: each call's own block
-                "rbo_jax.batch chunk 4",
+                # 3: traced with LAPACK in blocks inside the point too; 4: each call's own block;
+                # 5: fast_simulate's lanes from the batch's size (ensemble._solve.lane_count)
+                "rbo_jax.batch chunk 5",
                 text,
                 names,
                 chunk_points,

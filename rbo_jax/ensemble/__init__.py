@@ -38,22 +38,26 @@ from ..model import RigidBodyOscillator
 from ..trajectory import SolveStatus, Trajectory, finish, prepare_inputs
 from ._problem import Problem
 from ._problem import code as status_code
-from ._solve import Config, solve_lanes, solve_one
+from ._solve import WAVES, Config, solve_lanes, solve_one
 from ._tangents import solve_one_tangents
 
 __all__ = ["fast_simulate"]
 
-LANES = 1000  # measured best on CPU (benchmarks/README.md)
+LANES = 1000  # the most on a CPU (benchmarks/README.md; fewer for a small batch: _solve.lane_count)
 # Lanes on an accelerator: enough to fill a GPU (an H100/H200 holds ~270,000 resident threads);
 # each loop iteration is a host-driven sequence of kernel launches, so fewer, wider iterations
 # win there (benchmarks/README.md, "GPUs").
 ACCELERATOR_LANES = 2**18
 
 
-def lanes() -> int:
-    """The number of refilled lanes of a batch (:func:`._solve.solve_lanes`) on JAX's default
-    backend: :data:`LANES` on a CPU, :data:`ACCELERATOR_LANES` on a GPU or TPU."""
-    return LANES if jax.default_backend() == "cpu" else ACCELERATOR_LANES
+def lanes() -> tuple[int, int]:
+    """The most refilled lanes of a batch (:func:`._solve.solve_lanes`) on JAX's default backend
+    and the waves it is cut into at least (:func:`._solve.lane_count`): :data:`LANES` and
+    :data:`._solve.WAVES` on a CPU, :data:`ACCELERATOR_LANES` and one wave on a GPU or TPU
+    (whose iterations cost the most: one wide wave)."""
+    if jax.default_backend() == "cpu":
+        return LANES, WAVES
+    return ACCELERATOR_LANES, 1
 
 
 def _per_trajectory(cfg: Config):
@@ -85,7 +89,7 @@ def _integrator(cfg: Config):
             return jax.vmap(one, in_axes=axes)(problem, y0, ts), (True, True, True)
         if not y_batched:
             y0 = jnp.broadcast_to(y0, (axis_size, 6))
-        out = solve_lanes(problem, p_batched, tuple(y0[:, i] for i in range(6)), ts, cfg, lanes())
+        out = solve_lanes(problem, p_batched, tuple(y0[:, i] for i in range(6)), ts, cfg, *lanes())
         return out, (True, True, True)
 
     integrate = jax.custom_jvp(batched)

@@ -367,12 +367,40 @@ def _tail(c, step, batched, N, widths):
     return c
 
 
-def solve_lanes(pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000):
+# The lanes of a batch (issue 31): at most ``lanes_`` (1000 on a CPU), and no more than a
+# :data:`WAVES`-th of the batch (but :data:`MIN_LANES`), so that the queue refills every lane
+# several times before it is empty. A batch on as many lanes as trajectories is one wave, which
+# lasts as long as its longest trajectory while the other lanes idle. Measured on one pinned
+# core, shares of the `rbo-jax sweep` benchmark (Nikolai final states, t1 = 600, 1,050-343,397
+# steps a trajectory), the same bits every time:
+# - 989 trajectories: 129.6 s on 992 lanes, 68.1 s on 256, 70.7 s on 128;
+# - 1,483: 160.1 s on 1008 lanes, 93.1 s on 384 (four waves);
+# - 2,965: 155.4 s on 1008 lanes, 153.1 s on 256 (compacted tails both);
+# - t1 = 150, 989 trajectories: 4.7-4.9 s on 992 lanes, 2.1-2.3 s on 256; 988 trajectories of one
+#   length: 0.49-0.53 s on 992 lanes, 0.28-0.29 s on 256; 4,000 of one length: 1.07-1.15 s on
+#   1008 lanes, 1.16 on 256, 1.32 on 128 (the floor: below 256 lanes an iteration's fixed cost,
+#   ~26 µs, weighs).
+# A model of these runs (0.4 µs a lane-step plus 26 µs an iteration, within 5 %) puts four
+# waves near the best for every share up to ~4,000 trajectories; from 4,000 on it is 1008 lanes
+# as before.
+WAVES = 4
+MIN_LANES = 256
+
+
+def lane_count(N: int, lanes_: int, waves: int = WAVES) -> int:
+    """B, the refilled lanes of N trajectories: ``min(lanes_, max(MIN_LANES, N / waves))``,
+    at most N, rounded up to a multiple of :data:`VECTOR`."""
+    return _round_up(min(N, lanes_, max(MIN_LANES, -(-N // waves))), VECTOR)
+
+
+def solve_lanes(
+    pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000, waves: int = WAVES
+):
     """N trajectories (``pool``: leaves with a leading axis N where ``batched``; ``y0``: six
-    ``(N,)`` components) on ``min(N, lanes_)`` refilled lanes. Returns ``(samples (N, n_ts, 6),
+    ``(N,)`` components) on :func:`lane_count` refilled lanes. Returns ``(samples (N, n_ts, 6),
     status (N,), accepted steps (N,))``."""
     N, nts = y0[0].shape[0], ts.shape[0]
-    B = _round_up(min(N, lanes_), VECTOR)
+    B = lane_count(N, lanes_, waves)
     R = _round_up(max(1, B // 16), VECTOR)
     fns = _Lanes(batched)
     store = D.Store(_one((pool, y0, ts)))
