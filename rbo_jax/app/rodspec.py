@@ -1,8 +1,8 @@
 r"""``RodSpec``: a plain, validated description of a rod (:func:`rbo_jax.lattice.rod`), the
 ``[rod]`` table of ``rbo-jax sweep`` and of ``rbo-jax simulate --rod``.
 
-A rod of ``n`` bodies past the base along $e_3$, its constants per unit length (scalars) and its
-loads (:doc:`rods </topics/rods>`); every number may be the name of a sweep axis::
+A rod of ``n`` bodies past the base along $e_3$, its constants per unit length and its loads
+(:doc:`rods </topics/rods>`); every number may be the name of a sweep axis::
 
     n = 8                   # bodies past the base (>= 2)
     length = 1.0            # L
@@ -13,6 +13,20 @@ loads (:doc:`rods </topics/rods>`); every number may be the name of a sweep axis
     tip_mass = "Mt"         # a point mass on the tip (Pflueger's column)
     base = "clamped"        # or "pinned", "free"
     loads = [{ type = "tip_force", f = [0.0, 0.0, -1.0], scale = "P", follower = true }]
+
+A tapered rod: each constant of :data:`PER_SEGMENT` (``bending``, ``torsion``, ``shear``,
+``stretch``, ``mass``, ``rotary``, ``damping``, ``shear_damping``) may instead be a list of
+exactly ``n`` values, one per segment from the base to the tip (segment ``i`` between bodies
+``i`` and ``i + 1``, 0-based), each a number or an axis name and each checked as the scalar
+(``[rod] bending[3]: must be > 0, got -1.``); or a linear taper ``{ base = a, tip = b }``,
+sampled at the segments' middles: segment ``i`` gets $a + (b - a)(i + 1/2)/n$ (both ends
+checked, so every segment's value is too)::
+
+    bending = [2.0, 1.5, 1.0, 0.5]          # n = 4
+    mass = { base = 2.0, tip = "m_tip" }     # 2 at the base to the axis m_tip at the tip
+
+``length`` and ``tip_mass`` are scalars; a ``rotary`` list is $\rho I$ per segment (the polar
+one $2\rho I$; no ``(rho_I, rho_J)`` pair).
 
 The defaults (``length``, ``bending``, ``torsion``, ``mass`` 1; ``shear``, ``stretch`` 1e6;
 ``rotary`` 1e-6; no damping, no tip mass, clamped) make a nearly unshearable, inextensible
@@ -26,10 +40,10 @@ $\sqrt{\rho A L^4/EI}$. Loads (each ``scale`` × its vector, ``scale`` 1 by defa
 - ``distributed``: ``q`` per length, :class:`rbo_jax.lattice.DistributedForce`.
 
 :meth:`RodSpec.build` makes the :class:`rbo_jax.lattice.Rod` at a point of the sweep (traced
-values inside ``jax.vmap``), with every load times a load factor $\lambda$ if one is given (the
-``rod_critical_load`` quantity searches $\lambda$). Errors name the key
-(``[rod] bending: must be > 0, got -1.``); a parameter taken from an axis is checked on every
-value of that axis before anything runs.
+values inside ``jax.vmap``; a per-segment constant as an ``(n,)`` array), with every load times
+a load factor $\lambda$ if one is given (the ``rod_critical_load`` quantity searches
+$\lambda$). Errors name the key (``[rod] bending: must be > 0, got -1.``); a parameter taken
+from an axis is checked on every value of that axis before anything runs.
 """
 
 from __future__ import annotations
@@ -39,11 +53,12 @@ from collections.abc import Mapping
 from typing import Any
 
 import jax.numpy as jnp
+import numpy as np
 
 from .._validation import NONNEGATIVE, POSITIVE, Requirement
 from ._reader import Reader, Ref
 
-__all__ = ["ROD_KEYS", "ROD_LOADS", "RodLoadSpec", "RodSpec"]
+__all__ = ["PER_SEGMENT", "ROD_KEYS", "ROD_LOADS", "RodLoadSpec", "RodSpec", "Taper"]
 
 # key: (default, requirement); n, base and loads are read on their own
 ROD_KEYS: dict[str, tuple[float | None, Requirement]] = {
@@ -57,6 +72,17 @@ ROD_KEYS: dict[str, tuple[float | None, Requirement]] = {
     "damping": (0.0, NONNEGATIVE),
     "tip_mass": (0.0, NONNEGATIVE),
 }
+# the constants rod() takes per segment (shape (n,)): a list of n values or a Taper as well
+PER_SEGMENT = (
+    "bending",
+    "torsion",
+    "shear",
+    "stretch",
+    "mass",
+    "rotary",
+    "damping",
+    "shear_damping",
+)
 # type: (the vector's key, its default, may it follow the body, may it pick a body)
 ROD_LOADS = {
     "tip_force": ("f", None, True),
@@ -79,16 +105,78 @@ class RodLoadSpec:
     body: int = -1
 
 
+@dataclasses.dataclass(frozen=True)
+class Taper:
+    """A constant that goes linearly from ``base`` (at the base) to ``tip`` (at the tip), both
+    numbers or :class:`Ref`, sampled at the middles of the ``n`` segments."""
+
+    base: Any
+    tip: Any
+
+
 def _value(x, point: Mapping[str, Any]):
     return jnp.asarray(point[x.name] if isinstance(x, Ref) else x, dtype=jnp.result_type(float))
 
 
+def _constant(x, point: Mapping[str, Any], n: int):
+    """A scalar, or the ``(n,)`` array of a list (tuple) or a :class:`Taper`, at ``point``."""
+    if isinstance(x, tuple):
+        return jnp.stack([_value(e, point) for e in x])
+    if isinstance(x, Taper):
+        a, b = _value(x.base, point), _value(x.tip, point)
+        return a + (b - a) * ((jnp.arange(n, dtype=a.dtype) + 0.5) / n)
+    return _value(x, point)
+
+
+def _leaves(x) -> tuple:
+    """The numbers and :class:`Ref` of a constant (scalar, list or taper)."""
+    if isinstance(x, tuple):
+        return x
+    if isinstance(x, Taper):
+        return (x.base, x.tip)
+    return (x,)
+
+
 def _plain(x):
+    if isinstance(x, tuple):
+        return [_plain(e) for e in x]
+    if isinstance(x, Taper):
+        return {"base": _plain(x.base), "tip": _plain(x.tip)}
     return x.name if isinstance(x, Ref) else x
 
 
 def _g(x) -> str:
+    if isinstance(x, tuple):
+        return f"[{', '.join(map(_g, x))}]"
+    if isinstance(x, Taper):
+        return f"{{base = {_g(x.base)}, tip = {_g(x.tip)}}}"
     return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
+
+
+def _read_constant(r: Reader, table: Mapping, key: str, where: str, n: int, default, req):
+    """A constant of the rod: a number or an axis name; for a key of :data:`PER_SEGMENT` also a
+    list of ``n`` of them (a tuple) or a ``{ base, tip }`` table (a :class:`Taper`)."""
+    v = table.get(key)
+    if key in PER_SEGMENT and isinstance(v, np.ndarray) and v.ndim == 1:
+        v = v.tolist()
+    if key in PER_SEGMENT and isinstance(v, (list, tuple)):
+        if len(v) != n:
+            r.fail(
+                f"{where} {key}",
+                f"must be a number, an axis name or a list of n = {n} values (one per segment, "
+                f"base to tip), got a list of {len(v)}.",
+            )
+        return tuple(
+            r.number({f"{key}[{i}]": x}, f"{key}[{i}]", where, requirement=req)
+            for i, x in enumerate(v)
+        )
+    if key in PER_SEGMENT and isinstance(v, Mapping):
+        r.keys(v, ("base", "tip"), f"{where} {key}", required=("base", "tip"))
+        return Taper(
+            r.number(v, "base", f"{where} {key}", requirement=req),
+            r.number(v, "tip", f"{where} {key}", requirement=req),
+        )
+    return r.number(table, key, where, default=default, requirement=req)
 
 
 def _read_load(r: Reader, table, where: str, n: int) -> RodLoadSpec:
@@ -118,8 +206,10 @@ def _read_load(r: Reader, table, where: str, n: int) -> RodLoadSpec:
 
 @dataclasses.dataclass(frozen=True)
 class RodSpec:
-    """A rod as data (module docstring): ``n``, ``base``, ``params`` (``{key: number or Ref}``
-    of :data:`ROD_KEYS`, plus ``shear_damping`` when given), ``loads`` (:class:`RodLoadSpec`)."""
+    """A rod as data (module docstring): ``n``, ``base``, ``params`` (``{key: value}`` of
+    :data:`ROD_KEYS`, plus ``shear_damping`` when given; a value is a number or :class:`Ref`, or
+    for a key of :data:`PER_SEGMENT` a tuple of ``n`` of them or a :class:`Taper`), ``loads``
+    (:class:`RodLoadSpec`)."""
 
     n: int
     base: str
@@ -140,11 +230,10 @@ class RodSpec:
         n = r.integer(table, "n", where, default=None, minimum=2)
         base = r.string(table, "base", where, default="clamped", choices=BASES)
         params = [
-            (k, r.number(table, k, where, default=d, requirement=req))
-            for k, (d, req) in ROD_KEYS.items()
+            (k, _read_constant(r, table, k, where, n, d, req)) for k, (d, req) in ROD_KEYS.items()
         ]
         if "shear_damping" in table:
-            sd = r.number(table, "shear_damping", where, requirement=NONNEGATIVE)
+            sd = _read_constant(r, table, "shear_damping", where, n, None, NONNEGATIVE)
             params.append(("shear_damping", sd))
         loads = table.get("loads", [])
         if isinstance(loads, Mapping):
@@ -157,11 +246,13 @@ class RodSpec:
         return cls(n, base, tuple(params), specs)
 
     def value(self, name: str):
-        """The number (or :class:`Ref`) of ``name``; ``shear_damping`` None when not given."""
+        """The value of ``name`` (a number or :class:`Ref`; a tuple or :class:`Taper` of a
+        tapered constant); ``shear_damping`` None when not given."""
         return dict(self.params).get(name)
 
     def to_mapping(self) -> dict:
-        """The table form (axis names as strings)."""
+        """The table form (axis names as strings, a per-segment constant as a list, a taper
+        as ``{"base": a, "tip": b}``)."""
         out: dict[str, Any] = {"n": self.n, "base": self.base}
         out |= {k: _plain(v) for k, v in self.params}
         loads = []
@@ -195,11 +286,12 @@ class RodSpec:
 
     def build(self, point: Mapping[str, Any] | None = None, factor=None):
         """The :class:`rbo_jax.lattice.Rod` at ``point`` (``{axis: value}``, traced or not),
-        every load times the load factor ``factor`` if given."""
+        every load times the load factor ``factor`` if given; a per-segment constant (list or
+        taper) as an ``(n,)`` array."""
         from .. import lattice
 
         point = point or {}
-        p = {k: _value(v, point) for k, v in self.params}
+        p = {k: _constant(v, point, self.n) for k, v in self.params}
         return lattice.rod(
             self.n,
             p.pop("length"),
@@ -210,7 +302,7 @@ class RodSpec:
 
     def parameters(self) -> tuple[str, ...]:
         """The names of the sweep axes the rod refers to."""
-        xs = [v for _, v in self.params]
+        xs = [x for _, v in self.params for x in _leaves(v)]
         for ld in self.loads:
             xs += [*ld.vector, ld.scale]
         return tuple(dict.fromkeys(x.name for x in xs if isinstance(x, Ref)))
