@@ -29,14 +29,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _enumeration as enum
 from .. import _programs
+from .._validation import _is_traced
 from ..kinematics import Turn
 from ..maps import critical_value
-from ..trajectory import SolveStatus, warn_if_float32
+from ..trajectory import SolveStatus, _AbstractSolved, times_ok, warn_if_float32
 from ._rod import Rod, RodState
 from ._rod_field import body_forces, energy, kinetic_moment, rates
 from ._rod_statics import solve_equilibrium
-from ._rod_verlet import verlet
+from ._rod_verlet import verlet, verlet_traced
 
 __all__ = ["RodTrajectory", "critical_load", "linearize", "simulate_rod", "spectrum"]
 
@@ -150,12 +152,18 @@ def critical_load(
     )
 
 
-class RodTrajectory(eqx.Module):
+class RodTrajectory(_AbstractSolved):
     r"""Samples of a rod's motion (:func:`rbo_jax.lattice.simulate` of a :class:`Rod`): ``ts``
     (T,), ``states`` (a :class:`RodState` with a leading axis T), ``rod``, ``status`` (a
     :class:`rbo_jax.SolveStatus`), ``num_steps``. Derived: ``centreline`` (T, N+1, 3),
     ``energy`` (T,) (conserved without damping, follower loads and dead moments),
-    ``kinetic_moment`` (T, 3) about the origin (conserved by a free rod without loads)."""
+    ``kinetic_moment`` (T, 3) about the origin (conserved by a free rod without loads); ``ok``,
+    ``message``, ``status_name`` as :class:`rbo_jax.Trajectory`'s.
+
+    Returned from ``jax.vmap`` every leaf has the batch axis in front (``status`` and
+    ``num_steps`` (B,), ``centreline`` (B, T, N+1, 3), the rod's parameters too): ``ok`` is then
+    a (B,) array; ``energy`` and ``kinetic_moment``, which map over the samples of one rod,
+    are taken inside the vmapped function or as ``jax.vmap(lambda t: t.energy)(traj)``."""
 
     ts: jax.Array
     states: RodState
@@ -174,12 +182,6 @@ class RodTrajectory(eqx.Module):
     @property
     def kinetic_moment(self):
         return jax.vmap(lambda s: kinetic_moment(self.rod, s))(self.states)
-
-    @property
-    def ok(self):
-        from .. import _enumeration as enum  # noqa: PLC0415
-
-        return np.asarray(enum.code(self.status)) == np.asarray(enum.code(SolveStatus.successful))
 
 
 @eqx.filter_jit
@@ -231,7 +233,24 @@ def simulate_rod(
     or any diffrax ``solver``. ``rtol``, ``atol``: the step-size controller's tolerances;
     ``max_steps``: the most steps (``"splitting"``: checked before the run). A failed solve
     (``"splitting"``: a non-finite state, the step too long for stability) raises with
-    ``throw=True``, else reports ``status`` (samples after the failure are ``inf``)."""
+    ``throw=True``, else reports ``status`` (samples after the failure are ``inf``).
+
+    **Under jax.jit, jax.vmap, jax.grad.** Every method runs inside a transformation: a leaf
+    of ``rod`` (e.g. a rod built from a traced ``bending``), ``state0``, ``ts``, ``dt`` or
+    ``dt0`` may be traced (``rtol``, ``atol``, ``max_steps``, ``method`` and ``throw`` stay
+    Python values). Nothing is then checked on the host: the step of ``"splitting"``, its
+    counts per interval and their total are computed in the program, and a total above
+    ``max_steps`` gives the status ``max_steps_reached``, a step that is not finite and > 0
+    ``invalid_parameters``, traced ``ts`` that are not finite and strictly increasing
+    ``invalid_times`` (their samples NaN), each sample after a failure ``inf``; with
+    ``throw=True`` a failure raises its message through :func:`equinox.error_if`. Under
+    ``jax.vmap`` every member runs its own steps (those of its own call), and ``status``,
+    ``num_steps`` are batched. ``jax.grad`` (reverse mode) through ``"splitting"`` needs loops
+    of fixed length: a ``dt`` given as a number with concrete, evenly spaced ``ts`` (equal
+    counts in every interval); forward mode (``jax.jvp``, ``jax.jacfwd``) works everywhere.
+    The explicit and implicit methods differentiate by diffrax's adjoint. A concrete ``ts``
+    that is not strictly increasing and a concrete ``dt`` outside (0, inf) still raise a
+    ``ValueError``."""
     if not isinstance(state0, RodState):
         raise TypeError(
             f"lattice.simulate(rod, state0, ts): state0 must be a RodState (e.g. "
@@ -244,32 +263,51 @@ def simulate_rod(
                 f"lattice.simulate: state0.{name} must have shape {shape}, got "
                 f"{np.shape(getattr(state0, name))}."
             )
-    ts = jnp.asarray(ts, dtype=jnp.result_type(float))
-    if ts.ndim != 1 or ts.shape[0] < 2 or not bool(jnp.all(jnp.diff(ts) > 0)):
-        raise ValueError(
-            "lattice.simulate: ts must be a strictly increasing 1-D array of >= 2 times."
+    if any(_is_traced(x) for x in jax.tree_util.tree_leaves((rod, state0, ts, dt, dt0))):
+        return _simulate_traced(
+            rod, state0, ts, method, solver, rtol, atol, max_steps, dt0, dt, throw
         )
+    ts = jnp.asarray(ts, dtype=jnp.result_type(float))
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(_TIMES)
+    increasing = jnp.all(jnp.diff(ts) > 0)
+    if _is_traced(increasing):  # inside jax.jit with concrete inputs: every operation is staged
+        return _simulate_traced(
+            rod, state0, ts, method, solver, rtol, atol, max_steps, dt0, dt, throw
+        )
+    if not bool(increasing):
+        raise ValueError(_TIMES)
     if method == "splitting" and solver is None:
         return _splitting(rod, state0, ts, dt, max_steps, throw)
-    if solver is None:
-        if method == "explicit":
-            solver = diffrax.Dopri8()
-        elif method == "implicit":
-            solver = diffrax.Kvaerno5()
-        else:
-            raise ValueError(
-                f"lattice.simulate: method must be 'explicit', 'implicit' or 'splitting' for a "
-                f"rod, got {method!r}."
-            )
+    solver = _solver(method, solver)
     dt0 = float(ts[1] - ts[0]) / 10.0 if dt0 is None else float(dt0)
     state0 = jax.tree_util.tree_map(jnp.asarray, state0)
     warn_if_float32(state0.r.dtype, rtol, atol)  # a float32 rod (JAX_ENABLE_X64=0)
     ys, code, steps = _solve(rod, state0, ts, solver, float(rtol), float(atol), int(max_steps), dt0)
-    status = [SolveStatus.successful, SolveStatus.max_steps_reached, SolveStatus.solver_error]
+    status = _DIFFRAX_STATUS
     code = int(code)
     if throw and code != 0:
         raise RuntimeError(f"lattice.simulate: the rod's solve failed: {status[code]!r}.")
     return RodTrajectory(ts, ys, rod, status[code], steps)
+
+
+_TIMES = "lattice.simulate: ts must be a strictly increasing 1-D array of >= 2 times."
+# the codes of _solve
+_DIFFRAX_STATUS = [SolveStatus.successful, SolveStatus.max_steps_reached, SolveStatus.solver_error]
+
+
+def _solver(method, solver):
+    """The diffrax solver of ``method`` (``solver`` when given)."""
+    if solver is not None:
+        return solver
+    if method == "explicit":
+        return diffrax.Dopri8()
+    if method == "implicit":
+        return diffrax.Kvaerno5()
+    raise ValueError(
+        f"lattice.simulate: method must be 'explicit', 'implicit' or 'splitting' for a "
+        f"rod, got {method!r}."
+    )
 
 
 def _splitting(rod, state0, ts, dt, max_steps, throw):
@@ -286,3 +324,97 @@ def _splitting(rod, state0, ts, dt, max_steps, throw):
         )
     status = SolveStatus.successful if bool(ok) else SolveStatus.solver_error
     return RodTrajectory(ts, states, rod, status, jnp.asarray(steps))
+
+
+# --------------------------------------------------------------------------------------------
+# Under a transformation: the convention of rbo_jax.simulate (rbo_jax.trajectory.finish).
+# --------------------------------------------------------------------------------------------
+
+
+def _traced_times(ts, throw):
+    """``(ts, bad)``: concrete ``ts`` checked now as :func:`simulate_rod` does (a NumPy array:
+    the splitting counts its steps on the host); traced ones with :func:`equinox.error_if`
+    when ``throw``, else flagged by ``bad`` (not finite and strictly increasing)."""
+    dtype = jnp.result_type(float)
+    if not _is_traced(ts):
+        ts = np.asarray(ts, dtype=dtype)
+        if ts.ndim != 1 or ts.shape[0] < 2 or not np.all(np.diff(ts) > 0):
+            raise ValueError(_TIMES)
+        return ts, np.bool_(False)
+    ts = jnp.asarray(ts, dtype=dtype)
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(_TIMES)
+    bad = ~times_ok(ts)
+    if throw:
+        ts = eqx.error_if(ts, bad, _TIMES)
+    return ts, bad
+
+
+def _raise_failed(x, status, messages):
+    """``x`` with :func:`equinox.branched_error_if` on a failed (traced) ``status``: the message
+    of its name in ``messages``, else the status's own."""
+    names = enum.names(SolveStatus)
+    msgs = [
+        "lattice.simulate: " + (messages.get(n) or SolveStatus[getattr(SolveStatus, n)])
+        for n in names
+    ]
+    return eqx.branched_error_if(x, status != SolveStatus.successful, enum.code(status), msgs)
+
+
+def _simulate_traced(rod, state0, ts, method, solver, rtol, atol, max_steps, dt0, dt, throw):
+    """:func:`simulate_rod` with a traced input: statuses in the program, no host check."""
+    ts, bad_times = _traced_times(ts, throw)
+    traced_ts = _is_traced(ts)
+    run_ts = jnp.where(bad_times, jnp.zeros_like(ts), ts) if traced_ts else ts
+    state0 = jax.tree_util.tree_map(jnp.asarray, state0)
+    if method == "splitting" and solver is None:
+        if max_steps == 100_000:  # as _splitting
+            max_steps = 10_000_000
+        states, ok, steps, _, too_many, bad_dt = verlet_traced(rod, state0, run_ts, dt, max_steps)
+        status = SolveStatus.where(ok, SolveStatus.successful, SolveStatus.solver_error)
+        status = SolveStatus.where(too_many, SolveStatus.max_steps_reached, status)
+        status = SolveStatus.where(bad_dt, SolveStatus.invalid_parameters, status)
+        what = "dt" if dt is not None else "the default step (from the stiffnesses and masses)"
+        messages = {
+            "max_steps_reached": (
+                f"method='splitting' needs more steps of dt for ts than max_steps = "
+                f"{max_steps}: raise max_steps or dt."
+            ),
+            "solver_error": (
+                "the rod's state became non-finite (method='splitting'): the step is past the "
+                "stability limit or the motion blew up; pass a smaller dt."
+            ),
+            "invalid_parameters": f"{what} must be finite and > 0 (method='splitting').",
+        }
+    else:
+        solver = _solver(method, solver)
+        if dt0 is None:
+            dt0 = (
+                (run_ts[1] - run_ts[0]) / 10.0
+                if traced_ts
+                else float(ts[1] - ts[0]) / 10.0  # as the eager call
+            )
+        elif not _is_traced(dt0):
+            dt0 = float(dt0)
+        if _is_traced(dt0):
+            dt0 = jnp.where(bad_times, 1.0, jnp.asarray(dt0, dtype=ts.dtype))
+        warn_if_float32(state0.r.dtype, rtol, atol)
+        states, code, steps = _solve(
+            rod, state0, jnp.asarray(run_ts), solver, float(rtol), float(atol), int(max_steps), dt0
+        )
+        status = SolveStatus.where(
+            code == 0,
+            SolveStatus.successful,
+            SolveStatus.where(code == 1, SolveStatus.max_steps_reached, SolveStatus.solver_error),
+        )
+        messages = {
+            n: f"the rod's solve failed: {getattr(SolveStatus, n)!r}."
+            for n in ("max_steps_reached", "solver_error")
+        }
+    if traced_ts:
+        status = SolveStatus.where(bad_times, SolveStatus.invalid_times, status)
+        states = jax.tree_util.tree_map(lambda x: jnp.where(bad_times, jnp.nan, x), states)
+        messages["invalid_times"] = _TIMES.removeprefix("lattice.simulate: ")
+    if throw:
+        states = _raise_failed(states, status, messages)
+    return RodTrajectory(jnp.asarray(ts), states, rod, status, steps)

@@ -75,7 +75,7 @@ from .._validation import _is_traced
 from ._rod import Rod, RodState
 from ._rod_field import _attached, _matrix_of, forces_tangent, log_unit, strains, tensors
 
-__all__ = ["SAFETY", "stable_step", "verlet"]
+__all__ = ["SAFETY", "stable_step", "verlet", "verlet_traced"]
 
 SAFETY = 0.9
 TWO_PI = 2.0 * math.pi
@@ -261,8 +261,10 @@ def _static_zeros(rod: Rod):
     return rod, _attached(rod.turn_damping) or _attached(rod.gap_damping)
 
 
-def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, principal):
-    """Samples at ``ts`` with ``counts[k]`` equal steps of ``dt_steps[k]`` in interval k."""
+def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, principal, fixed=None):
+    """Samples at ``ts`` with ``counts[k]`` equal steps of ``dt_steps[k]`` in interval k;
+    ``fixed``: a Python int equal to every count, known before tracing (a loop of fixed length,
+    which reverse-mode autodiff can transpose; ``counts`` then only for its shape)."""
     principal = (*jnp.linalg.eigh(jnp.asarray(rod.inertia)), principal)
     A = jnp.asarray(rod.inertia)
     A_inv = jnp.linalg.inv(A)
@@ -302,7 +304,7 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
     def interval(c, inputs):
         carry, theta = c
         n, h = inputs
-        carry = lax.fori_loop(0, n, lambda i, x: step(x, h), carry)
+        carry = lax.fori_loop(0, n if fixed is None else fixed, lambda i, x: step(x, h), carry)
         q, r, Pi, v, M, F = carry
         norm = lax.rsqrt(sum(c * c for c in q))
         q = tuple(c * norm for c in q)
@@ -348,3 +350,59 @@ def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000)
     stripped, damped = _static_zeros(rod)
     states, ok = _run_jit(stripped, state0, ts, jnp.asarray(counts), h, damped, _skipped_axes(rod))
     return states, ok, total, dt
+
+
+# --------------------------------------------------------------------------------------------
+# Under a transformation (jax.jit, jax.vmap, jax.grad): no check on the host.
+# --------------------------------------------------------------------------------------------
+
+
+def verlet_traced(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000):
+    r"""``(states, ok, steps, dt, too_many, bad_dt)``: :func:`verlet` where a leaf of ``rod``
+    or ``state0``, ``ts`` or ``dt`` is traced. The step (``dt`` or :func:`stable_step`), the
+    counts $\max(\lceil \Delta t_k/dt - 10^{-9}\rceil, 1)$ and their total are computed in the
+    program: ``too_many`` (the total above ``max_steps``, or a count past int32) and ``bad_dt``
+    (the step not finite and > 0) are flags, nothing is run then and the samples after the
+    first are ``inf``; ``ok``: every sample finite. Each interval's loop runs its own count
+    (a ``while`` loop; under ``jax.vmap`` every member keeps its count: the finished ones are
+    masked). A concrete ``dt`` outside (0, inf) raises :func:`verlet`'s ``ValueError``; with
+    concrete ``ts`` as well the counts are known before tracing, and where they are all equal
+    (evenly spaced ``ts``) each interval is a loop of fixed length, which reverse-mode autodiff
+    (``jax.grad``) can transpose."""
+    fixed = None
+    if dt is not None and not _is_traced(dt):
+        value = float(dt)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {value}.")
+        if not _is_traced(ts):
+            span = np.diff(np.asarray(ts, dtype=np.float64))
+            counts = np.maximum(np.ceil(span / value - 1e-9), 1.0)
+            if np.sum(counts) <= max_steps and np.all(counts == counts[0]):
+                fixed = int(counts[0])
+    ts = jnp.asarray(ts)
+    if dt is not None:
+        dt = jnp.asarray(dt, dtype=ts.dtype)
+    stripped, damped = _static_zeros(rod)
+    return _verlet_traced(
+        rod, stripped, state0, ts, dt, int(max_steps), damped, _skipped_axes(rod), fixed
+    )
+
+
+@eqx.filter_jit
+def _verlet_traced(rod, stripped, state0, ts, dt, max_steps, damped, principal, fixed):
+    """:func:`verlet_traced` in one program (inlined in the caller's; batched under vmap)."""
+    if dt is None:
+        dt = stable_step(rod, state0).astype(ts.dtype)
+    span = jnp.diff(ts)
+    bad_dt = ~(jnp.isfinite(dt) & (dt > 0))
+    n = jnp.maximum(jnp.ceil(span / jnp.where(bad_dt, 1.0, dt) - 1e-9), 1.0)
+    # a NaN total (non-finite ts) counts as too many: nothing is run
+    too_many = ~bad_dt & ~((jnp.sum(n) <= max_steps) & (jnp.max(n) < 2.0**31))
+    fail = bad_dt | too_many
+    counts = jnp.where(fail, 0.0, n).astype(jnp.int32)
+    states, ok = _run(stripped, state0, ts, counts, span / n, damped, principal, fixed)
+    states = jax.tree_util.tree_map(
+        lambda x: jnp.concatenate([x[:1], jnp.where(fail, jnp.inf, x[1:])]), states
+    )
+    steps = jnp.sum(counts.astype(jnp.result_type(int)))
+    return states, ok, steps, dt, too_many, bad_dt

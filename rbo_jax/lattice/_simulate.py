@@ -445,7 +445,9 @@ def simulate(
     throw=...)`` (``"splitting"``: the Lie-group position Verlet of
     :mod:`rbo_jax.lattice._rod_verlet`, fixed steps of at most ``dt``) with a
     :class:`rbo_jax.lattice.RodState` returns a :class:`rbo_jax.lattice.RodTrajectory`
-    (:func:`rbo_jax.lattice._rod_dynamics.simulate_rod`).
+    (:func:`rbo_jax.lattice._rod_dynamics.simulate_rod`), inside ``jax.jit``, ``jax.vmap``
+    and ``jax.grad`` too (a rod built from traced parameters; the failures as statuses or
+    :func:`equinox.error_if`).
     """
     if isinstance(lattice, Rod):
         return _simulate_rod(
