@@ -53,8 +53,9 @@ ACCELERATOR_LANES = 2**18
 def lanes() -> tuple[int, int]:
     """The most refilled lanes of a batch (:func:`._solve.solve_lanes`) on JAX's default backend
     and the waves it is cut into at least (:func:`._solve.lane_count`): :data:`LANES` and
-    :data:`._solve.WAVES` on a CPU, :data:`ACCELERATOR_LANES` and one wave on a GPU or TPU
-    (whose iterations cost the most: one wide wave)."""
+    :data:`._solve.WAVES` on a CPU; :data:`ACCELERATOR_LANES` and 1 on a GPU or TPU (a lane
+    per trajectory up to that many: an iteration costs a host round trip there, so few wide
+    iterations win)."""
     if jax.default_backend() == "cpu":
         return LANES, WAVES
     return ACCELERATOR_LANES, 1
