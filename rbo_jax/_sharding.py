@@ -246,13 +246,15 @@ def _small_rule(prim, axis_data, vals, dims, params):
     for any other call."""
     if prim.name not in ("lu", "triangular_solve") or all(d is None for d in dims):
         return None
-    ops = _batched(vals, dims, int(axis_data.size))
-    if any(x.ndim != 3 for x in ops) or max(ops[0].shape[1:]) > SMALL_MATRIX:
+    if prim.name == "triangular_solve" and not params["left_side"]:
         return None
+    # each operand of one element a matrix, the first at most SMALL_MATRIX in both dimensions
+    shapes = [[n for k, n in enumerate(jnp.shape(v)) if k != d] for v, d in zip(vals, dims)]
+    if any(len(s) != 2 for s in shapes) or max(shapes[0]) > SMALL_MATRIX:
+        return None
+    ops = _batched(vals, dims, int(axis_data.size))
     if prim.name == "lu":
         return _lu_rows(ops[0]), (0, 0, 0)
-    if not params["left_side"]:
-        return None
     return _triangular_rows(*ops, **params), 0
 
 
