@@ -328,6 +328,12 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
 _run_jit = eqx.filter_jit(_run)
 
 
+def _step_counts(span, dt, xp=np):
+    r"""The equal steps of each interval between samples: $\max(\lceil \Delta t_k/dt -
+    10^{-9}\rceil, 1)$ (``xp``: NumPy on the host, ``jax.numpy`` in a traced program)."""
+    return xp.maximum(xp.ceil(span / dt - 1e-9), 1.0)
+
+
 def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000):
     r"""``(states, ok, steps, dt)``: the motion of ``rod`` from ``state0`` sampled at ``ts``
     (module docstring) with steps of at most ``dt`` (default :func:`stable_step` at
@@ -338,7 +344,7 @@ def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000)
         what = "dt" if given else "the default step (from the stiffnesses and masses)"
         raise ValueError(f"lattice.simulate: {what} must be finite and > 0, got {dt}.")
     span = np.diff(np.asarray(ts, dtype=np.float64))
-    counts = np.maximum(np.ceil(span / dt - 1e-9), 1.0)
+    counts = _step_counts(span, dt)
     total = int(min(np.sum(counts), 2.0**62))
     if total > max_steps:
         raise ValueError(
@@ -376,7 +382,7 @@ def verlet_traced(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_0
             raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {value}.")
         if not _is_traced(ts):
             span = np.diff(np.asarray(ts, dtype=np.float64))
-            counts = np.maximum(np.ceil(span / value - 1e-9), 1.0)
+            counts = _step_counts(span, value)
             if np.sum(counts) <= max_steps and np.all(counts == counts[0]):
                 fixed = int(counts[0])
     ts = jnp.asarray(ts)
@@ -395,7 +401,7 @@ def _verlet_traced(rod, stripped, state0, ts, dt, max_steps, damped, principal, 
         dt = stable_step(rod, state0).astype(ts.dtype)
     span = jnp.diff(ts)
     bad_dt = ~(jnp.isfinite(dt) & (dt > 0))
-    n = jnp.maximum(jnp.ceil(span / jnp.where(bad_dt, 1.0, dt) - 1e-9), 1.0)
+    n = _step_counts(span, jnp.where(bad_dt, 1.0, dt), jnp)
     # a NaN total (non-finite ts) counts as too many: nothing is run
     too_many = ~bad_dt & ~((jnp.sum(n) <= max_steps) & (jnp.max(n) < 2.0**31))
     fail = bad_dt | too_many
