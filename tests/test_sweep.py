@@ -265,6 +265,26 @@ def test_bad_points_get_their_status_and_the_others_complete():
     assert ds["num_steps"].values[4] == -1  # not evaluated
 
 
+def test_postprocess_may_edit_its_chunk_in_place():
+    """A ``postprocess`` gets writable arrays, whether every point of the chunk was computed
+    (the outputs are then the program's own buffers, read-only, and are copied for it) or some
+    were not (filled arrays)."""
+
+    def square(x, y):
+        return {"v": jnp.stack([x * x, y])}
+
+    def scale(result):
+        result["v"] *= 2.0  # in place
+        return result
+
+    x = np.array([1.0, 2.0, 3.0, np.nan])
+    for xs in (x[:3], x):
+        ds = sweep(square, points={"x": xs, "y": xs + 1}, postprocess=scale, progress=False)
+        ok = np.isfinite(xs)
+        np.testing.assert_array_equal(ds["v"].values[ok], 2.0 * np.stack([xs**2, xs + 1], 1)[ok])
+        assert np.all(np.isnan(ds["v"].values[~ok]))
+
+
 # ---------------------------------------------------------------------------------------------
 # Storage and resumption.
 # ---------------------------------------------------------------------------------------------

@@ -36,7 +36,10 @@ def error_text(e: Exception) -> str:
 
 class Chunks:
     """Runs chunks through the compiled program. ``postprocess`` (optional) maps a finished
-    chunk's host arrays ``{name: array}`` to new arrays of the same shapes and dtypes."""
+    chunk's host arrays ``{name: array}`` to new arrays of the same shapes and dtypes; it gets
+    writable copies, unless it says that it only reads them (a ``reads_only = True``
+    attribute: the maps' sort of the eigenvalues), then it gets the read-only views of the
+    program's outputs (a copy less per chunk)."""
 
     def __init__(self, quantity, space: Space, devices, dims=None, postprocess=None):
         self.program = program(quantity, space.names, tuple(devices), space.chunk_points)
@@ -140,13 +143,26 @@ class Chunks:
 
     def _assemble(self, slices, pts, valid, status, out, errors):
         block_shape = tuple(sl.stop - sl.start for sl in slices)
-        full_status = np.full(valid.size, self.spec.nonfinite_code, np.int8)
-        full_status[valid] = status
-        result = {}
-        for v in self.spec.variables:
-            a = np.full((valid.size,) + v.shape, fill_value(v.dtype), v.dtype)
-            a[valid] = out[v.name]
-            result[v.name] = a.reshape(block_shape + v.shape)
+        if valid.all():  # the common case: the outputs are the block, no fill and no scatter
+            full_status = np.asarray(status, np.int8)
+            # (views of the device's buffers, read-only: a postprocess gets writable copies)
+            copy = self.postprocess is not None and not getattr(
+                self.postprocess, "reads_only", False
+            )
+            result = {
+                v.name: np.array(out[v.name], v.dtype, copy=copy or None).reshape(
+                    block_shape + v.shape
+                )
+                for v in self.spec.variables
+            }
+        else:
+            full_status = np.full(valid.size, self.spec.nonfinite_code, np.int8)
+            full_status[valid] = status
+            result = {}
+            for v in self.spec.variables:
+                a = np.full((valid.size,) + v.shape, fill_value(v.dtype), v.dtype)
+                a[valid] = out[v.name]
+                result[v.name] = a.reshape(block_shape + v.shape)
         result["status"] = full_status.reshape(block_shape)
         if self.postprocess is not None:
             result = self.postprocess(result)

@@ -18,6 +18,7 @@ from ..kinematics import _as_vector
 from ..maps import STABILITY_KIND_NAMES, critical_value, equilibrium_stability, is_unstable
 from ..model import RigidBodyOscillator
 from ._engine import sweep
+from ._output import sort_eigenvalues
 from ._rod_maps import returns_rod, rod_critical_load, rod_stability_map
 
 __all__ = ["stability_map", "critical_load", "STABILITY_KIND_NAMES"]
@@ -89,12 +90,6 @@ def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
         return values, r.status
 
     return stability
-
-
-def _sort_eigenvalues(result: dict) -> dict:
-    # lexicographic (Re, Im) like rbo_jax.spectrum; on the host, where it is cheap
-    result["eigenvalues"] = np.sort_complex(result["eigenvalues"])
-    return result
 
 
 def stability_map(
@@ -178,7 +173,7 @@ def stability_map(
         dims={"eigenvalues": ("mode",), "theta_eq": ("component",)},
         attrs={"classify_rtol": rtol},
         desc="stability map",
-        postprocess=_sort_eigenvalues,
+        postprocess=sort_eigenvalues,
     )
     ds = ds.rename({"status": "equilibrium_status"})
     ds = ds.assign_coords(mode=np.arange(6), component=["x", "y", "z"])

@@ -211,6 +211,18 @@ def make_output_spec(
     return OutputSpec(tuple(variables), status_names, status_enum)
 
 
+def sort_eigenvalues(result: dict) -> dict:
+    """The ``postprocess`` of the stability maps: each point's eigenvalues sorted by real, then
+    imaginary part, like :func:`rbo_jax.spectrum`; on the host, where it is cheap. It only reads
+    the chunk's arrays (``reads_only``: :class:`rbo_jax.batch._chunks.Chunks` hands it the
+    program's outputs without a copy)."""
+    result["eigenvalues"] = np.sort_complex(result["eigenvalues"])
+    return result
+
+
+sort_eigenvalues.reads_only = True
+
+
 def fill_value(dtype: str):
     """What a point that was not computed holds: NaN, False, -1 or 0."""
     dt = np.dtype(dtype)

@@ -24,6 +24,7 @@ from ..lattice._rod import Rod
 from ..maps import critical_value
 from ..stability import StabilityKind, classify
 from ._engine import sweep
+from ._output import sort_eigenvalues
 
 __all__ = ["returns_rod", "rod_critical_load", "rod_stability_map"]
 
@@ -50,11 +51,6 @@ def _stability(model_fn, rtol, eq_items, point):
     return p, a, kind, sol
 
 
-def _sort_eigenvalues(result: dict) -> dict:
-    result["eigenvalues"] = np.sort_complex(result["eigenvalues"])
-    return result
-
-
 def rod_stability_map(model_fn, axes, *, rtol, eq_items, **sweep_options):
     """The map of :func:`rbo_jax.stability_map` for a rod (module docstring): variables
     ``eigenvalues`` (axes × mode, sorted by real then imaginary part), ``spectral_abscissa``,
@@ -72,7 +68,7 @@ def rod_stability_map(model_fn, axes, *, rtol, eq_items, **sweep_options):
         dims={"eigenvalues": ("mode",), "tip": ("component",)},
         attrs={"classify_rtol": rtol, "model": "rod"},
         desc="stability map (rod)",
-        postprocess=_sort_eigenvalues,
+        postprocess=sort_eigenvalues,
         **sweep_options,
     )
     ds = ds.rename({"status": "equilibrium_status"})
