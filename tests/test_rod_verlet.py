@@ -94,6 +94,16 @@ def test_max_steps_is_checked_before_the_run():
     # 10^15 steps: counted in float64 (no int32 overflow slipping past the check)
     with pytest.raises(ValueError, match="needs 1000000000000000 steps"):
         lattice.simulate(rod, rod.straight(), jnp.array([0.0, 1e3]), method="splitting", dt=1e-12)
+    # a max_steps past int32: one interval of 3e9 steps would overflow the program's count
+    with pytest.raises(ValueError, match="3000000000 steps .* between two samples"):
+        lattice.simulate(
+            rod,
+            rod.straight(),
+            jnp.array([0.0, 3.0]),
+            method="splitting",
+            dt=1e-9,
+            max_steps=10**10,
+        )
 
 
 def test_unknown_method_names_splitting():

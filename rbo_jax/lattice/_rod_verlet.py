@@ -351,6 +351,12 @@ def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000)
             f"lattice.simulate: method='splitting' needs {total} steps of dt = {dt:.3g} s for "
             f"ts, more than max_steps = {max_steps}: raise max_steps or dt."
         )
+    if np.max(counts) >= 2.0**31:  # the program counts the steps of an interval in int32
+        raise ValueError(
+            f"lattice.simulate: method='splitting' needs {int(np.max(counts))} steps of "
+            f"dt = {dt:.3g} s between two samples of ts, more than 2**31 - 1: sample ts more "
+            "densely or raise dt."
+        )
     h = jnp.asarray(span / counts, dtype=ts.dtype)
     counts = counts.astype(np.int32)
     stripped, damped = _static_zeros(rod)
