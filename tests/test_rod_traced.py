@@ -7,7 +7,8 @@ the loop of each interval masks the members that are done); ``jax.jit`` of one c
 ``invalid_times``; ``jax.grad`` of the tip's position through the splitting (a fixed ``dt``)
 against central finite differences; the failures under a transformation (more steps than
 ``max_steps``, a step that is not finite and > 0) as statuses with ``throw=False`` and as
-errors naming ``max_steps`` or ``dt`` with ``throw=True``; Dopri8 vmapped over the bending
+errors naming ``max_steps`` or ``dt`` with ``throw=True``; traced invalid rod parameters as
+the status ``invalid_parameters`` or an error naming the parameter; Dopri8 vmapped over the bending
 stiffness against its eager calls. The small clamped rod of ``tests/test_rod_verlet.py``
 (N = 4, shear 50, stretch 80: ~0.1 s of motion in ~10-50 steps).
 """
@@ -142,6 +143,27 @@ def test_failures_under_a_transformation_are_statuses_or_errors():
         jax.block_until_ready(run(dts[1]))
     with pytest.raises(RUNTIME_ERRORS, match="dt must be finite and > 0"):
         jax.block_until_ready(run(dts[2]))
+
+
+def test_traced_rod_parameters_are_checked_by_simulate():
+    """Parameters traced at construction are not checked by ``lattice.rod`` (it cannot): a
+    negative or NaN bending stiffness in a vmap is the status invalid_parameters with NaN
+    states (``Rod.parameter_checks``), the other members run as alone; with throw=True the
+    error names the parameter."""
+    EIs = jnp.array([3.0, -1.0, jnp.nan])
+    batch = jax.vmap(lambda EI: splitting(EI, dt=0.005, throw=False))(EIs)
+    names = enum.names(SolveStatus)
+    got = [names[int(c)] for c in np.asarray(enum.code(batch.status))]
+    assert got == ["successful", "invalid_parameters", "invalid_parameters"]
+    r = np.asarray(batch.centreline)
+    np.testing.assert_array_equal(r[0], np.asarray(splitting(3.0, dt=0.005).centreline))
+    assert np.all(np.isnan(r[1:]))
+
+    run = eqx.filter_jit(lambda EI: splitting(EI, dt=0.005).centreline)
+    with pytest.raises(RUNTIME_ERRORS, match="bending and torsion must be > 0"):
+        jax.block_until_ready(run(EIs[1]))
+    with pytest.raises(RUNTIME_ERRORS, match="a parameter is NaN or infinite"):
+        jax.block_until_ready(run(EIs[2]))
 
 
 @pytest.mark.slow  # compiles Dopri8 twice (eager, vmapped)

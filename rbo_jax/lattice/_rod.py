@@ -52,6 +52,7 @@ import math
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -74,7 +75,8 @@ E3 = np.array([0.0, 0.0, 1.0])
 
 def _checked(x, name: str, owner: str, *, low: float = 0.0, strict: bool = True):
     """``x`` with every entry > ``low`` (or >= when not ``strict``) and finite, or a
-    ``ValueError`` naming ``name``; traced values pass (the solvers report their status)."""
+    ``ValueError`` naming ``name``; traced values pass (:func:`rbo_jax.lattice.simulate`
+    checks them, :meth:`Rod.parameter_checks`)."""
     if _is_traced(x):
         return x
     a = np.asarray(x)
@@ -224,6 +226,43 @@ class Rod(eqx.Module):
         if self.base == "clamped":
             turn[0] = False
         return turn, pos
+
+    def parameter_checks(self) -> list:
+        """``(valid, message)`` pairs of the rod's own requirements, as the constructors check
+        concrete values (:func:`rod`, :func:`circular_rod`, :func:`pendulum`): every float
+        finite, masses, rotary inertias and stiffnesses > 0, damping times and lengths >= 0;
+        and the foundation's. Values that were traced at construction are checked here, by the
+        solvers that use the rod (:meth:`parameter_status`)."""
+        leaves = [
+            x
+            for x in jax.tree_util.tree_leaves(self)
+            if jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+        ]
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+        diagonal = jnp.diagonal(self.inertia, axis1=-2, axis2=-1)
+        checks = [
+            (finite, "rod: a parameter is NaN or infinite."),
+            (jnp.all(self.mass > 0), "rod: mass (and tip_mass) must give every body a mass > 0."),
+            (jnp.all(diagonal > 0), "rod: rotary must be > 0 (every body's rotary inertia)."),
+            (jnp.all(self.turn_stiffness > 0), "rod: bending and torsion must be > 0."),
+            (jnp.all(self.gap_stiffness > 0), "rod: shear and stretch must be > 0."),
+            (
+                jnp.all(self.turn_damping >= 0) & jnp.all(self.gap_damping >= 0),
+                "rod: damping and shear_damping must be >= 0.",
+            ),
+            (jnp.all(self.share >= 0), "rod: length must be > 0."),
+        ]
+        if self.foundation is not None:
+            checks += self.foundation.parameter_checks()
+        return checks
+
+    def parameter_status(self):
+        """``(ok, which, messages)`` of :meth:`parameter_checks`, as
+        :meth:`rbo_jax.RigidBodyOscillator.parameter_status`: whether every check holds, the
+        index of the first that fails and every message (static)."""
+        checks = self.parameter_checks()
+        valid = jnp.stack([jnp.asarray(v, dtype=bool) for v, _ in checks])
+        return jnp.all(valid), jnp.argmin(valid), tuple(m for _, m in checks)
 
     def with_loads(self, loads) -> Rod:
         """The same rod under other loads."""
