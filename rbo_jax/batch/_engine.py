@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import mmap
 import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
@@ -195,13 +196,37 @@ def _check_memory(space: Space, spec: OutputSpec):
         )
 
 
+# Result arrays from this size on are mapped without transparent huge pages (_result_array)
+SMALL_PAGES_FROM = 4 << 20
+
+
+def _result_array(shape, dtype) -> np.ndarray:
+    """An uninitialised array for a sweep's results, its large ones in anonymous memory of
+    ordinary pages (``mmap``), not NumPy's allocation, which asks the kernel for transparent
+    huge pages (``madvise``) from 4 MiB on.
+
+    Where the kernel must compact memory to find free huge pages (``defrag = madvise``, as on
+    the benchmark machine), the first write to such an array stalls: the 10⁶-point Newton map's
+    results (130 MB) took 0.53-0.62 s to fill chunk by chunk, against 0.04-0.05 s when the
+    memory of a freed map was reused. With ordinary pages the map (one pinned core, its
+    previous result alive, as in ``bench_cores.py``) took 2.64 s against 2.89 s, on 2 devices
+    1.46-1.54 s against 1.68-1.79 s; a map that reuses the huge pages of the one it replaced
+    was 0.05-0.1 s faster with NumPy's, which a fresh map never is."""
+    nbytes = math.prod(shape) * np.dtype(dtype).itemsize
+    if nbytes < SMALL_PAGES_FROM:
+        return np.empty(shape, dtype)
+    return np.frombuffer(mmap.mmap(-1, nbytes), dtype).reshape(shape)
+
+
 class _InMemory:
     """Collects chunk results into arrays (one process) or keeps them (several processes).
     Error records are listed in chunk order, however the chunks arrive (Dask: as they finish)."""
 
     def __init__(self, space: Space, spec: OutputSpec, hosts: Hosts):
-        self.arrays = {v.name: np.empty(space.shape + v.shape, v.dtype) for v in spec.variables}
-        self.arrays["status"] = np.empty(space.shape, np.int8)
+        self.arrays = {
+            v.name: _result_array(space.shape + v.shape, v.dtype) for v in spec.variables
+        }
+        self.arrays["status"] = _result_array(space.shape, np.int8)
         self.kept, self.chunk_errors, self.hosts = {}, {}, hosts
 
     @property
