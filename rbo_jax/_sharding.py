@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import threading
 
 import jax
@@ -369,43 +368,38 @@ class Layout:
         return jax.ShapeDtypeStruct((self.batch // len(self.devices), n_names), dtype)
 
 
-# Points per device from which a program for several CPU devices is compiled with whole loops.
-WHOLE_LOOPS_SHARE = 2048
+# XLA:CPU's pass that cuts a program's large loops into tasks for its intra-op threads
+# (``outer_dimension_partitions`` on the fusions; its name in ``xla_disable_hlo_passes``).
+PARTITION_PASS = "cpu-parallel-task-assigner"
 
 
-@contextlib.contextmanager
-def whole_loops(devices, share: int):
-    """Compile with every thread of the process pinned to one core, for a program that runs on
-    several CPU devices.
+def compile_options(devices) -> dict | None:
+    """XLA's options for a chunk program over ``devices``: for several CPU devices, no loop cut
+    into tasks (:data:`PARTITION_PASS` off); ``None`` (XLA's defaults) otherwise.
 
-    XLA:CPU cuts each large loop of a program into as many tasks as the process may use cores
-    (``outer_dimension_partitions``, decided when the program is compiled, from the CPU affinity
-    of the compiling threads). With one device per core every core already runs a device's
-    share, and the cut only adds tasks that queue behind each other on XLA's thread pool
-    (measured: a lattice step 20-50 % slower per core). Compiled while the process is pinned,
-    as ``taskset -c`` would, the loops stay whole; the affinity of every thread (also of those
-    started meanwhile) is restored at once afterwards. Nothing is pinned for one device, for
-    other platforms, or where the system has no CPU affinity.
-
-    A pinned compilation is slower, since XLA compiles on several threads too (measured: the
-    Newton stability map of 41 x 37 points, 1.4 s more to its first answer), while whole loops
-    gain ~5 % of the run time (a 16,384-point sweep on 2 devices: 5.8 -> 5.5 s). So only
-    programs whose devices get at least :data:`WHOLE_LOOPS_SHARE` points each are pinned."""
+    XLA:CPU cuts every large loop of a program (a fusion over a device's lanes, in every step of
+    a solve) into as many tasks as its intra-op pool has threads, and that pool has at least
+    one thread per device (``max(cores, devices)`` in ``PjRtCpuClient``), whatever the CPU
+    affinity. With one device per core every core already runs a device's share, and the tasks
+    can only queue behind the other devices' work. Until 2026-11-28 the program was compiled
+    with every thread pinned to one core for this; measured since (jax 0.10.2), the cuts stayed
+    (``outer_dimension_partitions`` of 2 in the 2-device programs, pinned or not), and the
+    pinning only made XLA compile on one thread: the 10⁶-point Newton map's program 2.85-2.94 s
+    pinned, 1.97-2.07 s now, its first map 5.5-5.7 s -> 4.5-4.7 s. Without the cuts the run
+    times did not change here (2 devices: the map 1.40-1.73 s with cuts, 1.42-1.81 s without;
+    a 1,444-point ``rbo-jax sweep`` at t1 = 600 46.2 s against 47.6 s; 8 devices on the 2 cores:
+    the map 1.32-1.41 s against 1.28-1.39 s); they are left out so that a machine of many cores
+    does not cut every fusion of every device in as many tasks as it has cores. One device
+    keeps the cuts: there they are XLA's way of using the cores."""
     cpu = all(d.platform == "cpu" for d in devices)
-    if len(devices) < 2 or not cpu or share < WHOLE_LOOPS_SHARE or not _can_pin():
-        yield
-        return
-    before = os.sched_getaffinity(0)
-    _pin_all({min(before)})
-    try:
-        yield
-    finally:
-        _pin_all(before)
+    if len(devices) < 2 or not cpu:
+        return None
+    return {"xla_disable_hlo_passes": PARTITION_PASS}
 
 
 def compile_program(traced, layout: Layout):
     """Lower and compile a traced chunk program of ``layout``: lowered with LAPACK in blocks
-    too, compiled with whole loops (:func:`whole_loops`).
+    too, compiled with :func:`compile_options`.
 
     Some primitives trace their batched implementation only when they are lowered: lineax's
     linear solve keeps the solver's ``lu_solve`` inside its primitive until then, so that the
@@ -420,20 +414,7 @@ def compile_program(traced, layout: Layout):
     block = layout.block if len(layout.devices) > 1 else 0
     with lapack_in_blocks(block):
         lowered = traced.lower()
-    with whole_loops(layout.devices, layout.batch // len(layout.devices)):
-        return lowered.compile()
-
-
-def _can_pin() -> bool:
-    return hasattr(os, "sched_setaffinity") and os.path.isdir("/proc/self/task")
-
-
-def _pin_all(cpus) -> None:
-    for tid in os.listdir("/proc/self/task"):
-        try:
-            os.sched_setaffinity(int(tid), cpus)
-        except OSError:  # the thread ended meanwhile
-            pass
+    return lowered.compile(compile_options(layout.devices))
 
 
 def deal(block: np.ndarray, n_devices: int) -> np.ndarray:

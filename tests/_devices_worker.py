@@ -133,6 +133,27 @@ def inner_eig():
     }
 
 
+def partitions():
+    """XLA's cuts of a chunk program's loops into tasks (``outer_dimension_partitions``), for
+    every device and for one: the cut counts found in each compiled program's text."""
+    import re
+
+    import jax
+    import jax.numpy as jnp
+
+    from rbo_jax._sharding import compile_program, point_program
+
+    def point(x):  # a loop over a large fusion, per device: 4096 points each
+        return jax.lax.fori_loop(0, 3, lambda i, y: jnp.tanh(y * y + x[0]), x[0] * jnp.ones(64))
+
+    found = {}
+    for n in (len(jax.devices()), 1):
+        traced, layout = point_program(point, 1, jax.devices()[:n], 4096 * n)
+        text = compile_program(traced, layout).as_text()
+        found[str(n)] = sorted(set(re.findall(r'outer_dimension_partitions":\[([^]]*)\]', text)))
+    return {"devices": len(jax.devices()), "found": found}
+
+
 def fast_sweep():
     """Final states of fast_simulate (refilled lanes) over the device counts of
     ``RBO_TEST_DEVICE_COUNTS`` (default 1, 2 and all local devices) and two chunk sizes: the

@@ -135,6 +135,17 @@ def test_a_vmap_inside_a_point_ends_on_several_devices(tmp_path, devices):
     assert report["finite"] and report["identical"]
 
 
+def test_a_program_for_several_devices_keeps_its_loops_whole(tmp_path):
+    """XLA:CPU cuts a program's large loops into tasks for its intra-op pool, which has a thread
+    per device whatever the CPU affinity (so at least 2 here); a chunk program for several CPU
+    devices is compiled without the cuts (``_sharding.compile_options``), one for one device
+    keeps them (its only way of using several cores)."""
+    report = _run(tmp_path, "partitions", RBO_JAX_CPU_DEVICES="2")
+    assert report["devices"] == 2
+    assert report["found"]["2"] in ([], ['""'])  # no cut anywhere
+    assert any(c.strip('"') not in ("", "1") for c in report["found"]["1"])  # cut in tasks
+
+
 @pytest.mark.slow  # cost: ~35 s, six sweeps compiled
 def test_fast_simulate_sweep_is_bitwise_the_same_on_any_number_of_devices(tmp_path):
     """Refilled lanes, chunks of 1230 and 500 points, over 1, 2 and 4 devices, some with their

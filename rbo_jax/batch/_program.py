@@ -41,9 +41,9 @@ matrix alone, whatever the block.
 **Every core busy.** The points of a chunk are dealt to the devices one by one
 (:func:`rbo_jax._sharding.deal`: neighbouring grid points cost alike, so contiguous shares left
 one device waiting for the other at every chunk), and a program for several CPU devices is
-compiled with the process pinned to one core (:func:`rbo_jax._sharding.whole_loops`: XLA then
-leaves each device's loops whole instead of cutting them into tasks for every core, which only
-queue behind the other devices' work).
+compiled without XLA's cut of its loops into tasks for the intra-op threads
+(:func:`rbo_jax._sharding.compile_options`: those tasks only queue behind the other devices'
+work).
 
 Every call has the same shape (a partial chunk is padded), so one compilation serves a sweep;
 programs are cached on what the quantity computes (:func:`rbo_jax._callables.callable_key`: its
