@@ -8,9 +8,9 @@ the loop of each interval masks the members that are done); ``jax.jit`` of one c
 against central finite differences; the failures under a transformation (more steps than
 ``max_steps``, a step that is not finite and > 0) as statuses with ``throw=False`` and as
 errors naming ``max_steps`` or ``dt`` with ``throw=True``; traced invalid rod parameters as
-the status ``invalid_parameters`` or an error naming the parameter; Dopri8 vmapped over the bending
-stiffness against its eager calls. The small clamped rod of ``tests/test_rod_verlet.py``
-(N = 4, shear 50, stretch 80: ~0.1 s of motion in ~10-50 steps).
+the status ``invalid_parameters`` or an error naming the parameter; Dopri8 and Kvaerno5
+vmapped over the bending stiffness against their eager calls. The small clamped rod of
+``tests/test_rod_verlet.py`` (N = 4, shear 50, stretch 80: ~0.1 s of motion in ~10-50 steps).
 """
 
 from __future__ import annotations
@@ -166,18 +166,20 @@ def test_traced_rod_parameters_are_checked_by_simulate():
         jax.block_until_ready(run(EIs[2]))
 
 
-@pytest.mark.slow  # compiles Dopri8 twice (eager, vmapped)
-def test_vmap_of_dopri8_is_the_eager_calls():
-    """Dopri8 (method="explicit") vmapped over EI: each member's adaptive steps are its own
-    call's (diffrax's loop masks the members that are done), so the samples agree with the
-    eager calls far below the solver's tolerance rtol = 1e-8 (asserted to 1e-10)."""
+@pytest.mark.slow  # compiles each method twice (eager, vmapped): Kvaerno5 ~11 s a program
+@pytest.mark.parametrize("method", ["explicit", "implicit"])
+def test_vmap_of_the_diffrax_methods_is_the_eager_calls(method):
+    """Dopri8 (method="explicit") and Kvaerno5 (method="implicit") vmapped over EI: each
+    member's adaptive steps are its own call's (diffrax's loop masks the members that are
+    done), so the samples agree with the eager calls far below the solver's tolerance
+    rtol = 1e-8 (asserted to 1e-10)."""
     ts = jnp.linspace(0.0, 0.2, 3)
-    batch = jax.vmap(lambda EI: lattice.simulate(rod_of(EI), STATE0, ts, throw=False))(
-        jnp.asarray(EIS)
-    )
+    batch = jax.vmap(
+        lambda EI: lattice.simulate(rod_of(EI), STATE0, ts, method=method, throw=False)
+    )(jnp.asarray(EIS))
     assert np.all(batch.ok)
     for i, EI in enumerate(EIS):
-        one = lattice.simulate(rod_of(EI), STATE0, ts)
+        one = lattice.simulate(rod_of(EI), STATE0, ts, method=method)
         assert int(one.num_steps) == int(batch.num_steps[i])
         assert_same_states(
             jax.tree_util.tree_map(lambda x, i=i: x[i], batch.states), one.states, 1e-10
