@@ -14,6 +14,7 @@ omega * dt < 2 on the stiffest eigenvalue; the failures (a step past the limit, 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -288,7 +289,9 @@ def test_tangent_forces_equal_the_autodiff_forces():
     r"""``forces_tangent`` (increments entering as $Q(E + \delta\times)$, the integrator's
     path) against ``forces_at`` (increments through $Q\cdot Q(\delta)$ and $Z(\delta)$) at a
     bent, stretched, moving state of a damped rod on a foundation under a follower force,
-    gravity and a dead moment: equal to 1e-12 of the largest force and moment."""
+    gravity and a dead moment: equal to 1e-12 of the largest force and moment; and
+    ``body_forces`` (``forces_tangent`` at the composed turns) against ``forces_at`` at nonzero
+    increments, with their derivatives along the increments (1e-10)."""
     from rbo_jax import QuadraticFoundation
     from rbo_jax.lattice import _rod_field
 
@@ -315,3 +318,18 @@ def test_tangent_forces_equal_the_autodiff_forces():
         assert scale > 1.0
         assert float(jnp.max(jnp.abs(M1 - M0))) < 1e-12 * scale
         assert float(jnp.max(jnp.abs(F1 - F0))) < 1e-12 * scale
+    # at nonzero increments: body_forces (forces_tangent at Q(θ)Q(δ), r + d) against the
+    # definition through Z(δ) (forces_at), also their derivatives along the increments
+    delta = jnp.asarray(0.5 * rng.standard_normal((6, 3)))
+    d = jnp.asarray(0.02 * rng.standard_normal((6, 3)))
+    for args in ((), (Om, v)):
+        M0, F0 = eqx.filter_jit(_rod_field.forces_at)(rod, Q, r, delta, d, *args)
+        M1, F1 = eqx.filter_jit(_rod_field.body_forces)(rod, theta, r, delta, d, *args)
+        scale = max(float(jnp.max(jnp.abs(M0))), float(jnp.max(jnp.abs(F0))))
+        assert float(jnp.max(jnp.abs(M1 - M0))) < 1e-12 * scale
+        assert float(jnp.max(jnp.abs(F1 - F0))) < 1e-12 * scale
+    tangent = (jnp.asarray(rng.standard_normal((6, 3))), jnp.asarray(rng.standard_normal((6, 3))))
+    _, dM0 = jax.jvp(lambda a, b: _rod_field.forces_at(rod, Q, r, a, b), (delta, d), tangent)
+    _, dM1 = jax.jvp(lambda a, b: _rod_field.body_forces(rod, theta, r, a, b), (delta, d), tangent)
+    for x, y in zip(dM1, dM0):
+        assert float(jnp.max(jnp.abs(x - y))) < 1e-10 * float(jnp.max(jnp.abs(y)))
