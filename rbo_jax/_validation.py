@@ -244,6 +244,14 @@ def requirement_checks(module) -> list:
     return out
 
 
+def checks_status(checks: list):
+    """``(ok, which, messages)`` of traced ``(valid, message)`` pairs: whether every check
+    holds, the index of the first that fails, and the messages (static): what the solvers
+    raise (:func:`equinox.branched_error_if`) or report as ``invalid_parameters``."""
+    valid = jnp.stack([jnp.asarray(v, dtype=bool) for v, _ in checks])
+    return jnp.all(valid), jnp.argmin(valid), tuple(m for _, m in checks)
+
+
 def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
     """A user callable stored as a module field.
 

@@ -32,7 +32,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._custom_types import Matrix, Scalar, Vector
-from ._validation import _xp, failures_as_nan, on_host
+from ._validation import _xp, checks_status, failures_as_nan, on_host
 from .foundations import AbstractFoundation
 from .inertia import check_inertia, inertia_checks
 from .kinematics import (
@@ -227,9 +227,7 @@ class RigidBodyOscillator(eqx.Module):
             checks = on_host(self).parameter_checks()
             valid = np.array([bool(np.all(v)) for v, _ in checks])
             return np.bool_(valid.all()), np.int32(np.argmin(valid)), tuple(m for _, m in checks)
-        checks = self.parameter_checks()
-        valid = jnp.stack([jnp.asarray(v, dtype=bool) for v, _ in checks])
-        return jnp.all(valid), jnp.argmin(valid), tuple(m for _, m in checks)
+        return checks_status(self.parameter_checks())
 
     def inertia_inverse(self) -> Matrix:
         """$A^{-1}$ (by cofactors)."""

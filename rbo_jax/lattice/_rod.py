@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._validation import _is_traced
+from .._validation import FINITE, NONNEGATIVE, POSITIVE, _is_traced, checks_status
 from ..foundations import AbstractFoundation, ZeroFoundation
 from ..kinematics import turn_tensor
 from ._rod_loads import as_rod_loads, real_array
@@ -238,19 +238,21 @@ class Rod(eqx.Module):
             for x in jax.tree_util.tree_leaves(self)
             if jnp.issubdtype(jnp.result_type(x), jnp.inexact)
         ]
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+        finite = jnp.all(jnp.stack([jnp.all(FINITE.holds(x)) for x in leaves]))
         diagonal = jnp.diagonal(self.inertia, axis1=-2, axis2=-1)
+        damping = jnp.concatenate([self.turn_damping, self.gap_damping])
+        P, N = POSITIVE, NONNEGATIVE
         checks = [
             (finite, "rod: a parameter is NaN or infinite."),
-            (jnp.all(self.mass > 0), "rod: mass (and tip_mass) must give every body a mass > 0."),
-            (jnp.all(diagonal > 0), "rod: rotary must be > 0 (every body's rotary inertia)."),
-            (jnp.all(self.turn_stiffness > 0), "rod: bending and torsion must be > 0."),
-            (jnp.all(self.gap_stiffness > 0), "rod: shear and stretch must be > 0."),
             (
-                jnp.all(self.turn_damping >= 0) & jnp.all(self.gap_damping >= 0),
-                "rod: damping and shear_damping must be >= 0.",
+                jnp.all(P.holds(self.mass)),
+                f"rod: mass (and tip_mass) must give every body a mass {P.text}.",
             ),
-            (jnp.all(self.share >= 0), "rod: length must be > 0."),
+            (jnp.all(P.holds(diagonal)), f"rod: rotary must be {P.text}."),
+            (jnp.all(P.holds(self.turn_stiffness)), f"rod: bending and torsion must be {P.text}."),
+            (jnp.all(P.holds(self.gap_stiffness)), f"rod: shear and stretch must be {P.text}."),
+            (jnp.all(N.holds(damping)), f"rod: damping and shear_damping must be {N.text}."),
+            (jnp.all(N.holds(self.share)), f"rod: length must be {P.text}."),
         ]
         if self.foundation is not None:
             checks += self.foundation.parameter_checks()
@@ -260,9 +262,7 @@ class Rod(eqx.Module):
         """``(ok, which, messages)`` of :meth:`parameter_checks`, as
         :meth:`rbo_jax.RigidBodyOscillator.parameter_status`: whether every check holds, the
         index of the first that fails and every message (static)."""
-        checks = self.parameter_checks()
-        valid = jnp.stack([jnp.asarray(v, dtype=bool) for v, _ in checks])
-        return jnp.all(valid), jnp.argmin(valid), tuple(m for _, m in checks)
+        return checks_status(self.parameter_checks())
 
     def with_loads(self, loads) -> Rod:
         """The same rod under other loads."""
