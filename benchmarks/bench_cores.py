@@ -14,13 +14,19 @@ Rows:
   ``--sweep-n`` points (M, A3), the whole command's wall time (import and compilation included,
   as the user waits for it), and its CPU time;
 - ``stability_map``: the map of issue 31 (Newton equilibria, eigenvalues) over ``--map-n`` points
-  of (M, c); the first call (compilation included) and a second call, the figure;
+  of (M, c); the first call (compilation included), then ``--repeat`` calls whose median is
+  the figure;
 - ``sweep of fast_simulate``: :func:`rbo_jax.sweep` of the same final states over ``--sim-n``
-  points in the library; first call and a second call, the figure.
+  points in the library; first call, then the median of ``--repeat`` calls, the figure.
 - ``lanes`` (a profile, with ``--rows lanes``): one pinned core, ``jax.jit(jax.vmap(
   fast_simulate))`` of N of those trajectories per call for N = 1000 … 16000: the time per
   trajectory against N shows what the refilled lanes lose at the end of a call, waiting for
   the slowest trajectories (a device's share of a chunk is such a call).
+
+Each row runs ``--rounds`` rounds (the CLI row one: it takes minutes), and every round starts
+the modes one after the other, so that a machine whose speed drifts within the run (±30 % here,
+issue 31) drifts alike for all of them; a mode's time is its median over the rounds, and the
+speed-up is the median of the rounds' own speed-ups, printed with their range.
 
 CPU time is the child's user + system time (``resource``): a ratio of CPU to wall near the number
 of cores means every core was busy, above it threads waited for each other. The persistent caches
@@ -28,7 +34,7 @@ are off in every child, so each compiles what it runs. Speed-ups are the one-cor
 others' (> 1: faster than one core).
 
 Usage: ``python benchmarks/bench_cores.py [--sweep-n 6000] [--t1 600] [--map-n 1000000]
-[--sim-n 40000] [--core C] [--json PATH] [--smoke]``
+[--sim-n 40000] [--rounds 3] [--repeat 3] [--core C] [--json PATH] [--smoke]``
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ import json
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -77,7 +84,7 @@ CHILD = textwrap.dedent(
     import rbo_jax as rbo
     import jax, jax.numpy as jnp
 
-    what, n, t1 = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+    what, n, t1, repeat = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
     k = jnp.array([0.0, 0.0, 1.0])
     side = int(round(np.sqrt(n)))
 
@@ -107,7 +114,7 @@ CHILD = textwrap.dedent(
         axes = {"M": np.linspace(0.05, 0.8, side), "c": np.linspace(0.5, 2.0, side)}
         run = lambda: rbo.sweep(final, axes, progress=False)
     times = []
-    for _ in range(2):
+    for _ in range(1 + repeat):
         r0 = resource.getrusage(resource.RUSAGE_SELF)
         t = time.perf_counter()
         ds = run()
@@ -116,7 +123,7 @@ CHILD = textwrap.dedent(
         cpu = r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
         times.append((wall, cpu))
     v = next(iter(ds.data_vars.values())).values
-    print(json.dumps({"devices": len(jax.devices()), "first": times[0], "second": times[1],
+    print(json.dumps({"devices": len(jax.devices()), "first": times[0], "timed": times[1:],
                       "points": int(np.prod(list(ds.sizes[d] for d in ("M", "c")))),
                       "checksum": float(np.nansum(np.abs(np.real(v))))}))
     """
@@ -169,13 +176,16 @@ def cli_sweep(mode, core, n, t1, tmp):
     return {"wall": wall, "cpu": cpu, "points": side * side}
 
 
-def library(mode, core, what, n, t1):
+def library(mode, core, what, n, t1, repeat):
+    """One fresh process: the first call, then the median (wall, its CPU) of ``repeat`` calls."""
     pre, extra = _prefix(mode, core)
-    _, _, out = _timed(pre + [sys.executable, "-c", CHILD, what, str(n), str(t1)], _env(extra))
+    cmd = pre + [sys.executable, "-c", CHILD, what, str(n), str(t1), str(repeat)]
+    _, _, out = _timed(cmd, _env(extra))
     r = json.loads(out.strip().splitlines()[-1])
+    wall, cpu = sorted(r["timed"])[len(r["timed"]) // 2]
     return {
-        "wall": r["second"][0],
-        "cpu": r["second"][1],
+        "wall": wall,
+        "cpu": cpu,
         "first": r["first"][0],
         "devices": r["devices"],
         "points": r["points"],
@@ -188,7 +198,18 @@ def lanes_profile(core, t1, sizes=(1000, 2000, 4000, 8000, 16000)):
     out = []
     print("lanes: jax.jit(jax.vmap(fast_simulate)) on one pinned core", flush=True)
     for n in sizes:
-        cmd = ["taskset", "-c", str(core), sys.executable, "-c", CHILD, "lanes", str(n), str(t1)]
+        cmd = [
+            "taskset",
+            "-c",
+            str(core),
+            sys.executable,
+            "-c",
+            CHILD,
+            "lanes",
+            str(n),
+            str(t1),
+            "1",
+        ]
         _, _, text = _timed(cmd, _env({}))
         r = json.loads(text.strip().splitlines()[-1])
         out.append(r)
@@ -203,6 +224,8 @@ def _parse(argv):
     p.add_argument("--map-n", type=int, default=1_000_000, help="points of the stability map")
     p.add_argument("--sim-n", type=int, default=40_000, help="points of the library sweep")
     p.add_argument("--sim-t1", type=float, default=100.0, help="end time of the library sweep")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of the library rows")
+    p.add_argument("--repeat", type=int, default=3, help="timed calls in each library process")
     p.add_argument("--core", type=int, default=None, help="the core of the one-core runs")
     p.add_argument("--rows", default="cli,map,sim", help="subset of cli,map,sim,lanes")
     p.add_argument("--json", default=None)
@@ -210,6 +233,7 @@ def _parse(argv):
     args = p.parse_args(argv)
     if args.smoke:
         args.sweep_n, args.t1, args.map_n, args.sim_n, args.sim_t1 = 16, 5.0, 64, 64, 5.0
+        args.rounds, args.repeat = 1, 1
     return args
 
 
@@ -229,34 +253,54 @@ def main(argv=None) -> dict:
         results["lanes"] = lanes_profile(core, args.sim_t1)
     with tempfile.TemporaryDirectory() as tmp:
         for row in rows:
-            for mode in MODES:
-                if row == "cli":
-                    r = cli_sweep(mode, core, args.sweep_n, args.t1, tmp)
-                    label = f"rbo-jax sweep final_state ({r['points']} points, t1 {args.t1:g})"
-                elif row == "map":
-                    r = library(mode, core, "map", args.map_n, 0.0)
-                    label = f"stability_map, Newton ({r['points']} points)"
-                else:
-                    r = library(mode, core, "sim", args.sim_n, args.sim_t1)
-                    label = f"sweep of fast_simulate ({r['points']} points, t1 {args.sim_t1:g})"
-                r.update(row=row, mode=mode, label=label)
-                results["rows"].append(r)
-                print(
-                    f"{label:<50} {mode:<22} wall {r['wall']:8.2f} s  cpu {r['cpu']:8.2f} s"
-                    + (f"  first call {r['first']:.2f} s" if "first" in r else ""),
-                    flush=True,
+            rounds = 1 if row == "cli" else max(1, args.rounds)
+            runs = {mode: [] for mode in MODES}
+            for k in range(rounds):
+                for mode in MODES:  # the modes of a round one after the other
+                    if row == "cli":
+                        r = cli_sweep(mode, core, args.sweep_n, args.t1, tmp)
+                        label = f"rbo-jax sweep final_state ({r['points']} points, t1 {args.t1:g})"
+                    elif row == "map":
+                        r = library(mode, core, "map", args.map_n, 0.0, args.repeat)
+                        label = f"stability_map, Newton ({r['points']} points)"
+                    else:
+                        r = library(mode, core, "sim", args.sim_n, args.sim_t1, args.repeat)
+                        label = f"sweep of fast_simulate ({r['points']} points, t1 {args.sim_t1:g})"
+                    runs[mode].append(r)
+                    print(
+                        f"{label:<50} {mode:<22} round {k + 1}/{rounds} wall {r['wall']:8.2f} s  "
+                        f"cpu {r['cpu']:8.2f} s"
+                        + (f"  first call {r['first']:.2f} s" if "first" in r else ""),
+                        flush=True,
+                    )
+            base = [r["wall"] for r in runs["one core"]]
+            for mode, rs in runs.items():
+                ratios = sorted(b / r["wall"] for b, r in zip(base, rs))
+                r = dict(sorted(rs, key=lambda r: r["wall"])[len(rs) // 2])  # the median run
+                r.update(
+                    row=row,
+                    mode=mode,
+                    label=label,
+                    rounds=len(rs),
+                    walls=[x["wall"] for x in rs],
+                    speedup=statistics.median(ratios),
+                    speedups=ratios,
+                    cpu_per_wall=r["cpu"] / r["wall"],
                 )
-    print("\nspeed-up over one core (same row, same run; > 1: faster)")
-    for row in rows:
-        rs = {r["mode"]: r for r in results["rows"] if r["row"] == row}
-        base = rs["one core"]["wall"]
-        for mode, r in rs.items():
-            r["speedup"] = base / r["wall"]
-            r["cpu_per_wall"] = r["cpu"] / r["wall"]
-            print(
-                f"{r['label']:<50} {mode:<22} {r['speedup']:5.2f}x  "
-                f"(CPU/wall {r['cpu_per_wall']:.2f})"
-            )
+                results["rows"].append(r)
+    print(
+        "\nspeed-up over one core (same row, each round's own ratio; median [range]; > 1: faster)"
+    )
+    for r in results["rows"]:
+        spread = (
+            f" [{r['speedups'][0]:.2f}-{r['speedups'][-1]:.2f} over {r['rounds']} rounds]"
+            if r["rounds"] > 1
+            else ""
+        )
+        print(
+            f"{r['label']:<50} {r['mode']:<22} {r['speedup']:5.2f}x{spread}  "
+            f"(CPU/wall {r['cpu_per_wall']:.2f})"
+        )
     print(f"load average at the end: {os.getloadavg()[0]:.2f}")
     write_json(args.json, results, indent=1)
     return results
