@@ -255,7 +255,13 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                     "cores",
                     f"{r['label']}: {r['mode']} vs pinned to one core (wall, fresh processes)",
                     _fmt(r["speedup"], ".2f") + "x",
-                    f"CPU/wall {r['cpu_per_wall']:.2f}",
+                    f"CPU/wall {r['cpu_per_wall']:.2f}"
+                    + (
+                        f"; median of {r['rounds']} rounds, "
+                        f"{r['speedups'][0]:.2f}-{r['speedups'][-1]:.2f}x"
+                        if r.get("rounds", 1) > 1
+                        else ""
+                    ),
                 )
             )
     da = results.get("dask")
