@@ -184,3 +184,57 @@ def test_vmap_of_the_diffrax_methods_is_the_eager_calls(method):
         assert_same_states(
             jax.tree_util.tree_map(lambda x, i=i: x[i], batch.states), one.states, 1e-10
         )
+
+
+def past_the_constructor(EI):
+    """``rod_of(3.0)`` with the bending stiffness ``EI`` set past the constructor's checks, as a
+    value traced at construction (``jax.vmap`` over EI) reaches the solvers."""
+    rod = rod_of(3.0)
+    k = np.array(rod.turn_stiffness)
+    k[..., :2] *= EI / 3.0  # EI / h per coupling
+    return eqx.tree_at(lambda r: r.turn_stiffness, rod, jnp.asarray(k))
+
+
+def test_traced_rod_parameters_are_checked_by_the_statics_and_spectra():
+    """The checks of ``Rod.parameter_checks`` in the statics: ``solve_equilibrium`` of a rod
+    with a negative or NaN bending stiffness has the status ``invalid_parameters`` and a NaN
+    state (one compiled program for the three rods, a valid one as before); ``equilibrium``
+    and ``spectrum`` raise naming the parameter."""
+    load = (lattice.TipForce(jnp.array([0.2, 0.0, -0.1])),)
+    rods = [past_the_constructor(EI).with_loads(load) for EI in (3.0, -1.0, np.nan)]
+    assert (
+        np.asarray(rods[0].turn_stiffness).tolist()
+        == np.asarray(rod_of(3.0).turn_stiffness).tolist()
+    )
+    sols = [lattice.solve_equilibrium(rod) for rod in rods]
+    names = enum.names(lattice.RodEquilibriumStatus)
+    got = [names[int(enum.code(s.status))] for s in sols]
+    assert got == ["successful", "invalid_parameters", "invalid_parameters"]
+    assert np.abs(np.asarray(sols[0].state.tip)[0]) > 1e-3  # bent by the load
+    assert all(np.all(np.isnan(np.asarray(s.state.r))) for s in sols[1:])
+    for fn, caller in (
+        (lattice.equilibrium, "lattice.equilibrium"),
+        (lambda rod: lattice.spectrum(rod, rod.straight()), "lattice.spectrum"),
+    ):
+        with pytest.raises(RUNTIME_ERRORS, match=f"{caller}: rod: bending and torsion must be"):
+            jax.block_until_ready(fn(rods[1]))
+        with pytest.raises(RUNTIME_ERRORS, match=f"{caller}: rod: a parameter is NaN"):
+            jax.block_until_ready(fn(rods[2]))
+
+
+@pytest.mark.slow  # a critical load's scan of spectra vmapped: ~15-25 s of compilation
+def test_traced_rod_parameters_give_a_nan_critical_load():
+    """``lattice.critical_load`` vmapped over the bending stiffness of Beck's column: a negative
+    or NaN EI gives NaN, a valid one its own flutter load (the other members unaffected)."""
+
+    def beck(EI):
+        def rod_at(P):
+            return rod_of(EI).with_loads((lattice.TipForce(jnp.array([0, 0, -P]), follower=True),))
+
+        return rod_at
+
+    crit = jax.vmap(lambda EI: lattice.critical_load(beck(EI), 200.0, n_scan=8, n_bisect=20))
+    found = np.asarray(crit(jnp.array([3.0, -1.0, jnp.nan])))
+    alone = float(lattice.critical_load(beck(3.0), 200.0, n_scan=8, n_bisect=20))
+    assert np.isfinite(alone) and np.all(np.isnan(found[1:]))
+    np.testing.assert_allclose(found[0], alone, rtol=1e-12)

@@ -8,7 +8,9 @@ base, where a rigid body has 6), classified by :func:`rbo_jax.classify` as a rig
 are (Lyapunov's first method, real parts within ``rtol`` × max|p| of zero count as zero).
 A point whose equilibrium fails has NaN eigenvalues, the kind ``undefined`` and its
 :class:`rbo_jax.lattice.RodEquilibriumStatus` in ``equilibrium_status``; for a critical load
-it counts as unstable, as in :func:`rbo_jax.lattice.critical_load`. Both are quantities of the
+it counts as unstable, as in :func:`rbo_jax.lattice.critical_load`, and a point whose rod has
+invalid parameters (``invalid_parameters``; at the ends of the load's range for a critical
+load) gets NaN. Both are quantities of the
 sweep engine: chunks over every local device (the spectra of a critical load's scan are batched
 inside one point; the engine runs such LAPACK calls in blocks, :mod:`rbo_jax._sharding`).
 """
@@ -86,7 +88,11 @@ def _critical(model_fn, load, point, lo, hi, rtol, eq_items, n_scan, n_bisect):
         code = enum.code(kind)
         return (code == unstable_codes[0]) | (code == unstable_codes[1]) | ~sol.ok
 
-    return critical_value(unstable, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
+    from ..lattice._rod_dynamics import valid_between
+
+    value = critical_value(unstable, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
+    valid = valid_between(lambda v: model_fn(**{**point, load: v}), lo, hi)
+    return jnp.where(valid, value, jnp.nan)
 
 
 def rod_critical_load(model_fn, axes, load, load_min, load_max, *, rtol, eq_items, **options):

@@ -55,6 +55,8 @@ each a 72-lane ``jvp`` of the field (n = 5) that XLA compiles in ~3.3 s (9.0 s w
 
 from __future__ import annotations
 
+import contextvars
+
 import diffrax
 import equinox as eqx
 import jax
@@ -71,7 +73,7 @@ from ..maps import critical_value
 from ..trajectory import SolveStatus, _AbstractSolved, times_ok, warn_if_float32
 from ._rod import Rod, RodState
 from ._rod_field import body_forces, energy, kinetic_moment, rates
-from ._rod_statics import solve_equilibrium
+from ._rod_statics import checked_parameters, solve_equilibrium
 from ._rod_verlet import verlet, verlet_traced
 
 __all__ = ["RodTrajectory", "critical_load", "linearize", "simulate_rod", "spectrum"]
@@ -126,7 +128,9 @@ def spectrum(rod: Rod, state: RodState | None = None, **equilibrium_kwargs):
     r"""The eigenvalues of the linearisation at the equilibrium ``state`` (solved by
     :func:`rbo_jax.lattice.equilibrium` when ``None``, with ``equilibrium_kwargs``), sorted by
     real then imaginary part: $2\cdot 6N$ of them for a clamped rod of $N$ bodies past the base.
-    Mass, damping, gyroscopic and circulatory (follower) terms included."""
+    Mass, damping, gyroscopic and circulatory (follower) terms included. A rod whose
+    parameters were traced at construction is checked here: an invalid one raises, naming the
+    parameter (:meth:`Rod.parameter_status`)."""
     if not isinstance(rod, Rod):
         raise TypeError(f"spectrum: expected a Rod, got {type(rod).__name__}.")
     if state is None:
@@ -135,7 +139,7 @@ def spectrum(rod: Rod, state: RodState | None = None, **equilibrium_kwargs):
             eqx.error_if(sol.state.theta, ~sol.ok, "lattice.spectrum: no equilibrium found."),
             sol.state.r,
         )
-    return _spectrum(rod, state)
+    return checked_parameters(rod, _spectrum(rod, state), "lattice.spectrum")
 
 
 def _abscissa_ratio(p):
@@ -168,7 +172,9 @@ def critical_load(
     (``shear_damping=0`` in :func:`rod`). A scan at
     ``n_scan`` loads, then ``n_bisect`` bisections (:func:`rbo_jax.critical_value`); ``inf`` if
     the rod stays stable. Equilibria by Newton from ``guess`` (the straight rod) in ``steps``
-    load steps; a load whose equilibrium fails counts as unstable."""
+    load steps; a load whose equilibrium fails counts as unstable. NaN if the rod's parameters
+    are invalid at ``load_min`` or ``load_max`` (values traced at construction, e.g. a
+    negative stiffness in a ``jax.vmap``: :meth:`Rod.parameter_status`)."""
 
     def run(lo, hi):
         def unstable(P):
@@ -177,13 +183,20 @@ def critical_load(
             ratio = _abscissa_ratio(jnp.linalg.eigvals(linearize(rod, sol.state)))
             return (ratio > rtol) | ~sol.ok
 
-        return critical_value(unstable, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
+        value = critical_value(unstable, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
+        return jnp.where(valid_between(rod_fn, lo, hi), value, jnp.nan)
 
     if not load_max > load_min:
         raise ValueError(f"critical_load: load_max ({load_max}) must exceed load_min ({load_min}).")
     return _programs.jit(run, fast_compile=True)(
         jnp.asarray(float(load_min)), jnp.asarray(float(load_max))
     )
+
+
+def valid_between(rod_fn, lo, hi):
+    """Whether the rods ``rod_fn(lo)`` and ``rod_fn(hi)`` pass their parameter checks
+    (:meth:`Rod.parameter_status`; the bounds of a critical load's search)."""
+    return rod_fn(lo).parameter_status()[0] & rod_fn(hi).parameter_status()[0]
 
 
 class RodTrajectory(_AbstractSolved):
@@ -222,29 +235,56 @@ class RodTrajectory(_AbstractSolved):
 _rates = eqx.filter_jit(rates)
 
 
+# True while diffrax's Kvaerno5 traces a step and has not yet asked for its first matrix
+# (_Kvaerno5.step, _JacobianChord.init)
+_STEP_START = contextvars.ContextVar("rbo_jax_kvaerno5_step_start", default=False)
+
+
 class _JacobianChord(diffrax.VeryChord):
     r"""diffrax's chord method (Newton's method with one matrix per step) for the stages of
     ``Kvaerno5``, its matrix $J = \partial g/\partial f$ of a stage's relation
-    $g(f) = F(y_0 + \gamma h\,f) - f$ built by ``jax.jacfwd`` over the flattened state and
+    $g(f) = f - F(y_0 + \gamma h\,f)$ built by ``jax.jacfwd`` over the flattened state and
     handed to diffrax's own ``init`` as the linear model $f \mapsto J f$, whose linearisation
     and LU are those of $J$ (its matrix $J\cdot E$, exact). diffrax's ``init`` linearises $g$
     itself and keeps it as a function with its residuals, carried through the stages and
     traced again where it is used: the same matrix to rounding, a larger program (module
     docstring, Compilation). Tested against diffrax's ``Kvaerno5`` (1.5e-11 of the largest
     state at rtol 1e-10); ``jax.grad`` through it equals diffrax's (the matrix is held constant,
-    as diffrax's is)."""
+    as diffrax's is).
+
+    The first matrix of a step (diffrax asks for it before the stages, at $\gamma = 0$ for
+    the explicit first stage, where $J = I$ exactly; ``Kvaerno5`` replaces it at its second
+    stage) is the identity, without the field's Jacobian: diffrax's ``runge_kutta.py`` builds
+    it from the relation at a zero diagonal, which cost a second dense Jacobian in the
+    compiled program (module docstring, Compilation)."""
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         if "init_state" in options:  # the stages' calls, with the matrix of the step
             return super().init(fn, y, args, options, f_struct, aux_struct, tags)
         flat, unravel = ravel_pytree(y)
-        J = jax.jacfwd(lambda x: ravel_pytree(fn(unravel(x), args)[0])[0])(flat)
-        J = lax.stop_gradient(J)
+        if _STEP_START.get():  # the step's first matrix, at a zero diagonal: the identity
+            _STEP_START.set(False)
+            J = jnp.eye(flat.size, dtype=flat.dtype)
+        else:
+            J = jax.jacfwd(lambda x: ravel_pytree(fn(unravel(x), args)[0])[0])(flat)
+            J = lax.stop_gradient(J)
 
         def model(x, a):
             return unravel(J @ ravel_pytree(x)[0]), None
 
         return super().init(model, y, args, options, f_struct, aux_struct, tags)
+
+
+class _Kvaerno5(diffrax.Kvaerno5):
+    """diffrax's ``Kvaerno5`` whose step marks its start for :class:`_JacobianChord` (the
+    first matrix it asks for is the identity of its explicit first stage)."""
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        token = _STEP_START.set(True)
+        try:
+            return super().step(terms, t0, t1, y0, args, solver_state, made_jump)
+        finally:
+            _STEP_START.reset(token)
 
 
 def _solve_program(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint=None):
@@ -368,7 +408,7 @@ def _solver(method, solver):
     if method == "explicit":
         return diffrax.Dopri8()
     if method == "implicit":
-        return diffrax.Kvaerno5(root_finder=diffrax.with_stepsize_controller_tols(_JacobianChord)())
+        return _Kvaerno5(root_finder=diffrax.with_stepsize_controller_tols(_JacobianChord)())
     raise ValueError(
         f"lattice.simulate: method must be 'explicit', 'implicit' or 'splitting' for a "
         f"rod, got {method!r}."

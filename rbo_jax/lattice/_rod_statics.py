@@ -45,6 +45,11 @@ class RodEquilibriumStatus(eqx.Enumeration):
         "Newton's method met a non-finite residual or step (a singular stiffness: the rod may be "
         "at a buckling load, or a parameter is not finite)."
     )
+    invalid_parameters = (
+        "a parameter of the rod is invalid (a negative stiffness, a zero mass, ...: values "
+        "traced at construction, which the constructors could not check); "
+        "Rod.parameter_status() names it."
+    )
 
 
 class RodEquilibrium(eqx.Module):
@@ -162,15 +167,17 @@ def _equilibrium(rod: Rod, theta, r, steps, rtol, max_steps):
         rod, theta, r, steps=steps, rtol=rtol, max_steps=max_steps
     )
     nonfinite = ~(jnp.all(jnp.isfinite(theta_s)) & jnp.all(jnp.isfinite(r_s)))
+    S = RodEquilibriumStatus
     status = jnp.where(
         nonfinite,
-        enum.code(RodEquilibriumStatus.non_finite),
-        jnp.where(
-            failed,
-            enum.code(RodEquilibriumStatus.not_converged),
-            enum.code(RodEquilibriumStatus.successful),
-        ),
+        enum.code(S.non_finite),
+        jnp.where(failed, enum.code(S.not_converged), enum.code(S.successful)),
     )
+    # the parameters that were traced at construction, checked here (Rod.parameter_checks):
+    # an invalid rod has no equilibrium, its state NaN
+    ok = rod.parameter_status()[0]
+    status = jnp.where(ok, status, enum.code(S.invalid_parameters))
+    theta_s, r_s = (jnp.where(ok, x, jnp.nan) for x in (theta_s, r_s))
     return RodState.at_rest(theta_s, r_s), status, total, res
 
 
@@ -194,8 +201,10 @@ def solve_equilibrium(
     steps per load step).
 
     Returns a :class:`RodEquilibrium`; a solve that fails reports ``status`` (the state is the
-    last iterate), never NaN silently. Differentiable with respect to every float of ``rod`` by
-    the implicit function theorem (one extra solve).
+    last iterate), never NaN silently. A rod whose parameters were traced at construction
+    (under ``jax.vmap`` or ``jax.grad``) is checked here (:meth:`Rod.parameter_checks`): an
+    invalid one gets the status ``invalid_parameters`` and a NaN state. Differentiable with
+    respect to every float of ``rod`` by the implicit function theorem (one extra solve).
     """
     if not isinstance(rod, Rod):
         raise TypeError(f"equilibrium: expected a Rod (rbo_jax.lattice.rod), got {type(rod)}.")
@@ -225,6 +234,14 @@ def equilibrium(rod: Rod, guess: RodState | None = None, **kwargs) -> RodState:
     """The static state of ``rod`` (:func:`solve_equilibrium`'s ``state``), raising an error
     (:func:`equinox.error_if` inside ``jit``) when the solve fails."""
     sol = solve_equilibrium(rod, guess, **kwargs)
+    state = checked_parameters(rod, (sol.state.theta, sol.state.r), "lattice.equilibrium")
     message = "lattice.equilibrium: Newton's method failed (see solve_equilibrium's status)."
-    theta = eqx.error_if(sol.state.theta, ~sol.ok, message)
-    return RodState.at_rest(theta, sol.state.r)
+    return RodState.at_rest(*eqx.error_if(state, ~sol.ok, message))
+
+
+def checked_parameters(rod: Rod, x, caller: str):
+    """``x`` (a pytree), raising (:func:`equinox.branched_error_if`, inside ``jit`` too) with
+    the message of the first of the rod's parameter checks that fails
+    (:meth:`Rod.parameter_status`)."""
+    ok, which, messages = rod.parameter_status()
+    return eqx.branched_error_if(x, ~ok, which, [f"{caller}: {m}" for m in messages])
