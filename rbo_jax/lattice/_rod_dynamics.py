@@ -45,12 +45,19 @@ the ones before it:
   root finder and the first change only).
 
 diffrax's ``scan_kind="lax"`` and ``"bounded"`` (its stages are one traced copy already, in a
-loop) changed nothing (XLA's compilation 19.2 and 20.3 s against 19.5 s). What is left of
-Kvaerno5's compilation is its two dense Jacobians: one before the stages (the identity of its
-explicit first stage, at zero diagonal, computed all the same) and one at the second stage,
-each a 72-lane ``jvp`` of the field (n = 5) that XLA compiles in ~3.3 s (9.0 s with both,
-2.4 s with neither); of the 9.0 s, XLA's HLO passes take 2.7 s and its code generation (LLVM)
-6.3 s.
+loop) changed nothing (XLA's compilation 19.2 and 20.3 s against 19.5 s). Kvaerno5's program
+held two dense Jacobians of the field, each a 72-lane ``jvp`` (n = 5) that XLA compiles in
+~3.3 s (9.0 s with both, 2.4 s with neither; XLA's HLO passes 2.7 s of the 9.0, its code
+generation 6.3 s): one before the stages, which diffrax builds from the stage relation at a
+zero diagonal (the identity, for the explicit first stage; Kvaerno5 replaces it at its second
+stage), and the one of the second stage. The first is now the identity itself
+(:class:`_JacobianChord`, :class:`_Kvaerno5`): measured on 2026-11-28 on a machine 1.6x
+slower than the day before, alternating with the tree before it, first call less warm call
+18.3-18.4 -> 12.6-12.8 s (n = 5) and 17.2-19.3 -> 12.8-13.1 s (n = 10), and the warm calls
+faster too, since every step computed both: 0.66-0.72 -> 0.40 s and 0.61-0.63 -> 0.32-0.35 s.
+What is left is the second stage's Jacobian (the program's XLA compilation 8.6 s that day):
+``jax.lax.map`` of the linearised field over the columns, or ``jax.vmap`` of it, instead of
+``jax.jacfwd`` compiled alike (12.2 and 12.4 s against 13.4 s, first call less warm call).
 """
 
 from __future__ import annotations
