@@ -199,7 +199,8 @@ def test_traced_rod_parameters_are_checked_by_the_statics_and_spectra():
     """The checks of ``Rod.parameter_checks`` in the statics: ``solve_equilibrium`` of a rod
     with a negative or NaN bending stiffness has the status ``invalid_parameters`` and a NaN
     state (one compiled program for the three rods, a valid one as before); ``equilibrium``
-    and ``spectrum`` raise naming the parameter."""
+    and ``spectrum`` (at a given state, and at the equilibrium it solves) raise naming the
+    parameter."""
     load = (lattice.TipForce(jnp.array([0.2, 0.0, -0.1])),)
     rods = [past_the_constructor(EI).with_loads(load) for EI in (3.0, -1.0, np.nan)]
     assert (
@@ -215,6 +216,7 @@ def test_traced_rod_parameters_are_checked_by_the_statics_and_spectra():
     for fn, caller in (
         (lattice.equilibrium, "lattice.equilibrium"),
         (lambda rod: lattice.spectrum(rod, rod.straight()), "lattice.spectrum"),
+        (lattice.spectrum, "lattice.spectrum"),  # at the equilibrium it solves
     ):
         with pytest.raises(RUNTIME_ERRORS, match=f"{caller}: rod: bending and torsion must be"):
             jax.block_until_ready(fn(rods[1]))

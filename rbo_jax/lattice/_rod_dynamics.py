@@ -80,7 +80,7 @@ from ..maps import critical_value
 from ..trajectory import SolveStatus, _AbstractSolved, times_ok, warn_if_float32
 from ._rod import Rod, RodState
 from ._rod_field import body_forces, energy, kinetic_moment, rates
-from ._rod_statics import checked_parameters, solve_equilibrium
+from ._rod_statics import checked_parameters, solve_equilibrium, valid_parameters
 from ._rod_verlet import verlet, verlet_traced
 
 __all__ = ["RodTrajectory", "critical_load", "linearize", "simulate_rod", "spectrum"]
@@ -144,9 +144,9 @@ def spectrum(rod: Rod, state: RodState | None = None, **equilibrium_kwargs):
         raise TypeError(f"spectrum: expected a Rod, got {type(rod).__name__}.")
     if state is None:
         sol = solve_equilibrium(rod, **equilibrium_kwargs)
+        theta = checked_parameters(rod, sol.state.theta, "lattice.spectrum", valid_parameters(sol))
         state = RodState.at_rest(
-            eqx.error_if(sol.state.theta, ~sol.ok, "lattice.spectrum: no equilibrium found."),
-            sol.state.r,
+            eqx.error_if(theta, ~sol.ok, "lattice.spectrum: no equilibrium found."), sol.state.r
         )
     p, ok = _spectrum(rod, state)
     return checked_parameters(rod, p, "lattice.spectrum", ok)

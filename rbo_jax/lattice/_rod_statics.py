@@ -238,10 +238,17 @@ def equilibrium(rod: Rod, guess: RodState | None = None, **kwargs) -> RodState:
     code = enum.code(sol.status)
     if not _is_traced(code) and int(code) == enum.code(RodEquilibriumStatus.successful):
         return sol.state  # called eagerly, and solved: nothing to raise (no eager checks)
-    valid = code != enum.code(RodEquilibriumStatus.invalid_parameters)
+    valid = valid_parameters(sol)
     state = checked_parameters(rod, (sol.state.theta, sol.state.r), "lattice.equilibrium", valid)
     message = "lattice.equilibrium: Newton's method failed (see solve_equilibrium's status)."
     return RodState.at_rest(*eqx.error_if(state, ~sol.ok, message))
+
+
+def valid_parameters(sol: RodEquilibrium):
+    """Whether the rod of ``sol`` passed its parameter checks (its status is not
+    ``invalid_parameters``): a Python bool for a concrete status, else traced."""
+    code, invalid = enum.code(sol.status), enum.code(RodEquilibriumStatus.invalid_parameters)
+    return code != invalid if _is_traced(code) else int(code) != int(invalid)
 
 
 def checked_parameters(rod: Rod, x, caller: str, valid=None):
