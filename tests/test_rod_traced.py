@@ -9,7 +9,9 @@ against central finite differences; the failures under a transformation (more st
 ``max_steps``, a step that is not finite and > 0) as statuses with ``throw=False`` and as
 errors naming ``max_steps`` or ``dt`` with ``throw=True``; traced invalid rod parameters as
 the status ``invalid_parameters`` or an error naming the parameter; Dopri8 and Kvaerno5
-vmapped over the bending stiffness against their eager calls. The small clamped rod of
+vmapped over the bending stiffness against their eager calls; the same parameter checks in the
+statics (``solve_equilibrium``'s status, ``equilibrium`` and ``spectrum`` raising, a NaN
+``critical_load``). The small clamped rod of
 ``tests/test_rod_verlet.py`` (N = 4, shear 50, stretch 80: ~0.1 s of motion in ~10-50 steps).
 """
 
