@@ -531,12 +531,10 @@ def _simulate_traced(rod, state0, ts, method, solver, rtol, atol, max_steps, dt0
         states = jax.tree_util.tree_map(lambda x: jnp.where(bad_times, jnp.nan, x), states)
         messages["invalid_times"] = _TIMES.removeprefix("lattice.simulate: ")
     # the rod's parameters that were traced at construction, checked now (Rod.parameter_checks)
-    ok, which, checks = rod.parameter_status()
+    ok = rod.parameter_status()[0]
     status = SolveStatus.where(ok, status, SolveStatus.invalid_parameters)
     states = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.nan), states)
     if throw:
-        states = eqx.branched_error_if(
-            states, ~ok, which, ["lattice.simulate: " + m for m in checks]
-        )
+        states = checked_parameters(rod, states, "lattice.simulate", ok)
         states = _raise_failed(states, status, messages)
     return RodTrajectory(jnp.asarray(ts), states, rod, status, steps)
