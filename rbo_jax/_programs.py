@@ -350,12 +350,38 @@ def _nested_options(e: ValueError) -> bool:
     return "compiler_options" in str(e) and "top-level" in str(e)
 
 
+# the traces under which a jitted call is still compiled as a program of its own (batched or
+# differentiated, then run): no trace around them stages it into a caller's program
+_EAGER_TRACES = frozenset({"EvalTrace", "BatchTrace", "JVPTrace"})
+
+
+def _top_level(leaves) -> bool:
+    """Whether a jitted call with these argument leaves is compiled as a program of its own:
+    no tracers, or only ``jax.vmap``'s and ``jax.jvp``'s traces over the eager one (no
+    ``jax.jit``, ``lax.scan``, ... around). Read from JAX's trace context; where that is not
+    available, only calls without tracers count."""
+    if not any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return True
+    try:
+        from jax._src import core  # noqa: PLC0415
+
+        trace = core.trace_ctx.trace
+        while trace is not None:
+            if type(trace).__name__ not in _EAGER_TRACES:
+                return False
+            trace = getattr(trace, "parent_trace", None)
+        return True
+    except AttributeError:  # another JAX: the conservative answer
+        return False
+
+
 def jit(fn: Callable, *, small: bool = False, fast_compile: bool = False) -> Callable:
     """``eqx.filter_jit(fn)``, with ``small``: compiled with :func:`small_program_options` when
-    called at the top level (JAX refuses compiler options on a jit inside another trace: there
-    it is the plain ``eqx.filter_jit``, inlined in the caller's program); ``fast_compile``: with
-    :func:`fast_compile_options` instead. The jitted functions are made on first use (the
-    options need JAX's backend, which ``import rbo_jax`` does not start)."""
+    it is compiled as a program of its own (:func:`_top_level`: called eagerly, or under
+    ``jax.vmap`` or ``jax.jvp`` only; JAX refuses compiler options on a jit inside another
+    trace: there it is the plain ``eqx.filter_jit``, inlined in the caller's program);
+    ``fast_compile``: with :func:`fast_compile_options` instead. The jitted functions are made
+    on first use (the options need JAX's backend, which ``import rbo_jax`` does not start)."""
     made: dict = {}
 
     def options():
@@ -371,9 +397,7 @@ def jit(fn: Callable, *, small: bool = False, fast_compile: bool = False) -> Cal
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if options() is not None and not any(
-            isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))
-        ):
+        if options() is not None and _top_level(jax.tree_util.tree_leaves((args, kwargs))):
             try:
                 return jitted(True)(*args, **kwargs)
             except ValueError as e:  # inside a jit trace, with concrete arguments

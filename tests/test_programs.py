@@ -384,9 +384,10 @@ def test_jax_settings_that_change_a_trace_are_part_of_the_key():
 
 def test_small_programs_take_xla_options_at_the_top_level_only(monkeypatch):
     """``_programs.jit(fn, small=True)`` compiles with XLA's options for small programs where it
-    is called at the top level; JAX refuses compiler options on a jit inside another trace, so
-    there (traced arguments, or concrete ones inside a jit, vmap or export) it is the plain
-    jitted function. Same values everywhere. Where XLA does not know the option, no options."""
+    is compiled as a program of its own (called eagerly, or under jax.vmap alone); JAX refuses
+    compiler options on a jit inside another trace, so there (traced arguments or concrete ones
+    inside a jit or export) it is the plain jitted function. Same values everywhere. Where XLA
+    does not know the option, no options."""
     assert _programs.small_program_options() == {"xla_cpu_use_fusion_emitters": False}
 
     def f(x, scale):
@@ -399,7 +400,7 @@ def test_small_programs_take_xla_options_at_the_top_level_only(monkeypatch):
         np.testing.assert_allclose(jax.jit(small)(x, 2.0), expected, rtol=1e-15)
         np.testing.assert_allclose(jax.jit(lambda: small(x, 2.0))(), expected, rtol=1e-15)
         np.testing.assert_allclose(
-            jax.vmap(small, (0, None))(x[:, None], 2.0)[:, 0], expected, rtol=1e-15
+            jax.jit(jax.vmap(small, (0, None)))(x[:, None], 2.0)[:, 0], expected, rtol=1e-15
         )
         exported = jax.export.export(jax.jit(lambda y: small(y, 2.0)))(
             jax.ShapeDtypeStruct(x.shape, x.dtype)
@@ -408,11 +409,16 @@ def test_small_programs_take_xla_options_at_the_top_level_only(monkeypatch):
         np.testing.assert_allclose(jax.jit(lambda: program(x, 2.0))(), expected, rtol=1e-15)
 
     np.testing.assert_allclose(_programs.jit(f, small=True)(x, 2.0), expected, rtol=1e-15)
+    vmapped = jax.vmap(_programs.jit(f, small=True), (0, None))(x[:, None], 2.0)[:, 0]
+    np.testing.assert_allclose(vmapped, expected, rtol=1e-15)
     check(_programs.jit(f, small=True), _programs.program(f, small=True))
-    # the options reach XLA at the top level only: one it does not know is refused there
+    # the options reach XLA at the top level and under vmap alone: one it does not know is
+    # refused there
     monkeypatch.setattr(_programs, "small_program_options", lambda: {"xla_no_such_option": True})
     with pytest.raises(jax.errors.JaxRuntimeError, match="No such compile option"):
         _programs.jit(f, small=True)(x, 2.0)
+    with pytest.raises(jax.errors.JaxRuntimeError, match="No such compile option"):
+        jax.vmap(_programs.jit(f, small=True), (0, None))(x[:, None], 2.0)
     check(_programs.jit(f, small=True), _programs.program(f, small=True))
     monkeypatch.undo()
     # an XLA that does not know the option: the probe says so, and programs are plain
