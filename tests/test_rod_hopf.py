@@ -21,7 +21,7 @@ from helpers import ziegler_pendulum as ziegler
 import rbo_jax
 from rbo_jax import lattice
 from rbo_jax.bifurcation._interface import model_solver
-from rbo_jax.lattice import _rod_hopf
+from rbo_jax.lattice import _rod_hopf, _rod_hopf_system
 
 STIFF = 1e6  # shear and stretch stiffness: an inextensible, unshearable rod to ~1e-6
 
@@ -127,13 +127,20 @@ def test_start_of_the_jordan_chain_solves_it_to_second_order():
     lams = np.array([1.0j, 1.1j, -1.0j, -1.1j, -0.5, -2.0])
     X = rng.normal(size=(6, 6)) + 1j * rng.normal(size=(6, 6))
     A = X @ np.diag(lams) @ np.linalg.inv(X)
-    p, V = np.linalg.eig(A)
-    y, C = _rod_hopf._start_collision(p, V, 0.0, 1e-6)
+    p, V = (jnp.asarray(x) for x in np.linalg.eig(A))
+    start = _rod_hopf_system._start_collision(p, V, jnp.zeros(()), 1e-6, 2)
+    y, C, found, fits = (np.asarray(x) for x in start)
+    assert found and fits and C.shape == (6, 2) and np.all(C[:, 1] == 0)  # simple eigenvalues
+    # a followed eigenvalue of multiplicity 2 (both upper ones at 1j): refused where one is
+    # allowed, and said so
+    double = jnp.where(p.imag > 0.5, 1j, p)
+    assert not _rod_hopf_system._start_hopf(double, V, jnp.zeros(()), 1e-6, 1)[3]
+    assert _rod_hopf_system._start_hopf(double, V, jnp.zeros(()), 1e-6, 2)[3]
     v, u, w = y[:6] + 1j * y[6:12], y[12:18] + 1j * y[18:24], y[-2]
     np.testing.assert_allclose(w, 1.05, rtol=1e-12)
     np.testing.assert_allclose((A - 1j * w * np.eye(6)) @ u, v, atol=1e-10)
     np.testing.assert_allclose((A - 1j * w * np.eye(6)) @ v, (0.1j) ** 2 / 4 * u, atol=1e-10)
-    np.testing.assert_allclose(C.conj().T @ v, [1.0], atol=1e-12)
+    np.testing.assert_allclose(C.conj().T @ v, [1.0, 0.0], atol=1e-12)  # the unused column: 0
 
 
 # ------------------------------------------------------------------------------------------
@@ -173,6 +180,43 @@ def test_ziegler_pendulum_with_hinge_dampers_is_a_hopf_point():
         return p[np.argmin(np.abs(p - 1j * float(h.frequency)))].real
 
     assert growth(float(h.value) - 1e-3) < -1e-6 and growth(float(h.value) + 1e-3) > 1e-6
+
+
+@pytest.mark.slow  # the vmapped solve and its vmapped sensitivities: two programs
+def test_hopf_point_of_a_rod_under_vmap_with_its_gradient():
+    """jax.vmap of hopf_point over the hinge damping b of Ziegler's pendulum (the solve is one
+    traced program): each flutter load is the rigid pendulum's (NumPy scan and bisection,
+    1e-5), and jax.vmap(jax.grad) of it, by the implicit function theorem, matches central
+    differences of the vmapped solve (2e-6: the step 1e-2 is wide, as Newton leaves the load
+    to ~1e-9) and of the NumPy reference (1e-3)."""
+    bs = jnp.asarray([0.1, 0.2])
+
+    def value(b):
+        return rbo_jax.hopf_point(lambda P, b: ziegler(P, b), {"b": b}, "P", 1.4).value
+
+    values = np.asarray(jax.vmap(value)(bs))
+    reference = [ziegler_damped_reference(float(b)) for b in bs]
+    np.testing.assert_allclose(values, reference, rtol=1e-5)
+    grads = np.asarray(jax.vmap(jax.grad(value))(bs))
+    e = 1e-2
+    fd = (np.asarray(jax.vmap(value)(bs + e)) - np.asarray(jax.vmap(value)(bs - e))) / (2 * e)
+    np.testing.assert_allclose(grads, fd, rtol=2e-6)
+    ref = [(ziegler_damped_reference(b + 1e-3) - ziegler_damped_reference(b - 1e-3)) / 2e-3
+           for b in (0.1, 0.2)]  # fmt: skip
+    np.testing.assert_allclose(grads, ref, rtol=1e-3)
+
+
+@pytest.mark.slow  # the continuation's scan, vmapped over a batch axis
+def test_continue_hopf_of_a_rod_over_the_damping_with_a_batch_axis():
+    """Natural continuation of the damped pendulum's flutter load over b, with a batch axis s
+    that scales the follower force (the model at (P, s) is the pendulum at P s): every point
+    is the NumPy reference over s, for both curves."""
+    bs, ss = [0.1, 0.15, 0.2], [1.0, 1.1]
+    ds = rbo_jax.continue_hopf(lambda P, b, s: ziegler(P * s, b), {"s": ss}, "P", 1.4, "b", bs)
+    assert ds["P"].dims == ("s", "b") and ds.attrs["batch"] == "s" and ds.attrs["kind"] == "hopf"
+    assert np.all(ds["status"].values == 0)
+    reference = np.array([[ziegler_damped_reference(b) / s for b in bs] for s in ss])
+    np.testing.assert_allclose(ds["P"].values, reference, rtol=1e-5)
 
 
 # ------------------------------------------------------------------------------------------

@@ -132,7 +132,9 @@ def continue_hopf(
     :func:`rbo_jax.bifurcation._interface.model_solver`). ``options`` are refused for a rigid
     body oscillator.
     """
-    first = {**params, parameter: guess, along: np.ravel(np.asarray(values))[0]}
+    # the model at one point: a batch axis (a 1-D entry of params) at its first value
+    first = {k: np.ravel(np.asarray(v))[0] if np.ndim(v) == 1 else v for k, v in params.items()}
+    first = {**first, parameter: guess, along: np.ravel(np.asarray(values))[0]}
     own = model_solver(model_fn, first, "rbo_continue_hopf")
     if own is not None:
         shared = dict(theta_eq_fn=theta_eq_fn, theta_guess=theta_guess, t=t, rtol=rtol)

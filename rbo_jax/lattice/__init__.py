@@ -12,7 +12,8 @@ Bodies that also translate: rods and chains of links (:mod:`._rod`: Cosserat rod
 Ziegler's and Pflüger's columns), their strains and forces (:mod:`._rod_field`), equilibria by
 Newton with block-tridiagonal solves (:mod:`._rod_statics`, :mod:`._banded`), spectra, critical
 loads and motion (:mod:`._rod_dynamics`), continuation through limit points
-(:mod:`._rod_continuation`), flutter points (:mod:`._rod_hopf`), fits to measured eigenvalues
+(:mod:`._rod_continuation`), flutter points and boundaries (:mod:`._rod_hopf`,
+:mod:`._rod_hopf_system`, :mod:`._rod_hopf_curve`), fits to measured eigenvalues
 and trajectories (:mod:`._rod_fit`); :func:`simulate` takes a rod and its state too.
 """
 
@@ -53,6 +54,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "._rod_dynamics": ("RodTrajectory", "critical_load", "linearize", "spectrum"),
         "._rod_continuation": ("RodBranch", "continue_equilibrium"),
         "._rod_fit": ("RodFit", "fit_spectrum", "fit_trajectory"),
-        "._rod_hopf": ("RodHopfPoint", "rod_continue_hopf", "rod_hopf_point"),
+        "._rod_hopf": ("RodHopfPoint", "rod_hopf_point"),
+        "._rod_hopf_curve": ("rod_continue_hopf",),
     },
 )

@@ -25,13 +25,29 @@ $u$) out of the $k$-dimensional eigenspace, so that the solution is isolated. Th
 imaginary parts make an over-determined, consistent system of $2m + 2k$ (Hopf) or
 $4m + 4k$ (collision) real equations in $2m + 2$ or $4m + 2$ real unknowns, with a Jacobian of
 full column rank at a generic flutter point; Newton's method takes the least-squares step
-(QR), with $\partial_P A$ by forward-mode autodiff through the equilibrium (the implicit
-function theorem of :mod:`._rod_statics`). The rows are equilibrated first (each divided by
-its norm): the stiff shear, stretch and hinge modes make rows of $A$ up to $10^{12}$ times
-the others, and their rounding, unscaled, leaves the system inconsistent at $10^{-3}$ of the
-soft rows (the derivative of Ziegler's flutter load was off by $10^{-4}$; equilibrated, the
-least-squares residual is $10^{-16}$). ``residual`` is the max norm of the equilibrated
-residual.
+(QR). Its Jacobian's load column needs $\partial_P A$: the central difference of the
+linearisation along the equilibrium's tangent (:func:`._rod_hopf_system._matrices`; the
+equilibrium's derivative by forward mode, the implicit function theorem of
+:mod:`._rod_statics`). It only steers the iteration: the residual, hence the solution, is
+exact. The rows are equilibrated
+first (each divided by its norm): the stiff shear, stretch and hinge modes make rows of $A$
+up to $10^{12}$ times the others, and their rounding, unscaled, leaves the system
+inconsistent at $10^{-3}$ of the soft rows (the derivative of Ziegler's flutter load was off
+by $10^{-4}$; equilibrated, the least-squares residual is $10^{-16}$). ``residual`` is the
+max norm of the equilibrated residual. Newton stops at a step below the tolerances or at a
+residual at the rounding level ($64\epsilon$): from there the steps are rounding amplified by
+the stiff rows, $10^{-10}$ of the load and more for Ziegler's damped pendulum.
+
+**One program.** The start and the iteration run in one ``lax.while_loop`` (the start in its
+first iteration, from the matrix that iteration computes), so the solve runs inside
+``jax.jit`` and ``jax.vmap``; compiled with :func:`rbo_jax._programs.fast_compile_options`
+eagerly and under ``jax.vmap`` alone. Measured (issue 32, 2026-11-28, one pinned core, fresh
+processes alternating with the tree before, first call): before, the solve ran as compiled
+pieces in a Python loop with $\partial_P A$ by forward mode through the linearisation (a
+second derivative of the forces: that piece compiled in 11 s); Ziegler's pendulum
+19.9-22.2 -> 9.6-10.4 s, Pflüger's column of 8 bodies 17.9-23.0 -> 8.3-10.8 s, its first
+``jax.grad`` in the tip mass 59.3-60.6 -> 26.0-27.8 s; the same values to $10^{-10}$.
+``jax.vmap`` over three tip masses: 17 s (38 s compiled with XLA's default options).
 
 **Start.** The eigenvalues of $A$ at ``guess``: for ``"hopf"`` the pair with the largest real
 part among those with $\mathrm{Im}\,p > 0$; for ``"collision"`` the two lowest distinct
@@ -44,9 +60,13 @@ one eigenvalue of multiplicity $k$.
 
 **Derivatives.** The solution $y(p)$ of $F(y, p) = 0$ is differentiated with respect to the
 other parameters $p$ by the implicit function theorem, $dy = -J^+\,\partial_pF\,dp$ ($J^+$ the
-least-squares inverse of the Jacobian at the solution, exact for the consistent system): one
-forward-mode derivative of $A$ per tangent. ``jax.grad`` of ``value`` and ``frequency`` works
-(e.g. of Pflüger's flutter load with respect to the tip mass).
+least-squares inverse of the Jacobian at the solution, exact for the consistent system), with
+$J$ and $\partial_pF$ from the derivatives of $A$ in the load and in every parameter by
+forward mode (exact: a central difference there loses the soft modes to the rounding of the
+stiff rows, $10^{-6}$ of Pflüger's $dP/d\mu$), in a second program compiled when the solve is
+first differentiated (:func:`_sensitivities`). The tangent is then one product with them:
+``jax.grad``, ``jax.jacfwd`` and ``jax.jvp`` of ``value`` and ``frequency`` work (e.g. of
+Pflüger's flutter load with respect to the tip mass), under ``jax.vmap`` too.
 """
 
 from __future__ import annotations
@@ -59,6 +79,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
@@ -67,10 +88,20 @@ from ..bifurcation._hopf import canonical
 from ..bifurcation._interface import Outcome
 from ..bifurcation._system import HopfStatus
 from ._rod import Rod, RodState
-from ._rod_dynamics import linearize
-from ._rod_statics import solve_equilibrium
+from ._rod_hopf_system import (
+    Options,
+    Static,
+    _code,
+    _equilibrated,
+    _jacobian_of,
+    _matrices,
+    _newton_step,
+    _residual_of,
+    _sizes,
+    _start,
+)
 
-__all__ = ["KINDS", "RodHopfPoint", "rod_continue_hopf", "rod_hopf_point"]
+__all__ = ["KINDS", "RodHopfPoint", "rod_hopf_point"]
 
 KINDS = ("auto", "hopf", "collision")
 
@@ -101,194 +132,14 @@ class RodHopfPoint(Outcome):
         return 2 * jnp.pi / self.frequency
 
 
-class Static(NamedTuple):
-    """What the compiled pieces are specialised to (hashable)."""
-
-    model_fn: Callable
-    parameter: str
-    kind: str
-    steps: int
-
-
-def _code(item) -> int:
-    return int(np.asarray(enum.code(item)))
+_SUCCESSFUL = _code(HopfStatus.successful)
+_RUNNING = -1  # the loop's own code: not a status
+_ROUNDING = 64  # machine epsilons: a residual at the rounding level
 
 
 # --------------------------------------------------------------------------------------------
-# The system, in compiled pieces.
+# Newton's iteration, in one program.
 # --------------------------------------------------------------------------------------------
-
-
-def _rod_at(static: Static, P, others) -> Rod:
-    rod = static.model_fn(**{**others, static.parameter: P})
-    if not isinstance(rod, Rod):
-        raise TypeError(f"model_fn must return a Rod here, got {type(rod).__name__}.")
-    return rod
-
-
-def _matrix(static: Static, P, others):
-    """$A(P)$ at the equilibrium, whether the equilibrium was found, and the state."""
-    rod = _rod_at(static, P, others)
-    sol = solve_equilibrium(rod, steps=static.steps)
-    return linearize(rod, sol.state), (sol.ok, sol.state)
-
-
-def _eig(static: Static, P, others):
-    A, (ok, _) = _matrix(static, P, others)
-    p, V = jnp.linalg.eig(A)
-    return p, V, ok
-
-
-_eig_program = _programs.jit(_eig, fast_compile=True)
-
-
-def _real(M):
-    """The real matrix of the complex-linear map ``M`` on ``[Re z, Im z]``."""
-    return jnp.block([[M.real, -M.imag], [M.imag, M.real]])
-
-
-def _times_i(z):
-    """$i z$ (no implicit promotion of a real ``z``)."""
-    return jax.lax.complex(-jnp.imag(z), jnp.real(z))
-
-
-def _split(z):
-    return jnp.concatenate([z.real, z.imag])
-
-
-def _unknowns(kind: str, y, m: int):
-    """``(v, u, omega, P)`` from the real vector ``y`` (``u`` is ``None`` for Hopf)."""
-    v = jax.lax.complex(y[:m], y[m : 2 * m])
-    u = jax.lax.complex(y[2 * m : 3 * m], y[3 * m : 4 * m]) if kind == "collision" else None
-    return v, u, y[-2], y[-1]
-
-
-def _residual_of(kind, A, y, C):
-    """The residual $F$ (real) of the module docstring's system at ``A``."""
-    m = A.shape[0]
-    v, u, omega, _ = _unknowns(kind, y, m)
-    M = A.astype(v.dtype) - _times_i(omega) * jnp.eye(m, dtype=v.dtype)
-    e1 = jnp.zeros(C.shape[1], v.dtype).at[0].set(1.0)
-    if kind == "hopf":
-        return jnp.concatenate([_split(M @ v), _split(C.conj().T @ v - e1)])
-    return jnp.concatenate(
-        [_split(M @ v), _split(M @ u - v), _split(C.conj().T @ v - e1), _split(C.conj().T @ u)]
-    )
-
-
-def _jacobian_of(kind, A, A_P, y, C):
-    """The exact Jacobian of :func:`_residual_of` in ``y`` (columns: ``v``, [``u``], omega,
-    P), real."""
-    m = A.shape[0]
-    v, u, omega, _ = _unknowns(kind, y, m)
-    M = A.astype(v.dtype) - _times_i(omega) * jnp.eye(m, dtype=v.dtype)
-    Ch = C.conj().T
-    dv_P = A_P.astype(v.dtype) @ v
-    if kind == "hopf":
-        top = jnp.concatenate([_real(M), _split(-_times_i(v))[:, None], _split(dv_P)[:, None]], 1)
-        bottom = jnp.concatenate([_real(Ch), jnp.zeros((2 * Ch.shape[0], 2), A.dtype)], 1)
-        return jnp.concatenate([top, bottom], 0)
-    du_P = A_P.astype(v.dtype) @ u
-    Z, E = jnp.zeros_like(M), jnp.eye(m, dtype=v.dtype)
-    Zc, zk = jnp.zeros_like(Ch), jnp.zeros((2 * Ch.shape[0], 2), A.dtype)
-    rows = [
-        [_real(M), _real(Z), _split(-_times_i(v))[:, None], _split(dv_P)[:, None]],
-        [_real(-E), _real(M), _split(-_times_i(u))[:, None], _split(du_P)[:, None]],
-        [_real(Ch), _real(Zc), zk],
-        [_real(Zc), _real(Ch), zk],
-    ]
-    return jnp.concatenate([jnp.concatenate(r, 1) for r in rows], 0)
-
-
-def _newton_step(static: Static, y, C, others):
-    """At ``y``: the least-squares Newton step, the residual's max norm, the last two rows of
-    the least-squares inverse of the Jacobian (for the implicit derivatives), whether the
-    equilibrium was found, whether the step is finite, and the equilibrium state."""
-    P = y[-1]
-    A, A_P, aux = jax.jvp(
-        lambda P: _matrix(static, P, others), (P,), (jnp.ones_like(P),), has_aux=True
-    )
-    ok, state = aux
-    F = _residual_of(static.kind, A, y, C)
-    J = _jacobian_of(static.kind, A, A_P, y, C)
-    scale = jnp.linalg.norm(J, axis=1)  # rows equilibrated (module docstring)
-    Q, R = jnp.linalg.qr(J / scale[:, None])
-    dy = jax.scipy.linalg.solve_triangular(R, -(Q.T @ (F / scale)))
-    last = jnp.zeros((R.shape[0], 2), R.dtype).at[-2:].set(jnp.eye(2, dtype=R.dtype))
-    rows = (Q @ jax.scipy.linalg.solve_triangular(R.T, last, lower=True)).T / scale[None, :]
-    return dy, jnp.max(jnp.abs(F / scale)), rows, ok, jnp.all(jnp.isfinite(dy)), state
-
-
-_step_program = _programs.jit(_newton_step, fast_compile=True)
-
-
-def _residual_tangent(static: Static, y, C, others, d_others):
-    """$\\partial_pF\\,dp$ at ``y``: the derivative of the residual along the tangent of the
-    other parameters, the load $P$ held."""
-
-    def residual(o):
-        A, _ = _matrix(static, y[-1], o)
-        return _residual_of(static.kind, A, y, C)
-
-    return jax.jvp(residual, (others,), (d_others,))[1]
-
-
-_tangent_program = _programs.jit(_residual_tangent, fast_compile=True)
-
-
-# --------------------------------------------------------------------------------------------
-# The start (on the host) and Newton's iteration.
-# --------------------------------------------------------------------------------------------
-
-
-def _clusters(p, lam, cluster):
-    return np.flatnonzero(np.abs(p - lam) <= cluster * max(abs(lam), 1e-300))
-
-
-def _lowest(p, cluster, count):
-    """Indices of one eigenvalue of each of the ``count`` lowest distinct frequencies
-    (imaginary parts > 0), ascending."""
-    osc = np.flatnonzero(p.imag > 1e-9 * np.max(np.abs(p)))
-    reps: list = []
-    for i in osc[np.argsort(p[osc].imag)]:
-        if all(abs(p[i] - p[j]) > cluster * abs(p[j]) for j in reps):
-            reps.append(i)
-        if len(reps) == count:
-            break
-    return reps
-
-
-def _start_hopf(p, V, P0, cluster, frequency=None):
-    """``(y0, C)`` from the eigenvalues ``p`` and eigenvectors ``V`` at the guess, or ``None``
-    when there is no oscillatory pair: the pair nearest ``frequency`` if given, else of the two
-    lowest frequencies the one with the larger real part (a rod's fast shear, stretch, twist
-    and hinge modes may be undamped, their real parts zero: they are not followed)."""
-    osc = np.flatnonzero(p.imag > 1e-9 * np.max(np.abs(p)))
-    if osc.size == 0:
-        return None
-    if frequency is not None:
-        lam = p[osc[np.argmin(np.abs(p[osc].imag - frequency))]]
-    else:
-        lam = max((p[i] for i in _lowest(p, cluster, 2)), key=lambda z: z.real)
-    C, _ = np.linalg.qr(V[:, _clusters(p, lam, cluster)])
-    v = C[:, 0]
-    return np.concatenate([v.real, v.imag, [lam.imag, P0]]), C
-
-
-def _start_collision(p, V, P0, cluster):
-    """``(y0, C)`` of the Jordan chain (module docstring) or ``None``."""
-    reps = _lowest(p, cluster, 2)
-    if len(reps) < 2:
-        return None
-    lam1, lam2 = p[reps[0]], p[reps[1]]
-    one, two = _clusters(p, lam1, cluster), _clusters(p, lam2, cluster)
-    k = min(one.size, two.size)
-    C, _ = np.linalg.qr(V[:, one[:k]])
-    v1 = V[:, one[:k]] @ np.linalg.solve(C.conj().T @ V[:, one[:k]], np.eye(k)[:, 0])
-    v2 = V[:, two[:k]] @ np.linalg.solve(C.conj().T @ V[:, two[:k]], np.eye(k)[:, 0])
-    v, u = 0.5 * (v1 + v2), (v1 - v2) / (lam1 - lam2)
-    omega = 0.5 * (lam1 + lam2).imag
-    return np.concatenate([v.real, v.imag, u.real, u.imag, [omega, P0]]), C
 
 
 class Raw(NamedTuple):
@@ -304,62 +155,122 @@ class Raw(NamedTuple):
     status: Array
     y: Array
     C: Array
-    rows: Array
 
 
-def _failed(status, m, nb, dtype, steps=0, residual=np.inf):
-    nan = np.full((), np.nan, dtype)
-    return Raw(
-        nan, nan, np.full(m, np.nan + 0j), np.full((nb, 3), np.nan, dtype),
-        np.full((nb, 3), np.nan, dtype), np.asarray(residual, dtype), np.asarray(steps),
-        np.asarray(_code(status), np.int32), np.zeros(0, dtype), np.zeros((m, 1), complex),
-        np.zeros((2, 0), dtype),
-    )  # fmt: skip
+class _Carry(NamedTuple):
+    it: Array
+    code: Array
+    y: Array
+    C: Array
+    residual: Array
+    theta: Array
+    r: Array
 
 
-def _converged(dy, y, rtol, atol):
-    return bool(np.all(np.abs(dy) <= atol + rtol * np.abs(y)))
+def _unknowns_size(kind: str, m: int) -> int:
+    return 2 * m + 2 if kind == "hopf" else 4 * m + 2
 
 
-def _solve_eager(static: Static, options, guess, others) -> Raw:
-    """Start and Newton's iteration with concrete values (module docstring)."""
-    rtol, atol, max_steps, cluster, frequency = options
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((guess, others))):
-        raise TypeError(
-            "hopf_point of a rod runs eagerly: jax.grad (and jax.jvp) of its value and "
-            "frequency work, but not inside jax.jit, jax.vmap or jax.jacfwd."
+def _solve_traced(static: Static, options: Options, guess, others) -> Raw:
+    r"""The start and Newton's iteration (module docstring) in a ``lax.while_loop``. The start
+    is made in the first iteration from the matrix that iteration computes anyway (one traced
+    copy of the equilibrium and the linearisation in the program; under ``jax.vmap`` the
+    eigenvalues are computed in every iteration and used in the first)."""
+    m, nb = _sizes(static, guess, others)
+    dtype = guess.dtype
+    k = options.multiplicity
+    scale = jnp.where(guess != 0, jnp.abs(guess), jnp.ones_like(guess))
+    S = HopfStatus
+    codes = {name: _code(getattr(S, name)) for name in enum.names(S)}
+
+    def body(c: _Carry) -> _Carry:
+        A, dA, ok, state = _matrices(static, c.y[-1], others, 1, scale)
+        A_P = dA[0]
+        fresh = c.it == 0
+        y, C, found, fits = jax.lax.cond(
+            fresh,
+            lambda: _start(static, options, jnp.where(ok, A, 0), c.y[-1]),
+            lambda: (c.y, c.C, jnp.ones((), bool), jnp.ones((), bool)),
         )
-    dtype = jnp.result_type(float)
-    P0 = np.asarray(guess, dtype)
-    p, V, ok = (np.asarray(x) for x in _eig_program(static, jnp.asarray(P0), others))
-    m, nb = p.shape[0], _rod_at(static, P0, others).n_bodies
-    if not ok or not np.all(np.isfinite(p)):
-        return _failed(HopfStatus.equilibrium_failed, m, nb, dtype)
-    if static.kind == "hopf":
-        start = _start_hopf(p, V, P0, cluster, frequency)
-    else:
-        start = _start_collision(p, V, P0, cluster)
-    if start is None:
-        return _failed(HopfStatus.no_oscillatory_pair, m, nb, dtype)
-    y, C = jnp.asarray(start[0]), jnp.asarray(start[1])
-    for it in range(1, max_steps + 1):
-        dy, res, rows, ok, finite, state = _step_program(static, y, C, others)
-        if not (bool(ok) and bool(finite)):
-            status = HopfStatus.not_converged if ok else HopfStatus.equilibrium_failed
-            return _failed(status, m, nb, dtype, it, res)
-        if _converged(np.asarray(dy), np.asarray(y), rtol, atol):
-            break
-        y = y + dy
-    else:
-        return _failed(HopfStatus.not_converged, m, nb, dtype, max_steps, res)
-    omega = float(y[-2])
-    if not omega > 1e-9 * max(1.0, abs(float(y[-1]))):
-        return _failed(HopfStatus.zero_frequency, m, nb, dtype, it, res)
-    v = np.asarray(y[:m]) + 1j * np.asarray(y[m : 2 * m])
+        dy, residual = _newton_step(static.kind, A, A_P, y, C)
+        # a step below the tolerances, or a residual at the rounding level (the steps that
+        # would follow are rounding, amplified by the stiff rows: 1e-10 of the load and more)
+        converged = jnp.all(jnp.abs(dy) <= options.atol + options.rtol * jnp.abs(y))
+        converged = converged | (residual <= _ROUNDING * jnp.finfo(dtype).eps)
+        it = c.it + 1
+        running = jnp.full((), _RUNNING, jnp.int32)
+        code = jnp.where(converged, codes["successful"], running)
+        code = jnp.where(
+            it >= options.max_steps, jnp.where(converged, code, codes["not_converged"]), code
+        )
+        code = jnp.where(jnp.all(jnp.isfinite(dy)), code, codes["not_converged"])
+        code = jnp.where(ok, code, codes["equilibrium_failed"])
+        # the start: no equilibrium, no pair to follow, or one of more than `multiplicity`
+        start_failed = fresh & (~ok | ~found | ~fits)
+        start_code = jnp.where(found, codes["not_converged"], codes["no_oscillatory_pair"])
+        start_code = jnp.where(ok, start_code, codes["equilibrium_failed"])
+        code = jnp.where(start_failed, start_code, code)
+        it = jnp.where(start_failed, 0, it)
+        residual = jnp.where(start_failed, jnp.inf, residual)
+        y = jnp.where(code == _RUNNING, y + dy, y)
+        return _Carry(it, code.astype(jnp.int32), y, C, residual, state.theta, state.r)
+
+    y0 = jnp.zeros(_unknowns_size(static.kind, m), dtype).at[-1].set(guess)
+    cdtype = jnp.complex128 if dtype == jnp.float64 else jnp.complex64
+    init = _Carry(
+        jnp.zeros((), jnp.int32),
+        jnp.full((), _RUNNING, jnp.int32),
+        y0,
+        jnp.zeros((m, k), cdtype),
+        jnp.full((), jnp.inf, dtype),
+        jnp.zeros((nb, 3), dtype),
+        jnp.zeros((nb, 3), dtype),
+    )
+    c = jax.lax.while_loop(lambda c: c.code == _RUNNING, body, init)
+    omega, P = c.y[-2], c.y[-1]
+    zero = (c.code == codes["successful"]) & ~(omega > 1e-9 * jnp.maximum(1.0, jnp.abs(P)))
+    code = jnp.where(zero, codes["zero_frequency"], c.code)
+    good = code == codes["successful"]
+    v = jax.lax.complex(c.y[:m], c.y[m : 2 * m])
+    nan = jnp.asarray(jnp.nan, dtype)
     return Raw(
-        y[-1], y[-2], jnp.asarray(v / np.linalg.norm(v)), state.theta, state.r, res,
-        jnp.asarray(it), jnp.asarray(_code(HopfStatus.successful), jnp.int32), y, C, rows,
+        jnp.where(good, P, nan), jnp.where(good, omega, nan),
+        jnp.where(good, v / jnp.linalg.norm(v).astype(v.dtype), jnp.nan),
+        jnp.where(good, c.theta, nan),
+        jnp.where(good, c.r, nan), c.residual, c.it, code.astype(jnp.int32), c.y, c.C,
     )  # fmt: skip
+
+
+_solve_program = _programs.jit(_solve_traced, fast_compile=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Derivatives: the implicit function theorem.
+# --------------------------------------------------------------------------------------------
+
+
+def _sensitivities(static: Static, y, C, others):
+    r"""$-J^+\partial_pF$ of the frequency and the load (2 × the flattened ``others``) at the
+    solution ``y``: the derivatives of $A$ in the load and the constants
+    (:func:`._rod_hopf_system._matrices`), the Jacobian $J$ and $\partial_pF$ from them, and
+    the last two rows of the least-squares inverse of the equilibrated $J$."""
+    flat, _ = ravel_pytree(others)
+    P = y[-1]
+    A, dA, _, _ = _matrices(static, P, others, 1 + flat.size, None, exact=True)
+    J = _jacobian_of(static.kind, A, dA[0], y, C)
+
+    def along(D):  # the residual is affine in A
+        return jax.jvp(lambda A: _residual_of(static.kind, A, y, C), (A,), (D,))[1]
+
+    F_p = jax.vmap(along, out_axes=1)(dA[1:])
+    scale = _equilibrated(J)
+    Q, R = jnp.linalg.qr(J / scale[:, None])
+    last = jnp.zeros((R.shape[0], 2), R.dtype).at[-2:].set(jnp.eye(2, dtype=R.dtype))
+    rows = (Q @ jax.scipy.linalg.solve_triangular(R.T, last, lower=True)).T / scale[None, :]
+    return -(rows @ F_p)
+
+
+_sensitivity_program = _programs.jit(_sensitivities, fast_compile=True)
 
 
 def _zero_tangent(x):
@@ -370,22 +281,29 @@ def _zero_tangent(x):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _solve(static: Static, options, guess, others) -> Raw:
-    return _solve_eager(static, options, guess, others)
+def _solve(static: Static, options: Options, guess, others) -> Raw:
+    return _solve_program(static, options, guess, others)
 
 
 @_solve.defjvp
 def _solve_jvp(static, options, primals, tangents):
-    r"""The implicit function theorem (module docstring): $dy = -J^+\partial_pF\,dp$; the load
-    and the frequency are the last two unknowns. The guess has no influence."""
+    r"""The implicit function theorem (module docstring): $dy = -J^+\partial_pF\,dp$, the load
+    and the frequency being the last two unknowns; the sensitivities are computed from the
+    primal solution only (the tangent is one product with them, nothing to transpose for
+    ``jax.grad``). The guess has no influence."""
     guess, others = primals
     raw = _solve(static, options, guess, others)
     zeros = Raw(*(_zero_tangent(x) for x in raw))
-    if int(raw.status) != _code(HopfStatus.successful):
+    flat, _ = ravel_pytree(tangents[1])
+    if flat.size == 0:
         return raw, zeros
-    dF = _tangent_program(static, raw.y, raw.C, others, tangents[1])
-    d_omega, d_value = -(raw.rows @ dF)
-    return raw, zeros._replace(value=d_value, frequency=d_omega)
+    good = raw.status == _SUCCESSFUL
+    # zero where the solve failed, before the product (no NaN in the transposed product)
+    sensitivities = jnp.where(good, _sensitivity_program(static, raw.y, raw.C, others), 0.0)
+    d_omega, d_value = sensitivities @ flat
+    return raw, zeros._replace(
+        value=jnp.where(good, d_value, 0.0), frequency=jnp.where(good, d_omega, 0.0)
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -425,6 +343,30 @@ def _check_unused(theta_eq_fn, theta_guess, t):
             )
 
 
+def _prepare(model_fn, params, parameter, guess, kind, steps, options, along=None):
+    """The checked arguments: ``(static, options, others, guess)``, ``kind`` resolved at the
+    guess (and the first value of ``along``)."""
+    if not callable(model_fn):
+        raise TypeError("model_fn must be a callable model_fn(**params) -> Rod.")
+    if not isinstance(parameter, str):
+        raise TypeError(f"parameter must be the name of an entry of params, got {parameter!r}.")
+    rtol, atol, max_steps, cluster, frequency, multiplicity = options
+    if int(steps) < 1 or int(max_steps) < 1 or not cluster > 0 or int(multiplicity) < 1:
+        raise ValueError(
+            "hopf_point of a rod: steps, max_steps and multiplicity must be >= 1, cluster > 0."
+        )
+    dtype = jnp.result_type(float)
+    others = {str(k): jnp.asarray(v, dtype) for k, v in params.items() if k != parameter}
+    guess = jnp.asarray(guess, dtype)
+    first = others if along is None else {**others, along[0]: along[1]}
+    kind = choose_kind(model_fn, first, parameter, guess, kind)
+    static = Static(canonical(model_fn), parameter, kind, int(steps))
+    frequency = None if frequency is None else float(frequency)
+    options = Options(float(rtol), float(atol), int(max_steps), float(cluster), frequency,
+                      int(multiplicity))  # fmt: skip
+    return static, options, others, guess
+
+
 def rod_hopf_point(
     model_fn: Callable[..., Rod],
     params: Mapping[str, object],
@@ -435,6 +377,7 @@ def rod_hopf_point(
     steps: int = 1,
     cluster: float = 1e-5,
     frequency=None,
+    multiplicity: int = 2,
     theta_eq_fn=None,
     theta_guess=None,
     t=0.0,
@@ -454,29 +397,28 @@ def rod_hopf_point(
     ``"hopf"`` when the rod built at the guess has a nonzero or traced Kelvin–Voigt damping,
     else ``"collision"``), `frequency` (``"hopf"``: follow the pair nearest this frequency
     at the guess), `steps` (load steps of every equilibrium solve), `cluster` (relative
-    distance under which eigenvalues count as one), `rtol`, `atol` (Newton stops when every
-    step component is below ``atol + rtol`` × the unknown), `max_steps`. ``theta_eq_fn``,
-    ``theta_guess`` and ``t`` of the rigid body's solver do not apply.
+    distance under which eigenvalues count as one), `multiplicity` (the most eigenvalues that
+    may make one followed eigenvalue: 2, a rod bending alike in two planes; a start with more
+    fails with ``not_converged``), `rtol`, `atol` (Newton stops when every step component is
+    below ``atol + rtol`` × the unknown), `max_steps`. ``theta_eq_fn``, ``theta_guess`` and
+    ``t`` of the rigid body's solver do not apply.
 
     **Returns** a :class:`RodHopfPoint`; a failed solve says why in ``status`` (the values
-    NaN), never raises. ``jax.grad`` of ``value`` and ``frequency`` with respect to the other
-    entries of ``params`` works by the implicit function theorem; the solve runs eagerly
-    (compiled pieces in a Python loop), not inside ``jax.jit`` or ``jax.vmap``.
+    NaN), never raises. One compiled program (start and Newton's iteration in a
+    ``lax.while_loop``): it runs inside ``jax.jit`` and ``jax.vmap`` (e.g. over a tip mass),
+    and ``jax.grad``, ``jax.jacfwd`` and ``jax.jvp`` of ``value`` and ``frequency`` with
+    respect to the other entries of ``params`` work by the implicit function theorem (exact:
+    forward-mode autodiff at the solution, in a second program compiled when first
+    differentiated).
     """
-    if not callable(model_fn):
-        raise TypeError("model_fn must be a callable model_fn(**params) -> Rod.")
-    if not isinstance(parameter, str):
-        raise TypeError(f"parameter must be the name of an entry of params, got {parameter!r}.")
     _check_unused(theta_eq_fn, theta_guess, t)
-    if int(steps) < 1 or int(max_steps) < 1 or not cluster > 0:
-        raise ValueError("hopf_point of a rod: steps and max_steps must be >= 1, cluster > 0.")
-    dtype = jnp.result_type(float)
-    others = {str(k): jnp.asarray(v, dtype) for k, v in params.items() if k != parameter}
-    kind = choose_kind(model_fn, others, parameter, jnp.asarray(guess, dtype), kind)
-    static = Static(canonical(model_fn), parameter, kind, int(steps))
-    frequency = None if frequency is None else float(frequency)
-    options = (float(rtol), float(atol), int(max_steps), float(cluster), frequency)
-    raw = _solve(static, options, jnp.asarray(guess, dtype), others)
+    options = (rtol, atol, max_steps, cluster, frequency, multiplicity)
+    static, options, others, guess = _prepare(model_fn, params, parameter, guess, kind, steps,
+                                              options)  # fmt: skip
+    return _point(static.kind, _solve(static, options, guess, others))
+
+
+def _point(kind: str, raw: Raw) -> RodHopfPoint:
     return RodHopfPoint(
         value=raw.value,
         frequency=raw.frequency,
@@ -487,56 +429,3 @@ def rod_hopf_point(
         status=enum.from_code(HopfStatus, raw.status),
         kind=kind,
     )
-
-
-def rod_continue_hopf(
-    model_fn: Callable[..., Rod],
-    params: Mapping[str, object],
-    parameter: str,
-    guess,
-    along: str,
-    values,
-    *,
-    method: str = "natural",
-    **options,
-):
-    r"""The flutter boundary of a rod, the load ``parameter`` against ``along`` (what
-    :func:`rbo_jax.continue_hopf` does for a rod): natural continuation, the flutter point
-    (:func:`rod_hopf_point`, with ``options``) at each of ``values`` in order, started from
-    the last point found (the first from ``guess``). The kind (``"auto"``) is chosen once, at
-    the first point. **Returns** an :class:`xarray.Dataset` over ``along`` with the critical
-    ``parameter``, ``frequency``, ``num_steps`` and ``status`` (int8 codes of
-    :class:`rbo_jax.bifurcation.HopfStatus`; NaN values where it failed, and the next point
-    starts from the last good one); ``attrs``: ``parameter``, ``along``, ``method``,
-    ``kind``. Only ``method="natural"``; not differentiable as a whole (differentiate
-    :func:`rod_hopf_point`)."""
-    import xarray as xr
-
-    if method != "natural":
-        raise ValueError(f'continue_hopf of a rod: method must be "natural", got {method!r}.')
-    values = np.asarray(values, dtype=float)
-    if values.ndim != 1 or values.size < 1 or not np.all(np.isfinite(values)):
-        raise ValueError("continue_hopf of a rod: values must be a 1-D array of finite values.")
-    out = {f: np.full(values.size, np.nan) for f in ("value", "frequency")}
-    status, steps = np.zeros(values.size, np.int8), np.zeros(values.size, np.int32)
-    start, kind = guess, options.pop("kind", "auto")
-    for i, b in enumerate(values):
-        point = {**params, along: float(b)}
-        h = rod_hopf_point(model_fn, point, parameter, start, kind=kind, **options)
-        kind = h.kind
-        status[i], steps[i] = int(np.asarray(enum.code(h.status))), int(h.num_steps)
-        if bool(h.ok):
-            out["value"][i], out["frequency"][i] = float(h.value), float(h.frequency)
-            start = float(h.value)
-    ds = xr.Dataset(
-        {
-            parameter: ((along,), out["value"]),
-            "frequency": ((along,), out["frequency"]),
-            "num_steps": ((along,), steps),
-            "status": ((along,), status),
-        },
-        coords={along: values},
-        attrs={"parameter": parameter, "along": along, "method": method, "kind": kind},
-    )
-    ds["status"].attrs["flag_meanings"] = " ".join(enum.names(HopfStatus))
-    return ds
