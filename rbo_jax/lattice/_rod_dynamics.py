@@ -58,6 +58,16 @@ faster too, since every step computed both: 0.66-0.72 -> 0.40 s and 0.61-0.63 ->
 What is left is the second stage's Jacobian (the program's XLA compilation 8.6 s that day):
 ``jax.lax.map`` of the linearised field over the columns, or ``jax.vmap`` of it, instead of
 ``jax.jacfwd`` compiled alike (12.2 and 12.4 s against 13.4 s, first call less warm call).
+Without any Jacobian (the Newton matrix the identity: the wrong solver, built only to time the
+build) the program (n = 5) still takes 2.0 s to trace, 0.3 s to lower and 3.5 s to compile,
+5.8 s: diffrax's step and one copy of the field are above the 5 s target by themselves
+(measured 2026-11-28, issue 32). Also measured that day, alternating with this tree, and not
+taken: the Jacobian's columns from 36 directional derivatives by the band of the rod (bodies
+$i \equiv k \pmod 3$ seeded together; the same matrix to the bit where taken one lane at a
+time): the compilation within the noise (n = 5: 9.6-11.6 against 11.3-12.3 s), the warm calls
+faster (0.41-0.54 against 0.79-0.90 s at n = 10); forward differences of the field: 2-3 s
+less to compile, but states that move by 2e-6; XLA's ``xla_llvm_disable_expensive_passes``,
+one code-generation split, no inlining before the split: 7.2-8.0 s against 6.9-7.4 s.
 """
 
 from __future__ import annotations
