@@ -74,7 +74,9 @@ def _matrices(static: Static, P, others, count: int, scale, exact: bool = False)
     in $h$, $\sim\epsilon^{2/3}$ relative ($10^{-10}$ in float64) for the smooth dependence
     on the load and the constants. One equilibrium and one linearisation traced (vmapped over
     the $2\,$``count``$ + 1$ points): forward mode through the linearisation instead (a second
-    derivative of the forces) took 2-3 times as long to compile (module docstring)."""
+    derivative of the forces) took 2-3 times as long to compile (:mod:`._rod_hopf`). With
+    ``exact``, that forward mode all the same (for the implicit derivatives, where a difference
+    loses the soft modes to the rounding of the stiff rows)."""
     flat, unravel = ravel_pytree(others)
     q = jnp.concatenate([P[None], flat.astype(P.dtype)])
 
