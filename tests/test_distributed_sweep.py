@@ -37,7 +37,8 @@ pytest.importorskip("zarr")
 ROOT = Path(__file__).resolve().parent.parent
 
 # The Nikolai growth map of examples/nikolai_growth.toml, made smaller: 9 chunks of 8 points
-# whose solves take long enough (t1 = 200) that a process can be killed in the middle.
+# whose solves take long enough (t1 = 600) that a process can be killed in the middle (with
+# t1 = 200 the sweep once ended within one poll of the store, on a loaded machine).
 CONFIG = """
 [sweep]
 quantity = "max_deviation"
@@ -59,7 +60,7 @@ theta0 = [1e-3, 0.0, 0.0]
 Omega0 = [0.0, 0.0, 0.0]
 
 [solver]
-t1 = 200.0
+t1 = 600.0
 rtol = 1e-8
 atol = 1e-8
 samples = 51
