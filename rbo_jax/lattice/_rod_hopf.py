@@ -86,12 +86,11 @@ from .. import _enumeration as enum
 from .. import _programs
 from ..bifurcation._hopf import canonical
 from ..bifurcation._interface import Outcome
-from ..bifurcation._system import HopfStatus
+from ..bifurcation._system import HopfStatus, _code
 from ._rod import Rod, RodState
 from ._rod_hopf_system import (
     Options,
     Static,
-    _code,
     _equilibrated,
     _jacobian_of,
     _matrices,

@@ -10,10 +10,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from .. import _enumeration as enum
 from ._rod import Rod, RodState
 from ._rod_dynamics import _free_index, linearize
 from ._rod_statics import solve_equilibrium
@@ -26,10 +24,6 @@ class Static(NamedTuple):
     parameter: str
     kind: str
     steps: int
-
-
-def _code(item) -> int:
-    return int(np.asarray(enum.code(item)))
 
 
 class Options(NamedTuple):
