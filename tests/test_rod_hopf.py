@@ -111,6 +111,12 @@ def test_bad_arguments_are_named():
         )
     with pytest.raises(ValueError, match="natural"):
         rbo_jax.continue_hopf(lambda P, b: ziegler(P, b), {}, "P", 1.4, "b", [0.1, 0.2],
+                              method="secant")  # fmt: skip
+    with pytest.raises(ValueError, match="one curve"):  # arclength: no batch axes
+        rbo_jax.continue_hopf(lambda P, b, s: ziegler(P * s, b), {"s": [1.0, 2.0]}, "P", 1.4,
+                              "b", [0.1, 0.2], method="arclength")  # fmt: skip
+    with pytest.raises(ValueError, match="two distinct"):
+        rbo_jax.continue_hopf(lambda P, b: ziegler(P, b), {}, "P", 1.4, "b", [0.1],
                               method="arclength")  # fmt: skip
 
 
@@ -282,6 +288,40 @@ def test_continue_hopf_follows_pfluger_column_over_the_tip_mass():
     assert np.all(np.diff(values) < 0)
     # Beck's 20.0509 at n = 8: the error is second order in 1/n, 0.145 at n = 20 (above)
     np.testing.assert_allclose(values[0], 20.0509, rtol=5e-2)
+
+
+def ziegler_base_hinge(P, c1):
+    """Ziegler's pendulum (masses 2m, m, links l, m = l = 1) with the base hinge's spring c1
+    and the middle one's c = 1, a follower force P at the tip."""
+    load = lattice.TipForce(jnp.stack([0.0, 0.0, -P]), follower=True)
+    return lattice.pendulum([2.0, 1.0], [1.0, 1.0], jnp.stack([c1, 1.0]), loads=load)
+
+
+@pytest.mark.slow  # the corrector's program (equilibria, a 99 x 97 QR) and ~100 points, ~20 s
+def test_continue_hopf_of_a_rod_by_arclength_passes_the_turning_point():
+    """The rigid pendulum's frequency equation with hinge springs c1 (base), c (middle), masses
+    a m (middle joint), m (tip): a l^4 m^2 w^4 + (2P l - c1 - (a + 4)c) m l^2 w^2 + c1 c = 0
+    (det(K - w^2 M), K = [[c1 + c - Pl, Pl - c], [-c, c]], M = m l^2 [[a + 1, 1], [1, 1]]).
+    Its double root, the collision, for a = 2 and m = l = c = 1: 2P = c1 + 6 - 2 sqrt(2 c1),
+    w^2 = sqrt(2 c1)/2. Solved for c1 as P varies, the boundary turns back in P at P = 2
+    (c1 = 2), where natural continuation in P must stop: arclength from P = 2.5
+    (c1 = 3 - 2 sqrt 2) downward passes it and comes back to P = 2.5 at c1 = 3 + 2 sqrt 2."""
+    ds = rbo_jax.continue_hopf(ziegler_base_hinge, {}, "c1", 0.17, "P", [2.5, 1.9],
+                               method="arclength", ds=0.05)  # fmt: skip
+    assert ds.attrs["kind"] == "collision" and ds.attrs["method"] == "arclength"
+    assert ds.attrs["stop_reason"] == "P left [1.9, 2.5]"
+    P, c1 = ds["P"].values, ds["c1"].values
+    assert np.all(ds["status"].values == 0) and len(P) > 10
+    # the pendulum of two bodies that translate is the rigid one to O(1e-6)
+    np.testing.assert_allclose(P, (c1 + 6 - 2 * np.sqrt(2 * c1)) / 2, rtol=1e-5)
+    np.testing.assert_allclose(ds["frequency"].values, (2 * c1) ** 0.25 / math.sqrt(2), rtol=1e-5)
+    assert c1[0] == pytest.approx(3 - 2 * math.sqrt(2), abs=2e-5) and c1[-1] > 3 + 2 * math.sqrt(2)
+    assert list(ds["special_type"].values) == ["turning_point"]
+    assert float(ds["special_value"][0]) == pytest.approx(2.0, abs=1e-4)
+    assert float(ds["special_parameter"][0]) == pytest.approx(2.0, abs=5e-3)
+    i = int(ds["special_index"][0])  # the point before the turn: P falls to it, rises after
+    assert np.all(np.diff(P[: i + 1]) < 0) and np.all(np.diff(P[i + 1 :]) > 0)
+    assert np.all(np.diff(c1) > 0)  # c1 is the curve's regular coordinate here
 
 
 # ------------------------------------------------------------------------------------------

@@ -127,8 +127,9 @@ def continue_hopf(
     differentiable (a loop in Python around compiled steps).
 
     **Other models.** A ``model_fn`` that returns a :class:`rbo_jax.lattice.Rod` is handed to
-    :func:`rbo_jax.lattice.rod_continue_hopf` (natural continuation only, with ``options``
-    such as ``kind=`` and ``steps=``; protocol of
+    :func:`rbo_jax.lattice.rod_continue_hopf` (both methods; the arclength method without the
+    first Lyapunov coefficient and the codimension-two points; with ``options`` such as
+    ``kind=`` and ``steps=``; protocol of
     :func:`rbo_jax.bifurcation._interface.model_solver`). ``options`` are refused for a rigid
     body oscillator.
     """
@@ -138,8 +139,10 @@ def continue_hopf(
     own = model_solver(model_fn, first, "rbo_continue_hopf")
     if own is not None:
         shared = dict(theta_eq_fn=theta_eq_fn, theta_guess=theta_guess, t=t, rtol=rtol)
+        steps = dict(ds=ds, ds_min=ds_min, ds_max=ds_max, max_points=max_points,
+                     progress=progress)  # fmt: skip
         return own(model_fn, params, parameter, guess, along, values, method=method, **shared,
-                   atol=atol, max_steps=max_steps, **options)  # fmt: skip
+                   atol=atol, max_steps=max_steps, **steps, **options)  # fmt: skip
     if options:
         raise TypeError(
             f"continue_hopf: unexpected keyword arguments {sorted(options)} for a "
@@ -264,7 +267,7 @@ def _arclength(
     t, rtol, atol, max_steps, options,
 ):  # fmt: skip
     """``method="arclength"``: checks, then :func:`._hopf_curve.continue_hopf_arclength`."""
-    from ._hopf_curve import continue_hopf_arclength
+    from ._hopf_curve import arclength_steps, continue_hopf_arclength
 
     if batch:
         raise ValueError(
@@ -272,12 +275,7 @@ def _arclength(
             + ", ".join(repr(name) for name in batch)
             + " given as arrays (batch axes) must be scalars; loop over their values."
         )
-    if values.size < 2 or not float(jnp.max(values)) > float(jnp.min(values)):
-        raise ValueError(
-            f'method="arclength" needs values of {along!r} with at least two distinct entries '
-            "(the start values[0], the first direction towards values[1], the bounds "
-            "min(values), max(values))."
-        )
+    arclength_steps(values, along, options["ds"], options["ds_min"], options["ds_max"])
     if options["max_points"] < 1:
         raise ValueError(f"max_points must be at least 1, got {options['max_points']}.")
     static = Static(

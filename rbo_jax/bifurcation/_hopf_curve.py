@@ -305,14 +305,15 @@ def _refine_turning_points(special, points):
         special[i] = (kind, float(c - b * b / (4 * a)), alpha, index, frequency, l1)
 
 
-def _progress(progress: bool, total: int):
+def progress_bar(progress: bool, total: int, desc: str = "Hopf boundary"):
+    """A tqdm bar of ``total`` points, or one that does nothing."""
     from ._equilibria import _NoBar
 
     if not progress:
         return _NoBar()
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc="Hopf boundary", unit="point")
+    return tqdm(total=total, desc=desc, unit="point")
 
 
 def _follow(run: _Run, context, first: _Point, ds, ds_min, ds_max, max_points, progress):
@@ -322,7 +323,7 @@ def _follow(run: _Run, context, first: _Point, ds, ds_min, ds_max, max_points, p
     sign = 1.0 if float(first.X[4]) >= 0 else -1.0
     lo, hi = run.bounds
     reason = "max_points"
-    bar = _progress(progress, max_points)
+    bar = progress_bar(progress, max_points)
     bar.update(1)
     while len(points) < max_points:
         new, k = _advance(run, points[-1], ds)
@@ -380,8 +381,35 @@ def _dataset(points, special, parameter, along, reason):
             "stop_reason": reason,
         },
     )
+    return label_boundary(ds, parameter, along)
+
+
+def arclength_steps(values, along: str, ds, ds_min, ds_max):
+    """The bounds and steps of a boundary's arclength continuation over ``values`` of
+    ``along`` (checked): ``(lo, hi, ds, ds_min, ds_max)``, the steps by default 0.02, 1e-6 and
+    0.1 of the span ``hi - lo`` (:func:`rbo_jax.continue_hopf`)."""
+    values = np.asarray(values, dtype=float)
+    if values.size < 2 or not values.max() > values.min():
+        raise ValueError(
+            f'method="arclength" needs values of {along!r} with at least two distinct entries '
+            "(the start values[0], the first direction towards values[1], the bounds "
+            "min(values), max(values))."
+        )
+    lo, hi = float(values.min()), float(values.max())
+    span = hi - lo
+    ds = 0.02 * span if ds is None else float(ds)
+    ds_max = max(0.1 * span, ds) if ds_max is None else float(ds_max)
+    ds_min = 1e-6 * span if ds_min is None else float(ds_min)
+    if not (0 < ds_min <= ds <= ds_max):
+        raise ValueError(f"need 0 < ds_min <= ds <= ds_max, got {ds_min}, {ds}, {ds_max}.")
+    return lo, hi, ds, ds_min, ds_max
+
+
+def label_boundary(ds, parameter: str, along: str, point: str = "Hopf point"):
+    """The attributes of a boundary of :func:`continue_hopf_arclength` (and of a rod's,
+    :mod:`rbo_jax.lattice._rod_hopf_arclength`): the status's flag meanings, long names."""
     ds["status"].attrs["flag_meanings"] = " ".join(enum.names(HopfStatus))
-    ds[parameter].attrs["long_name"] = f"critical {parameter} (Hopf point)"
+    ds[parameter].attrs["long_name"] = f"critical {parameter} ({point})"
     ds["special_value"].attrs["long_name"] = f"{along} at the special point"
     ds["special_parameter"].attrs["long_name"] = f"{parameter} at the special point"
     return ds
@@ -400,17 +428,11 @@ def continue_hopf_arclength(
     parts = [jnp.ravel(v) for v in others.values()]
     p = jnp.concatenate(parts) if parts else jnp.zeros(0, dtype)
     values = np.asarray(values, dtype=float)
-    lo, hi = float(values.min()), float(values.max())
+    lo, hi, ds, ds_min, ds_max = arclength_steps(values, static.names[-1], ds, ds_min, ds_max)
     run = _Run(
         static, jnp.asarray(t, dtype=dtype), p, float(values[0]),
         1.0 if values[1] >= values[0] else -1.0, (lo, hi), max(int(static.max_steps), 1),
     )  # fmt: skip
-    span = hi - lo
-    ds = 0.02 * span if ds is None else float(ds)
-    ds_max = max(0.1 * span, ds) if ds_max is None else float(ds_max)
-    ds_min = 1e-6 * span if ds_min is None else float(ds_min)
-    if not (0 < ds_min <= ds <= ds_max):
-        raise ValueError(f"need 0 < ds_min <= ds <= ds_max, got {ds_min}, {ds}, {ds_max}.")
     first = _first_point(run, jnp.asarray(guess, dtype=dtype), theta_guess)
     points, special, reason = _follow(run, context, first, ds, ds_min, ds_max, max_points, progress)
     return _dataset(points, special, context[2], context[3], reason)

@@ -1,7 +1,8 @@
 r"""The flutter boundary of a rod in two parameters by natural continuation (what
 :func:`rbo_jax.continue_hopf` does for a rod): the flutter point of :mod:`._rod_hopf` at each
 value of the second parameter, started from the last load found, in one compiled scan, and
-vmapped over batch axes spread over every local device."""
+vmapped over batch axes spread over every local device; ``method="arclength"`` hands the curve
+to :mod:`._rod_hopf_arclength`."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from .._sharding import map_points
 from ..bifurcation._system import HopfStatus
 from ._rod import Rod
 from ._rod_hopf import _SUCCESSFUL, _check_unused, _prepare, _solve
+from ._rod_hopf_arclength import rod_continue_hopf_arclength
 from ._rod_hopf_system import Options, Static
 
 __all__ = ["rod_continue_hopf"]
@@ -61,6 +63,11 @@ def rod_continue_hopf(
     rtol: float = 1e-10,
     atol: float = 1e-10,
     max_steps: int = 32,
+    ds: float | None = None,
+    ds_min: float | None = None,
+    ds_max: float | None = None,
+    max_points: int = 200,
+    progress: bool = False,
 ):
     r"""The flutter boundary of a rod, the load ``parameter`` against ``along`` (what
     :func:`rbo_jax.continue_hopf` does for a rod): natural continuation, the flutter point
@@ -72,24 +79,25 @@ def rod_continue_hopf(
     ``parameter``, ``frequency``, ``num_steps`` and ``status`` (int8 codes of
     :class:`rbo_jax.bifurcation.HopfStatus`; NaN values where it failed, and the next point
     starts from the last good one); ``attrs``: ``parameter``, ``along``, ``batch``,
-    ``method``, ``kind``. Only ``method="natural"``. Differentiable (``jax.grad`` of
-    :func:`rod_hopf_point`) point by point; the Dataset itself is not.
-    """
-    import xarray as xr
+    ``method``, ``kind``. Differentiable (``jax.grad`` of :func:`rod_hopf_point`) point by
+    point; the Dataset itself is not.
 
+    ``method="arclength"``: pseudo-arclength continuation of the boundary in the plane of
+    ``parameter`` and ``along``, which passes its turning points in ``along``
+    (:mod:`rbo_jax.lattice._rod_hopf_arclength`): from the flutter point at ``values[0]``,
+    first towards ``values[1]``, until ``along`` leaves ``[min(values), max(values)]``, after
+    ``max_points`` points, or when the step falls below ``ds_min``; ``ds``, ``ds_min``,
+    ``ds_max`` and ``progress`` as for a rigid body (:func:`rbo_jax.continue_hopf`), the
+    arclength measured in all the unknowns (the eigenvector's too). No batch axes. **Returns**
+    a Dataset over ``point`` with ``parameter`` and ``along`` as data variables,
+    ``frequency``, ``num_steps``, ``status``, and over ``special`` the turning points
+    (``special_type``, ``special_value``: ``along`` there, ``special_parameter``,
+    ``special_index``: the point before it); ``attrs``: ``parameter``, ``along``, ``method``,
+    ``kind``, ``stop_reason``. The first Lyapunov coefficient and the codimension-two points
+    of a rigid body's boundary are not computed for rods.
+    """
     _check_unused(theta_eq_fn, theta_guess, t)
-    if method != "natural":
-        raise ValueError(f'continue_hopf of a rod: method must be "natural", got {method!r}.')
-    values = np.asarray(values, dtype=float)
-    if values.ndim != 1 or values.size < 1 or not np.all(np.isfinite(values)):
-        raise ValueError("continue_hopf of a rod: values must be a 1-D array of finite values.")
-    batch = [str(k) for k, v in params.items() if k not in (parameter, along) and np.ndim(v) == 1]
-    for name, v in params.items():
-        if name not in (parameter, along) and (
-            np.ndim(v) > 1 or (np.ndim(v) == 1 and np.size(v) == 0)
-        ):
-            raise ValueError(f"continue_hopf of a rod: params[{name!r}] must be a scalar or a "
-                             "non-empty 1-D array.")  # fmt: skip
+    values, batch = _checked(params, parameter, along, values, method)
     scalars = {k: v for k, v in params.items() if k != along and np.ndim(v) == 0}
     first = {**scalars, **{k: np.ravel(params[k])[0] for k in batch}}
     options = (rtol, atol, max_steps, cluster, frequency, multiplicity)
@@ -99,6 +107,11 @@ def rod_continue_hopf(
     others = {
         str(k): jnp.asarray(v, dtype) for k, v in params.items() if k not in (parameter, along)
     }
+    if method == "arclength":
+        return rod_continue_hopf_arclength(
+            static, options, guess, others, along, values, ds=ds, ds_min=ds_min, ds_max=ds_max,
+            max_points=max_points, progress=progress,
+        )  # fmt: skip
     grid = jnp.asarray(values, dtype)
 
     def curve(**point):
@@ -111,21 +124,54 @@ def rod_continue_hopf(
         out = [flat[k].reshape(axes[0].shape + flat[k].shape[1:]) for k in FIELDS]
     else:
         out = list(curve().values())
+    coords = {along: values, **{k: np.asarray(params[k], float) for k in batch}}
+    return _dataset(out, static, along, batch, coords)
+
+
+def _checked(params, parameter: str, along: str, values, method: str):
+    """The checked ``values`` (a NumPy array) and the batch axes (names)."""
+    if method not in ("natural", "arclength"):
+        raise ValueError(
+            f'continue_hopf of a rod: method must be "natural" or "arclength", got {method!r}.'
+        )
+    values = np.asarray(values, dtype=float)
+    if values.ndim != 1 or values.size < 1 or not np.all(np.isfinite(values)):
+        raise ValueError("continue_hopf of a rod: values must be a 1-D array of finite values.")
+    batch = [str(k) for k, v in params.items() if k not in (parameter, along) and np.ndim(v) == 1]
+    for name, v in params.items():
+        if name not in (parameter, along) and (
+            np.ndim(v) > 1 or (np.ndim(v) == 1 and np.size(v) == 0)
+        ):
+            raise ValueError(f"continue_hopf of a rod: params[{name!r}] must be a scalar or a "
+                             "non-empty 1-D array.")  # fmt: skip
+    if method == "arclength" and batch:
+        raise ValueError(
+            'method="arclength" follows one curve: params '
+            + ", ".join(repr(name) for name in batch)
+            + " given as arrays (batch axes) must be scalars; loop over their values."
+        )
+    return values, batch
+
+
+def _dataset(out, static: Static, along: str, batch: list, coords: dict):
+    """The natural continuation's Dataset from the curves' fields (:data:`FIELDS`)."""
+    import xarray as xr
+
     value, freq, num_steps, status = (np.asarray(x) for x in out)
     dims = (*batch, along)
     ds = xr.Dataset(
         {
-            parameter: (dims, value),
+            static.parameter: (dims, value),
             "frequency": (dims, freq),
             "num_steps": (dims, num_steps.astype(np.int32)),
             "status": (dims, status.astype(np.int8)),
         },
-        coords={along: values, **{k: np.asarray(params[k], float) for k in batch}},
+        coords=coords,
         attrs={
-            "parameter": parameter,
+            "parameter": static.parameter,
             "along": along,
             "batch": " ".join(batch),
-            "method": method,
+            "method": "natural",
             "kind": static.kind,
         },  # fmt: skip
     )
