@@ -110,7 +110,7 @@ def _corrector(static: Static, options: Options, Y, tau, s, C, others, scale):
         done = ok & (small | (residual <= _ROUNDING * jnp.finfo(V.dtype).eps))
         done = done & jnp.all(jnp.isfinite(delta))
         failed = ~ok | ~jnp.all(jnp.isfinite(delta))
-        V = jnp.where(done | failed, V, V + delta)
+        V = jnp.where(failed, V, V + delta)  # the last, small correction too
         return V, k + 1, done, failed, B, state
 
     _, B0, _, state0 = jax.eval_shape(bordered, Y_pred)
