@@ -269,6 +269,34 @@ def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes, 
     assert bool((ref[2] == SolveStatus.domain_error)[13])
 
 
+def test_longest_first_keeps_every_trajectory_bit_for_bit(monkeypatch):
+    """The queue run twice (issue 31, ``_solve.PROBE``): every trajectory first makes at most a
+    few step attempts, the unfinished ones are parked (their lanes' states saved) and resumed
+    later, longest first, from their saved states. Every trajectory's samples inside the
+    interval, status and accepted steps are those of one run in the batch's order, bit for bit,
+    bad points included, and most trajectories were parked and resumed."""
+    monkeypatch.setattr(ensemble, "LANES", 32)
+    n = 3 * 32 + 7
+    rng = np.random.default_rng(3)
+    ps = np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n)], 1)
+    y0s = rng.uniform(-0.6, 0.6, (n, 6)) * rng.uniform(0.1, 1.0, (n, 1))  # unequal lengths
+    y0s[5, 0], ps[9, 0], y0s[12] = np.nan, -1.0, [0.0, 2.1, 0.0, 0.0, 0.2, 0.0]
+    ps, y0s = jnp.asarray(ps), jnp.asarray(y0s)
+    monkeypatch.setattr(LANES_SOLVER, "PROBE", 2**30)  # never parked: the batch's order
+    ref = _batch(_model_of, ps, y0s, TS)
+    monkeypatch.setattr(LANES_SOLVER, "PROBE", 12)
+    got = _batch(_model_of, ps, y0s, TS)
+    for i in (0, 1, 3):  # theta, Omega (17 samples each), steps
+        np.testing.assert_array_equal(np.asarray(got[i]), np.asarray(ref[i]))
+    assert bool(jnp.all(got[2] == ref[2]))  # the statuses
+    steps = np.asarray(ref[3])
+    assert np.sum(steps > 12) > n // 2 and len(set(steps.tolist())) > 10  # parked, unequal
+    assert bool((ref[2] == SolveStatus.nonfinite_input)[5])
+    assert bool((ref[2] == SolveStatus.invalid_parameters)[9])
+    assert bool((ref[2] == SolveStatus.domain_error)[12])
+    assert int(jnp.sum(ref[2] == SolveStatus.successful)) == n - 3
+
+
 def test_bad_points_are_flagged_and_the_rest_solved(monkeypatch):
     """In one batch: a NaN initial state, invalid parameters, a barrier crossing (domain of
     (4.49)), a step budget too small; the other trajectories are unaffected."""

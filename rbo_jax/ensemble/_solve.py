@@ -8,9 +8,11 @@ r"""The two loops of the ensemble integrator, around one shape-polymorphic step 
   SciPy's step sequence per lane), and when at least R lanes are idle, up to R of them take the
   next trajectories from the queue ("refill"). Lockstep batching wastes the iterations that
   fast lanes spend waiting for the slowest (measured: 40 % of the work); refilling keeps ~92 % of
-  lane work useful. When the queue is empty, a large batch's running lanes are gathered into a
-  narrower loop (:func:`tail_widths`), so that its last, longest trajectories do not cost every
-  lane.
+  lane work useful. The queue is run longest first (:data:`PROBE`): every trajectory makes a few
+  step attempts, then the unfinished ones resume from their saved states in the order of their
+  extrapolated remaining work, so that the longest do not start last. When the queue is empty,
+  a large batch's running lanes are gathered into a narrower loop (:func:`tail_widths`), so that
+  its last, longest trajectories do not cost every lane.
 
 Why this layout (measured with a stand-alone prototype of this integrator on the Nikolai
 benchmark, one core, against a hand-written numba DOP853 at 23.2 µs per trajectory):
@@ -256,18 +258,20 @@ class _Lanes:
 
 
 def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, store):
-    """Up to R idle lanes take the next trajectories: their results are recorded, their
-    problems and initial states replaced."""
+    """Up to R idle lanes take the next trajectories of the queue (``order``): their results
+    are recorded (a parked lane's state saved, :func:`_save`), their problems and states
+    replaced: a new trajectory's initial state in the probe, a parked one's saved state after
+    it."""
     B = c["tid"].shape[0]
     N = c["status_out"].shape[0]
     idle = c["st"]["status"] != RUNNING
     slots = jnp.nonzero(idle, size=R, fill_value=B)[0]
     new = c["next"] + jnp.arange(R, dtype=jnp.int32)
-    ok = (slots < B) & (new < N)
-    gid = jnp.where(ok, new, N - 1)
+    ok = (slots < B) & (new < c["queued"])
+    gid = jnp.where(ok, c["order"][jnp.minimum(new, N - 1)], N - 1)
     sl = jnp.where(ok, slots, B)
+    c = _save(c, sl)
     done = jnp.where(ok, c["tid"][jnp.minimum(slots, B - 1)], N)
-    c = dict(c)
     c["status_out"] = (
         c["status_out"].at[done].set(c["st"]["status"][jnp.minimum(slots, B - 1)], mode="drop")
     )
@@ -275,14 +279,78 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, store):
         c["nacc_out"].at[done].set(c["st"]["nacc"][jnp.minimum(slots, B - 1)], mode="drop")
     )
     problem = _gather(pool, batched, gid)
-    st = _initial(
-        fns.f(problem), fns.failure(problem), ts[0], tuple(v[gid] for v in y0), ts[-1], cfg
-    )
+
+    def fresh(_):
+        st = _initial(
+            fns.f(problem), fns.failure(problem), ts[0], tuple(v[gid] for v in y0), ts[-1], cfg
+        )
+        return st, jnp.ones(R, jnp.int32)
+
+    def resumed(_):
+        st = {k: jax.tree_util.tree_map(lambda a: a[gid], c["saved"][k]) for k in _SAVED}
+        st["status"] = jnp.full(R, RUNNING, jnp.int32)
+        return st, c["saved"]["idx"][gid]
+
+    st, idx = lax.cond(c["phase"] == 0, fresh, resumed, None)
     c["st"] = jax.tree_util.tree_map(lambda a, v: a.at[sl].set(v, mode="drop"), c["st"], st)
     c["problem"] = _put(c["problem"], problem, batched, sl)
     c["tid"] = c["tid"].at[sl].set(gid, mode="drop")
-    c["idx"] = c["idx"].at[sl].set(1, mode="drop")
+    c["idx"] = c["idx"].at[sl].set(idx, mode="drop")
     c["next"] = c["next"] + jnp.sum(ok).astype(jnp.int32)
+    return c
+
+
+# Longest first (issue 31). A batch's last trajectories to start set its end: refilled lanes in
+# the batch's order left the longest ones, started late, running on few lanes long after the
+# rest (a chunk of the `rbo-jax sweep` benchmark, Nikolai final states at t1 = 600: 1,048 to
+# 343,397 steps a trajectory, mean 88,900). So the queue is run twice. First the *probe*: every
+# trajectory makes at most :data:`PROBE` step attempts; the ones that end there are done, the
+# others are parked (their lanes' states saved by trajectory, :func:`_save`). Then the parked
+# ones, longest first, by their remaining work extrapolated from the probe: attempts so far
+# × (t1 − t) / (t − t0) (:func:`_longest_first`), each resumed from its saved state, so every
+# trajectory takes the same steps with the same bits as in one go. The probe costs the batch
+# one wait (at most :data:`PROBE` iterations, while the last started trajectories finish it).
+# A model of the lanes (0.4 µs a lane-step, 26 µs an iteration) on that chunk's step counts:
+# 273 s in the batch's order, 232 s longest first by the true counts; a device's share of two
+# 151 s and 118 s.
+PROBE = 256
+PARKED = -2  # the status of a lane whose trajectory spent its probe (a trajectory of the queue)
+_SAVED = ("t", "y", "f", "h", "rej", "nacc", "natt")
+
+
+def _save(c, slots):
+    """``c`` with the states of the parked lanes among ``slots`` (out of range: none) saved
+    under their trajectories' ids, with their next sample's index."""
+    B = c["tid"].shape[0]
+    N = c["status_out"].shape[0]
+    at = jnp.minimum(slots, B - 1)
+    ids = jnp.where((slots < B) & (c["st"]["status"][at] == PARKED), c["tid"][at], N)
+
+    def put(a, v):
+        return a.at[ids].set(v[at], mode="drop")
+
+    c = dict(c)
+    saved = {k: jax.tree_util.tree_map(put, c["saved"][k], c["st"][k]) for k in _SAVED}
+    c["saved"] = saved | {"idx": put(c["saved"]["idx"], c["idx"])}
+    return c
+
+
+def _longest_first(c, t0, t_end):
+    """The end of the probe (no lane running, none queued): every lane's result recorded or
+    its state saved, the lanes emptied, and the queue made of the parked trajectories, the
+    most remaining work first."""
+    B = c["tid"].shape[0]
+    N = c["status_out"].shape[0]
+    c = _record(_save(c, jnp.arange(B)), N)
+    c["tid"] = jnp.full(B, N, jnp.int32)
+    c["st"] = dict(c["st"], status=jnp.full(B, code("successful"), jnp.int32))
+    parked = c["status_out"] == PARKED
+    t, natt = c["saved"]["t"], c["saved"]["natt"].astype(t0.dtype)
+    rest = jnp.where(t > t0, natt * (t_end - t) / jnp.where(t > t0, t - t0, 1), jnp.inf)
+    c["order"] = jnp.argsort(-jnp.where(parked, rest, -1), stable=True).astype(jnp.int32)
+    c["queued"] = jnp.sum(parked).astype(jnp.int32)
+    c["next"] = jnp.zeros((), jnp.int32)
+    c["phase"] = jnp.ones((), jnp.int32)
     return c
 
 
@@ -393,53 +461,68 @@ def lane_count(N: int, lanes_: int, waves: int = WAVES) -> int:
     return _round_up(min(N, lanes_, max(MIN_LANES, -(-N // waves))), VECTOR)
 
 
+def _start(pool, batched, y0, ts, cfg: Config, fns: _Lanes, B: int):
+    """The carry of :func:`solve_lanes` before its first iteration: B idle lanes, the queue in
+    the batch's order, every sample ``inf`` but the first (``inf`` too for a bad start)."""
+    N, nts = y0[0].shape[0], ts.shape[0]
+    # Every lane starts idle, holding no trajectory (tid N): the loop's refill gives them
+    # their first ones, so the program holds the initial step once (a separate start on B
+    # lanes was a second copy of the vector field: 336 -> 291 fusions, XLA's compilation of
+    # the 1000-lane program 3.2-3.3 -> 2.5-2.6 s, measured side by side)
+    problem = _gather(pool, batched, jnp.zeros(B, jnp.int32))
+    zero = jnp.zeros(B, ts.dtype)
+    st = dict(
+        t=jnp.full(B, ts[0]),
+        y=(zero,) * 6,
+        f=(zero,) * 6,
+        h=zero,
+        rej=jnp.zeros(B, bool),
+        status=jnp.full(B, code("successful"), jnp.int32),
+        nacc=jnp.zeros(B, jnp.int32),
+        natt=jnp.zeros(B, jnp.int32),
+    )
+    first_ok = fns.failure(to_lanes(pool, batched))(y0, y0, cfg.singular_tol) == code("successful")
+    y_first = jnp.where(first_ok[:, None], jnp.stack(y0, -1), jnp.inf)
+    out = jnp.full((N, nts, 6), jnp.inf, dtype=ts.dtype).at[:, 0].set(y_first)
+    c = dict(
+        st=st,
+        problem=problem,
+        tid=jnp.full(B, N, jnp.int32),
+        idx=jnp.ones(B, jnp.int32),
+        out=out,
+        next=jnp.asarray(0, jnp.int32),
+        status_out=jnp.zeros(N, jnp.int32),
+        nacc_out=jnp.zeros(N, jnp.int32),
+        # the queue (longest first, :data:`PROBE`): the batch's order in the probe (phase
+        # 0), then the parked trajectories (phase 1), resumed from their saved states
+        phase=jnp.zeros((), jnp.int32),
+        order=jnp.arange(N, dtype=jnp.int32),
+        queued=jnp.asarray(N, jnp.int32),
+        saved={k: jax.tree_util.tree_map(lambda a: jnp.zeros(N, a.dtype), st[k]) for k in _SAVED}
+        | {"idx": jnp.zeros(N, jnp.int32)},
+    )
+    return c
+
+
 def solve_lanes(
     pool: Problem, batched, y0, ts, cfg: Config, lanes_: int = 1000, waves: int = WAVES
 ):
     """N trajectories (``pool``: leaves with a leading axis N where ``batched``; ``y0``: six
     ``(N,)`` components) on :func:`lane_count` refilled lanes. Returns ``(samples (N, n_ts, 6),
     status (N,), accepted steps (N,))``."""
-    N, nts = y0[0].shape[0], ts.shape[0]
+    N = y0[0].shape[0]
     B = lane_count(N, lanes_, waves)
     R = _round_up(max(1, B // 16), VECTOR)
     fns = _Lanes(batched)
     store = D.Store(_one((pool, y0, ts)))
     with storing(store):
-        # Every lane starts idle, holding no trajectory (tid N): the loop's refill gives them
-        # their first ones, so the program holds the initial step once (a separate start on B
-        # lanes was a second copy of the vector field: 336 -> 291 fusions, XLA's compilation of
-        # the 1000-lane program 3.2-3.3 -> 2.5-2.6 s, measured side by side)
-        problem = _gather(pool, batched, jnp.zeros(B, jnp.int32))
-        zero = jnp.zeros(B, ts.dtype)
-        st = dict(
-            t=jnp.full(B, ts[0]),
-            y=(zero,) * 6,
-            f=(zero,) * 6,
-            h=zero,
-            rej=jnp.zeros(B, bool),
-            status=jnp.full(B, code("successful"), jnp.int32),
-            nacc=jnp.zeros(B, jnp.int32),
-            natt=jnp.zeros(B, jnp.int32),
-        )
-        first_ok = fns.failure(to_lanes(pool, batched))(y0, y0, cfg.singular_tol) == code(
-            "successful"
-        )
-        y_first = jnp.where(first_ok[:, None], jnp.stack(y0, -1), jnp.inf)
-        out = jnp.full((N, nts, 6), jnp.inf, dtype=ts.dtype).at[:, 0].set(y_first)
-        c = dict(
-            st=st,
-            problem=problem,
-            tid=jnp.full(B, N, jnp.int32),
-            idx=jnp.ones(B, jnp.int32),
-            out=out,
-            next=jnp.asarray(0, jnp.int32),
-            status_out=jnp.zeros(N, jnp.int32),
-            nacc_out=jnp.zeros(N, jnp.int32),
-        )
+        c = _start(pool, batched, y0, ts, cfg, fns, B)
+        # one wave (as many lanes as trajectories): every trajectory starts at once, no order
+        probe = PROBE if N > B else jnp.iinfo(jnp.int32).max
 
         def wants_refill(c):
             n_idle = jnp.sum(c["st"]["status"] != RUNNING)
-            return (c["next"] < N) & ((n_idle >= R) | (n_idle == B))
+            return (c["next"] < c["queued"]) & ((n_idle >= R) | (n_idle == B))
 
         def step(c):
             c = dict(c)
@@ -456,11 +539,16 @@ def solve_lanes(
             c["idx"], c["out"] = _emit(
                 step, ts, c["idx"], c["out"], st["t"], write, sampler(step, st["t"])
             )
-            c["st"] = st
+            spent = (c["phase"] == 0) & (st["status"] == RUNNING) & (st["natt"] >= probe)
+            c["st"] = dict(st, status=jnp.where(spent, PARKED, st["status"]))
             return c
 
         def body(c):
-            # first the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
+            # the end of the probe: the parked trajectories queued, longest first
+            probed = (c["phase"] == 0) & (c["next"] >= N)
+            probed = probed & ~jnp.any(c["st"]["status"] == RUNNING)
+            c = lax.cond(probed, lambda c: _longest_first(c, ts[0], ts[-1]), lambda c: c, c)
+            # then the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
             # in the first iteration)
             c = lax.while_loop(
                 wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R, store), c
@@ -468,8 +556,9 @@ def solve_lanes(
             return step(c)
 
         widths = tail_widths(B, N)
+        running_over = _running_over(widths[0] if widths else 0)
         c = lax.while_loop(
-            lambda c: (c["next"] < N) | _running_over(widths[0] if widths else 0)(c), body, c
+            lambda c: (c["phase"] == 0) | (c["next"] < c["queued"]) | running_over(c), body, c
         )
         c = _tail(c, step, batched, N, widths)
     c = _record(c, N)
