@@ -274,8 +274,10 @@ def test_longest_first_keeps_every_trajectory_bit_for_bit(monkeypatch):
     few step attempts, the unfinished ones are parked (their lanes' states saved) and resumed
     later, longest first, from their saved states. Every trajectory's samples inside the
     interval, status and accepted steps are those of one run in the batch's order, bit for bit,
-    bad points included, and most trajectories were parked and resumed."""
+    bad points included, and most trajectories were parked and resumed (the order is for large
+    batches, ``_solve.ORDER_FROM``; here a small one, so that it compiles fast)."""
     monkeypatch.setattr(ensemble, "LANES", 32)
+    monkeypatch.setattr(LANES_SOLVER, "ORDER_FROM", 0)  # a small batch ordered too
     n = 3 * 32 + 7
     rng = np.random.default_rng(3)
     ps = np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n)], 1)

@@ -257,11 +257,11 @@ class _Lanes:
         return lambda y_old, y_new, tol: lanes("failure", problem, axes, y_old, y_new, tol)
 
 
-def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, store):
+def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, ordered: bool):
     """Up to R idle lanes take the next trajectories of the queue (``order``): their results
     are recorded (a parked lane's state saved, :func:`_save`), their problems and states
     replaced: a new trajectory's initial state in the probe, a parked one's saved state after
-    it."""
+    it (``ordered``: a batch run longest first; otherwise the probe is the whole run)."""
     B = c["tid"].shape[0]
     N = c["status_out"].shape[0]
     idle = c["st"]["status"] != RUNNING
@@ -270,7 +270,7 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, store):
     ok = (slots < B) & (new < c["queued"])
     gid = jnp.where(ok, c["order"][jnp.minimum(new, N - 1)], N - 1)
     sl = jnp.where(ok, slots, B)
-    c = _save(c, sl)
+    c = _save(c, sl) if ordered else dict(c)
     done = jnp.where(ok, c["tid"][jnp.minimum(slots, B - 1)], N)
     c["status_out"] = (
         c["status_out"].at[done].set(c["st"]["status"][jnp.minimum(slots, B - 1)], mode="drop")
@@ -287,11 +287,9 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, store):
         return st, jnp.ones(R, jnp.int32)
 
     def resumed(_):
-        st = {k: jax.tree_util.tree_map(lambda a: a[gid], c["saved"][k]) for k in _SAVED}
-        st["status"] = jnp.full(R, RUNNING, jnp.int32)
-        return st, c["saved"]["idx"][gid]
+        return _unpack(c["saved"]["x"][gid], c["saved"]["n"][gid])
 
-    st, idx = lax.cond(c["phase"] == 0, fresh, resumed, None)
+    st, idx = lax.cond(c["phase"] == 0, fresh, resumed, None) if ordered else fresh(None)
     c["st"] = jax.tree_util.tree_map(lambda a, v: a.at[sl].set(v, mode="drop"), c["st"], st)
     c["problem"] = _put(c["problem"], problem, batched, sl)
     c["tid"] = c["tid"].at[sl].set(gid, mode="drop")
@@ -314,8 +312,36 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, store):
 # 273 s in the batch's order, 232 s longest first by the true counts; a device's share of two
 # 151 s and 118 s.
 PROBE = 256
+# Only a batch of several waves and from this many trajectories on (a long run) is ordered: the
+# order's program (the saves, the sort) adds ~0.8 s to XLA's compilation of a 1,000-lane batch
+# (4.1-4.4 -> 5.0 s, one core), which a small batch's first answer would pay for a short tail.
+ORDER_FROM = 2048
 PARKED = -2  # the status of a lane whose trajectory spent its probe (a trajectory of the queue)
-_SAVED = ("t", "y", "f", "h", "rej", "nacc", "natt")
+
+
+def _pack(st, idx):
+    """A lane's state as two rows: ``x`` its 14 reals (t, y, f, h), ``n`` its 4 integers (the
+    rejection flag, accepted steps, attempts, next sample). Saved and restored as two arrays,
+    not 18 (one scatter and one gather each: XLA compiled a 1,000-lane batch in 4.98 s against
+    5.14-5.23 s with 18, one core)."""
+    x = jnp.stack([st["t"], *st["y"], *st["f"], st["h"]], -1)
+    n = jnp.stack([st["rej"].astype(jnp.int32), st["nacc"], st["natt"], idx], -1)
+    return x, n
+
+
+def _unpack(x, n):
+    """The running state and next sample of lanes restored from :func:`_pack`'s rows."""
+    st = dict(
+        t=x[:, 0],
+        y=tuple(x[:, 1 + i] for i in range(6)),
+        f=tuple(x[:, 7 + i] for i in range(6)),
+        h=x[:, 13],
+        rej=n[:, 0] != 0,
+        status=jnp.full(n.shape[0], RUNNING, jnp.int32),
+        nacc=n[:, 1],
+        natt=n[:, 2],
+    )
+    return st, n[:, 3]
 
 
 def _save(c, slots):
@@ -325,13 +351,12 @@ def _save(c, slots):
     N = c["status_out"].shape[0]
     at = jnp.minimum(slots, B - 1)
     ids = jnp.where((slots < B) & (c["st"]["status"][at] == PARKED), c["tid"][at], N)
-
-    def put(a, v):
-        return a.at[ids].set(v[at], mode="drop")
-
+    x, n = _pack(c["st"], c["idx"])
     c = dict(c)
-    saved = {k: jax.tree_util.tree_map(put, c["saved"][k], c["st"][k]) for k in _SAVED}
-    c["saved"] = saved | {"idx": put(c["saved"]["idx"], c["idx"])}
+    c["saved"] = {
+        "x": c["saved"]["x"].at[ids].set(x[at], mode="drop"),
+        "n": c["saved"]["n"].at[ids].set(n[at], mode="drop"),
+    }
     return c
 
 
@@ -345,7 +370,7 @@ def _longest_first(c, t0, t_end):
     c["tid"] = jnp.full(B, N, jnp.int32)
     c["st"] = dict(c["st"], status=jnp.full(B, code("successful"), jnp.int32))
     parked = c["status_out"] == PARKED
-    t, natt = c["saved"]["t"], c["saved"]["natt"].astype(t0.dtype)
+    t, natt = c["saved"]["x"][:, 0], c["saved"]["n"][:, 2].astype(t0.dtype)
     rest = jnp.where(t > t0, natt * (t_end - t) / jnp.where(t > t0, t - t0, 1), jnp.inf)
     c["order"] = jnp.argsort(-jnp.where(parked, rest, -1), stable=True).astype(jnp.int32)
     c["queued"] = jnp.sum(parked).astype(jnp.int32)
@@ -461,7 +486,7 @@ def lane_count(N: int, lanes_: int, waves: int = WAVES) -> int:
     return _round_up(min(N, lanes_, max(MIN_LANES, -(-N // waves))), VECTOR)
 
 
-def _start(pool, batched, y0, ts, cfg: Config, fns: _Lanes, B: int):
+def _start(pool, batched, y0, ts, cfg: Config, fns: _Lanes, B: int, ordered: bool):
     """The carry of :func:`solve_lanes` before its first iteration: B idle lanes, the queue in
     the batch's order, every sample ``inf`` but the first (``inf`` too for a bad start)."""
     N, nts = y0[0].shape[0], ts.shape[0]
@@ -498,9 +523,9 @@ def _start(pool, batched, y0, ts, cfg: Config, fns: _Lanes, B: int):
         phase=jnp.zeros((), jnp.int32),
         order=jnp.arange(N, dtype=jnp.int32),
         queued=jnp.asarray(N, jnp.int32),
-        saved={k: jax.tree_util.tree_map(lambda a: jnp.zeros(N, a.dtype), st[k]) for k in _SAVED}
-        | {"idx": jnp.zeros(N, jnp.int32)},
     )
+    if ordered:
+        c["saved"] = {"x": jnp.zeros((N, 14), ts.dtype), "n": jnp.zeros((N, 4), jnp.int32)}
     return c
 
 
@@ -516,9 +541,10 @@ def solve_lanes(
     fns = _Lanes(batched)
     store = D.Store(_one((pool, y0, ts)))
     with storing(store):
-        c = _start(pool, batched, y0, ts, cfg, fns, B)
-        # one wave (as many lanes as trajectories): every trajectory starts at once, no order
-        probe = PROBE if N > B else jnp.iinfo(jnp.int32).max
+        # longest first (:data:`PROBE`), not for one wave (as many lanes as trajectories:
+        # every trajectory starts at once) nor for a small batch (:data:`ORDER_FROM`)
+        ordered = N >= ORDER_FROM and N > B
+        c = _start(pool, batched, y0, ts, cfg, fns, B, ordered)
 
         def wants_refill(c):
             n_idle = jnp.sum(c["st"]["status"] != RUNNING)
@@ -539,26 +565,30 @@ def solve_lanes(
             c["idx"], c["out"] = _emit(
                 step, ts, c["idx"], c["out"], st["t"], write, sampler(step, st["t"])
             )
-            spent = (c["phase"] == 0) & (st["status"] == RUNNING) & (st["natt"] >= probe)
-            c["st"] = dict(st, status=jnp.where(spent, PARKED, st["status"]))
+            if ordered:  # the probe's attempts spent: the lane is parked
+                spent = (c["phase"] == 0) & (st["status"] == RUNNING) & (st["natt"] >= PROBE)
+                st = dict(st, status=jnp.where(spent, PARKED, st["status"]))
+            c["st"] = st
             return c
 
         def body(c):
-            # the end of the probe: the parked trajectories queued, longest first
-            probed = (c["phase"] == 0) & (c["next"] >= N)
-            probed = probed & ~jnp.any(c["st"]["status"] == RUNNING)
-            c = lax.cond(probed, lambda c: _longest_first(c, ts[0], ts[-1]), lambda c: c, c)
+            if ordered:  # the end of the probe: the parked trajectories queued, longest first
+                probed = (c["phase"] == 0) & (c["next"] >= N)
+                probed = probed & ~jnp.any(c["st"]["status"] == RUNNING)
+                c = lax.cond(probed, lambda c: _longest_first(c, ts[0], ts[-1]), lambda c: c, c)
             # then the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
             # in the first iteration)
             c = lax.while_loop(
-                wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R, store), c
+                wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R, ordered), c
             )
             return step(c)
 
         widths = tail_widths(B, N)
         running_over = _running_over(widths[0] if widths else 0)
         c = lax.while_loop(
-            lambda c: (c["phase"] == 0) | (c["next"] < c["queued"]) | running_over(c), body, c
+            lambda c: (c["next"] < c["queued"]) | running_over(c) | (ordered & (c["phase"] == 0)),
+            body,
+            c,
         )
         c = _tail(c, step, batched, N, widths)
     c = _record(c, N)
