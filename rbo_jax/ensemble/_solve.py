@@ -310,7 +310,8 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, ordered:
 # one wait (at most :data:`PROBE` iterations, while the last started trajectories finish it).
 # A model of the lanes (0.4 µs a lane-step, 26 µs an iteration) on that chunk's step counts:
 # 273 s in the batch's order, 232 s longest first by the true counts; a device's share of two
-# 151 s and 118 s.
+# 151 s and 118 s. Known cost: a batch of short trajectories (none parked) still pays the
+# bookkeeping, 5-15 % per core (benchmarks/README.md, the sixth run).
 PROBE = 256
 # Only a batch of several waves and from this many trajectories on (a long run) is ordered: the
 # order's program (the saves, the sort) adds ~0.8 s to XLA's compilation of a 1,000-lane batch
