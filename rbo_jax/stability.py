@@ -245,8 +245,8 @@ def fast_spectrum(model: RigidBodyOscillator, theta_eq, *, t=0.0) -> Complex[Arr
     $p = \pm\sqrt{\lambda}$ for the three eigenvalues $\lambda$ of $C_\theta$, at a third of the
     cost of the 6×6 eigenproblem (and only $\partial\dot\Omega/\partial\theta$ is differentiated).
     Otherwise the 6×6 companion $[[0, Z^T], [J_\theta, J_\Omega]]$ is used. Unlike
-    :func:`spectrum` the result is not sorted (``jnp.sort`` costs as much as the rest in a vmapped
-    map; :func:`rbo_jax.stability_map` sorts with :func:`sort_six`); in the first case it is ordered
+    :func:`spectrum` the result is not sorted (sorting costs as much as the rest in a vmapped map;
+    :func:`rbo_jax.stability_map` sorts on the host); in the first case it is ordered
     $(p_1, p_2, p_3, -p_1, -p_2, -p_3)$. Same eigenvalues as :func:`spectrum` to rounding.
     """
     if _velocity_independent(model):
@@ -261,43 +261,6 @@ def fast_spectrum(model: RigidBodyOscillator, theta_eq, *, t=0.0) -> Complex[Arr
     top = jnp.concatenate([jnp.zeros_like(Z), Z.T], axis=1)
     bottom = jnp.concatenate([J_theta, J_Omega], axis=1)
     return jnp.linalg.eigvals(jnp.concatenate([top, bottom], axis=0))
-
-
-# The 12 compare-exchanges of an optimal sorting network of 6 values (Knuth, TAOCP 5.3.4; checked
-# on all 2^6 inputs of 0s and 1s, the 0-1 principle)
-_NETWORK_6 = (
-    (0, 5), (1, 3), (2, 4), (1, 2), (3, 4), (0, 3), (2, 5), (0, 1), (2, 3), (4, 5), (1, 2), (3, 4),
-)  # fmt: skip
-
-
-def _before(ar, ai, br, bi):
-    """Whether a = ar + i·ai sorts before b in ``numpy.sort_complex``'s order: by real part,
-    then imaginary part, a NaN part after every number (R + Rj < R + nanj < nan + Rj)."""
-
-    def lt(x, y):
-        nx, ny = jnp.isnan(x), jnp.isnan(y)
-        return (~nx & ny) | (~nx & ~ny & (x < y))
-
-    same_re = (jnp.isnan(ar) & jnp.isnan(br)) | (ar == br)
-    return lt(ar, br) | (same_re & lt(ai, bi))
-
-
-def sort_six(p) -> Complex[Array, "... 6"]:
-    """Six eigenvalues (the last axis) sorted as :func:`spectrum` and ``numpy.sort_complex``
-    sort them: by real part, then imaginary part, NaNs last. A sorting network
-    (:data:`_NETWORK_6`: 12 compare-exchanges, element-wise over the leading axes), so that a
-    vmapped map sorts in its program at the cost of a few vector operations (``jnp.sort`` of a
-    complex batch, XLA's comparison sort, cost as much as the rest of a map)."""
-    p = jnp.asarray(p)
-    if p.shape[-1:] != (6,):
-        raise ValueError(f"sort_six sorts 6 values along the last axis, got shape {p.shape}.")
-    re = [jnp.real(p[..., k]) for k in range(6)]
-    im = [jnp.imag(p[..., k]) for k in range(6)]
-    for i, j in _NETWORK_6:
-        swap = _before(re[j], im[j], re[i], im[i])
-        re[i], re[j] = jnp.where(swap, re[j], re[i]), jnp.where(swap, re[i], re[j])
-        im[i], im[j] = jnp.where(swap, im[j], im[i]), jnp.where(swap, im[i], im[j])
-    return jax.lax.complex(jnp.stack(re, -1), jnp.stack(im, -1))
 
 
 # --------------------------------------------------------------------------------------------

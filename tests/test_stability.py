@@ -675,25 +675,3 @@ def test_classify_undefined_for_nan_input():
     p = np.asarray(_analyse(_potential_model(follower=0.4), jnp.array([np.nan, 0.0, 0.2]))["p"])
     assert np.any(np.isnan(p))
     assert _kind(p)[0] == StabilityKind.undefined
-
-
-def test_sort_six_sorts_as_numpy_sort_complex_nans_and_ties_included():
-    """``sort_six`` (the stability map's in-program sort, a network of 12 compare-exchanges)
-    orders six eigenvalues as ``numpy.sort_complex`` and :func:`rbo_jax.spectrum` do: by real
-    part, then imaginary part, NaN parts last; on random values with many ties, ±0 and NaNs in
-    either part, batched under ``jit(vmap)``."""
-    from rbo_jax.stability import sort_six
-
-    rng = np.random.default_rng(6)
-    x = (rng.integers(-2, 3, (5000, 6)) + 1j * rng.integers(-2, 3, (5000, 6))).astype(complex)
-    x[rng.random(x.shape) < 0.1] *= -0.0  # signed zeros among the ties
-    m = rng.random(x.shape) < 0.1
-    x[m] = np.nan + 1j * x[m].imag
-    m = rng.random(x.shape) < 0.1
-    x[m] = x[m].real + 1j * np.nan
-    got = np.asarray(jax.jit(jax.vmap(sort_six))(jnp.asarray(x)))
-    ref = np.sort_complex(x)
-    for part in (np.real, np.imag):  # equal as numbers, NaN where numpy has NaN
-        np.testing.assert_array_equal(part(got), part(ref))
-    with pytest.raises(ValueError, match="6 values"):
-        sort_six(jnp.zeros(5, complex))

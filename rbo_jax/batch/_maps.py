@@ -17,8 +17,8 @@ import numpy as np
 from ..kinematics import _as_vector
 from ..maps import STABILITY_KIND_NAMES, critical_value, equilibrium_stability, is_unstable
 from ..model import RigidBodyOscillator
-from ..stability import sort_six
 from ._engine import sweep
+from ._output import sort_eigenvalues
 from ._rod_maps import returns_rod, rod_critical_load, rod_stability_map
 
 __all__ = ["stability_map", "critical_load", "STABILITY_KIND_NAMES"]
@@ -82,7 +82,7 @@ def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
     def stability(**point):
         r = _point_stability(model_fn, theta_eq_fn, guess, rtol, fast, eq_items, point)
         values = {
-            "eigenvalues": sort_six(r.eigenvalues),  # in the program, not on the host
+            "eigenvalues": r.eigenvalues,
             "spectral_abscissa": r.abscissa,
             "kind": r.kind,
             "theta_eq": r.theta,
@@ -173,6 +173,7 @@ def stability_map(
         dims={"eigenvalues": ("mode",), "theta_eq": ("component",)},
         attrs={"classify_rtol": rtol},
         desc="stability map",
+        postprocess=sort_eigenvalues,
     )
     ds = ds.rename({"status": "equilibrium_status"})
     ds = ds.assign_coords(mode=np.arange(6), component=["x", "y", "z"])

@@ -212,9 +212,8 @@ def make_output_spec(
 
 
 def sort_eigenvalues(result: dict) -> dict:
-    """The ``postprocess`` of a rod's stability map: each point's 12N eigenvalues sorted by real,
-    then imaginary part, like :func:`rbo_jax.spectrum`; on the host, where it is cheap (a rigid
-    body's six are sorted in the program, :func:`rbo_jax.stability.sort_six`). It only reads
+    """The ``postprocess`` of the stability maps: each point's eigenvalues sorted by real, then
+    imaginary part, like :func:`rbo_jax.spectrum`; on the host, where it is cheap. It only reads
     the chunk's arrays (``reads_only``: :class:`rbo_jax.batch._chunks.Chunks` hands it the
     program's outputs without a copy)."""
     result["eigenvalues"] = np.sort_complex(result["eigenvalues"])
