@@ -32,6 +32,7 @@ OMEGA0 = jnp.array([0.3, 0.9, 0.6])
 RUNTIME_ERRORS = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)
 # the module (``rbo_jax.ensemble._solve`` is also the name of a function in the package)
 LANES_SOLVER = importlib.import_module("rbo_jax.ensemble._solve")
+QUEUE = importlib.import_module("rbo_jax.ensemble._queue")
 
 
 def make_model(c=1.0, d=2.0, alpha=2.0, beta=1.5, A1=1.0, A3=0.6, M=0.3, b=0.05):
@@ -270,23 +271,23 @@ def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes, 
 
 
 def test_longest_first_keeps_every_trajectory_bit_for_bit(monkeypatch):
-    """The queue run twice (issue 31, ``_solve.PROBE``): every trajectory first makes at most a
+    """The queue run twice (issue 31, ``_queue.PROBE``): every trajectory first makes at most a
     few step attempts, the unfinished ones are parked (their lanes' states saved) and resumed
     later, longest first, from their saved states. Every trajectory's samples inside the
     interval, status and accepted steps are those of one run in the batch's order, bit for bit,
     bad points included, and most trajectories were parked and resumed (the order is for large
-    batches, ``_solve.ORDER_FROM``; here a small one, so that it compiles fast)."""
+    batches, ``_queue.ORDER_FROM``; here a small one, so that it compiles fast)."""
     monkeypatch.setattr(ensemble, "LANES", 32)
-    monkeypatch.setattr(LANES_SOLVER, "ORDER_FROM", 0)  # a small batch ordered too
+    monkeypatch.setattr(QUEUE, "ORDER_FROM", 0)  # a small batch ordered too
     n = 3 * 32 + 7
     rng = np.random.default_rng(3)
     ps = np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n)], 1)
     y0s = rng.uniform(-0.6, 0.6, (n, 6)) * rng.uniform(0.1, 1.0, (n, 1))  # unequal lengths
     y0s[5, 0], ps[9, 0], y0s[12] = np.nan, -1.0, [0.0, 2.1, 0.0, 0.0, 0.2, 0.0]
     ps, y0s = jnp.asarray(ps), jnp.asarray(y0s)
-    monkeypatch.setattr(LANES_SOLVER, "PROBE", 2**30)  # never parked: the batch's order
+    monkeypatch.setattr(QUEUE, "PROBE", 2**30)  # never parked: the batch's order
     ref = _batch(_model_of, ps, y0s, TS)
-    monkeypatch.setattr(LANES_SOLVER, "PROBE", 12)
+    monkeypatch.setattr(QUEUE, "PROBE", 12)
     got = _batch(_model_of, ps, y0s, TS)
     for i in (0, 1, 3):  # theta, Omega (17 samples each), steps
         np.testing.assert_array_equal(np.asarray(got[i]), np.asarray(ref[i]))

@@ -8,7 +8,7 @@ r"""The two loops of the ensemble integrator, around one shape-polymorphic step 
   SciPy's step sequence per lane), and when at least R lanes are idle, up to R of them take the
   next trajectories from the queue ("refill"). Lockstep batching wastes the iterations that
   fast lanes spend waiting for the slowest (measured: 40 % of the work); refilling keeps ~92 % of
-  lane work useful. The queue is run longest first (:data:`PROBE`): every trajectory makes a few
+  lane work useful. The queue is run longest first (:mod:`._queue`): every trajectory makes a few
   step attempts, then the unfinished ones resume from their saved states in the order of their
   extrapolated remaining work, so that the longest do not start last. When the queue is empty,
   a large batch's running lanes are gathered into a narrower loop (:func:`tail_widths`), so that
@@ -41,9 +41,9 @@ from jax import lax
 
 from ..kinematics import storing
 from . import _dop853 as D
+from . import _queue as Q
 from ._problem import Problem, code, lane_axes, lanes, to_lanes, traced_once
-
-RUNNING = -1
+from ._queue import PARKED, RUNNING, record
 
 
 class Config(NamedTuple):
@@ -259,7 +259,7 @@ class _Lanes:
 
 def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, ordered: bool):
     """Up to R idle lanes take the next trajectories of the queue (``order``): their results
-    are recorded (a parked lane's state saved, :func:`_save`), their problems and states
+    are recorded (a parked lane's state saved, :func:`._queue.save`), their problems and states
     replaced: a new trajectory's initial state in the probe, a parked one's saved state after
     it (``ordered``: a batch run longest first; otherwise the probe is the whole run)."""
     B = c["tid"].shape[0]
@@ -270,7 +270,7 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, ordered:
     ok = (slots < B) & (new < c["queued"])
     gid = jnp.where(ok, c["order"][jnp.minimum(new, N - 1)], N - 1)
     sl = jnp.where(ok, slots, B)
-    c = _save(c, sl) if ordered else dict(c)
+    c = Q.save(c, sl) if ordered else dict(c)
     done = jnp.where(ok, c["tid"][jnp.minimum(slots, B - 1)], N)
     c["status_out"] = (
         c["status_out"].at[done].set(c["st"]["status"][jnp.minimum(slots, B - 1)], mode="drop")
@@ -287,7 +287,7 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, ordered:
         return st, jnp.ones(R, jnp.int32)
 
     def resumed(_):
-        return _unpack(c["saved"]["x"][gid], c["saved"]["n"][gid])
+        return Q.unpack(c["saved"]["x"][gid], c["saved"]["n"][gid])
 
     st, idx = lax.cond(c["phase"] == 0, fresh, resumed, None) if ordered else fresh(None)
     c["st"] = jax.tree_util.tree_map(lambda a, v: a.at[sl].set(v, mode="drop"), c["st"], st)
@@ -295,88 +295,6 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, ordered:
     c["tid"] = c["tid"].at[sl].set(gid, mode="drop")
     c["idx"] = c["idx"].at[sl].set(idx, mode="drop")
     c["next"] = c["next"] + jnp.sum(ok).astype(jnp.int32)
-    return c
-
-
-# Longest first (issue 31). A batch's last trajectories to start set its end: refilled lanes in
-# the batch's order left the longest ones, started late, running on few lanes long after the
-# rest (a chunk of the `rbo-jax sweep` benchmark, Nikolai final states at t1 = 600: 1,048 to
-# 343,397 steps a trajectory, mean 88,900). So the queue is run twice. First the *probe*: every
-# trajectory makes at most :data:`PROBE` step attempts; the ones that end there are done, the
-# others are parked (their lanes' states saved by trajectory, :func:`_save`). Then the parked
-# ones, longest first, by their remaining work extrapolated from the probe: attempts so far
-# × (t1 − t) / (t − t0) (:func:`_longest_first`), each resumed from its saved state, so every
-# trajectory takes the same steps with the same bits as in one go. The probe costs the batch
-# one wait (at most :data:`PROBE` iterations, while the last started trajectories finish it).
-# A model of the lanes (0.4 µs a lane-step, 26 µs an iteration) on that chunk's step counts:
-# 273 s in the batch's order, 232 s longest first by the true counts; a device's share of two
-# 151 s and 118 s. Known cost: a batch of short trajectories (none parked) still pays the
-# bookkeeping, 5-15 % per core (benchmarks/README.md, the sixth run).
-PROBE = 256
-# Only a batch of several waves and from this many trajectories on (a long run) is ordered: the
-# order's program (the saves, the sort) adds ~0.8 s to XLA's compilation of a 1,000-lane batch
-# (4.1-4.4 -> 5.0 s, one core), which a small batch's first answer would pay for a short tail.
-ORDER_FROM = 2048
-PARKED = -2  # the status of a lane whose trajectory spent its probe (a trajectory of the queue)
-
-
-def _pack(st, idx):
-    """A lane's state as two rows: ``x`` its 14 reals (t, y, f, h), ``n`` its 4 integers (the
-    rejection flag, accepted steps, attempts, next sample). Saved and restored as two arrays,
-    not 18 (one scatter and one gather each: XLA compiled a 1,000-lane batch in 4.98 s against
-    5.14-5.23 s with 18, one core)."""
-    x = jnp.stack([st["t"], *st["y"], *st["f"], st["h"]], -1)
-    n = jnp.stack([st["rej"].astype(jnp.int32), st["nacc"], st["natt"], idx], -1)
-    return x, n
-
-
-def _unpack(x, n):
-    """The running state and next sample of lanes restored from :func:`_pack`'s rows."""
-    st = dict(
-        t=x[:, 0],
-        y=tuple(x[:, 1 + i] for i in range(6)),
-        f=tuple(x[:, 7 + i] for i in range(6)),
-        h=x[:, 13],
-        rej=n[:, 0] != 0,
-        status=jnp.full(n.shape[0], RUNNING, jnp.int32),
-        nacc=n[:, 1],
-        natt=n[:, 2],
-    )
-    return st, n[:, 3]
-
-
-def _save(c, slots):
-    """``c`` with the states of the parked lanes among ``slots`` (out of range: none) saved
-    under their trajectories' ids, with their next sample's index."""
-    B = c["tid"].shape[0]
-    N = c["status_out"].shape[0]
-    at = jnp.minimum(slots, B - 1)
-    ids = jnp.where((slots < B) & (c["st"]["status"][at] == PARKED), c["tid"][at], N)
-    x, n = _pack(c["st"], c["idx"])
-    c = dict(c)
-    c["saved"] = {
-        "x": c["saved"]["x"].at[ids].set(x[at], mode="drop"),
-        "n": c["saved"]["n"].at[ids].set(n[at], mode="drop"),
-    }
-    return c
-
-
-def _longest_first(c, t0, t_end):
-    """The end of the probe (no lane running, none queued): every lane's result recorded or
-    its state saved, the lanes emptied, and the queue made of the parked trajectories, the
-    most remaining work first."""
-    B = c["tid"].shape[0]
-    N = c["status_out"].shape[0]
-    c = _record(_save(c, jnp.arange(B)), N)
-    c["tid"] = jnp.full(B, N, jnp.int32)
-    c["st"] = dict(c["st"], status=jnp.full(B, code("successful"), jnp.int32))
-    parked = c["status_out"] == PARKED
-    t, natt = c["saved"]["x"][:, 0], c["saved"]["n"][:, 2].astype(t0.dtype)
-    rest = jnp.where(t > t0, natt * (t_end - t) / jnp.where(t > t0, t - t0, 1), jnp.inf)
-    c["order"] = jnp.argsort(-jnp.where(parked, rest, -1), stable=True).astype(jnp.int32)
-    c["queued"] = jnp.sum(parked).astype(jnp.int32)
-    c["next"] = jnp.zeros((), jnp.int32)
-    c["phase"] = jnp.ones((), jnp.int32)
     return c
 
 
@@ -417,20 +335,10 @@ def tail_widths(B: int, N: int) -> tuple[int, ...]:
     return tuple(w for w in widths if w < B)
 
 
-def _record(c, N):
-    """The statuses and step counts of the lanes that hold a finished trajectory."""
-    done = c["st"]["status"] != RUNNING
-    tid = jnp.where(done, c["tid"], N)
-    c = dict(c)
-    c["status_out"] = c["status_out"].at[tid].set(c["st"]["status"], mode="drop")
-    c["nacc_out"] = c["nacc_out"].at[tid].set(c["st"]["nacc"], mode="drop")
-    return c
-
-
 def _compact(c, batched, N, width: int):
     """The running lanes of ``c`` (at most ``width``), gathered into ``width`` lanes; the others'
     results recorded first. Lanes past the running ones hold no trajectory (tid N, idle)."""
-    c = _record(c, N)
+    c = record(c, N)
     B = c["tid"].shape[0]
     running = c["st"]["status"] == RUNNING
     pick = jnp.nonzero(running, size=width, fill_value=B)[0]
@@ -519,7 +427,7 @@ def _start(pool, batched, y0, ts, cfg: Config, fns: _Lanes, B: int, ordered: boo
         next=jnp.asarray(0, jnp.int32),
         status_out=jnp.zeros(N, jnp.int32),
         nacc_out=jnp.zeros(N, jnp.int32),
-        # the queue (longest first, :data:`PROBE`): the batch's order in the probe (phase
+        # the queue (longest first, :mod:`._queue`): the batch's order in the probe (phase
         # 0), then the parked trajectories (phase 1), resumed from their saved states
         phase=jnp.zeros((), jnp.int32),
         order=jnp.arange(N, dtype=jnp.int32),
@@ -542,14 +450,23 @@ def solve_lanes(
     fns = _Lanes(batched)
     store = D.Store(_one((pool, y0, ts)))
     with storing(store):
-        # longest first (:data:`PROBE`), not for one wave (as many lanes as trajectories:
-        # every trajectory starts at once) nor for a small batch (:data:`ORDER_FROM`)
-        ordered = N >= ORDER_FROM and N > B
+        # longest first (:mod:`._queue`), not for one wave (as many lanes as trajectories:
+        # every trajectory starts at once) nor for a small batch (``ORDER_FROM``)
+        ordered = N >= Q.ORDER_FROM and N > B
         c = _start(pool, batched, y0, ts, cfg, fns, B, ordered)
+
+        def probed(c):
+            return (c["phase"] == 0) & (c["next"] >= N)
 
         def wants_refill(c):
             n_idle = jnp.sum(c["st"]["status"] != RUNNING)
-            return (c["next"] < c["queued"]) & ((n_idle >= R) | (n_idle == B))
+            want = (c["next"] < c["queued"]) & ((n_idle >= R) | (n_idle == B))
+            return (want | probed(c)) if ordered else want
+
+        def refill(c):
+            if ordered:  # the end of the probe: the parked trajectories queued, longest first
+                c = lax.cond(probed(c), lambda c: Q.longest_first(c, ts[0], ts[-1]), lambda c: c, c)
+            return _refill(c, pool, batched, y0, ts, cfg, fns, R, ordered)
 
         def step(c):
             c = dict(c)
@@ -567,22 +484,15 @@ def solve_lanes(
                 step, ts, c["idx"], c["out"], st["t"], write, sampler(step, st["t"])
             )
             if ordered:  # the probe's attempts spent: the lane is parked
-                spent = (c["phase"] == 0) & (st["status"] == RUNNING) & (st["natt"] >= PROBE)
+                spent = (c["phase"] == 0) & (st["status"] == RUNNING) & (st["natt"] >= Q.PROBE)
                 st = dict(st, status=jnp.where(spent, PARKED, st["status"]))
             c["st"] = st
             return c
 
         def body(c):
-            if ordered:  # the end of the probe: the parked trajectories queued, longest first
-                probed = (c["phase"] == 0) & (c["next"] >= N)
-                probed = probed & ~jnp.any(c["st"]["status"] == RUNNING)
-                c = lax.cond(probed, lambda c: _longest_first(c, ts[0], ts[-1]), lambda c: c, c)
-            # then the refill: R idle lanes at a time, until fewer than R are idle (all B lanes
-            # in the first iteration)
-            c = lax.while_loop(
-                wants_refill, lambda c: _refill(c, pool, batched, y0, ts, cfg, fns, R, ordered), c
-            )
-            return step(c)
+            # the refill: R idle lanes at a time, until fewer than R are idle (all B lanes in
+            # the first iteration)
+            return step(lax.while_loop(wants_refill, refill, c))
 
         widths = tail_widths(B, N)
         running_over = _running_over(widths[0] if widths else 0)
@@ -592,5 +502,5 @@ def solve_lanes(
             c,
         )
         c = _tail(c, step, batched, N, widths)
-    c = _record(c, N)
+    c = record(c, N)
     return c["out"], c["status_out"], c["nacc_out"]

@@ -35,7 +35,8 @@ from ..kinematics import storing
 from . import _dop853 as D
 from . import _tableau as T
 from ._problem import traced_once
-from ._solve import RUNNING, Config, _emit, _initial, _one, _sample, attempt, sample_ahead
+from ._queue import RUNNING
+from ._solve import Config, _emit, _initial, _one, _sample, attempt, sample_ahead
 
 __all__ = ["solve_one_tangents"]
 
