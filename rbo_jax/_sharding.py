@@ -445,6 +445,23 @@ def undeal(values: np.ndarray, n_devices: int) -> np.ndarray:
     )
 
 
+def undeal_shards(x, n_devices: int) -> np.ndarray:
+    """``undeal(np.asarray(x), n_devices)`` of a program's output ``x`` sharded by rows over
+    the devices (:func:`deal`'s shares), read from each device's shard: one copy into the
+    host array instead of two (``np.asarray`` of a sharded array concatenates the shards,
+    then :func:`undeal` reorders them)."""
+    shards = sorted(x.addressable_shards, key=lambda s: s.index[0].start or 0)
+    if n_devices == 1 or len(shards) != n_devices:
+        return undeal(np.asarray(x), n_devices)
+    parts = [np.asarray(s.data) for s in shards]
+    rows = parts[0].shape[0]
+    out = np.empty((rows * n_devices, *parts[0].shape[1:]), parts[0].dtype)
+    dealt = out.reshape(rows, n_devices, *parts[0].shape[1:])  # a view: out is contiguous
+    for d, part in enumerate(parts):
+        dealt[:, d] = part
+    return out
+
+
 def trace_point(point, n: int):
     """One point's closed jaxpr and output tree: ``point(x)`` of a ``(n,)`` vector. Traced with
     LAPACK in blocks too: a ``vmap`` inside the point (e.g. the spectra of a scan of loads in

@@ -1083,3 +1083,26 @@ def test_fuzzed_configs_fail_with_a_config_error_naming_the_key(tmp_path):
     check()
     assert counts["refused"] > 0
     print(f"fuzzed configurations: {counts}")
+
+
+@pytest.mark.parametrize("n", sorted({1, 2, len(jax.local_devices())}))
+def test_outputs_are_undealt_from_the_devices_shards(n):
+    """A chunk's rows are dealt to the devices like cards (``_sharding.deal``); its outputs are
+    put back in order from each device's shard (``undeal_shards``): the same rows as
+    ``undeal`` of the whole array, for vectors and for rows of complex numbers."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    from rbo_jax._sharding import deal, undeal, undeal_shards
+
+    if n > len(jax.local_devices()):
+        pytest.skip(f"{len(jax.local_devices())} local device(s)")
+    mesh = Mesh(np.array(jax.local_devices()[:n]), ("d",))
+    sharding = NamedSharding(mesh, PartitionSpec("d"))
+    rows = 12 * n
+    rng = np.random.default_rng(n)
+    block = rng.normal(size=(rows, 3)) + 1j * rng.normal(size=(rows, 3))
+    for x in (block, np.arange(rows, dtype=np.int8)):
+        on_devices = jax.device_put(deal(x, n), sharding)
+        got = undeal_shards(on_devices, n)
+        np.testing.assert_array_equal(got, undeal(np.asarray(on_devices), n))
+        np.testing.assert_array_equal(got, x)

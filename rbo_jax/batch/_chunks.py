@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 import numpy as np
 
-from .._sharding import deal, undeal
+from .._sharding import deal, undeal_shards
 from ._errors import SweepError
 from ._output import OutputSpec, fill_value, make_output_spec
 from ._program import program
@@ -63,9 +63,9 @@ class Chunks:
         """(status, values) of the first ``m`` points of a finished call (raises what the
         program raised)."""
         spec = self.spec
-        values, status = jax.device_get(future)
+        values, status = future
         n_dev = len(self.program.devices)
-        status = undeal(np.asarray(status), n_dev)[:m]
+        status = undeal_shards(status, n_dev)[:m]
         bad = (status < 0) | (status >= len(spec.status_names))
         if bad.any():
             raise SweepError(
@@ -73,7 +73,7 @@ class Chunks:
                 f"outside {spec.status_enum} (0..{len(spec.status_names) - 1})."
             )
         return status, {
-            v.name: undeal(np.asarray(values[v.name]), n_dev)[:m] for v in self.spec.variables
+            v.name: undeal_shards(values[v.name], n_dev)[:m] for v in self.spec.variables
         }
 
     def _empty(self, m: int, code: int):
