@@ -70,10 +70,12 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "SemiTangentialMoment",
             "as_load",
         ),
-        ".model": ("RightForm", "RigidBodyOscillator"),
+        ".mechanics": ("AbstractMechanics",),
+        ".models.rigid_body": ("RightForm", "RigidBodyOscillator"),
         ".problems": ("nikolai_model",),
         ".trajectory": ("SolveStatus", "Trajectory"),
-        ".simulate": ("DarbouxSolution", "simulate", "solve_darboux"),
+        ".simulate": ("DarbouxSolution", "solve_darboux"),
+        ".motion": ("simulate",),
         ".ensemble": ("fast_simulate",),
         ".stability": (
             "EquilibriumSolution",
@@ -88,6 +90,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "solve_equilibrium",
             "spectral_abscissa",
             "spectrum",
+            "EquilibriumStability",
+            "equilibrium_stability",
         ),
         ".precession": (
             "RegularPrecession",
@@ -96,7 +100,6 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "precession_variational_matrix",
             "regular_precession",
         ),
-        ".maps": ("EquilibriumStability", "equilibrium_stability"),
         ".fitting": ("FitResult", "TrajectoryData", "fit"),
         ".bifurcation": (
             "BautinPoint",

@@ -273,3 +273,18 @@ def stable_text(obj) -> str | None:
         return repr(_Describer(stable=True)(obj))
     except (_Unkeyable, RecursionError):
         return None
+
+
+_SEEN: dict = {}
+
+
+def canonical(fn):
+    """The first function seen that computes what ``fn`` computes (:func:`callable_key`): a
+    new but identical lambda (a notebook cell run again) is then the same static argument of a
+    compiled solver, and its program is not traced again."""
+    if fn is None:
+        return None
+    try:
+        return _SEEN.setdefault(callable_key(fn), fn)
+    except TypeError:  # an unhashable key: the function itself
+        return fn

@@ -3,9 +3,9 @@
 JAX gives a CPU one device, and XLA spreads a program over the cores with its intra-op threads.
 For the batch work of this package (sweeps, stability maps, vmapped continuation, large
 lattices: many independent lanes in adaptive ``while_loop``\\ s) that is the slowest way to use a
-multi-core machine: on 2 cores a sweep took 2.8x the CPU time for 0.68x the speed of one pinned
-core (issue 31; jax-ml/jax#29499 reports the same). One device per core, each running its share
-of a chunk under ``shard_map`` (:mod:`rbo_jax.batch._program`), uses them all.
+multi-core machine, slower than one pinned core (issue 31; benchmarks/README.md, the "cores"
+rows; jax-ml/jax#29499 reports the same). One device per core, each running its share of a
+chunk under ``shard_map`` (:mod:`rbo_jax.batch._program`), uses them all.
 
 So ``import rbo_jax`` asks JAX for one CPU device per core in the process's CPU affinity
 (``os.sched_getaffinity``: ``taskset -c 0`` gives one), before JAX's backend starts, unless
@@ -19,7 +19,9 @@ So ``import rbo_jax`` asks JAX for one CPU device per core in the process's CPU 
   (:func:`warn_if_few_devices`).
 
 Nothing else changes: a plain ``jax.jit`` call runs on the first device with XLA's threads as
-before; only the batch engine and the sharded lattice spread work over the devices. On a GPU
+before; only the batch engine, the sharded lattice and a ``jax.vmap`` of
+:func:`rbo_jax.fast_simulate` whose inputs the user placed on a ``NamedSharding`` over the
+devices spread work over them. On a GPU
 machine the accelerators are the devices and this setting does not matter. ``devices=`` (and
 ``--devices``) still chooses fewer.
 """

@@ -4,18 +4,18 @@ XLA's float64 ``sin``, ``cos`` and ``atan2`` are calls of the C library per elem
 each, and duplicated into every fusion that uses them); these polynomials vectorise. They are
 fdlibm's kernels (``k_sin.c``, ``k_cos.c``, ``s_atan.c``) after a 3-part Cody-Waite reduction by
 pi/2, within an ulp or so of the C library (the coefficient functions of
-:mod:`rbo_jax.kinematics` are tested against mpmath). Measured on a lattice's DOP853 step (one
-core, benchmarks/bench_lattice.py): 1.61 -> 0.88 us per body at 10^4 bodies.
+:mod:`rbo_jax.kinematics` are tested against mpmath). A lattice's DOP853 step is faster with
+them (benchmarks/bench_lattice.py; figures: benchmarks/README.md, History).
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
-__all__ = ["_atan2_nonnegative", "_cot", "_horner", "_sincos"]
+__all__ = ["atan2_nonnegative", "cot", "horner", "sin_cos"]
 
 
-def _horner(coeffs: tuple[float, ...], t):
+def horner(coeffs: tuple[float, ...], t):
     out = jnp.full_like(t, coeffs[-1])
     for c in reversed(coeffs[:-1]):
         out = out * t + c
@@ -53,7 +53,7 @@ def _reduce(h):
 def _kernels(r):
     """fdlibm's __kernel_sin and __kernel_cos on |r| <= pi/4: (sin r, cos r)."""
     z = r * r
-    s = r + (z * r) * _horner(_KSIN, z)
+    s = r + (z * r) * horner(_KSIN, z)
     w = z * z
     cr = z * (_KCOS[0] + z * (_KCOS[1] + z * _KCOS[2])) + w * w * (
         _KCOS[3] + z * (_KCOS[4] + z * _KCOS[5])
@@ -63,8 +63,8 @@ def _kernels(r):
     return s, w1 + (((1.0 - w1) - hz) + z * cr)
 
 
-def _sincos(h):
-    """(sin h, cos h) for 0 <= h < 1e6 by the kernels above (see _cot): elementwise code that
+def sin_cos(h):
+    """(sin h, cos h) for 0 <= h < 1e6 by the kernels above (see cot): elementwise code that
     vectorises, where XLA calls libm per element; within 1 ulp or so of libm there (tested
     against mpmath through the coefficient functions)."""
     n, r = _reduce(h)
@@ -75,7 +75,7 @@ def _sincos(h):
     return sin, cos
 
 
-def _cot(h):
+def cot(h):
     """cot(h) for 0 <= h < 1e6 (see above): n = round(h/(pi/2)), r = h - n pi/2;
     cot h = cos r / sin r for even n, -sin r / cos r for odd n."""
     n, r = _reduce(h)
@@ -84,7 +84,7 @@ def _cot(h):
     return jnp.where(odd, -s / c, c / s)
 
 
-# atan by fdlibm's s_atan.c on [0, 1] (its first three reductions), for _atan2_nonnegative
+# atan by fdlibm's s_atan.c on [0, 1] (its first three reductions), for atan2_nonnegative
 _ATAN_HI = (4.63647609000806093515e-01, 7.85398163397448278999e-01, 1.57079632679489655800e00)
 _ATAN_LO = (2.26987774529616870924e-17, 3.06161699786838301793e-17, 6.12323399573676603587e-17)
 _AT_ODD = (
@@ -111,17 +111,17 @@ def _atan01(x):
     xr = jnp.where(high, (x - 1.0) / (x + 1.0), jnp.where(mid, (2.0 * x - 1.0) / (2.0 + x), x))
     z = xr * xr
     w = z * z
-    s1 = z * _horner(_AT_ODD, w)
-    s2 = w * _horner(_AT_EVEN, w)
+    s1 = z * horner(_AT_ODD, w)
+    s2 = w * horner(_AT_EVEN, w)
     hi = jnp.where(high, _ATAN_HI[1], _ATAN_HI[0])
     lo = jnp.where(high, _ATAN_LO[1], _ATAN_LO[0])
     reduced = hi - ((xr * (s1 + s2) - lo) - xr)
     return jnp.where(mid, reduced, xr - xr * (s1 + s2))
 
 
-def _atan2_nonnegative(s, w):
+def atan2_nonnegative(s, w):
     """atan2(s, w) for s, w >= 0, not both 0: atan(s/w) or pi/2 - atan(w/s), the ratio in
-    [0, 1] (vectorising code, as _sincos; finite derivatives everywhere)."""
+    [0, 1] (vectorising code, as sin_cos; finite derivatives everywhere)."""
     swap = s > w
     x = jnp.where(swap, w, s) / jnp.where(swap, s, w)
     a = _atan01(x)

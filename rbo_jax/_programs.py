@@ -3,8 +3,8 @@ tracing and lowering, not only their XLA compilation.
 
 JAX's persistent compilation cache is keyed on the *lowered* program: a second process that
 loads a compiled program from it has still traced and lowered it, which for the fit's program
-(the DOP853 loop of :func:`rbo_jax.fast_simulate` and its forward-mode derivative) is 1.5–2.5 s
-of the command line's start (benchmarks/README.md). A function decorated with :func:`stored`
+(the DOP853 loop of :func:`rbo_jax.fast_simulate` and its forward-mode derivative) is a large
+part of the command line's start (benchmarks/README.md). A function decorated with :func:`stored`
 is exported once per structure of its arguments and the exported StableHLO module is written to
 the store; a later process deserialises it (milliseconds) and calls it, and XLA's compilation
 of that call is a hit in the persistent compilation cache.
@@ -306,12 +306,11 @@ def small_program_options() -> dict | None:
 
     On CPU, XLA's element-wise emitters instead of its newer MLIR fusion emitters
     (``xla_cpu_use_fusion_emitters=False``), which build an MLIR context and pipeline per
-    fusion. Measured (benchmarks/README.md, 2-core machine): the fit's program 3.9-4.2 s ->
-    2.4-3.2 s to compile, the Hopf program 4.1-4.3 s -> 2.8-3.2 s; the same emitters make the
-    vmapped DOP853 of :func:`rbo_jax.fast_simulate` ~25 % slower per trajectory, which is why
-    the sweep and simulation programs keep XLA's defaults. ``None`` (the defaults) on other
-    backends and where this XLA does not know the option (checked once, by compiling a tiny
-    program)."""
+    fusion: these programs compile faster, while the same emitters make the vmapped DOP853 of
+    :func:`rbo_jax.fast_simulate` slower per trajectory, which is why the sweep and simulation
+    programs keep XLA's defaults (figures: benchmarks/README.md, History). ``None`` (the
+    defaults) on other backends and where this XLA does not know the option (checked once, by
+    compiling a tiny program)."""
     if jax.default_backend() != "cpu":
         return None
     return _known(dict(_SMALL))
@@ -334,12 +333,11 @@ def fast_compile_options() -> dict | None:
     optimisation (``xla_backend_optimization_level=0``), without XLA's two passes over while
     loops that run again and again over the whole loop body (``while-loop-invariant-code-motion``,
     ``simplify-while-loops``; each run also reruns the simplification pipeline) and without
-    splitting the LLVM module for parallel code generation (``SplitModule`` took 0.3-0.4 s,
-    more than the unoptimised code generation it spreads). Measured on the 2-core machine (Hopf
-    program, best of two, load ~3): 4.65 -> 2.7 s to compile (code generation 3.1 -> 0.4 s,
-    HLO passes 2.9 -> 1.0 s at load ~5), run time 2.3 -> 5.4 ms; the Bautin program 2.9 ->
-    2.5 s without the split (best of six). LLVM -O0 forms no fused multiply-adds: results move
-    by rounding. Those of :func:`small_program_options` where this XLA does not know them."""
+    splitting the LLVM module for parallel code generation (the split costs more than the
+    unoptimised code generation it spreads): they compile faster and run slower, still in
+    milliseconds (figures: benchmarks/README.md, History). LLVM -O0 forms no fused
+    multiply-adds: results move by rounding. Those of :func:`small_program_options` where this
+    XLA does not know them."""
     if jax.default_backend() != "cpu":
         return None
     return _known({**_SMALL, **_FAST_COMPILE}) or small_program_options()

@@ -2,9 +2,8 @@
 share with no communication (``jit(shard_map(vmap(...)))`` of one point's jaxpr).
 
 The machinery of the batch engine (:mod:`rbo_jax.batch._program`, whose docstring explains the
-choices and what was measured), kept at the bottom of the package so that lower layers batch
-over every device too (:func:`map_points`: the vmapped curves of
-:func:`rbo_jax.continue_hopf`).
+choices), kept at the bottom of the package so that lower layers batch over every device too
+(:func:`map_points`: the vmapped curves of :func:`rbo_jax.continue_hopf`).
 
 - :func:`block_size` and :func:`lapack_in_blocks`: LAPACK calls in blocks that jaxlib never
   splits over XLA's intra-op pool (a split blocks a pool thread until tasks on the same pool
@@ -43,11 +42,9 @@ SPLIT_WORK = 200_000
 # orgqr ≤ 4mnk + 4k³/3 (``qr`` runs geqrf and orgqr), ormqr ≤ 4k·m·n, gesdd/gesvd 10mn·min,
 # syevd 5n³ (heevd 4n³ × 3), real geev 10n³, gees 5n³, gehrd 2n³, sytrd 4n³/3, gtsv 5·m·k;
 # complex types × 3 (KERNEL_COMPLEX). A primitive not listed (``cholesky_update``) takes
-# COST_PER_N3, a bound of every kernel. The blocks follow the real estimates: with 30 n³ for
-# every kernel, and every call in the blocks of the costliest, the Newton map's 3 × 3 LU, solves
-# and eig ran in blocks of 200 points (80 calls each for a chunk of 16,000 on one device); now
-# 4 calls for the LU and solves, 25 for the eig (one pinned core: 64 -> 59 ms a chunk,
-# benchmarks/README.md, 2026-11-28).
+# COST_PER_N3, a bound of every kernel. Each call's blocks follow its own kernel's estimate,
+# not a bound of every kernel, so that cheap kernels run in few large blocks
+# (benchmarks/README.md, History).
 KERNEL_COST = {
     "triangular_solve": 1,
     "lu": 1,
@@ -165,12 +162,9 @@ def _element_block(prim, vals, dims) -> int:
 # LU factorisations and triangular solves of matrices up to this order run in XLA, not LAPACK,
 # inside a chunk program (:func:`_small_rule`). jaxlib calls LAPACK once per matrix, and
 # OpenBLAS's getrf and trsm take its buffer (``blas_memory_alloc``, behind a process-wide lock)
-# around every call: with one device per core, the devices' threads queued on that lock (the
-# Newton stability map on 2 devices: 10.5 % of its time in the kernel, 6.4 % in mutexes). A
-# batched loop over the rows has no lock and no call per matrix. Measured 2026-11-28, a chunk of
-# the 10⁶-point Newton map (16,000 points, 3 × 3 Newton solves, 6 × 6 eig still LAPACK's), three
-# runs of ten: one pinned core 54.5-56.3 -> 48.1-49.6 ms, 2 devices 33.9-44.3 -> 29.1-32.3 ms,
-# the map's values the same bits.
+# around every call: with one device per core, the devices' threads queued on that lock. A
+# batched loop over the rows has no lock and no call per matrix (figures: benchmarks/README.md,
+# History).
 SMALL_MATRIX = 4
 
 
@@ -381,16 +375,12 @@ def compile_options(devices) -> dict | None:
     a solve) into as many tasks as its intra-op pool has threads, and that pool has at least
     one thread per device (``max(cores, devices)`` in ``PjRtCpuClient``), whatever the CPU
     affinity. With one device per core every core already runs a device's share, and the tasks
-    can only queue behind the other devices' work. Until 2026-11-28 the program was compiled
-    with every thread pinned to one core for this; measured since (jax 0.10.2), the cuts stayed
-    (``outer_dimension_partitions`` of 2 in the 2-device programs, pinned or not), and the
-    pinning only made XLA compile on one thread: the 10⁶-point Newton map's program 2.85-2.94 s
-    pinned, 1.97-2.07 s now, its first map 5.5-5.7 s -> 4.5-4.7 s. Without the cuts the run
-    times did not change here (2 devices: the map 1.40-1.73 s with cuts, 1.42-1.81 s without;
-    a 1,444-point ``rbo-jax sweep`` at t1 = 600 46.2 s against 47.6 s; 8 devices on the 2 cores:
-    the map 1.32-1.41 s against 1.28-1.39 s); they are left out so that a machine of many cores
-    does not cut every fusion of every device in as many tasks as it has cores. One device
-    keeps the cuts: there they are XLA's way of using the cores."""
+    can only queue behind the other devices' work. Pinning the compiling threads to one core
+    does not remove the cuts (``outer_dimension_partitions`` of 2 in the 2-device programs,
+    pinned or not); it only makes XLA compile on one thread. The cuts are left out so that a
+    machine of many cores does not cut every fusion of every device in as many tasks as it has
+    cores; on 2 cores the run times were the same without them (benchmarks/README.md,
+    History). One device keeps the cuts: there they are XLA's way of using the cores."""
     cpu = all(d.platform == "cpu" for d in devices)
     if len(devices) < 2 or not cpu:
         return None
@@ -406,10 +396,10 @@ def compile_program(traced, layout: Layout):
     program's jaxpr holds no ``triangular_solve`` and the batching of tracing time never saw
     it. Lowered outside :func:`lapack_in_blocks`, a Newton stability map's chunk of 65,536 points
     on 2 devices held two ``lapack_dtrsm_ffi`` calls of 32,768 matrices each, which jaxlib split
-    over the intra-op pool: both devices' threads waited there for good (issue 31, found
-    2026-11-27; 16,384-point chunks stayed just below jaxlib's split). One device did not wait
-    so (that chunk on one device ended, pinned to one core and on two), and lowering under the
-    rules cost it 0.3-0.4 s of a warm first answer (the Newton map of ``latency.py``), so a
+    over the intra-op pool: both devices' threads waited there for good (issue 31; 16,384-point
+    chunks stayed just below jaxlib's split). One device did not wait so (that chunk on one
+    device ended, pinned to one core and on two), and lowering under the rules slowed its warm
+    first answer (the Newton map of ``latency.py``: benchmarks/README.md, History), so a
     program for one device is lowered as it is."""
     block = layout.block if len(layout.devices) > 1 else 0
     with lapack_in_blocks(block):

@@ -46,30 +46,30 @@ POSITIVE_OR_INF = Requirement("> 0 or inf", lambda x: x > 0)
 NONNEGATIVE = Requirement(">= 0", lambda x: (x >= 0) & (x < np.inf))
 
 
-def _float_dtype():
+def float_dtype():
     """float64 when x64 is enabled (the rbo_jax default), float32 otherwise (no warning)."""
     return jnp.result_type(float)
 
 
-def _common_float_dtype(*xs):
+def common_float_dtype(*xs):
     """The widest floating dtype of ``xs`` (arrays or dtypes), by NumPy's rules — also under
     ``jax_numpy_dtype_promotion = "strict"``, which refuses to mix float32 with float64
     implicitly — canonicalised for the current x64 setting."""
     dtypes = [np.dtype(getattr(x, "dtype", x)) for x in xs]
     dtype = np.result_type(*dtypes, np.float16)
     if not np.issubdtype(dtype, np.floating):
-        dtype = np.dtype(_float_dtype())
+        dtype = np.dtype(float_dtype())
     return jax.dtypes.canonicalize_dtype(dtype)
 
 
-def _is_traced(x) -> bool:
+def is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
-def _xp(*xs):
+def array_namespace(*xs):
     """The array namespace for ``xs``: NumPy when no leaf is traced (checks of concrete values
     run on the host, compiling nothing), else ``jax.numpy``."""
-    return jnp if any(_is_traced(x) for x in jax.tree_util.tree_leaves(xs)) else np
+    return jnp if any(is_traced(x) for x in jax.tree_util.tree_leaves(xs)) else np
 
 
 def on_host(tree):
@@ -78,10 +78,10 @@ def on_host(tree):
     return jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, tree)
 
 
-def _device(x):
+def device_of(x):
     """A value checked on the host (NumPy) as a JAX array (a transfer, no XLA program); traced
     values as they are."""
-    return x if _is_traced(x) else jax.device_put(np.asarray(x))
+    return x if is_traced(x) else jax.device_put(np.asarray(x))
 
 
 # While tracing a solver's vector field with throw=False: runtime checks give NaN, not a host
@@ -162,13 +162,13 @@ def failures_as_nan(on: bool = True):
         _FAILURES_AS_NAN.reset(token)
 
 
-def _check(x, valid, message: str):
+def check_value(x, valid, message: str):
     """Validate ``x`` (an array) given ``valid`` (a boolean array computed from it).
 
     Concrete values raise ``ValueError(message)`` now; traced values are returned unchanged, to
     be checked by the computations that use them (module docstring).
     """
-    if _is_traced(valid):
+    if is_traced(valid):
         return x
     if not bool(np.all(np.asarray(valid))):
         raise ValueError(f"{message}, got {np.asarray(x).tolist()!r}")
@@ -178,9 +178,9 @@ def _check(x, valid, message: str):
 def _as_float(x, shape: tuple[int, ...], what: str, owner: str):
     """``x`` as a real float array of the given shape, or an error naming ``what``. Concrete
     values become NumPy arrays: the constructors check and combine them on the host, where each
-    JAX operation on a concrete value would compile a small XLA program of its own (20–50 ms
-    each, ~30 to build a model)."""
-    x = x if _is_traced(x) else np.asarray(x)
+    JAX operation on a concrete value would compile a small XLA program of its own (~30 to
+    build a model)."""
+    x = x if is_traced(x) else np.asarray(x)
     if x.shape != shape and shape == ():
         raise ValueError(
             f"{owner}: {what} must be a scalar, got shape {x.shape}. rbo_jax objects hold a "
@@ -193,10 +193,10 @@ def _as_float(x, shape: tuple[int, ...], what: str, owner: str):
         )
     if np.issubdtype(x.dtype, np.complexfloating):
         raise TypeError(f"{owner}: {what} must be real, got dtype {x.dtype}.")
-    return x.astype(_float_dtype())
+    return x.astype(float_dtype())
 
 
-def _scalar_parameter(
+def scalar_parameter(
     x: ScalarLike,
     name: str,
     owner: str,
@@ -205,10 +205,10 @@ def _scalar_parameter(
 ) -> Scalar:
     """``x`` as a float scalar array, checked against ``requirement`` (NaN is always refused;
     ``meaning`` says what the parameter is, in the message): a NumPy array for a concrete
-    ``x`` (:func:`_device` makes it a JAX array), ``x`` itself if traced."""
+    ``x`` (:func:`device_of` makes it a JAX array), ``x`` itself if traced."""
     x = _as_float(x, (), f"the parameter {name}", owner)
     detail = f" ({meaning})" if meaning else ""
-    return _check(
+    return check_value(
         x, requirement.holds(x), f"{owner}: the parameter {name} must be {requirement.text}{detail}"
     )
 
@@ -220,7 +220,7 @@ def set_parameters(module, **values) -> None:
     table = {name: (requirement, meaning) for name, requirement, meaning in module._requirements}
     for name, value in values.items():
         requirement, meaning = table[name]
-        setattr(module, name, _device(_scalar_parameter(value, name, owner, meaning, requirement)))
+        setattr(module, name, device_of(scalar_parameter(value, name, owner, meaning, requirement)))
 
 
 def requirement_checks(module) -> list:
@@ -233,13 +233,13 @@ def requirement_checks(module) -> list:
         value = getattr(module, name)
         out.append(
             (
-                _xp(value).all(requirement.holds(value)),
+                array_namespace(value).all(requirement.holds(value)),
                 f"{owner}: the parameter {name} must be {requirement.text}{detail}",
             )
         )
     k = getattr(module, "k", None)
     if isinstance(k, (jax.Array, np.ndarray)) and k.shape == (3,):
-        xp = _xp(k)
+        xp = array_namespace(k)
         out.append((xp.all(xp.isfinite(k)), f"{owner}: the axis k must be a nonzero finite vector"))
     return out
 
@@ -252,7 +252,7 @@ def checks_status(checks: list):
     return jnp.all(valid), jnp.argmin(valid), tuple(m for _, m in checks)
 
 
-def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
+def callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
     """A user callable stored as a module field.
 
     Equinox Modules (and other pytrees such as ``jax.tree_util.Partial``) are kept as they are,
@@ -268,13 +268,19 @@ def _callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
     return jax.tree_util.Partial(fn)
 
 
-def _unit_axis(k: VectorLike, owner: str, name: str = "k") -> Vector:
+def unit_axis(k: VectorLike, owner: str, name: str = "k") -> Vector:
     """The axis ``k`` normalised to unit length (a JAX array); a zero or non-finite axis is
     refused. Concrete axes are checked and normalised in NumPy."""
     k = _as_float(k, (3,), f"the axis {name}", owner)
-    xp = jnp if _is_traced(k) else np
+    xp = jnp if is_traced(k) else np
     k2 = xp.dot(k, k)
-    k = _check(
+    k = check_value(
         k, (k2 > 0) & xp.isfinite(k2), f"{owner}: the axis {name} must be a nonzero finite vector"
     )
-    return _device(k / xp.sqrt(k2))
+    return device_of(k / xp.sqrt(k2))
+
+
+def tree_finite(tree):
+    """Whether every float of ``tree`` is finite (a traced boolean)."""
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)

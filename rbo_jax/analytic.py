@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Complex
 
 from ._custom_types import Scalar, ScalarLike, Vector
-from .kinematics import _gcoef, _sinc
+from .kinematics import gcoef, sinc
 
 __all__ = [
     "nikolai_equilibrium",
@@ -35,7 +35,7 @@ def nikolai_equilibrium(M: ScalarLike, d: ScalarLike, k=(0.0, 0.0, 1.0)) -> Vect
 def _g(theta0):
     """g = θ0 sinθ0 / (2(1 − cosθ0)) = 1 − θ0²·(1 − g)/θ0², safe at θ0 = 0 (4.11)."""
     t = theta0 * theta0
-    return 1.0 - t * _gcoef(t)
+    return 1.0 - t * gcoef(t)
 
 
 def nikolai_bending_stiffness(c: ScalarLike, d: ScalarLike, M: ScalarLike) -> Scalar:
@@ -105,5 +105,5 @@ def precession_rate(C: ScalarLike, vartheta: ScalarLike, A1: ScalarLike, A3: Sca
     """
     C, th = jnp.asarray(C), jnp.asarray(vartheta)
     # ϑ/sinϑ written as 1/sinc(ϑ²): finite (C/A1) as ϑ → 0.
-    denom = _sinc(th * th) * (A3 * (1 - jnp.cos(th)) + A1 * jnp.cos(th))
+    denom = sinc(th * th) * (A3 * (1 - jnp.cos(th)) + A1 * jnp.cos(th))
     return jnp.sqrt(C / denom)

@@ -37,13 +37,13 @@ from ._validation import (
     NONNEGATIVE,
     POSITIVE,
     POSITIVE_OR_INF,
-    _callable_leaf,
-    _unit_axis,
+    callable_leaf,
     error_if,
     requirement_checks,
     set_parameters,
+    unit_axis,
 )
-from .kinematics import Turn, _as_vector, _cosc, _sinc, dot3, stored
+from .kinematics import Turn, as_vector, cosc, dot3, sinc, stored
 
 __all__ = [
     "AbstractFoundation",
@@ -102,7 +102,7 @@ class AbstractFoundation(eqx.Module):
         r"""$dU/d\theta$, the derivative in the elastic moment $-Z^T\cdot dU/d\theta$ (4.23):
         by automatic differentiation of :meth:`energy`; the transversely isotropic foundations
         use the closed form $C\theta + D k$ of (4.47)–(4.48) instead."""
-        return jax.grad(lambda th: _as_scalar_output(self.energy(th), "energy"))(_as_vector(theta))
+        return jax.grad(lambda th: _as_scalar_output(self.energy(th), "energy"))(as_vector(theta))
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""$C$ and $D$ of (4.48), $dU/d\theta = C\theta + D k$, for transversely isotropic
@@ -129,7 +129,7 @@ class AbstractFoundation(eqx.Module):
 
         Inside ``jax.jit`` the error is raised when the computation runs (``equinox.error_if``).
         """
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         energy = self.energy(theta)
         return eqx.error_if(
             energy,
@@ -164,7 +164,7 @@ class AbstractTransverselyIsotropicFoundation(AbstractFoundation):
 
     def gradient(self, theta: VectorLike) -> Vector:
         r"""$dU/d\theta = C\theta + D k$ (4.47)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         C, D = self.coefficients(theta)
         return C * theta + stored(D) * self.k
 
@@ -195,11 +195,11 @@ class QuadraticFoundation(AbstractTransverselyIsotropicFoundation):
 
     def __init__(self, c: ScalarLike, d: ScalarLike, k: VectorLike):
         set_parameters(self, c=c, d=d)
-        self.k = _unit_axis(k, type(self).__name__)
+        self.k = unit_axis(k, type(self).__name__)
 
     def energy(self, theta: VectorLike) -> Scalar:
         """U of eq. (4.50)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         x, perp2 = _axial_split(theta, self.k)
         return 0.5 * self.c * perp2 + 0.5 * self.d * x**2
 
@@ -208,7 +208,7 @@ class QuadraticFoundation(AbstractTransverselyIsotropicFoundation):
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""(4.51): $C = c$, $D = (d - c)\,k\cdot\theta$."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return self.c, (self.d - self.c) * dot3(self.k, theta)
 
 
@@ -259,7 +259,7 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
         k: VectorLike,
     ):
         set_parameters(self, c=c, d=d, alpha=alpha, beta=beta)
-        self.k = _unit_axis(k, type(self).__name__)
+        self.k = unit_axis(k, type(self).__name__)
 
     def _reduced(self, theta):
         """x = k·θ, θ² and the barrier factors 1 − θ_⊥²/α², 1 − x²/β²."""
@@ -272,12 +272,12 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
 
     def energy(self, theta: VectorLike) -> Scalar:
         """U of eq. (4.49) (no domain check)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         x, t, a, b = self._reduced(theta)
         return 0.5 * self.c * t / a + 0.5 * (self.d - self.c) * x**2 / b
 
     def domain_margin(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         _, _, a, b = self._reduced(theta)
         return jnp.minimum(a, b)
 
@@ -288,7 +288,7 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
         $D = -c\,\theta^2 x/\big(\alpha^2(1 - \theta_\perp^2/\alpha^2)^2\big)
              + (d - c)\,x/(1 - x^2/\beta^2)^2$, $x = k\cdot\theta$.
         """
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         x, t, a, b = self._reduced(theta)
         C = self.c * (1.0 + x**2 * self.alpha**-2) / a**2
         D = -self.c * t * x * self.alpha**-2 / a**2 + (self.d - self.c) * x / b**2
@@ -297,7 +297,7 @@ class BarrierFoundation(AbstractTransverselyIsotropicFoundation):
 
 def _everywhere(theta: VectorLike) -> Scalar:
     """The domain margin of an energy defined everywhere: ``inf``."""
-    theta = _as_vector(theta)
+    theta = as_vector(theta)
     return jnp.full((), jnp.inf, dtype=theta.dtype)
 
 
@@ -315,7 +315,7 @@ class _AbstractIsotropicFoundation(AbstractFoundation):
 
     def gradient(self, theta: VectorLike) -> Vector:
         r"""$dU/d\theta = 2F'(\theta^2)\,\theta = C\theta$."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return self.coefficients(theta)[0] * theta
 
 
@@ -333,17 +333,17 @@ class IsotropicFoundation(_AbstractIsotropicFoundation):
     domain_description: ClassVar[str] = "nothing (it is treated as defined everywhere)"
 
     def __init__(self, F: Callable[[Scalar], Scalar]):
-        self.F = _callable_leaf(F, "IsotropicFoundation", "F")
+        self.F = callable_leaf(F, "IsotropicFoundation", "F")
 
     def energy(self, theta: VectorLike) -> Scalar:
         r"""$U = F(\theta\cdot\theta)$."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return _as_scalar_output(self.F(dot3(theta, theta)), "IsotropicFoundation: F")
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""$C = 2F'(\theta^2)$ and $D = 0$ (an isotropic energy is transversely isotropic about
         every axis)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         dF = jax.grad(lambda t_: _as_scalar_output(self.F(t_), "F"))(dot3(theta, theta))
         return 2.0 * dF, jnp.zeros_like(dF)
 
@@ -373,15 +373,15 @@ class CosineFoundation(_AbstractIsotropicFoundation):
 
     def energy(self, theta: VectorLike) -> Scalar:
         r"""$U = c\,(1 - \cos\theta) = c\,\theta^2\,\frac{1 - \cos\theta}{\theta^2}$."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         t = dot3(theta, theta)
-        return self.c * t * _cosc(t)
+        return self.c * t * cosc(t)
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""$C = c\sin\theta/\theta$, $D = 0$ (4.48): $dU/d\theta = c\,\frac{\sin\theta}{\theta}
         \,\theta$."""
-        theta = _as_vector(theta)
-        C = self.c * _sinc(dot3(theta, theta))
+        theta = as_vector(theta)
+        C = self.c * sinc(dot3(theta, theta))
         return C, jnp.zeros_like(C)
 
 
@@ -392,16 +392,16 @@ class ZeroFoundation(_AbstractIsotropicFoundation):
     domain_description: ClassVar[str] = "nothing (it is defined everywhere)"
 
     def energy(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return jnp.zeros((), dtype=theta.dtype)
 
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         zero = jnp.zeros((), dtype=theta.dtype)
         return zero, zero
 
     def gradient(self, theta: VectorLike) -> Vector:
-        return jnp.zeros_like(_as_vector(theta))
+        return jnp.zeros_like(as_vector(theta))
 
 
 class TransverselyIsotropicFoundation(AbstractTransverselyIsotropicFoundation):
@@ -421,12 +421,12 @@ class TransverselyIsotropicFoundation(AbstractTransverselyIsotropicFoundation):
 
     def __init__(self, F: Callable[[Scalar, Scalar], Scalar], k: VectorLike):
         name = type(self).__name__
-        self.F = _callable_leaf(F, name, "F")
-        self.k = _unit_axis(k, name)
+        self.F = callable_leaf(F, name, "F")
+        self.k = unit_axis(k, name)
 
     def energy(self, theta: VectorLike) -> Scalar:
         r"""$U = F(k\cdot\theta, \theta\cdot\theta)$, eq. (4.24)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return _as_scalar_output(
             self.F(dot3(self.k, theta), dot3(theta, theta)),
             "TransverselyIsotropicFoundation: F",
@@ -438,7 +438,7 @@ class TransverselyIsotropicFoundation(AbstractTransverselyIsotropicFoundation):
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         r"""$C = 2\,\partial F/\partial t$, $D = \partial F/\partial x$ by automatic
         differentiation of ``F`` on the two scalars (4.48)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         D, dF_dt = jax.grad(lambda x_, t_: _as_scalar_output(self.F(x_, t_), "F"), argnums=(0, 1))(
             dot3(self.k, theta), dot3(theta, theta)
         )
@@ -471,16 +471,16 @@ class SumFoundation(AbstractFoundation):
         self.terms = tuple(flat)
 
     def energy(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return sum((f.energy(theta) for f in self.terms[1:]), self.terms[0].energy(theta))
 
     def domain_margin(self, theta: VectorLike) -> Scalar:
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return jnp.min(jnp.stack([f.domain_margin(theta) for f in self.terms]))
 
     def gradient(self, theta: VectorLike) -> Vector:
         """The sum of the terms' gradients."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return sum((f.gradient(theta) for f in self.terms[1:]), self.terms[0].gradient(theta))
 
     @property
@@ -525,7 +525,7 @@ class SumFoundation(AbstractFoundation):
     def coefficients(self, theta: VectorLike) -> tuple[Scalar, Scalar]:
         """The sums of the terms' $C$ and $D$ (4.48), provided all transversely isotropic terms
         share one axis $k$ (checked with :func:`equinox.error_if`)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         coefficients = [f.coefficients(theta) for f in self.terms]
         C = sum(c for c, _ in coefficients[1:]) + coefficients[0][0]
         D = sum(d for _, d in coefficients[1:]) + coefficients[0][1]
@@ -548,7 +548,7 @@ def potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> Vector
     includes the domain check of ``f(theta)``, while ``potential_moment(f.energy, theta)``
     differentiates the raw formula (what ODE vector fields should use).
     """
-    theta = _as_vector(theta)
+    theta = as_vector(theta)
     grad = jax.grad(lambda th: _as_scalar_output(U(th), "potential_moment: U"))(theta)
     return -Turn(theta).ZT(grad)
 
@@ -557,7 +557,7 @@ def body_potential_moment(U: Callable[[Vector], Scalar], theta: VectorLike) -> V
     r"""The potential moment in the body frame, $P^T\cdot M = -Z(\theta)\cdot\frac{dU}{d\theta}$
     ($P = Q(\theta)$; equal to $P^T$ times :func:`potential_moment` because
     $Z^T = P\cdot Z$, eq. (4.13)): the elastic term of the right form (4.55)."""
-    theta = _as_vector(theta)
+    theta = as_vector(theta)
     grad = jax.grad(lambda th: _as_scalar_output(U(th), "potential_moment: U"))(theta)
     return -Turn(theta).Z(grad)
 
@@ -581,4 +581,4 @@ def transverse_coefficients(foundation: AbstractFoundation, theta: VectorLike):
     A general :class:`AbstractFoundation` raises ``TypeError``: wrap the energy as a
     :class:`TransverselyIsotropicFoundation` instead.
     """
-    return foundation.coefficients(_as_vector(theta))
+    return foundation.coefficients(as_vector(theta))

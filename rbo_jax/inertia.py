@@ -17,12 +17,12 @@ import numpy as np
 from ._custom_types import Matrix, MatrixLike, ScalarLike, VectorLike
 from ._validation import (
     POSITIVE,
-    _check,
-    _device,
-    _float_dtype,
-    _is_traced,
-    _scalar_parameter,
-    _unit_axis,
+    check_value,
+    device_of,
+    float_dtype,
+    is_traced,
+    scalar_parameter,
+    unit_axis,
 )
 
 __all__ = [
@@ -75,28 +75,28 @@ _ORTHONORMAL_ATOL = 1e-10
 
 def _float_matrix(x, name: str, owner: str) -> Matrix:
     """A (3, 3) float matrix: NumPy for a concrete ``x`` (checked on the host), else traced."""
-    x = x if _is_traced(x) else np.asarray(x)
+    x = x if is_traced(x) else np.asarray(x)
     if x.shape != (3, 3):
         raise ValueError(f"{owner}: {name} must have shape (3, 3), got {x.shape}.")
     if np.issubdtype(x.dtype, np.complexfloating):
         raise TypeError(f"{owner}: {name} must be real, got dtype {x.dtype}.")
-    return x.astype(_float_dtype())
+    return x.astype(float_dtype())
 
 
 def transversely_isotropic_inertia(A1: ScalarLike, A3: ScalarLike, k: VectorLike) -> Matrix:
     r"""The transversely isotropic inertia tensor $A = A_1(E - k\otimes k) + A_3\,k\otimes k$,
     eq. (4.40): symmetry axis $d_3 = k$ (normalised here), $A_1 = A_2 > 0$, $A_3 > 0$."""
     owner = "transversely_isotropic_inertia"
-    A1 = _scalar_parameter(A1, "A1", owner, "principal moment of inertia", POSITIVE)
-    A3 = _scalar_parameter(A3, "A3", owner, "principal moment of inertia", POSITIVE)
-    k = _unit_axis(k, owner)
-    if any(_is_traced(v) for v in (A1, A3, k)):
+    A1 = scalar_parameter(A1, "A1", owner, "principal moment of inertia", POSITIVE)
+    A3 = scalar_parameter(A3, "A3", owner, "principal moment of inertia", POSITIVE)
+    k = unit_axis(k, owner)
+    if any(is_traced(v) for v in (A1, A3, k)):
         kk = jnp.outer(k, k)
         return A1 * (jnp.eye(3, dtype=kk.dtype) - kk) + A3 * kk
     kk = np.outer(np.asarray(k), np.asarray(k))  # concrete: on the host, no XLA programs
     A = A1 * (np.eye(3, dtype=kk.dtype) - kk) + A3 * kk
     _warn_if_not_physical(A)
-    return _device(A)
+    return device_of(A)
 
 
 def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
@@ -104,34 +104,34 @@ def principal_inertia(moments: VectorLike, axes: MatrixLike) -> Matrix:
     ``moments`` $= (A_1, A_2, A_3)$, all $> 0$, and the principal axes, the **rows** of
     ``axes`` ($d_i$ = ``axes[i]``), which must be orthonormal (to 1e-10)."""
     owner = "principal_inertia"
-    moments = moments if _is_traced(moments) else np.asarray(moments)
+    moments = moments if is_traced(moments) else np.asarray(moments)
     if moments.shape != (3,):
         raise ValueError(f"{owner}: moments must have shape (3,), got {moments.shape}.")
-    moments = moments.astype(_float_dtype())
-    moments = _check(
+    moments = moments.astype(float_dtype())
+    moments = check_value(
         moments,
         POSITIVE.holds(moments),
         f"{owner}: the principal moments of inertia (moments) must all be > 0 and finite",
     )
     axes = _float_matrix(axes, "axes", owner)
-    xp = jnp if _is_traced(moments) or _is_traced(axes) else np
+    xp = jnp if is_traced(moments) or is_traced(axes) else np
     error = xp.max(xp.abs(axes @ axes.T - xp.eye(3, dtype=axes.dtype)))
-    axes = _check(
+    axes = check_value(
         axes,
         error <= _ORTHONORMAL_ATOL,
         f"{owner}: the principal axes (rows of axes) must be orthonormal (|D D^T - E| <= "
         f"{_ORTHONORMAL_ATOL})",
     )
     A = axes.T @ (moments[:, None] * axes)
-    if not _is_traced(A):
+    if not is_traced(A):
         _warn_if_not_physical(A)
-    return _device(A)
+    return device_of(A)
 
 
 def _inertia_properties(A):
     """finite, symmetric, positive definite (traced-friendly: Sylvester's criterion on the
     symmetric part, no eigenvalue call), and the asymmetry; in NumPy for a concrete ``A``."""
-    xp = jnp if _is_traced(A) else np
+    xp = jnp if is_traced(A) else np
     A = A if xp is jnp else np.asarray(A)
     finite = xp.all(xp.isfinite(A))
     scale = xp.max(xp.abs(A))
@@ -178,7 +178,7 @@ def check_inertia(A: MatrixLike) -> Matrix:
     owner = "check_inertia"
     A = _float_matrix(A, "the inertia tensor A", owner)
     finite, symmetric, positive, asymmetry = _inertia_properties(A)
-    if _is_traced(A):
+    if is_traced(A):
         return A
     if not bool(finite):
         raise ValueError(f"{owner}: the inertia tensor A must be finite, got {np.asarray(A)!r}.")
@@ -194,4 +194,4 @@ def check_inertia(A: MatrixLike) -> Matrix:
             f"eigenvalue is {smallest:.6g}; got {np.asarray(A)!r}."
         )
     _warn_if_not_physical(A)
-    return _device(A)
+    return device_of(A)

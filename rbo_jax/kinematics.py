@@ -31,7 +31,7 @@ from fractions import Fraction
 import jax.numpy as jnp
 
 from ._custom_types import Matrix, MatrixLike, Scalar, Vector, VectorLike
-from ._elementary import _atan2_nonnegative, _cot, _horner
+from ._elementary import atan2_nonnegative, cot, horner
 
 __all__ = [
     "skew",
@@ -68,7 +68,7 @@ def _as_float_array(x, shape: tuple[int, ...], name: str):
     return x
 
 
-def _as_vector(x, name: str = "theta") -> Vector:
+def as_vector(x, name: str = "theta") -> Vector:
     return _as_float_array(x, (3,), name)
 
 
@@ -108,9 +108,9 @@ _SINC3 = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n + 3)), 11)
 _COS = _coeffs(lambda n: Fraction((-1) ** n, math.factorial(2 * n)), 12)
 # (1 − g)/θ², g = (θ/2)cot(θ/2) = Σ (−1)^n B_2n θ^2n/(2n)!  (reading R3: → 1/12 at θ = 0)
 _GCOEF = _coeffs(lambda n: (-1) ** n * _B[2 * n + 2] / math.factorial(2 * n + 2), 16)
-# atan(x)/x = Σ (−x²)^n/(2n+1), used by the logarithm with x² < _X2_SWITCH
-_ATANC = _coeffs(lambda n: Fraction((-1) ** n, 2 * n + 1), 11)
-_X2_SWITCH = 1e-2
+# atan(x)/x = Σ (−x²)^n/(2n+1), used by the logarithm with x² < X2_SWITCH
+ATANC = _coeffs(lambda n: Fraction((-1) ** n, 2 * n + 1), 11)
+X2_SWITCH = 1e-2
 
 
 def _series_or_closed_form(t, coeffs, closed_form, switch=_T_SWITCH):
@@ -122,10 +122,10 @@ def _series_or_closed_form(t, coeffs, closed_form, switch=_T_SWITCH):
     small = t < switch
     t_series = jnp.where(small, t, jnp.zeros_like(t))
     t_closed = jnp.where(small, jnp.full_like(t, switch), t)
-    return jnp.where(small, _horner(coeffs, t_series), closed_form(t_closed))
+    return jnp.where(small, horner(coeffs, t_series), closed_form(t_closed))
 
 
-def _sinc(t, sincos=None):
+def sinc(t, sincos=None):
     """sin θ/θ as a function of t = θ² (``sincos``: a (sin, cos) function of θ for the closed
     form, default XLA's sin)."""
 
@@ -136,7 +136,7 @@ def _sinc(t, sincos=None):
     return _series_or_closed_form(t, _SINC, closed)
 
 
-def _cosc(t):
+def cosc(t):
     """(1 − cos θ)/θ² as a function of t = θ² (closed form 2 sin²(θ/2)/θ², no cancellation)."""
 
     def closed(t):
@@ -158,14 +158,14 @@ def _sinc3(t):
 
 def _cos(t, sincos=None):
     """cos θ as a function of t = θ² (smooth at θ = 0, unlike cos(sqrt(t))); ``sincos`` as
-    :func:`_sinc`."""
+    :func:`sinc`."""
     closed = (
         (lambda t: jnp.cos(jnp.sqrt(t))) if sincos is None else (lambda t: sincos(jnp.sqrt(t))[1])
     )
     return _series_or_closed_form(t, _COS, closed)
 
 
-def _gcoef(t):
+def gcoef(t):
     """(1 − g)/θ² with g = θ sin θ / (2(1 − cos θ)) = (θ/2)cot(θ/2), eq. (4.11).
 
     Singular at θ = 2πk, k ≥ 1, where 1 − cos θ = 0: Z itself is singular there.
@@ -173,12 +173,12 @@ def _gcoef(t):
 
     def closed(t):
         h = 0.5 * jnp.sqrt(t)
-        return (1.0 - h * _cot(h)) / t
+        return (1.0 - h * cot(h)) / t
 
     return _series_or_closed_form(t, _GCOEF, closed)
 
 
-def _safe_norm(v):
+def safe_norm(v):
     """|v| with a zero (not NaN) gradient at v = 0; NaN/inf in ``v`` give NaN/inf (the test is
     ``t == 0``, not ``t > 0``, which would map a NaN ``v`` to 0)."""
     t = jnp.dot(v, v)
@@ -193,7 +193,7 @@ def _safe_norm(v):
 
 def skew(a: VectorLike) -> Matrix:
     r"""The skew tensor $a\times E$: $(a\times E)\cdot b = a\times b$ (Appendix A, eq. (4.4))."""
-    a = _as_vector(a, "a")
+    a = as_vector(a, "a")
     z = jnp.zeros_like(a[0])
     return jnp.stack(
         [
@@ -231,22 +231,22 @@ def turn_tensor(theta: VectorLike) -> Matrix:
     Exact (values and all derivatives) at $\theta = 0$; valid for every $\theta$, the angle is
     not reduced.
     """
-    theta = _as_vector(theta)
+    theta = as_vector(theta)
     t = jnp.dot(theta, theta)
     eye = jnp.eye(3, dtype=theta.dtype)
-    return eye + _sinc(t) * skew(theta) + _cosc(t) * _r_squared(theta, t)
+    return eye + sinc(t) * skew(theta) + cosc(t) * _r_squared(theta, t)
 
 
-def _quaternion(theta, sincos=None):
+def quaternion_of(theta, sincos=None):
     """Unit quaternion (w, v) = (cos(θ/2), sin(θ/2)/θ · θ) of the turn-vector θ (half-angle form
     of (4.3)). Component by component (:func:`dot3`), as all of the quaternion helpers: under
-    ``vmap`` elementwise code, not batched ``dot_general`` calls. ``sincos``: as :func:`_sinc`
-    (the lattices pass :func:`rbo_jax._elementary._sincos`, which vectorises)."""
+    ``vmap`` elementwise code, not batched ``dot_general`` calls. ``sincos``: as :func:`sinc`
+    (the lattices pass :func:`rbo_jax._elementary.sin_cos`, which vectorises)."""
     t = dot3(theta, theta)
-    return _cos(0.25 * t, sincos), 0.5 * _sinc(0.25 * t, sincos) * theta
+    return _cos(0.25 * t, sincos), 0.5 * sinc(0.25 * t, sincos) * theta
 
 
-def _log_quaternion(w, v):
+def log_quaternion(w, v):
     r"""Principal turn-vector ($|\theta| \le \pi$) of the unit quaternion $(w, v)$.
 
     $\theta = 2\,\mathrm{atan2}(|v|, w)/|v| \cdot v$ after choosing the sign with $w \ge 0$. The
@@ -258,12 +258,12 @@ def _log_quaternion(w, v):
     w = sign * w
     v = sign * v
     s2 = dot3(v, v)
-    small = s2 < _X2_SWITCH * w * w
+    small = s2 < X2_SWITCH * w * w
     w_safe = jnp.where(small, w, jnp.ones_like(w))
     x2 = jnp.where(small, s2, jnp.zeros_like(s2)) / (w_safe * w_safe)
-    series = _horner(_ATANC, x2) / w_safe
+    series = horner(ATANC, x2) / w_safe
     s_safe = jnp.sqrt(jnp.where(small, jnp.ones_like(s2), s2))
-    closed = _atan2_nonnegative(s_safe, w) / s_safe
+    closed = atan2_nonnegative(s_safe, w) / s_safe
     return 2.0 * jnp.where(small, series, closed) * v
 
 
@@ -295,7 +295,7 @@ def turn_vector(Q: MatrixLike) -> Vector:
     q = qs[i]
     # Pivot ≥ 1 for a rotation (the four t's sum to 4), so this normalisation is safe.
     q = q / jnp.sqrt(jnp.dot(q, q))
-    return _log_quaternion(q[0], q[1:])
+    return log_quaternion(q[0], q[1:])
 
 
 def composition_invariants(phi: VectorLike, psi: VectorLike) -> tuple[Scalar, Vector]:
@@ -320,11 +320,11 @@ def composition_invariants(phi: VectorLike, psi: VectorLike) -> tuple[Scalar, Ve
     These determine $\theta$ up to the branch, but lose the axis near $\theta = \pi$ (where
     $\sin\theta \to 0$); :func:`compose` therefore uses their half-angle form.
     """
-    phi = _as_vector(phi, "phi")
-    psi = _as_vector(psi, "psi")
+    phi = as_vector(phi, "phi")
+    psi = as_vector(psi, "psi")
     tp, tq = jnp.dot(phi, phi), jnp.dot(psi, psi)
-    sp, sq = _sinc(tp), _sinc(tq)
-    cp, cq = _cosc(tp), _cosc(tq)
+    sp, sq = sinc(tp), sinc(tq)
+    cp, cq = cosc(tp), cosc(tq)
     cos_p, cos_q = _cos(tp), _cos(tq)
     pq = jnp.dot(phi, psi)
     cos_theta = 0.5 * (cos_p + cos_q + cos_p * cos_q - 2.0 * sp * sq * pq + cp * cq * pq**2 - 1.0)
@@ -353,12 +353,12 @@ def compose(phi: VectorLike, psi: VectorLike) -> Vector:
     conditioned when the composed angle is near $\pi$. Agrees with
     ``turn_vector(turn_tensor(phi) @ turn_tensor(psi))``.
     """
-    phi = _as_vector(phi, "phi")
-    psi = _as_vector(psi, "psi")
-    return _log_quaternion(*_quaternion_product(_quaternion(phi), _quaternion(psi)))
+    phi = as_vector(phi, "phi")
+    psi = as_vector(psi, "psi")
+    return log_quaternion(*quaternion_product(quaternion_of(phi), quaternion_of(psi)))
 
 
-def _quaternion_product(p, q):
+def quaternion_product(p, q):
     r"""The product of unit quaternions ``p = (w1, v1)``, ``q = (w2, v2)``: the quaternion of
     $Q(\varphi)\cdot Q(\psi)$ (Euler–Rodrigues), component by component."""
     (w1, v1), (w2, v2) = p, q
@@ -378,10 +378,10 @@ def integrating_tensor(theta: VectorLike) -> Matrix:
     $(1-g)/\theta^2 = 1/12 + \theta^2/720 + \dots$ (reading R3). Singular at $|\theta| = 2\pi k$,
     $k \ge 1$ (see :func:`distance_to_singularity`), where the result is non-finite.
     """
-    theta = _as_vector(theta)
+    theta = as_vector(theta)
     t = jnp.dot(theta, theta)
     eye = jnp.eye(3, dtype=theta.dtype)
-    return eye - 0.5 * skew(theta) + _gcoef(t) * _r_squared(theta, t)
+    return eye - 0.5 * skew(theta) + gcoef(t) * _r_squared(theta, t)
 
 
 def integrating_tensor_inv(theta: VectorLike) -> Matrix:
@@ -392,10 +392,10 @@ def integrating_tensor_inv(theta: VectorLike) -> Matrix:
     $\omega = Z^{-1}\cdot\dot\theta$, $\Omega = Z^{-T}\cdot\dot\theta$ (4.19). Finite everywhere;
     singular (not invertible) at $|\theta| = 2\pi k$, $k \ge 1$.
     """
-    theta = _as_vector(theta)
+    theta = as_vector(theta)
     t = jnp.dot(theta, theta)
     eye = jnp.eye(3, dtype=theta.dtype)
-    return eye + _cosc(t) * skew(theta) + _sinc3(t) * _r_squared(theta, t)
+    return eye + cosc(t) * skew(theta) + _sinc3(t) * _r_squared(theta, t)
 
 
 def integrating_tensor_det(theta: VectorLike) -> Scalar:
@@ -403,8 +403,8 @@ def integrating_tensor_det(theta: VectorLike) -> Scalar:
 
     Equal to 1 at $\theta = 0$ and infinite at $|\theta| = 2\pi k$, $k \ge 1$.
     """
-    theta = _as_vector(theta)
-    return 0.5 / _cosc(jnp.dot(theta, theta))
+    theta = as_vector(theta)
+    return 0.5 / cosc(jnp.dot(theta, theta))
 
 
 def distance_to_singularity(theta: VectorLike) -> Scalar:
@@ -414,8 +414,8 @@ def distance_to_singularity(theta: VectorLike) -> Scalar:
     The equations of motion (4.54)/(4.56) break down there unless $\theta\times\omega = 0$; the
     simulator uses this to stop cleanly.
     """
-    theta = _as_vector(theta)
-    n = _safe_norm(theta)
+    theta = as_vector(theta)
+    n = safe_norm(theta)
     two_pi = 2.0 * jnp.pi
     k = jnp.maximum(jnp.round(n / two_pi), 1.0)
     return jnp.abs(n - two_pi * k)
@@ -487,7 +487,7 @@ class Turn:
     """
 
     def __init__(self, theta: VectorLike):
-        self.theta = _as_vector(theta)
+        self.theta = as_vector(theta)
         self.t = stored(dot3(self.theta, self.theta))
         self._coefficients = {}
 
@@ -504,25 +504,25 @@ class Turn:
         """$Q(\\theta)\\cdot v$, eq. (4.3)."""
         return (
             v
-            + self._coef("sinc", _sinc) * cross3(self.theta, v)
-            + self._coef("cosc", _cosc) * self._r2(v)
+            + self._coef("sinc", sinc) * cross3(self.theta, v)
+            + self._coef("cosc", cosc) * self._r2(v)
         )
 
     def rotate_back(self, v) -> Vector:
         """$Q^T(\\theta)\\cdot v$."""
         return (
             v
-            - self._coef("sinc", _sinc) * cross3(self.theta, v)
-            + self._coef("cosc", _cosc) * self._r2(v)
+            - self._coef("sinc", sinc) * cross3(self.theta, v)
+            + self._coef("cosc", cosc) * self._r2(v)
         )
 
     def Z(self, v) -> Vector:
         """$Z(\\theta)\\cdot v$, eq. (4.11)."""
-        return v - 0.5 * cross3(self.theta, v) + self._coef("gcoef", _gcoef) * self._r2(v)
+        return v - 0.5 * cross3(self.theta, v) + self._coef("gcoef", gcoef) * self._r2(v)
 
     def ZT(self, v) -> Vector:
         """$Z^T(\\theta)\\cdot v$: the rate $\\dot\\theta = Z^T\\cdot\\Omega$ (4.14)."""
-        return v + 0.5 * cross3(self.theta, v) + self._coef("gcoef", _gcoef) * self._r2(v)
+        return v + 0.5 * cross3(self.theta, v) + self._coef("gcoef", gcoef) * self._r2(v)
 
     @property
     def matrix(self) -> Matrix:

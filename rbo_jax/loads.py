@@ -28,17 +28,17 @@ from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
 from ._validation import (
     FINITE,
     NONNEGATIVE,
-    _callable_leaf,
-    _check,
-    _float_dtype,
-    _is_traced,
-    _unit_axis,
+    callable_leaf,
+    check_value,
     error_if,
+    float_dtype,
+    is_traced,
     requirement_checks,
     set_parameters,
+    unit_axis,
 )
 from .foundations import AbstractFoundation, body_potential_moment, potential_moment
-from .kinematics import Turn, _as_vector, dot3
+from .kinematics import Turn, as_vector, dot3
 
 __all__ = [
     "AbstractLoad",
@@ -53,7 +53,7 @@ __all__ = [
 
 
 def _zero():
-    return jnp.zeros((), dtype=_float_dtype())
+    return jnp.zeros((), dtype=float_dtype())
 
 
 class AbstractLoad(eqx.Module):
@@ -103,7 +103,7 @@ class _AbstractAxialMoment(AbstractLoad):
 
     def __init__(self, M: ScalarLike, k: VectorLike):
         set_parameters(self, M=M)
-        self.k = _unit_axis(k, type(self).__name__)
+        self.k = unit_axis(k, type(self).__name__)
 
     def potential_energy(self, theta) -> Scalar:
         return _zero()
@@ -169,10 +169,10 @@ class SemiTangentialMoment(AbstractLoad):
 
     def __init__(self, M: ScalarLike, k: VectorLike, l1: ScalarLike = 1.0, l2: ScalarLike = 1.0):
         set_parameters(self, M=M, l1=l1, l2=l2)
-        self.k = _unit_axis(k, type(self).__name__)
+        self.k = unit_axis(k, type(self).__name__)
         # concrete weights are compared on the host (an eager JAX comparison would compile)
-        l1, l2 = (x if _is_traced(x) else np.asarray(x) for x in (self.l1, self.l2))
-        self.l1 = _check(self.l1, self._weights_valid(l1, l2), self._weights_message())
+        l1, l2 = (x if is_traced(x) else np.asarray(x) for x in (self.l1, self.l2))
+        self.l1 = check_value(self.l1, self._weights_valid(l1, l2), self._weights_message())
 
     @staticmethod
     def _weights_valid(l1, l2):
@@ -190,7 +190,7 @@ class SemiTangentialMoment(AbstractLoad):
 
     def gamma(self, theta: VectorLike) -> Scalar:
         r"""$\gamma = (l_1^2 + l_2^2 + 2l_1l_2\,k\cdot P\cdot k)^{-1/2}$ of eq. (4.75)."""
-        theta = _as_vector(theta)
+        theta = as_vector(theta)
         return 1.0 / self._norm(self.l1 * self.k + self.l2 * Turn(theta).rotate(self.k))
 
     def _norm(self, v):
@@ -237,7 +237,7 @@ class Friction(AbstractLoad):
 
     def moment(self, t, theta, omega) -> Vector:
         """−b ω, eq. (4.84)."""
-        return -self.b * _as_vector(omega, "omega")
+        return -self.b * as_vector(omega, "omega")
 
     def body_moment(self, t, theta, Omega, turn) -> Vector:
         """Pᵀ·(−b P·Ω) = −b Ω."""
@@ -257,7 +257,7 @@ class PotentialLoad(AbstractLoad):
     V: Callable[[Vector], Scalar]
 
     def __init__(self, V: Callable[[Vector], Scalar]):
-        self.V = _callable_leaf(V, "PotentialLoad", "V")
+        self.V = callable_leaf(V, "PotentialLoad", "V")
 
     def moment(self, t, theta, omega) -> Vector:
         """−Zᵀ·dV/dθ, eqs. (4.52), (4.23)."""
@@ -270,7 +270,7 @@ class PotentialLoad(AbstractLoad):
         return body_potential_moment(self.V, theta)
 
     def potential_energy(self, theta) -> Scalar:
-        out = jnp.asarray(self.V(_as_vector(theta)))
+        out = jnp.asarray(self.V(as_vector(theta)))
         if out.shape != ():
             raise ValueError(f"PotentialLoad: V must return a scalar, got shape {out.shape}.")
         return out
@@ -286,7 +286,7 @@ class CallableLoad(AbstractLoad):
     fn: Callable
 
     def __init__(self, fn: Callable):
-        self.fn = _callable_leaf(fn, "CallableLoad", "fn")
+        self.fn = callable_leaf(fn, "CallableLoad", "fn")
 
     def moment(self, t, theta, omega) -> Vector:
         out = jnp.asarray(self.fn(t, theta, omega))

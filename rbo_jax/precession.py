@@ -29,8 +29,8 @@ from jaxtyping import Array, Complex, Float
 
 from ._custom_types import Scalar, Vector
 from .analytic import precession_rate
-from .kinematics import Turn, _as_vector, cross3, turn_tensor
-from .model import RigidBodyOscillator
+from .kinematics import Turn, as_vector, cross3, turn_tensor
+from .models.rigid_body import RigidBodyOscillator
 
 __all__ = [
     "RegularPrecession",
@@ -74,7 +74,7 @@ class RegularPrecession(eqx.Module):
 def _symmetry_axis(model: RigidBodyOscillator, k) -> Vector:
     """``k`` (normalised) if given, else the foundation's symmetry axis (4.24)."""
     if k is not None:
-        k = _as_vector(k, "k")
+        k = as_vector(k, "k")
         return k / jnp.linalg.norm(k)
     foundation = model.foundation
     axis = foundation.symmetry_axis()
@@ -130,7 +130,7 @@ def regular_precession(
     if p is None:
         p = _default_p(k)
     else:
-        p = _as_vector(p, "p")
+        p = as_vector(p, "p")
         p = p - (p @ k) * k
         p = p / jnp.linalg.norm(p)
     vartheta = jnp.asarray(vartheta, dtype=k.dtype)

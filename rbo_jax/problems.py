@@ -14,7 +14,7 @@ from ._custom_types import ScalarLike
 from .foundations import QuadraticFoundation
 from .inertia import transversely_isotropic_inertia
 from .loads import FollowerMoment, Friction
-from .model import RigidBodyOscillator
+from .models.rigid_body import RigidBodyOscillator
 
 __all__ = ["nikolai_model"]
 

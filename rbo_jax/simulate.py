@@ -27,81 +27,28 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from . import _enumeration as enum
 from ._custom_types import Vector
 from ._programs import stored
-from ._validation import _common_float_dtype, checked_inputs_trusted, library_code_only
-from .kinematics import (
-    _as_vector,
-    _safe_norm,
-    distance_to_singularity,
-    integrating_tensor,
-    turn_tensor,
-)
-from .model import RigidBodyOscillator
+from ._validation import common_float_dtype
+from .integrate import diffeq
+from .kinematics import as_vector, integrating_tensor, turn_tensor
+from .models.rigid_body import RigidBodyOscillator
 from .trajectory import (
-    TRANSVERSE_TOL,
     SolveStatus,
     Trajectory,
     all_finite,
     check_times,
     finish,
+    is_transverse,
     prepare_inputs,
-    transverse_fraction,
+    raise_failure,
     warn_if_float32,
 )
 
 __all__ = ["SolveStatus", "Trajectory", "simulate", "DarbouxSolution", "solve_darboux"]
-
-
-def _status_from_solution(sol, event_names, bad_input=False):
-    result = sol.result
-    R = diffrax.RESULTS
-    status = SolveStatus.successful
-    status = SolveStatus.where(result == R.successful, status, SolveStatus.solver_error)
-    status = SolveStatus.where(result == R.max_steps_reached, SolveStatus.max_steps_reached, status)
-    status = SolveStatus.where(result == R.dt_min_reached, SolveStatus.step_size_collapse, status)
-    if sol.event_mask is not None:
-        for name, mask in zip(event_names, sol.event_mask):
-            status = SolveStatus.where(
-                (result == R.event_occurred) & mask, getattr(SolveStatus, name), status
-            )
-    status = SolveStatus.where(bad_input, SolveStatus.nonfinite_input, status)
-    return status
-
-
-def _near_singular_cond(transverse, singular_tol, t, y, args, **kwargs):
-    theta, trans = transverse(t, y)
-    return (distance_to_singularity(theta) < singular_tol) & trans
-
-
-def _singular_crossing_cond(transverse, t, y, args, **kwargs):
-    theta, trans = transverse(t, y)
-    n = _safe_norm(theta)
-    f = jnp.where(n < jnp.pi, jnp.ones_like(n), jnp.sin(0.5 * n))
-    return jnp.where(trans, f, jnp.ones_like(n))
-
-
-def _singular_events(transverse, singular_tol):
-    r"""Two diffrax event conditions for the singular spheres $|\theta| = 2\pi k$ of Z (4.11).
-
-    ``transverse(t, y) -> (theta, is_transverse)``. The first (boolean) fires when a step ends
-    within ``singular_tol`` of a sphere; the second (continuous) fires when a step jumps across
-    one: it is $\sin(|\theta|/2)$ (positive on $[\pi, 2\pi)$, sign change at every $2\pi k$)
-    clamped to 1 on $[0, \pi)$. Both are disarmed for plane motion ($\theta\times\Omega = 0$),
-    which crosses the spheres harmlessly.
-
-    The conditions (and ``transverse``) are ``jax.tree_util.Partial``s of module-level functions,
-    not closures: diffrax's ``diffeqsolve`` is ``eqx.filter_jit``-ed and treats functions as
-    static, so a fresh closure per call would recompile the solve on every call.
-    """
-    return (
-        jax.tree_util.Partial(_near_singular_cond, transverse, singular_tol),
-        jax.tree_util.Partial(_singular_crossing_cond, transverse),
-    )
 
 
 def _right_to_theta_Omega(model, y):
@@ -114,7 +61,7 @@ def _left_to_theta_Omega(model, y):
 
 def _state_transverse(to_theta_Omega, t, y):
     theta, Omega = to_theta_Omega(y)
-    return theta, transverse_fraction(theta, Omega) > TRANSVERSE_TOL
+    return theta, is_transverse(theta, Omega)
 
 
 def _domain_cond(model, t, y, args, **kwargs):
@@ -176,7 +123,7 @@ def simulate(
     if form not in ("right", "left"):
         raise ValueError(f"form must be 'right' or 'left', got {form!r}.")
     inputs = prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw)
-    _check_start(t0, dt0, inputs.ts)
+    diffeq.check_start(t0, dt0, inputs.ts)
     options = _Options(
         t0,
         solver,
@@ -194,50 +141,11 @@ def simulate(
     )
     args = (model, inputs.theta0, inputs.Omega0, inputs.ts, inputs.bad_times, inputs.dtype, options)
     # Concrete inputs: one compiled program for everything between the checks and the result
-    # (the step-size bounds, A^-1, the statuses), not a dozen small eager ones, without diffrax's
-    # host callbacks where that is safe (kept by JAX's cache and the program store); inside a
-    # transformation, the solve itself.
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args)):
-        theta, Omega, code, steps = _solve(*args)
-    else:
-        with checked_inputs_trusted(_trusted(model, solver, adjoint, stepsize_controller)):
-            theta, Omega, code, steps = _solve_compiled(*args)
+    # (the step-size bounds, A^-1, the statuses), not a dozen small eager ones.
+    checked = diffeq.trusted(model, solver, adjoint, stepsize_controller)
+    theta, Omega, code, steps = diffeq.run(_solve_compiled, _solve, args, checked)
     status = enum.from_code(SolveStatus, code)
     return finish(model, inputs, theta, Omega, status, steps, throw)
-
-
-def _check_start(t0, dt0, ts):
-    """Concrete ``t0`` and ``dt0`` checked on the host (diffrax's own checks of them, and of the
-    sample times, are host callbacks, which the compiled solve leaves out:
-    :func:`rbo_jax._validation.checked_inputs_trusted`)."""
-    if t0 is not None and not isinstance(t0, jax.core.Tracer):
-        t0 = np.asarray(t0)
-        if t0.shape != () or not np.isfinite(t0):
-            raise ValueError(f"t0 must be a finite scalar, got {t0.tolist()!r}.")
-        if not isinstance(ts, jax.core.Tracer) and t0 > np.asarray(ts)[0]:
-            raise ValueError(
-                f"t0 must not be after the first sample time ts[0] = "
-                f"{float(np.asarray(ts)[0])!r}, got {float(t0)!r}."
-            )
-    if dt0 is not None and not isinstance(dt0, jax.core.Tracer):
-        dt0 = np.asarray(dt0)
-        if dt0.shape != () or not (np.isfinite(dt0) and dt0 > 0):
-            raise ValueError(
-                f"dt0 must be a finite number > 0 (the solve runs forward in "
-                f"time), got {dt0.tolist()!r}."
-            )
-
-
-def _trusted(model, *diffrax_objects) -> bool:
-    """Whether the compiled solve may leave out diffrax's checks of the inputs (checked on the
-    host): the model is rbo_jax's own code (no user function that may call ``eqx.error_if``)
-    and the solver, adjoint and controller are diffrax's, not ``StepTo`` (whose own checks of
-    its times would go too)."""
-    return library_code_only(model) and all(
-        x is None
-        or (type(x).__module__.split(".")[0] == "diffrax" and not isinstance(x, diffrax.StepTo))
-        for x in diffrax_objects
-    )
 
 
 class _Options(NamedTuple):
@@ -280,32 +188,26 @@ def _solve(model, theta0, Omega0, ts, bad_times, dtype, options: _Options):
         vf = model.left_form(o.throw)
         to_theta_Omega = jax.tree_util.Partial(_left_to_theta_Omega, model)
 
-    # Partials of module-level functions, not closures: see _singular_events.
+    # Partials of module-level functions, not closures: see diffeq.singular_events.
     transverse = jax.tree_util.Partial(_state_transverse, to_theta_Omega)
+    singular = diffeq.singular_events(transverse, jnp.asarray(o.singular_tol, dtype))
     domain_cond = jax.tree_util.Partial(_domain_cond, model)
-    singular_tol = jnp.asarray(o.singular_tol, dtype)
-
-    event_names = ("singular_point", "singular_point", "domain_error")
-    event = diffrax.Event(cond_fn=[*_singular_events(transverse, singular_tol), domain_cond])
-
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vf),
-        diffrax.Dopri8() if o.solver is None else o.solver,
+    events = [("singular_point", c) for c in singular] + [("domain_error", domain_cond)]
+    ys, status, steps = diffeq.solve(
+        vf,
+        o.solver,
+        y0,
+        ts,
         t0=t0,
-        t1=t1,
         dt0=o.dt0,
-        y0=y0,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=controller,
-        adjoint=diffrax.RecursiveCheckpointAdjoint() if o.adjoint is None else o.adjoint,
-        event=event,
+        controller=controller,
+        events=events,
+        adjoint=o.adjoint,
         max_steps=o.max_steps,
-        throw=False,
-        progress_meter=diffrax.TqdmProgressMeter() if o.progress else diffrax.NoProgressMeter(),
+        progress=o.progress,
     )
-    status = _status_from_solution(sol, event_names)
-    theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*sol.ys)
-    return theta, Omega, enum.code(status), sol.stats["num_accepted_steps"]
+    theta, Omega = jax.vmap(lambda a, b: to_theta_Omega((a, b)))(*ys)
+    return theta, Omega, enum.code(status), steps
 
 
 # With the program store on (rbo_jax.enable_compilation_cache) a second process loads it traced;
@@ -360,28 +262,7 @@ def _darboux_right(w, t, theta, args):
 
 
 def _darboux_transverse(w, t, theta):
-    return theta, transverse_fraction(theta, w(t)) > TRANSVERSE_TOL
-
-
-def _solve_sampled(field, y0, ts, events, solver, rtol, atol, max_steps, adjoint=None):
-    r"""diffrax's solve of $\dot y$ = ``field(t, y, args)`` from ``y0`` at ``ts[0]``, sampled at
-    ``ts`` and stopped by the ``events`` (diffrax event conditions): ``solver`` (default
-    ``Dopri8``), a PID controller of ``rtol``, ``atol`` from diffrax's first step, ``adjoint``
-    (default ``RecursiveCheckpointAdjoint``); failures are in the solution's result."""
-    return diffrax.diffeqsolve(
-        diffrax.ODETerm(field),
-        diffrax.Dopri8() if solver is None else solver,
-        t0=ts[0],
-        t1=ts[-1],
-        dt0=None,
-        y0=y0,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-        event=diffrax.Event(cond_fn=list(events)),
-        max_steps=max_steps,
-        throw=False,
-    )
+    return theta, is_transverse(theta, w(t))
 
 
 # keyword arguments named as fast_simulate's: each public solver spells out its own signature
@@ -411,24 +292,21 @@ def solve_darboux(
     if frame not in ("left", "right"):
         raise ValueError(f"frame must be 'left' or 'right', got {frame!r}.")
     w = _velocity_function(angular_velocity)
-    theta0 = _as_vector(theta0, "theta0")
+    theta0 = as_vector(theta0, "theta0")
     ts = check_times(ts)
     # The precision of the angular velocity counts too (as the model's in simulate): float32
     # theta0 with a float64 angular velocity is integrated in float64.
-    dtype = _common_float_dtype(theta0, ts, jax.eval_shape(w, ts[0]).dtype)
+    dtype = common_float_dtype(theta0, ts, jax.eval_shape(w, ts[0]).dtype)
     theta0, ts = theta0.astype(dtype), ts.astype(dtype)
     warn_if_float32(dtype, rtol, atol)
 
-    # Partials of module-level functions, not closures: see _singular_events.
+    # Partials of module-level functions, not closures: see diffeq.singular_events.
     vf = jax.tree_util.Partial(_darboux_left if frame == "left" else _darboux_right, w)
     transverse = jax.tree_util.Partial(_darboux_transverse, w)
-    singular_tol = jnp.asarray(singular_tol, theta0.dtype)
-
-    events = _singular_events(transverse, singular_tol)
-    sol = _solve_sampled(vf, theta0, ts, events, solver, rtol, atol, max_steps)
-    bad_input = ~all_finite(theta0)
-    status = _status_from_solution(sol, ("singular_point", "singular_point"), bad_input)
-    theta = sol.ys
-    if throw:
-        theta = status.error_if(theta, status != SolveStatus.successful)
-    return DarbouxSolution(ts=ts, theta=theta, status=status)
+    singular = diffeq.singular_events(transverse, jnp.asarray(singular_tol, theta0.dtype))
+    events = [("singular_point", c) for c in singular]
+    theta, status, _ = diffeq.solve(
+        vf, solver, theta0, ts, rtol=rtol, atol=atol, events=events, max_steps=max_steps
+    )
+    status = SolveStatus.where(~all_finite(theta0), SolveStatus.nonfinite_input, status)
+    return DarbouxSolution(ts=ts, theta=raise_failure(theta, status, throw), status=status)

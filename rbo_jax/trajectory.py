@@ -1,14 +1,23 @@
-r"""What every solver of the equations of motion returns: :class:`Trajectory` and
-:class:`SolveStatus`, shared by :func:`rbo_jax.simulate` (diffrax, the general path) and
-:func:`rbo_jax.fast_simulate` (the lean DOP853 ensemble integrator).
+r"""What every solver of the equations of motion returns, and the checks around it.
+
+:class:`SolveStatus` is the outcome of every solve; :class:`AbstractTrajectory` what every
+trajectory says about it (``ok``, ``message``, ``status_name``): :class:`Trajectory` (the rigid
+body: :func:`rbo_jax.simulate`, :func:`rbo_jax.fast_simulate`),
+:class:`rbo_jax.lattice.LatticeTrajectory` and :class:`rbo_jax.lattice.RodTrajectory`.
 
 A trajectory holds samples $(t_i, \theta(t_i), \Omega(t_i))$ of the right form (4.55)–(4.56)
 and derives the left angular velocity $\omega = P\cdot\Omega$, the turn-tensor $P = Q(\theta)$
 (4.3), the kinetic moment (4.44) and the energies on access. Samples after a failure are ``inf``.
+
+Shared by every solver: the checks of the sample times (:func:`check_times`) and of the
+precision (:func:`warn_if_float32`), the checked inputs of a rigid body (:func:`prepare_inputs`),
+the statuses of bad input (:func:`flag`) and ``throw`` (:func:`raise_failure`).
 """
 
 from __future__ import annotations
 
+import functools
+import math
 import warnings
 from typing import NamedTuple
 
@@ -19,11 +28,11 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from . import _enumeration
-from ._validation import _common_float_dtype, _is_traced, _xp
-from .kinematics import _as_vector, _safe_norm, turn_tensor
-from .model import RigidBodyOscillator
+from ._validation import array_namespace, common_float_dtype, is_traced
+from .kinematics import as_vector, safe_norm, turn_tensor
+from .models.rigid_body import RigidBodyOscillator
 
-__all__ = ["SolveStatus", "Trajectory"]
+__all__ = ["AbstractTrajectory", "SolveStatus", "Trajectory"]
 
 
 class SolveStatus(eqx.Enumeration):
@@ -67,27 +76,35 @@ class SolveStatus(eqx.Enumeration):
     )
 
 
+@functools.cache
+def status_code(name: str) -> int:
+    """The integer code of the :class:`SolveStatus` item ``name`` (a Python int: a constant in
+    the integrators' programs)."""
+    return _enumeration.names(SolveStatus).index(name)
+
+
 @eqx.filter_jit
-def _per_sample(f, *samples):
-    """``f`` (a function or a bound method of the model) mapped over the samples, as one
-    compiled program per quantity and model structure: run eagerly, each operation of ``f``
-    compiled a small XLA program of its own (``omega`` and ``energy`` of a first
-    ``to_xarray``: ~45 of them, 1.3 s, against 0.2 s). Inside a transformation it is inlined."""
+def per_sample(f, *samples):
+    """``f`` (a function, a bound method of the model or a ``jax.tree_util.Partial``) mapped
+    over the samples, as one compiled program per quantity and model structure: run eagerly,
+    each operation of ``f`` would compile a small XLA program of its own. Inside a
+    transformation it is inlined."""
     return jax.vmap(f)(*samples)
 
 
-class _AbstractSolved(eqx.Module):
-    """What the field ``status`` (a :class:`SolveStatus`) of a solve's result says: ``ok``,
-    ``message``, ``status_name`` (of :class:`Trajectory` and
-    :class:`rbo_jax.lattice.LatticeTrajectory`). The field is the subclass's own, not an
-    ``eqx.AbstractVar`` here, which would move it to the front of the fields."""
+class AbstractTrajectory(eqx.Module):
+    """What every trajectory's ``status`` (a :class:`SolveStatus`) says: ``ok``, ``message``,
+    ``status_name`` (of :class:`Trajectory`, :class:`rbo_jax.lattice.LatticeTrajectory` and
+    :class:`rbo_jax.lattice.RodTrajectory`). The fields ``ts``, ``status`` and ``num_steps``
+    are the subclass's own, not ``eqx.AbstractVar``s here, which would move them to the front
+    of the fields."""
 
     @property
     def ok(self):
         """Whether the solve reached the final time (for a concrete status a NumPy boolean,
         compared on the host: no small eager program)."""
         code = _enumeration.code(self.status)
-        if _is_traced(code):
+        if is_traced(code):
             return self.status == SolveStatus.successful
         return np.asarray(code) == np.asarray(_enumeration.code(SolveStatus.successful))
 
@@ -102,8 +119,24 @@ class _AbstractSolved(eqx.Module):
         trajectory; the names are the fields of :class:`SolveStatus`)."""
         return _enumeration.name(self.status)
 
+    def _dataset(self, data, coords, **attrs):
+        """An :class:`xarray.Dataset` of ``data`` over the times ``t`` and ``coords``, with the
+        attributes ``status``, ``message``, ``num_steps`` and ``attrs``."""
+        import xarray as xr
 
-class Trajectory(_AbstractSolved):
+        ds = xr.Dataset(data, coords={"t": ("t", np.asarray(self.ts), {"units": "s"}), **coords})
+        ds.attrs.update(
+            status=self.status_name, message=self.message, num_steps=int(self.num_steps), **attrs
+        )
+        return ds
+
+
+# the variables theta and Omega of a trajectory's dataset: their attributes
+THETA_ATTRS = {"long_name": "turn-vector theta (4.1)", "units": "rad"}
+OMEGA_ATTRS = {"long_name": "right (body-frame) angular velocity Omega", "units": "rad s-1"}
+
+
+class Trajectory(AbstractTrajectory):
     r"""Samples of a solution of the rigid body oscillator.
 
     Fields: ``ts`` (n,), ``theta`` (n, 3) the turn-vector, ``Omega`` (n, 3) the right angular
@@ -122,7 +155,7 @@ class Trajectory(_AbstractSolved):
     num_steps: Int[Array, ""]
 
     def _map(self, f):
-        return _per_sample(f, self.theta, self.Omega)
+        return per_sample(f, self.theta, self.Omega)
 
     @property
     def omega(self) -> Float[Array, "n 3"]:
@@ -130,7 +163,7 @@ class Trajectory(_AbstractSolved):
 
     @property
     def turn_tensor(self) -> Float[Array, "n 3 3"]:
-        return _per_sample(turn_tensor, self.theta)
+        return per_sample(turn_tensor, self.theta)
 
     @property
     def kinetic_moment(self) -> Float[Array, "n 3"]:
@@ -138,11 +171,11 @@ class Trajectory(_AbstractSolved):
 
     @property
     def kinetic_energy(self) -> Float[Array, " n"]:
-        return _per_sample(self.model.kinetic_energy, self.Omega)
+        return per_sample(self.model.kinetic_energy, self.Omega)
 
     @property
     def potential_energy(self) -> Float[Array, " n"]:
-        return _per_sample(self.model.potential_energy, self.theta)
+        return per_sample(self.model.potential_energy, self.theta)
 
     @property
     def energy(self) -> Float[Array, " n"]:
@@ -158,18 +191,12 @@ class Trajectory(_AbstractSolved):
         ``num_steps``, plus ``attrs``. Units are those of the model's parameters (any
         consistent set; the labels name SI units).
         """
-        import xarray as xr
-
         theta, Omega = np.asarray(self.theta), np.asarray(self.Omega)
         reached = np.all(np.isfinite(theta), axis=1) & np.all(np.isfinite(Omega), axis=1)
         vec = ("t", "component")
         data = {
-            "theta": (vec, theta, {"long_name": "turn-vector theta (4.1)", "units": "rad"}),
-            "Omega": (
-                vec,
-                Omega,
-                {"long_name": "right (body-frame) angular velocity Omega", "units": "rad s-1"},
-            ),
+            "theta": (vec, theta, THETA_ATTRS),
+            "Omega": (vec, Omega, OMEGA_ATTRS),
             "omega": (
                 vec,
                 np.asarray(self.omega),
@@ -185,14 +212,7 @@ class Trajectory(_AbstractSolved):
             ),
             "reached": ("t", reached, {"long_name": "the solver reached this sample"}),
         }
-        ds = xr.Dataset(
-            data,
-            coords={"t": ("t", np.asarray(self.ts), {"units": "s"}), "component": ["x", "y", "z"]},
-        )
-        ds.attrs.update(
-            status=self.status_name, message=self.message, num_steps=int(self.num_steps), **attrs
-        )
-        return ds
+        return self._dataset(data, {"component": ["x", "y", "z"]}, **attrs)
 
 
 # ------------------------------------------------------------------------------------------
@@ -211,7 +231,20 @@ def all_finite(tree):
 
 def transverse_fraction(theta, Omega):
     """|θ×Ω| / (|θ||Ω|): 0 for plane motion, where the singular spheres are harmless."""
-    return _safe_norm(jnp.cross(theta, Omega)) / (_safe_norm(theta) * _safe_norm(Omega) + 1e-300)
+    return safe_norm(jnp.cross(theta, Omega)) / (safe_norm(theta) * safe_norm(Omega) + 1e-300)
+
+
+def crossed_sphere(n, n_old):
+    """Whether a step from a turn-vector of norm ``n_old`` to one of norm ``n`` crossed a
+    singular sphere |θ| = 2πk (k ≥ 1) of Z (4.11)."""
+    two_pi = 2.0 * math.pi
+    return (jnp.floor(n / two_pi) != jnp.floor(n_old / two_pi)) & (jnp.maximum(n, n_old) >= math.pi)
+
+
+def is_transverse(theta, Omega):
+    """Whether the motion is off the plane (θ×Ω ≠ 0 beyond :data:`TRANSVERSE_TOL`): where the
+    singular spheres |θ| = 2πk of Z stop a solve."""
+    return transverse_fraction(theta, Omega) > TRANSVERSE_TOL
 
 
 def check_times(ts, throw: bool = True):
@@ -219,7 +252,7 @@ def check_times(ts, throw: bool = True):
     checked now (``ValueError``); traced ones with :func:`equinox.error_if` when ``throw``, and
     not here otherwise (:func:`prepare_inputs` folds them into the status
     ``invalid_times``, so that ``throw=False`` programs hold no host callback)."""
-    traced = any(_is_traced(t) for t in jax.tree_util.tree_leaves(ts))
+    traced = any(is_traced(t) for t in jax.tree_util.tree_leaves(ts))
     # concrete times are checked in NumPy and then moved to the device (a transfer):
     # jnp.asarray of a NumPy array compiles a small XLA program per shape
     given = ts
@@ -294,15 +327,15 @@ def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw) -> Inputs:
     them). Infinite parameters can be legitimate (``BarrierFoundation(alpha=inf)`` switches a
     barrier off), NaN ones never are.
     """
-    theta0 = _as_vector(theta0, "theta0")
-    Omega0 = _as_vector(Omega0, "Omega0")
+    theta0 = as_vector(theta0, "theta0")
+    Omega0 = as_vector(Omega0, "Omega0")
     ts = check_times(ts, throw)
     params = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_inexact_array))
-    dtype = _common_float_dtype(theta0, Omega0, ts, *params)
+    dtype = common_float_dtype(theta0, Omega0, ts, *params)
     theta0, Omega0, ts = theta0.astype(dtype), Omega0.astype(dtype), ts.astype(dtype)
     warn_if_float32(dtype, rtol, atol)
     ok, which, messages = model.parameter_status()
-    if _xp(theta0, Omega0, ts, ok) is np:
+    if array_namespace(theta0, Omega0, ts, ok) is np:
         # everything concrete: the flags in NumPy (no small eager programs); the state is
         # replaced only when a flag is set
         ok = bool(ok)
@@ -344,19 +377,34 @@ def prepare_inputs(model, theta0, Omega0, ts, rtol, atol, throw) -> Inputs:
     )
 
 
+def flag(status, tree, cond, name: str, fill):
+    """``(status, tree)`` with the status ``name`` (a :class:`SolveStatus` field) and every leaf
+    of ``tree`` ``fill`` (``inf`` for samples not reached, NaN for no result) where ``cond``."""
+    status = SolveStatus.where(cond, getattr(SolveStatus, name), status)
+    return status, jax.tree_util.tree_map(lambda x: jnp.where(cond, fill, x), tree)
+
+
+def raise_failure(x, status, throw: bool, messages=None):
+    """``x``, raising the message of a failed ``status`` with ``throw``
+    (:func:`equinox.error_if`, inside a program too): the status's own, or ``messages[code]``
+    (:func:`equinox.branched_error_if`). A concrete success runs nothing (no small eager
+    program)."""
+    code = _enumeration.code(status)
+    if not throw or (not is_traced(code) and _enumeration.name(status) == "successful"):
+        return x
+    failed = status != SolveStatus.successful
+    if messages is None:
+        return status.error_if(x, failed)
+    return eqx.branched_error_if(x, failed, code, messages)
+
+
 def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Trajectory:
     """The :class:`Trajectory` of a solve: samples of a non-finite input are ``inf``, those of
     invalid parameters or times NaN (none of them is a result); with ``throw`` a failure raises
     its status message."""
     flags = (inputs.bad_input, inputs.invalid, inputs.bad_times)
-    # concrete and nothing flagged: no replacement, and a successful solve raises nothing (no
-    # small eager programs)
-    quiet = (
-        _xp(flags) is np
-        and not any(bool(f) for f in flags)
-        and not _is_traced(_enumeration.code(status))
-    )
-    if not quiet:
+    # concrete and nothing flagged: no replacement (no small eager programs)
+    if not (array_namespace(flags) is np and not any(bool(f) for f in flags)):
         status = SolveStatus.where(inputs.bad_input, SolveStatus.nonfinite_input, status)
         status = SolveStatus.where(inputs.invalid, SolveStatus.invalid_parameters, status)
         status = SolveStatus.where(inputs.bad_times, SolveStatus.invalid_times, status)
@@ -364,6 +412,5 @@ def finish(model, inputs: Inputs, theta, Omega, status, num_steps, throw) -> Tra
         fill = jnp.where(nan, jnp.nan, jnp.inf)
         theta = jnp.where(inputs.bad_input | nan, fill, theta)
         Omega = jnp.where(inputs.bad_input | nan, fill, Omega)
-    if throw and not (quiet and _enumeration.name(status) == "successful"):
-        theta = status.error_if(theta, status != SolveStatus.successful)
+    theta = raise_failure(theta, status, throw)
     return Trajectory(inputs.ts_given, theta, Omega, model, status, num_steps)

@@ -203,6 +203,120 @@ def fast_sweep():
     }
 
 
+COLLECTIVE = r"\b(all-to-all|all-gather|all-reduce|collective-permute|reduce-scatter)(-start)?\("
+
+
+def collectives(hlo: str) -> dict:
+    """The collectives of a compiled program's HLO text: how many in all, and how many inside
+    a loop (in a ``while``'s body or condition, or a computation they call)."""
+    import re
+
+    computations, name = {}, None
+    for line in hlo.splitlines():
+        head = re.match(r"^(?:ENTRY )?%(\S+) .*\{$", line)
+        if head:
+            name = head.group(1)
+            computations[name] = []
+        elif name is not None:
+            computations[name].append(line)
+
+    def called(lines, keys="body|condition|calls|to_apply"):
+        out = set()
+        for line in lines:
+            out.update(re.findall(rf"(?:{keys})=%([\w.\-]+)", line))
+            for group in re.findall(r"branch_computations=\{([^}]*)\}", line):
+                out.update(x.strip().lstrip("%") for x in group.split(","))
+        return out
+
+    loops = set()
+    stack = list(
+        called(
+            [ln for lines in computations.values() for ln in lines if " while(" in ln],
+            "body|condition",
+        )
+    )
+    while stack:
+        name = stack.pop()
+        if name in computations and name not in loops:
+            loops.add(name)
+            stack.extend(called(computations[name]))
+    return {
+        "all": len(re.findall(COLLECTIVE, hlo)),
+        "in_loops": sum(len(re.findall(COLLECTIVE, "\n".join(computations[c]))) for c in loops),
+        "loops": len(loops),
+    }
+
+
+def sharded_vmap():
+    """``jax.jit(jax.vmap(fast_simulate))`` on inputs sharded over every device (a
+    ``NamedSharding``), and replicated on them (a batch that is not a multiple of the devices:
+    padded), against the same batch on one device: the same bits, and outputs sharded like the
+    inputs. The queue is ordered longest first and the tails compacted from 512 and 256
+    trajectories on here (the defaults are 2048), so that one device's run and the shares of 2
+    devices take those paths and the shares of 4 do not. ``RBO_TEST_EAGER=1`` also runs the
+    sharded batch under ``jax.vmap`` without ``jit``, and one with a time grid a trajectory."""
+    import importlib
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    import rbo_jax as rbo
+
+    importlib.import_module("rbo_jax.ensemble._queue").ORDER_FROM = 512
+    importlib.import_module("rbo_jax.ensemble._solve").COMPACT_FROM = 256
+    k = jnp.array([0.0, 0.0, 1.0])
+
+    def final(M, c, ts):
+        model = rbo.nikolai_model(M, c, 2.0, A3=0.5)
+        theta0 = (M / 2.0) * k + jnp.array([1e-3, 0.0, 0.0])
+        traj = rbo.fast_simulate(
+            model, theta0, jnp.zeros(3), ts, rtol=1e-9, atol=1e-10, throw=False
+        )
+        return traj.theta, traj.Omega, traj.num_steps
+
+    M, c = (a.ravel() for a in np.meshgrid(np.linspace(0.05, 0.8, 30), np.linspace(0.5, 2.0, 41)))
+    ts = jnp.array([0.0, 7.5, 30.0])
+    mesh = Mesh(np.array(jax.devices()), ("batch",))
+    n = len(jax.devices())
+    cut = len(M) // (16 * n) * (16 * n)  # a multiple of every device count tested
+    run = jax.jit(jax.vmap(final, in_axes=(0, 0, None)))
+    one = run(jnp.asarray(M), jnp.asarray(c), ts)
+    spread = NamedSharding(mesh, P("batch"))
+    args = (jax.device_put(M[:cut], spread), jax.device_put(c[:cut], spread), ts)
+    compiled = run.lower(*args).compile()
+    sharded = compiled(*args)
+    everywhere = NamedSharding(mesh, P())
+    padded = run(jax.device_put(M, everywhere), jax.device_put(c, everywhere), ts)
+    runs = {"sharded": [a[:cut] for a in one], "padded": list(one)}
+    got = {"sharded": sharded, "padded": padded}
+    if os.environ.get("RBO_TEST_EAGER"):
+        eager = jax.vmap(final, in_axes=(0, 0, None))
+        got["eager"] = eager(jax.device_put(M[:cut], spread), jax.device_put(c[:cut], spread), ts)
+        runs["eager"] = runs["sharded"]
+        grids = jnp.asarray(np.linspace(0.0, 1.0, cut)[:, None] * 2.0) + ts[None, :]
+        per = jax.jit(jax.vmap(final))
+        got["per-trajectory times"] = per(
+            jax.device_put(M[:cut], spread), jax.device_put(c[:cut], spread), grids
+        )
+        runs["per-trajectory times"] = per(jnp.asarray(M[:cut]), jnp.asarray(c[:cut]), grids)
+    return {
+        "devices": n,
+        "collectives": collectives(compiled.as_text()),
+        "points": [len(M), cut],
+        "differ": sorted(
+            name
+            for name in got
+            if not all(np.array_equal(a, b) for a, b in zip(got[name], runs[name]))
+        ),
+        "spread": {name: len(out[0].sharding.device_set) for name, out in got.items()},
+        "finite": bool(np.isfinite(np.asarray(one[0])).all()),
+        "steps": int(np.asarray(one[2]).sum()),
+    }
+
+
 if __name__ == "__main__":
     what, out = sys.argv[1], sys.argv[2]
     report = globals()[what]()

@@ -158,6 +158,16 @@ def test_fast_simulate_takes_scipys_steps(smoke_output):
     assert max(acc) < 1e-6
 
 
+@pytest.mark.slow  # integration: the benchmarks' smoke runs
+def test_the_sharded_vmap_row_gives_the_one_core_bits(smoke_output):
+    """``jit(vmap(fast_simulate))`` on a ``NamedSharding`` over every device, timed beside
+    numba's ``prange``, ends with the final states of the one-core process, bit for bit."""
+    part = smoke_output.split("=== simulate ===")[1].split("===")[0]
+    if "on a NamedSharding" not in part:
+        pytest.skip("one core, or numba (the `bench` extra) not installed: no such row")
+    assert "final states the one-core run's bits: True" in part
+
+
 def _latency_module(monkeypatch):
     import importlib.util
 

@@ -152,6 +152,18 @@ def test_first_lyapunov_coefficient_is_the_decay_at_the_hopf_point(hopf):
     assert re_c1 == pytest.approx(float(hopf.frequency) * float(hopf.first_lyapunov), rel=1e-3)
 
 
+def test_hopf_point_from_a_guess_at_the_crossing_itself():
+    """A guess on the crossing (a neighbour's Hopf point in a flutter map, where M_cr does not
+    depend on A3): the follower moment moves the spectrum only through its equilibrium, so the
+    start must move the equilibrium with the parameter to tell the crossing pair from the
+    damped ones; it once picked a damped pair and failed or landed on -M_cr."""
+    M_cr = critical_moment(0.1)
+    for A3 in (0.5, 1.0, 2.0):
+        h = rbo.hopf_point(nikolai_A3, {"b": 0.1, "A3": A3}, "M", M_cr)
+        assert bool(h.ok), (A3, h.status)
+        assert float(h.value) == pytest.approx(M_cr, rel=1e-12)
+
+
 def test_hopf_value_gradient_matches_finite_differences(hopf):
     """jax.grad and jax.jacfwd of the critical moment with respect to b (implicit function
     theorem at the converged Hopf system) against central differences of the closed form

@@ -173,3 +173,32 @@ def test_sweeps_on_8_and_16_devices_end_with_the_same_bits(tmp_path):
     for key, share in report["shares"].items():
         devices, chunk = (int(x) for x in key.split("/"))
         assert share % 16 == 0 and share * devices >= chunk > (share - 16) * devices
+
+
+def _sharded_vmap(tmp_path, devices, **env):
+    report = _run(tmp_path, "sharded_vmap", timeout=400, RBO_JAX_CPU_DEVICES=str(devices), **env)
+    assert report["devices"] == devices
+    assert report["finite"] and report["differ"] == []
+    assert all(n == devices for n in report["spread"].values()), report["spread"]
+    # each device runs its own lanes: the collectives (the inputs dealt to the devices, the
+    # outputs gathered back) lie outside every loop; GSPMD's partition of the lanes' loop had
+    # an all-reduce in it, and ran every lane on every device
+    assert report["collectives"]["loops"] > 0 and report["collectives"]["in_loops"] == 0
+    return report
+
+
+def test_jit_vmap_on_a_named_sharding_runs_a_share_on_each_device(tmp_path):
+    """Issue 49 G: ``jax.jit(jax.vmap(fast_simulate))`` of a batch sharded over 2 CPU devices
+    runs each device's share on its own refilled lanes, and gives the one-device bits; so does
+    a batch replicated on the devices whose size is not a multiple of them (padded)."""
+    _sharded_vmap(tmp_path, 2)
+
+
+@pytest.mark.slow  # cost: ~60 s a process, five programs compiled, one of them eagerly
+@pytest.mark.parametrize("devices", [1, 4])
+def test_jit_vmap_on_a_named_sharding_on_1_and_4_devices_and_without_jit(tmp_path, devices):
+    """The same on 4 devices (the shares not ordered longest first, the one-device run
+    ordered) and on a mesh of one device (the batch as before), and sharded inputs under
+    ``jax.vmap`` without ``jit``, and with a time grid per trajectory (lockstep loops, one
+    device's share each)."""
+    _sharded_vmap(tmp_path, devices, RBO_TEST_EAGER="1")

@@ -18,9 +18,10 @@ import scipy.integrate
 from scipy.integrate._ivp import dop853_coefficients as scipy_tableau
 
 from rbo_jax import ensemble, fast_simulate
-from rbo_jax.ensemble import _dop853, _tableau
 from rbo_jax.foundations import BarrierFoundation, QuadraticFoundation
 from rbo_jax.inertia import transversely_isotropic_inertia
+from rbo_jax.integrate import dop853 as _dop853
+from rbo_jax.integrate import tableau as _tableau
 from rbo_jax.loads import Friction, SemiTangentialMoment
 from rbo_jax.model import RigidBodyOscillator
 from rbo_jax.simulate import SolveStatus, simulate
@@ -65,7 +66,7 @@ def scipy_dop853(model, y0, ts, rtol, atol, sample=True):
 
 
 def test_tableau_is_scipys():
-    """The literal tableau of ``ensemble._tableau`` is SciPy's ``dop853_coefficients``."""
+    """The literal tableau of ``integrate.tableau`` is SciPy's ``dop853_coefficients``."""
     np.testing.assert_array_equal(np.asarray(_tableau.C), scipy_tableau.C)
     for s in range(scipy_tableau.A.shape[0]):
         np.testing.assert_array_equal(np.asarray(_tableau.A[s]), scipy_tableau.A[s])

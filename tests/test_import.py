@@ -111,7 +111,7 @@ def test_every_public_name_resolves_in_a_fresh_process():
 
 
 def test_the_namespace_in_this_process():
-    assert rbo_jax.simulate is sys.modules["rbo_jax.simulate"].simulate
+    assert rbo_jax.simulate is sys.modules["rbo_jax.motion"].simulate  # every model's front door
     assert rbo_jax.SolveStatus is sys.modules["rbo_jax.trajectory"].SolveStatus
     assert isinstance(rbo_jax.__version__, str) and rbo_jax.__version__
     assert {"sweep", "fit", "RigidBodyOscillator", "__version__"} <= set(dir(rbo_jax))

@@ -60,10 +60,10 @@ def _sqrt(t):
 
 
 MP_COEFFS = {
-    "_sinc": lambda t: mp.sin(_sqrt(t)) / _sqrt(t),  # sin θ/θ (4.3)
-    "_cosc": lambda t: (1 - mp.cos(_sqrt(t))) / t,  # (1 − cos θ)/θ² (4.3), (4.20)
+    "sinc": lambda t: mp.sin(_sqrt(t)) / _sqrt(t),  # sin θ/θ (4.3)
+    "cosc": lambda t: (1 - mp.cos(_sqrt(t))) / t,  # (1 − cos θ)/θ² (4.3), (4.20)
     "_sinc3": lambda t: (_sqrt(t) - mp.sin(_sqrt(t))) / _sqrt(t) ** 3,  # (θ − sin θ)/θ³ (4.20)
-    "_gcoef": lambda t: (1 - _sqrt(t) / 2 * mp.cot(_sqrt(t) / 2)) / t,  # (1 − g)/θ² (4.11)
+    "gcoef": lambda t: (1 - _sqrt(t) / 2 * mp.cot(_sqrt(t) / 2)) / t,  # (1 − g)/θ² (4.11)
     "_cos": lambda t: mp.cos(_sqrt(t)),
 }
 
@@ -85,7 +85,7 @@ def mp_matrices(theta):
     with mp.workdps(REF_DPS):
         th = [mp.mpf(float(x)) for x in theta]
         tm = th[0] ** 2 + th[1] ** 2 + th[2] ** 2
-        coeff = {name: MP_COEFFS[name](tm) for name in ("_sinc", "_cosc", "_sinc3", "_gcoef")}
+        coeff = {name: MP_COEFFS[name](tm) for name in ("sinc", "cosc", "_sinc3", "gcoef")}
         R = mp.matrix([[0, -th[2], th[1]], [th[2], 0, -th[0]], [-th[1], th[0], 0]])
         R2 = mp.matrix(3, 3)
         for i in range(3):
@@ -93,9 +93,9 @@ def mp_matrices(theta):
                 R2[i, j] = th[i] * th[j] - (tm if i == j else 0)
         E = mp.eye(3)
         out = {
-            "turn_tensor": E + coeff["_sinc"] * R + coeff["_cosc"] * R2,
-            "integrating_tensor": E - R / 2 + coeff["_gcoef"] * R2,
-            "integrating_tensor_inv": E + coeff["_cosc"] * R + coeff["_sinc3"] * R2,
+            "turn_tensor": E + coeff["sinc"] * R + coeff["cosc"] * R2,
+            "integrating_tensor": E - R / 2 + coeff["gcoef"] * R2,
+            "integrating_tensor_inv": E + coeff["cosc"] * R + coeff["_sinc3"] * R2,
         }
         with mp.workdps(MAT_DPS):
             return {k: [[+v[i, j] for j in range(3)] for i in range(3)] for k, v in out.items()}
@@ -189,7 +189,7 @@ def coefficient_on_grid(name):
 
 
 @pytest.mark.parametrize("order", [0, 1, 2])
-@pytest.mark.parametrize("name", ["_sinc", "_cosc", "_sinc3", "_gcoef"])
+@pytest.mark.parametrize("name", ["sinc", "cosc", "_sinc3", "gcoef"])
 def test_coefficient_accuracy(name, order):
     """sin θ/θ, (1 − cos θ)/θ² (4.3), (θ − sin θ)/θ³ (4.20), (1 − g)/θ² (4.11) and their first and
     second derivatives in t (jax.grad) against mpmath, elementwise relative error, no dip at the

@@ -492,6 +492,23 @@ def test_fits_recover_the_stiffnesses_from_a_dispersion_curve_and_a_field():
     assert fit.converged and float(fit.rms) < 1e-12
     np.testing.assert_allclose([fit.params[k] for k in ("c", "kb", "kt")], [C, KB, KT], rtol=1e-10)
 
+    def branches(c, kb, kt):
+        s2 = np.sin(qs / 2) ** 2
+        return np.stack([np.sqrt((c + 4 * kb * s2) / A1), np.sqrt((D + 4 * kt * s2) / A3)], 1)
+
+    # the standard errors, against sigma (J^T J)^-1/2 of the closed form's Jacobian J
+    sigma, truth = 1e-3, np.array([C, KB, KT])
+    noisy = branches(*truth) + sigma * np.random.default_rng(4).normal(size=(9, 2))
+    fit = L.fit_dispersion(
+        lattice, {"c": 1.5, "kb": 0.3, "kt": 1.0}, qs, noisy, branches=[0, 2], theta_eq=np.zeros(3)
+    )
+    h = 1e-6 * np.eye(3)
+    J = np.stack([(branches(*(truth + e)) - branches(*(truth - e))).ravel() / 2e-6 for e in h], 1)
+    expected = sigma * np.sqrt(np.diag(np.linalg.inv(J.T @ J)))
+    stderr = np.array([fit.stderr[k] for k in ("c", "kb", "kt")])
+    assert fit.converged and np.all((stderr > expected / 1.5) & (stderr < 1.5 * expected))
+    assert np.all(np.abs(np.array([fit.params[k] for k in ("c", "kb", "kt")]) - truth) < 4 * stderr)
+
     rng = np.random.default_rng(9)
     th0, Om0 = rng.normal(size=(8, 3)) * 0.3, rng.normal(size=(8, 3)) * 0.5
     ts = 0.6 * TS

@@ -244,6 +244,18 @@ def test_abscissa_changes_sign_at_the_critical_load(critical):
     assert float(_abscissa(B_AXIS[-1], 2.0)) < 0
 
 
+def test_map_classification_agrees_with_the_critical_load(critical):
+    """Issue 49 F: at every point of a stability map (b, M) the classification (classify's
+    test) is unstable exactly where M lies past the critical load of the same test."""
+    M = np.linspace(0.05, 1.95, 9)
+    ds = rbo.stability_map(damped_model, {"b": B_AXIS, "M": M}, theta_eq_fn=damped_theta_eq)
+    assert np.all(ds["equilibrium_status"].values == 0)
+    names = np.array(ds["kind"].attrs["flag_meanings"].split(), dtype=object)
+    unstable = np.isin(names[ds["kind"].values], ["flutter", "divergence"])
+    assert unstable.any() and not unstable.all()
+    np.testing.assert_array_equal(unstable, M[None, :] > critical.values[:, None])
+
+
 # ---------------------------------------------------------------------------------------------
 # Input validation
 # ---------------------------------------------------------------------------------------------

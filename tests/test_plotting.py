@@ -295,6 +295,7 @@ def _hopf_curve(cs, bs):
             "first_lyapunov": (dims, zeros - 0.1),
             "transversality": (dims, zeros + 0.25),
             "theta": (dims + ("component",), np.zeros(M.shape + (3,))),
+            "num_steps": (dims, np.full(M.shape, 3, np.int32)),  # as continue_hopf has them
             "status": (dims, np.zeros(M.shape, np.int8)),
         },
         coords={"c": cs, "b": bs, "component": ["x", "y", "z"]},

@@ -261,6 +261,7 @@ def _simulate_program_text(model, throw=False, **options):
 
     simulate = importlib.import_module("rbo_jax.simulate")
     from rbo_jax._validation import checked_inputs_trusted
+    from rbo_jax.integrate import diffeq
     from rbo_jax.trajectory import prepare_inputs
 
     trusted = options.pop("trusted", True)
@@ -285,7 +286,7 @@ def _simulate_program_text(model, throw=False, **options):
     jax.clear_caches()  # trace again (the context is read at trace time)
     with checked_inputs_trusted(
         trusted
-        and simulate._trusted(model, args["solver"], args["adjoint"], args["stepsize_controller"])
+        and diffeq.trusted(model, args["solver"], args["adjoint"], args["stepsize_controller"])
     ):
         return simulate._solve_compiled.lower(
             model,

@@ -293,7 +293,7 @@ def test_tangent_forces_equal_the_autodiff_forces():
     ``body_forces`` (``forces_tangent`` at the composed turns) against ``forces_at`` at nonzero
     increments, with their derivatives along the increments (1e-10)."""
     from rbo_jax import QuadraticFoundation
-    from rbo_jax.lattice import _rod_field
+    from rbo_jax.models.rod import _field as _rod_field
 
     rod = lattice.rod(
         5, 1.0, bending=1.3, torsion=0.8, shear=40.0, stretch=90.0, mass=1.0, rotary=2e-2,

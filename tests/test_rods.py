@@ -21,7 +21,8 @@ from helpers import ziegler_pendulum as _ziegler
 
 import rbo_jax
 from rbo_jax import lattice
-from rbo_jax.lattice import _banded, _rod_field
+from rbo_jax.models.rod import _field as _rod_field
+from rbo_jax.solvers import _linear as _banded
 
 STIFF = 1e6  # shear and stretch stiffness: an inextensible, unshearable rod to ~1e-6
 

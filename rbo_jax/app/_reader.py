@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -30,6 +29,36 @@ class Ref:
     """A parameter slot filled from the sweep axis ``name``."""
 
     name: str
+
+
+def resolve(x, point: Mapping):
+    """A slot's value at ``point`` (``{axis name: value}``): the axis's value for a
+    :class:`Ref`, the number itself otherwise."""
+    return point[x.name] if isinstance(x, Ref) else x
+
+
+def plain(x):
+    """A slot in the table form: the axis name of a :class:`Ref`, a tuple as a list."""
+    if isinstance(x, tuple):
+        return [plain(v) for v in x]
+    return x.name if isinstance(x, Ref) else x
+
+
+def shown(x) -> str:
+    """A slot for people: ``<name>`` of a :class:`Ref`, a number as ``:g``."""
+    return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
+
+
+def references(slots) -> tuple[str, ...]:
+    """The axis names of the :class:`Ref` among ``slots`` (tuples searched too), in order of
+    first appearance."""
+    found: dict[str, None] = {}
+    for x in slots:
+        if isinstance(x, tuple):
+            found |= dict.fromkeys(references(x))
+        elif isinstance(x, Ref):
+            found[x.name] = None
+    return tuple(found)
 
 
 def _fmt(x) -> str:
@@ -67,6 +96,17 @@ class Reader:
         for k in required:
             if k not in table:
                 self.fail(where, f"missing required key {k!r}.")
+
+    def kind(self, table, kinds: Sequence[str], where: str) -> str:
+        """The ``type`` of the table of a term or a load, one of ``kinds``."""
+        if not isinstance(table, Mapping):
+            self.fail(where, f"must be a table, got {table!r}.")
+        kind = table.get("type")
+        if not isinstance(kind, str) or kind not in kinds:
+            self.fail(
+                f"{where} type", f"must be one of {', '.join(map(repr, kinds))}; got {kind!r}."
+            )
+        return kind
 
     def _axis(self, name: str, key: str, label: str, requirement: Requirement) -> Ref:
         if name not in self.axes:
@@ -151,7 +191,3 @@ class Reader:
                 f"{where} {key}", f"must be one of {', '.join(map(repr, choices))}; got {v!r}."
             )
         return v
-
-
-def finite_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)

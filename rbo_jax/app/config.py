@@ -23,19 +23,20 @@ from typing import Any
 import jax
 import numpy as np
 
-from .._validation import POSITIVE
+from .._validation import FINITE, POSITIVE
 from ..batch import POINT_DIM, summary_line, sweep
 from ..plotting import plot_sweep, pyplot
 from ._cluster import dask_client
 from ._outputs import save_figure
 from ._reader import Reader, SpecError
-from ._rod_sweep import ROD, make_rod_quantity, read_rod_settings
 from .quantities import (
     DEFAULT_PLOT,
     INTEGRATORS,
     LATTICE,
     OUTPUTS,
     QUANTITIES,
+    ROD,
+    SIMULATION,
     Settings,
     make_quantity,
 )
@@ -56,7 +57,20 @@ _TABLES = (
     "equilibrium",
     "stability",
 )
-_EQUILIBRIUM_ONLY = ("spectral_abscissa", *LATTICE)  # no simulation: no [initial], [solver]
+# the quantities that read a table; the others ([model], [equilibrium]) every quantity but the
+# rods' reads
+_USED_BY = {
+    "rod": ROD,
+    "stability": ROD,
+    "lattice": LATTICE,
+    "initial": SIMULATION,
+    "solver": SIMULATION,
+}
+# what a required table holds, for the message that asks for it
+_CONTENTS = {
+    "rod": "n, length, bending, ..., loads",
+    "lattice": "kind, n or shape, periodic, kappa_b, kappa_t, q",
+}
 
 
 class ConfigError(ValueError):
@@ -144,26 +158,51 @@ def _read_axes(cfg: Mapping) -> tuple[str, dict]:
     return key, values
 
 
+def _refuse_unused(r: Reader, cfg: Mapping, name: str, tables) -> None:
+    """Each of ``tables`` that the configuration has must be one that quantity ``name`` reads."""
+    for table in tables:
+        users = _USED_BY.get(table, tuple(q for q in QUANTITIES if q not in ROD))
+        if table not in cfg or name in users:
+            continue
+        if name in ROD:
+            r.fail(f"[{table}]", f"is not used by quantity {name!r} (of a [rod]); remove it.")
+        if table in ("rod", "stability", "lattice"):
+            r.fail(
+                f"[{table}]",
+                f"is only used by the quantities {', '.join(users)}; quantity {name!r} is of "
+                "one body.",
+            )
+        r.fail(f"[{table}]", f"is not used by quantity {name!r}; remove it.")
+
+
+def _required(r: Reader, cfg: Mapping, name: str, table: str) -> Mapping:
+    if table not in cfg:
+        r.fail(
+            "config",
+            f"missing required key {table!r}: quantity {name!r} needs a [{table}] table "
+            f"({_CONTENTS[table]}).",
+        )
+    return cfg[table]
+
+
+def _only_for(r: Reader, table: Mapping, key: str, where: str, name: str, user: str) -> None:
+    if key in table and name != user:
+        r.fail(f"{where} {key}", f"is only used by quantity {user!r}.")
+
+
 def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
+    if name in ROD:
+        return _read_stability(r, cfg, name)
     eq = r.table(cfg, "equilibrium", "config", required=False)
     r.keys(eq, ("theta_guess", "classify_rtol"), "[equilibrium]")
     guess = r.vector(eq, "theta_guess", "[equilibrium]", default=(0.0, 0.0, 0.0))
-    if name in _EQUILIBRIUM_ONLY:
-        for section in ("initial", "solver"):
-            if section in cfg:
-                r.fail(f"[{section}]", f"is not used by quantity {name!r}; remove it.")
-        if name != "spectral_abscissa":
-            if "classify_rtol" in eq:
-                r.fail(
-                    "[equilibrium] classify_rtol", "is only used by quantity 'spectral_abscissa'."
-                )
-            return Settings(theta_guess=guess)
+    _refuse_unused(r, cfg, name, ("initial", "solver"))
+    _only_for(r, eq, "classify_rtol", "[equilibrium]", name, "spectral_abscissa")
+    if name not in SIMULATION:
         crtol = r.number(
             eq, "classify_rtol", "[equilibrium]", default=1e-9, requirement=POSITIVE, axis=False
         )
         return Settings(theta_guess=guess, classify_rtol=crtol)
-    if "classify_rtol" in eq:
-        r.fail("[equilibrium] classify_rtol", "is only used by quantity 'spectral_abscissa'.")
     init = r.table(cfg, "initial", "config", required=False)
     r.keys(init, ("theta0", "Omega0", "about_equilibrium"), "[initial]")
     about_eq = r.boolean(init, "about_equilibrium", "[initial]", default=False)
@@ -192,6 +231,40 @@ def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
         integrator=r.string(
             solver, "integrator", where, default="fast_simulate", choices=INTEGRATORS
         ),
+    )
+
+
+def _read_stability(r: Reader, cfg: Mapping, name: str) -> Settings:
+    """The ``[stability]`` table of a rod quantity (:mod:`rbo_jax.app.quantities`): ``rtol``
+    (default 1e-9; a small damping needs a smaller one, e.g. 1e-14, see
+    :func:`rbo_jax.lattice.critical_load`), ``steps`` (Newton's load steps, default 1); for
+    ``rod_critical_load`` also ``load_max`` (required), ``load_min`` (0), ``n_scan`` (32),
+    ``n_bisect`` (40)."""
+    t = r.table(cfg, "stability", "config", required=name == "rod_critical_load")
+    where = "[stability]"
+    critical = ("load_max", "load_min", "n_scan", "n_bisect")
+    if name == "rod_critical_load":
+        r.keys(t, ("rtol", "steps", *critical), where, required=("load_max",))
+    else:
+        for k in critical:
+            _only_for(r, t, k, where, name, "rod_critical_load")
+        r.keys(t, ("rtol", "steps"), where)
+    s = Settings(
+        classify_rtol=r.number(t, "rtol", where, default=1e-9, requirement=POSITIVE, axis=False),
+        steps=r.integer(t, "steps", where, default=1),
+    )
+    if name != "rod_critical_load":
+        return s
+    lo = r.number(t, "load_min", where, default=0.0, requirement=FINITE, axis=False)
+    hi = r.number(t, "load_max", where, requirement=FINITE, axis=False)
+    if not hi > lo:
+        r.fail(f"{where} load_max", f"must exceed load_min ({lo:g}), got {hi:g}.")
+    return dataclasses.replace(
+        s,
+        load_max=hi,
+        load_min=lo,
+        n_scan=r.integer(t, "n_scan", where, default=32),
+        n_bisect=r.integer(t, "n_bisect", where, default=40, minimum=0),
     )
 
 
@@ -240,46 +313,20 @@ def _read_sweep_table(r: Reader, cfg: Mapping) -> dict:
     return sw
 
 
-def _read_lattice(r: Reader, cfg: Mapping, name: str) -> LatticeSpec | None:
+def _read_model(r: Reader, cfg: Mapping, name: str):
+    """``(model, lattice)`` of the quantity: the :class:`RodSpec` of ``[rod]`` and None, or the
+    :class:`ModelSpec` of ``[model]`` and, for the Bloch quantities, the :class:`LatticeSpec`
+    of ``[lattice]`` (else None)."""
+    _refuse_unused(r, cfg, name, ("rod", "stability"))
+    if name in ROD:
+        table = _required(r, cfg, name, "rod")
+        _refuse_unused(r, cfg, name, ("model", "lattice", "initial", "solver", "equilibrium"))
+        return RodSpec.from_mapping(table, reader=r), None
+    model = ModelSpec.from_mapping(r.table(cfg, "model", "config", required=True), reader=r)
+    _refuse_unused(r, cfg, name, ("lattice",))
     if name not in LATTICE:
-        if "lattice" in cfg:
-            r.fail(
-                "[lattice]",
-                f"is only used by the quantities {', '.join(LATTICE)}; "
-                f"quantity {name!r} is of one body.",
-            )
-        return None
-    if "lattice" not in cfg:
-        r.fail(
-            "config",
-            f"missing required key 'lattice': quantity {name!r} needs a [lattice] "
-            "table (kind, n or shape, periodic, kappa_b, kappa_t, q).",
-        )
-    return LatticeSpec.from_mapping(cfg["lattice"], reader=r)
-
-
-def _read_rod(r: Reader, cfg: Mapping, name: str):
-    """``(RodSpec, RodSettings)`` of a rod quantity; ``None`` (and no ``[rod]``,
-    ``[stability]``) for the others."""
-    if name not in ROD:
-        for table in ("rod", "stability"):
-            if table in cfg:
-                r.fail(
-                    f"[{table}]",
-                    f"is only used by the quantities {', '.join(ROD)}; quantity {name!r} is of "
-                    "one body.",
-                )
-        return None
-    if "rod" not in cfg:
-        r.fail(
-            "config",
-            f"missing required key 'rod': quantity {name!r} needs a [rod] table (n, length, "
-            "bending, ..., loads).",
-        )
-    for table in ("model", "lattice", "initial", "solver", "equilibrium"):
-        if table in cfg:
-            r.fail(f"[{table}]", f"is not used by quantity {name!r} (of a [rod]); remove it.")
-    return RodSpec.from_mapping(cfg["rod"], reader=r), read_rod_settings(r, cfg, name)
+        return model, None
+    return model, LatticeSpec.from_mapping(_required(r, cfg, name, "lattice"), reader=r)
 
 
 def _check_table_names(cfg: Mapping):
@@ -308,7 +355,7 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
     ``[initial]`` (``theta0``, ``Omega0``, ``about_equilibrium``); ``[equilibrium]``
     (``theta_guess``, ``classify_rtol``). The rod quantities (``rod_stability``,
     ``rod_critical_load``) take a ``[rod]`` table (:class:`~rbo_jax.app.rodspec.RodSpec`) and
-    a ``[stability]`` table (:mod:`rbo_jax.app._rod_sweep`) instead of ``[model]`` and the
+    a ``[stability]`` table (:mod:`rbo_jax.app.quantities`) instead of ``[model]`` and the
     others.
 
     Every number of ``[model]``, ``[initial]``, ``[solver]`` and ``[equilibrium]`` may instead be
@@ -323,26 +370,19 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
         r = Reader(values)
         sw = _read_sweep_table(r, cfg)
         name = sw["quantity"]
-        rod = _read_rod(r, cfg, name)
-        model = lattice = None
-        if rod is None:
-            model = ModelSpec.from_mapping(r.table(cfg, "model", "config", required=True), reader=r)
-            lattice = _read_lattice(r, cfg, name)
-            settings = _read_settings(r, cfg, name)
+        model, lattice = _read_model(r, cfg, name)
+        settings = _read_settings(r, cfg, name)
         unused = [n for n in values if n not in r.used]
         if unused:
             r.fail(
                 f"[{key}] {unused[0]}",
                 "this axis is not used by any parameter; refer to it "
                 f'by name, e.g. c = "{unused[0]}" in '
-                + ("[rod]." if rod is not None else "[model.foundation]."),
+                + ("[rod]." if name in ROD else "[model.foundation]."),
             )
     except SpecError as e:
         raise ConfigError(f"{path}: {e}") from None
-    if rod is None:
-        quantity, dims = make_quantity(name, model, settings, lattice)
-    else:
-        quantity, dims = make_rod_quantity(name, *rod)
+    quantity, dims = make_quantity(name, model, settings, lattice)
     output = path.parent / sw["output"]
     png = path.parent / sw["png"] if "png" in sw else output.with_suffix(".png")
     return SweepConfig(
@@ -357,9 +397,9 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
         plot=sw["plot"],
         dims=dims,
         canonical=json.dumps(cfg, sort_keys=True),
-        model=model,
+        model=None if name in ROD else model,
         lattice=lattice,
-        rod=None if rod is None else rod[0],
+        rod=model if name in ROD else None,
     )
 
 

@@ -1,5 +1,7 @@
 r"""The quantities of ``rbo-jax sweep``: functions of one parameter point, composed from library
-calls on a :class:`~rbo_jax.app.spec.ModelSpec`.
+calls on a model described as data: a :class:`~rbo_jax.app.spec.ModelSpec` (the ``[model]``
+table), with a :class:`~rbo_jax.app.spec.LatticeSpec` for the Bloch quantities, or a
+:class:`~rbo_jax.app.rodspec.RodSpec` (the ``[rod]`` table).
 
 - ``final_state``: $\theta(t_1)$, $\Omega(t_1)$ of a simulation (and the number of steps);
   simulations use :func:`rbo_jax.fast_simulate` (DOP853, the batch on refilled lanes), or
@@ -16,12 +18,25 @@ calls on a :class:`~rbo_jax.app.spec.ModelSpec`.
 - ``bloch_frequencies``: the three non-negative frequencies $\mathrm{Im}\,\lambda(q)$ of the
   branches (the three largest, in increasing order; at rest $\omega_k(q) \ge 0$), with
   ``bloch_growth``;
-- ``rod_stability``, ``rod_critical_load``: of a ``[rod]`` (:mod:`rbo_jax.app._rod_sweep`), the
-  stability of its equilibrium and its critical load factor.
+- ``rod_stability``: :func:`rbo_jax.equilibrium_stability` of the rod's equilibrium under its
+  loads (Newton in ``[stability] steps`` load steps, the eigenvalues $p$ of the whole
+  linearisation): ``spectral_abscissa`` $\max\mathrm{Re}\,p$, ``frequency``
+  $|\mathrm{Im}\,p|$ of that eigenvalue (the flutter frequency where it grows; 0 at
+  divergence), ``stable`` (an equilibrium found and no unstable root by
+  :func:`rbo_jax.classify` with ``[stability] rtol``: the test of
+  :func:`rbo_jax.lattice.critical_load`) and ``tip`` (the tip's position at the equilibrium);
+- ``rod_critical_load``: the load factor $\lambda_{cr}$ of
+  :func:`rbo_jax.lattice.critical_load`: the smallest $\lambda \in$ (``load_min``,
+  ``load_max``] at which the equilibrium of the rod with every load times $\lambda$ is
+  unstable; ``inf`` where it stays stable, NaN where the stable interval ends at an equilibrium
+  that cannot be computed. With a unit load (``f = [0, 0, -1]``) it is the critical load
+  itself: Beck's flutter load $20.05\,EI/L^2$, the Ziegler paradox of a small damping (about
+  $10.94\,EI/L^2$), Pflüger's load falling with the tip mass.
 
 Every quantity returns its values and a status: the solver's
 (:class:`rbo_jax.SolveStatus`) for the simulations, the equilibrium's
-(:class:`rbo_jax.EquilibriumStatus`) for the others (values NaN where Newton failed).
+(:class:`rbo_jax.EquilibriumStatus`) for the others (values NaN where Newton failed;
+``rod_critical_load``'s is always ``successful``, its NaN says it).
 """
 
 from __future__ import annotations
@@ -32,50 +47,75 @@ from typing import Any
 import jax.numpy as jnp
 
 from ..ensemble import fast_simulate
-from ..maps import equilibrium_stability
 from ..simulate import simulate
-from ..stability import EquilibriumStatus, solve_equilibrium
-from ._reader import Ref
-from ._rod_sweep import ROD_DEFAULT_PLOT, ROD_OUTPUTS, ROD_QUANTITIES
-from .spec import LatticeSpec, ModelSpec
+from ..stability import (
+    EquilibriumStatus,
+    critical_load_along,
+    equilibrium_stability,
+    is_unstable,
+    solve_equilibrium,
+)
+from ._reader import resolve
 
-QUANTITIES = {
-    "final_state": "theta(t1) and Omega(t1) of simulate (and the number of steps)",
-    "energy_drift": "max_t |E(t) - E(0)| / |E(0)| over `samples` times of simulate",
-    "max_deviation": "max_t |theta(t) - theta(0)| over `samples` times of simulate",
-    "spectral_abscissa": "max Re p of the spectrum at the equilibrium (Newton from theta_guess)",
-    "bloch_growth": "max Re lambda(q) of the Bloch waves of the [lattice] at its uniform "
-    "equilibrium",
-    "bloch_frequencies": "the three non-negative frequencies Im lambda(q) of the Bloch waves of "
-    "the [lattice] (and bloch_growth)",
-    **ROD_QUANTITIES,
+# name: (what it computes, its outputs: the first one is drawn by default)
+_TABLE = {
+    "final_state": (
+        "theta(t1) and Omega(t1) of simulate (and the number of steps)",
+        ("theta", "Omega", "num_steps"),
+    ),
+    "energy_drift": (
+        "max_t |E(t) - E(0)| / |E(0)| over `samples` times of simulate",
+        ("energy_drift", "num_steps"),
+    ),
+    "max_deviation": (
+        "max_t |theta(t) - theta(0)| over `samples` times of simulate",
+        ("max_deviation", "num_steps"),
+    ),
+    "spectral_abscissa": (
+        "max Re p of the spectrum at the equilibrium (Newton from theta_guess)",
+        ("spectral_abscissa", "kind", "theta_eq"),
+    ),
+    "bloch_growth": (
+        "max Re lambda(q) of the Bloch waves of the [lattice] at its uniform equilibrium",
+        ("bloch_growth", "theta_eq"),
+    ),
+    "bloch_frequencies": (
+        "the three non-negative frequencies Im lambda(q) of the Bloch waves of the [lattice] "
+        "(and bloch_growth)",
+        ("bloch_frequencies", "bloch_growth", "theta_eq"),
+    ),
+    "rod_stability": (
+        "the spectral abscissa (and stable flag, flutter frequency, tip) of the [rod]'s "
+        "equilibrium",
+        ("spectral_abscissa", "stable", "frequency", "tip"),
+    ),
+    "rod_critical_load": (
+        "the load factor at which the [rod]'s equilibrium loses stability "
+        "(rbo_jax.lattice.critical_load)",
+        ("critical_load",),
+    ),
 }
-OUTPUTS = {
-    "final_state": ("theta", "Omega", "num_steps"),
-    "energy_drift": ("energy_drift", "num_steps"),
-    "max_deviation": ("max_deviation", "num_steps"),
-    "spectral_abscissa": ("spectral_abscissa", "kind", "theta_eq"),
-    "bloch_growth": ("bloch_growth", "theta_eq"),
-    "bloch_frequencies": ("bloch_frequencies", "bloch_growth", "theta_eq"),
-    **ROD_OUTPUTS,
-}
-DEFAULT_PLOT = {
-    "final_state": "theta",
-    "energy_drift": "energy_drift",
-    "max_deviation": "max_deviation",
-    "spectral_abscissa": "spectral_abscissa",
-    "bloch_growth": "bloch_growth",
-    "bloch_frequencies": "bloch_frequencies",
-    **ROD_DEFAULT_PLOT,
-}
+QUANTITIES = {name: text for name, (text, _) in _TABLE.items()}
+OUTPUTS = {name: outputs for name, (_, outputs) in _TABLE.items()}
+DEFAULT_PLOT = {name: outputs[0] for name, outputs in OUTPUTS.items()}
 SIMULATION = ("final_state", "energy_drift", "max_deviation")
 LATTICE = ("bloch_growth", "bloch_frequencies")
+ROD = ("rod_stability", "rod_critical_load")
 INTEGRATORS = {"fast_simulate": fast_simulate, "simulate": simulate}
+# the dimensions of the outputs with more than one value per point
+_DIMS = {
+    "theta": ("component",),
+    "Omega": ("component",),
+    "theta_eq": ("component",),
+    "tip": ("component",),
+    "bloch_frequencies": ("branch",),
+}
 
 
 @dataclasses.dataclass(frozen=True)
 class Settings:
-    """The numbers of a quantity besides the model: initial state, solver, equilibrium."""
+    """The numbers of a quantity besides the model: initial state, solver, equilibrium, and for
+    the rods the ``[stability]`` table (``classify_rtol`` is its ``rtol``)."""
 
     theta0: tuple = (0.0, 0.0, 0.0)
     Omega0: tuple = (0.0, 0.0, 0.0)
@@ -88,86 +128,112 @@ class Settings:
     max_steps: int = 100_000
     samples: int = 101
     integrator: str = "fast_simulate"
-
-
-def _vector(xs, point):
-    return jnp.stack(
-        [
-            jnp.asarray(point[x.name] if isinstance(x, Ref) else x, dtype=jnp.result_type(float))
-            for x in xs
-        ]
-    )
+    steps: int = 1
+    load_max: float | None = None
+    load_min: float = 0.0
+    n_scan: int = 32
+    n_bisect: int = 40
 
 
 def _scalar(x, point):
-    return jnp.asarray(point[x.name] if isinstance(x, Ref) else x, dtype=jnp.result_type(float))
+    return jnp.asarray(resolve(x, point), dtype=jnp.result_type(float))
 
 
-def _bloch_quantity(name: str, spec: ModelSpec, lattice: LatticeSpec, s: Settings):
+def _vector(xs, point):
+    return jnp.stack([_scalar(x, point) for x in xs])
+
+
+def _bloch(name: str, spec, s: Settings, point, lattice) -> tuple[dict, Any]:
     from ..lattice import dispersion
 
-    def bloch(**point):
-        lat = lattice.build(spec, point)
-        sol = solve_equilibrium(lat.body, _vector(s.theta_guess, point))
-        ok = sol.status == EquilibriumStatus.successful
-        theta_eq = jnp.where(ok, sol.theta, 0.0)
-        lam = dispersion(lat, lattice.wavenumber(point), theta_eq=theta_eq)
-        lam = jnp.where(ok, lam, jnp.nan + 0j)  # sorted by Im lambda: the branches' last
-        values = {"bloch_growth": jnp.max(jnp.real(lam)), "theta_eq": sol.theta}
-        if name == "bloch_frequencies":
-            values = {"bloch_frequencies": jnp.imag(lam[3:])} | values
-        return values, sol.status
-
-    bloch.__name__ = name
-    dims = {"theta_eq": ("component",)}
-    return bloch, dims | ({"bloch_frequencies": ("branch",)} if name == "bloch_frequencies" else {})
+    lat = lattice.build(spec, point)
+    sol = solve_equilibrium(lat.body, _vector(s.theta_guess, point))
+    ok = sol.status == EquilibriumStatus.successful
+    theta_eq = jnp.where(ok, sol.theta, 0.0)
+    lam = dispersion(lat, lattice.wavenumber(point), theta_eq=theta_eq)
+    lam = jnp.where(ok, lam, jnp.nan + 0j)  # sorted by Im lambda: the branches' last
+    values = {"bloch_growth": jnp.max(jnp.real(lam)), "theta_eq": sol.theta}
+    return values | {"bloch_frequencies": jnp.imag(lam[3:])}, sol.status
 
 
-def make_quantity(name: str, spec: ModelSpec, s: Settings, lattice: LatticeSpec | None = None):
-    """``(quantity(**point), dims)`` for the sweep engine; ``lattice`` for the Bloch
-    quantities."""
-    if name in LATTICE:
-        return _bloch_quantity(name, spec, lattice, s)
+def _stability(name: str, spec, s: Settings, point, lattice=None) -> tuple[dict, Any]:
+    """:func:`rbo_jax.equilibrium_stability` of one body (Newton from ``theta_guess``) or of a
+    rod (from its straight state, in ``steps`` load steps, the whole eigenproblem)."""
     if name == "spectral_abscissa":
+        r = equilibrium_stability(
+            spec.build(point), _vector(s.theta_guess, point), rtol=s.classify_rtol
+        )
+        return {"spectral_abscissa": r.abscissa, "kind": r.kind, "theta_eq": r.theta}, r.status
+    r = equilibrium_stability(spec.build(point), rtol=s.classify_rtol, fast=False, steps=s.steps)
+    p = r.eigenvalues  # NaN where the equilibrium failed
+    values = {
+        "spectral_abscissa": r.abscissa,
+        "stable": r.ok & ~is_unstable(r.kind),
+        "frequency": jnp.abs(p.imag[jnp.argmax(p.real)]),
+        "tip": jnp.where(r.ok, r.state.tip, jnp.nan),
+    }
+    return values, r.status
 
-        def spectral_abscissa(**point):
-            r = equilibrium_stability(
-                spec.build(point), _vector(s.theta_guess, point), rtol=s.classify_rtol
-            )
-            return {"spectral_abscissa": r.abscissa, "kind": r.kind, "theta_eq": r.theta}, r.status
 
-        return spectral_abscissa, {"theta_eq": ("component",)}
+def _critical_load(name: str, spec, s: Settings, point, lattice=None) -> tuple[dict, Any]:
+    lam = critical_load_along(
+        lambda factor: spec.build(point, factor),
+        s.load_max,
+        load_min=s.load_min,
+        n_scan=s.n_scan,
+        n_bisect=s.n_bisect,
+        rtol=s.classify_rtol,
+        steps=s.steps,
+    )
+    return {"critical_load": lam}, EquilibriumStatus.successful
+
+
+def _simulation(name: str, spec, s: Settings, point, lattice=None) -> tuple[dict, Any]:
+    model = spec.build(point)
+    th0 = _vector(s.theta0, point)
+    if s.about_equilibrium:
+        sol = solve_equilibrium(model, _vector(s.theta_guess, point))
+        th0 = jnp.where(sol.ok, sol.theta + th0, jnp.nan)  # no equilibrium: nonfinite_input
+    n = 2 if name == "final_state" else s.samples
+    ts = jnp.linspace(0.0, 1.0, n) * _scalar(s.t1, point)
+    traj = INTEGRATORS[s.integrator](
+        model,
+        th0,
+        _vector(s.Omega0, point),
+        ts,
+        max_steps=s.max_steps,
+        rtol=s.rtol,
+        atol=s.atol,
+        throw=False,
+    )
+    if name == "final_state":
+        values = {"theta": traj.theta[-1], "Omega": traj.Omega[-1]}
+    elif name == "energy_drift":
+        E = traj.energy
+        scale = jnp.where(jnp.abs(E[0]) > 0, jnp.abs(E[0]), 1.0)
+        values = {"energy_drift": jnp.max(jnp.abs(E - E[0])) / scale}
+    else:
+        deviation = jnp.linalg.norm(traj.theta - traj.theta[:1], axis=1)
+        values = {"max_deviation": jnp.max(deviation)}
+    return values | {"num_steps": traj.num_steps}, traj.status
+
+
+def make_quantity(name: str, spec, s: Settings, lattice=None):
+    """``(quantity(**point), dims)`` for the sweep engine: ``spec`` the
+    :class:`~rbo_jax.app.spec.ModelSpec` (with ``lattice`` for the Bloch quantities) or the
+    :class:`~rbo_jax.app.rodspec.RodSpec` of the rod quantities."""
+    if name in LATTICE:
+        compute = _bloch
+    elif name == "rod_critical_load":
+        compute = _critical_load
+    elif name in SIMULATION:
+        compute = _simulation
+    else:
+        compute = _stability
 
     def quantity(**point):
-        model = spec.build(point)
-        th0 = _vector(s.theta0, point)
-        if s.about_equilibrium:
-            sol = solve_equilibrium(model, _vector(s.theta_guess, point))
-            th0 = jnp.where(sol.ok, sol.theta + th0, jnp.nan)  # no equilibrium: nonfinite_input
-        n = 2 if name == "final_state" else s.samples
-        ts = jnp.linspace(0.0, 1.0, n) * _scalar(s.t1, point)
-        traj = INTEGRATORS[s.integrator](
-            model,
-            th0,
-            _vector(s.Omega0, point),
-            ts,
-            max_steps=s.max_steps,
-            rtol=s.rtol,
-            atol=s.atol,
-            throw=False,
-        )
-        if name == "final_state":
-            values = {"theta": traj.theta[-1], "Omega": traj.Omega[-1]}
-        elif name == "energy_drift":
-            E = traj.energy
-            scale = jnp.where(jnp.abs(E[0]) > 0, jnp.abs(E[0]), 1.0)
-            values = {"energy_drift": jnp.max(jnp.abs(E - E[0])) / scale}
-        else:
-            deviation = jnp.linalg.norm(traj.theta - traj.theta[:1], axis=1)
-            values = {"max_deviation": jnp.max(deviation)}
-        values["num_steps"] = traj.num_steps
-        return values, traj.status
+        values, status = compute(name, spec, s, point, lattice)
+        return {k: values[k] for k in OUTPUTS[name]}, status
 
     quantity.__name__ = name
-    dims = {"theta": ("component",), "Omega": ("component",)} if name == "final_state" else {}
-    return quantity, dims
+    return quantity, {k: _DIMS[k] for k in OUTPUTS[name] if k in _DIMS}

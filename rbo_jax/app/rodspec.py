@@ -55,8 +55,8 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .._validation import NONNEGATIVE, POSITIVE, Requirement
-from ._reader import Reader, Ref
+from .._validation import NONNEGATIVE, POSITIVE, Requirement, array_namespace
+from ._reader import Reader, plain, references, resolve, shown
 
 __all__ = ["PER_SEGMENT", "ROD_KEYS", "ROD_LOADS", "RodLoadSpec", "RodSpec", "Taper"]
 
@@ -83,12 +83,13 @@ PER_SEGMENT = (
     "damping",
     "shear_damping",
 )
-# type: (the vector's key, its default, may it follow the body, may it pick a body)
+# type: (the vector's key, its default, may it follow the body and pick a body, the class of
+# rbo_jax.lattice)
 ROD_LOADS = {
-    "tip_force": ("f", None, True),
-    "tip_moment": ("m", None, True),
-    "gravity": ("g", (0.0, 0.0, -9.81), False),
-    "distributed": ("q", None, False),
+    "tip_force": ("f", None, True, "TipForce"),
+    "tip_moment": ("m", None, True, "TipMoment"),
+    "gravity": ("g", (0.0, 0.0, -9.81), False, "Gravity"),
+    "distributed": ("q", None, False, "DistributedForce"),
 }
 BASES = ("clamped", "pinned", "free")
 
@@ -115,34 +116,28 @@ class Taper:
 
 
 def _value(x, point: Mapping[str, Any]):
-    return jnp.asarray(point[x.name] if isinstance(x, Ref) else x, dtype=jnp.result_type(float))
+    v = resolve(x, point)
+    return array_namespace(v).asarray(v, dtype=jnp.result_type(float))
 
 
 def _constant(x, point: Mapping[str, Any], n: int):
-    """A scalar, or the ``(n,)`` array of a list (tuple) or a :class:`Taper`, at ``point``."""
+    """A scalar, or the ``(n,)`` array of a list (tuple) or a :class:`Taper`, at ``point``:
+    NumPy where no axis is referred to (a constant stays known when traced code builds the rod:
+    an undamped rod is reversible, :func:`rbo_jax.classify`), else traced."""
     if isinstance(x, tuple):
-        return jnp.stack([_value(e, point) for e in x])
+        values = [_value(e, point) for e in x]
+        return array_namespace(*values).stack(values)
     if isinstance(x, Taper):
         a, b = _value(x.base, point), _value(x.tip, point)
-        return a + (b - a) * ((jnp.arange(n, dtype=a.dtype) + 0.5) / n)
+        xp = array_namespace(a, b)
+        return a + (b - a) * ((xp.arange(n, dtype=a.dtype) + 0.5) / n)
     return _value(x, point)
 
 
-def _leaves(x) -> tuple:
-    """The numbers and :class:`Ref` of a constant (scalar, list or taper)."""
-    if isinstance(x, tuple):
-        return x
-    if isinstance(x, Taper):
-        return (x.base, x.tip)
-    return (x,)
-
-
 def _plain(x):
-    if isinstance(x, tuple):
-        return [_plain(e) for e in x]
     if isinstance(x, Taper):
-        return {"base": _plain(x.base), "tip": _plain(x.tip)}
-    return x.name if isinstance(x, Ref) else x
+        return {"base": plain(x.base), "tip": plain(x.tip)}
+    return plain(x)
 
 
 def _g(x) -> str:
@@ -150,7 +145,7 @@ def _g(x) -> str:
         return f"[{', '.join(map(_g, x))}]"
     if isinstance(x, Taper):
         return f"{{base = {_g(x.base)}, tip = {_g(x.tip)}}}"
-    return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
+    return shown(x)
 
 
 def _read_constant(r: Reader, table: Mapping, key: str, where: str, n: int, default, req):
@@ -180,12 +175,8 @@ def _read_constant(r: Reader, table: Mapping, key: str, where: str, n: int, defa
 
 
 def _read_load(r: Reader, table, where: str, n: int) -> RodLoadSpec:
-    if not isinstance(table, Mapping):
-        r.fail(where, f"must be a table, got {table!r}.")
-    kind = table.get("type")
-    if not isinstance(kind, str) or kind not in ROD_LOADS:
-        r.fail(f"{where} type", f"must be one of {', '.join(map(repr, ROD_LOADS))}; got {kind!r}.")
-    key, default, point_load = ROD_LOADS[kind]
+    kind = r.kind(table, ROD_LOADS, where)
+    key, default, point_load, _ = ROD_LOADS[kind]
     allowed = ("type", key, "scale") + (("follower", "body") if point_load else ())
     r.keys(table, allowed, where, required=(key,) if default is None else ())
     body = -1
@@ -274,14 +265,9 @@ class RodSpec:
             vec = jnp.stack([_value(x, point) for x in ld.vector]) * _value(ld.scale, point)
             if factor is not None:
                 vec = vec * factor
-            if ld.type == "tip_force":
-                out.append(lattice.TipForce(vec, follower=ld.follower, body=ld.body))
-            elif ld.type == "tip_moment":
-                out.append(lattice.TipMoment(vec, follower=ld.follower, body=ld.body))
-            elif ld.type == "gravity":
-                out.append(lattice.Gravity(vec))
-            else:
-                out.append(lattice.DistributedForce(vec))
+            _, _, point_load, name = ROD_LOADS[ld.type]
+            where = {"follower": ld.follower, "body": ld.body} if point_load else {}
+            out.append(getattr(lattice, name)(vec, **where))
         return tuple(out)
 
     def build(self, point: Mapping[str, Any] | None = None, factor=None):
@@ -302,10 +288,8 @@ class RodSpec:
 
     def parameters(self) -> tuple[str, ...]:
         """The names of the sweep axes the rod refers to."""
-        xs = [x for _, v in self.params for x in _leaves(v)]
-        for ld in self.loads:
-            xs += [*ld.vector, ld.scale]
-        return tuple(dict.fromkeys(x.name for x in xs if isinstance(x, Ref)))
+        xs = [(v.base, v.tip) if isinstance(v, Taper) else v for _, v in self.params]
+        return references((*xs, *(x for ld in self.loads for x in (*ld.vector, ld.scale))))
 
     def describe(self) -> str:
         """One line for people: the bodies, the constants, the loads."""

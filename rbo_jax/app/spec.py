@@ -60,8 +60,8 @@ from ..foundations import (
 )
 from ..inertia import principal_inertia, transversely_isotropic_inertia
 from ..loads import DeadMoment, FollowerMoment, Friction, SemiTangentialMoment
-from ..model import RigidBodyOscillator
-from ._reader import Reader, Ref, SpecError
+from ..models.rigid_body import RigidBodyOscillator
+from ._reader import Reader, Ref, SpecError, plain, references, resolve, shown
 
 __all__ = [
     "ModelSpec",
@@ -159,31 +159,18 @@ class Term:
 
 
 def _resolve(x, point: Mapping[str, Any]):
-    if isinstance(x, Ref):
-        return point[x.name]
-    if isinstance(x, tuple):
-        parts = [_resolve(v, point) for v in x]
-        if any(isinstance(v, jax.core.Tracer) for v in parts):
-            return jnp.stack([jnp.asarray(v, dtype=jnp.result_type(float)) for v in parts])
-        # concrete: a NumPy vector (jnp.stack would compile two small programs eagerly)
-        return np.asarray([np.asarray(v) for v in parts], dtype=jnp.result_type(float))
-    return x
-
-
-def _plain(x):
-    if isinstance(x, Ref):
-        return x.name
-    if isinstance(x, tuple):
-        return [_plain(v) for v in x]
-    return x
+    """:func:`resolve` of a slot; a tuple (a vector) as one array."""
+    if not isinstance(x, tuple):
+        return resolve(x, point)
+    parts = [_resolve(v, point) for v in x]
+    if any(isinstance(v, jax.core.Tracer) for v in parts):
+        return jnp.stack([jnp.asarray(v, dtype=jnp.result_type(float)) for v in parts])
+    # concrete: a NumPy vector (jnp.stack would compile two small programs eagerly)
+    return np.asarray([np.asarray(v) for v in parts], dtype=jnp.result_type(float))
 
 
 def _read_term(r: Reader, table: Mapping, kinds: Mapping[str, _Kind], where: str) -> Term:
-    if not isinstance(table, Mapping):
-        r.fail(where, f"must be a table, got {table!r}.")
-    kind = table.get("type")
-    if not isinstance(kind, str) or kind not in kinds:
-        r.fail(f"{where} type", f"must be one of {', '.join(map(repr, kinds))}; got {kind!r}.")
+    kind = r.kind(table, kinds, where)
     spec = kinds[kind]
     names = [p.name for p in spec.params]
     r.keys(
@@ -274,28 +261,16 @@ class ModelSpec:
     def to_mapping(self) -> dict:
         """The table form (plain numbers, axis names as strings): ``from_mapping`` of it gives
         this spec back."""
-        out = {"axis": _plain(self.axis), "inertia": {n: _plain(v) for n, v in self.inertia.params}}
-        terms = [{"type": t.type, **{n: _plain(v) for n, v in t.params}} for t in self.foundation]
+        out = {"axis": plain(self.axis), "inertia": {n: plain(v) for n, v in self.inertia.params}}
+        terms = [{"type": t.type, **{n: plain(v) for n, v in t.params}} for t in self.foundation]
         out["foundation"] = terms[0] if len(terms) == 1 else terms
-        out["loads"] = [{"type": t.type, **{n: _plain(v) for n, v in t.params}} for t in self.loads]
+        out["loads"] = [{"type": t.type, **{n: plain(v) for n, v in t.params}} for t in self.loads]
         return out
 
     def parameters(self) -> tuple[str, ...]:
         """The names of the sweep axes the description refers to, in order of appearance."""
-        found: list[str] = []
-
-        def visit(x):
-            if isinstance(x, Ref) and x.name not in found:
-                found.append(x.name)
-            elif isinstance(x, tuple):
-                for v in x:
-                    visit(v)
-
-        visit(self.axis)
-        for term in (self.inertia, *self.foundation, *self.loads):
-            for _, v in term.params:
-                visit(v)
-        return tuple(found)
+        terms = (self.inertia, *self.foundation, *self.loads)
+        return references((tuple(self.axis), *(v for t in terms for _, v in t.params)))
 
     def build(self, point: Mapping[str, Any] | None = None) -> RigidBodyOscillator:
         """The :class:`rbo_jax.RigidBodyOscillator`, with the axis references filled from
@@ -324,9 +299,7 @@ class ModelSpec:
         """One line for people: inertia, axis, foundation and loads with their equations."""
 
         def g(x):
-            if isinstance(x, tuple):
-                return ",".join(g(v) for v in x)
-            return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
+            return ",".join(map(g, x)) if isinstance(x, tuple) else shown(x)
 
         def params(term):
             return ", ".join(f"{n} = {g(x)}" for n, x in term.params)
@@ -460,23 +433,19 @@ class LatticeSpec:
     def to_mapping(self) -> dict:
         """The table form: ``from_mapping`` of it gives this spec back."""
         size = {"n": self.shape[0]} if self.kind == "chain" else {"shape": list(self.shape)}
-        q = _plain(self.q[0]) if self.kind == "chain" else [_plain(x) for x in self.q]
+        q = plain(self.q[0]) if self.kind == "chain" else [plain(x) for x in self.q]
         return {
             "kind": self.kind,
             **size,
             "periodic": self.periodic,
-            "kappa_b": _plain(self.kappa_b),
-            "kappa_t": _plain(self.kappa_t),
+            "kappa_b": plain(self.kappa_b),
+            "kappa_t": plain(self.kappa_t),
             "q": q,
         }
 
     def parameters(self) -> tuple[str, ...]:
         """The names of the sweep axes the lattice refers to (not the body's)."""
-        found: list[str] = []
-        for x in (self.kappa_b, self.kappa_t, *self.q):
-            if isinstance(x, Ref) and x.name not in found:
-                found.append(x.name)
-        return tuple(found)
+        return references((self.kappa_b, self.kappa_t, *self.q))
 
     def build(self, model: ModelSpec, point: Mapping[str, Any] | None = None):
         """The :class:`rbo_jax.lattice.Lattice` of copies of ``model``'s body, the axis
@@ -505,10 +474,6 @@ class LatticeSpec:
 
     def describe(self) -> str:
         """One line for people: topology, ends and coupling."""
-
-        def g(x):
-            return f"<{x.name}>" if isinstance(x, Ref) else f"{x:g}"
-
         where = (
             f"chain of {self.shape[0]} bodies"
             if self.kind == "chain"
@@ -517,5 +482,5 @@ class LatticeSpec:
         ends = "periodic" if self.periodic else "free ends"
         return (
             f"{where} ({ends}); coupling: quadratic foundation (4.50) of the relative turn, "
-            f"kappa_b = {g(self.kappa_b)}, kappa_t = {g(self.kappa_t)}"
+            f"kappa_b = {shown(self.kappa_b)}, kappa_t = {shown(self.kappa_t)}"
         )

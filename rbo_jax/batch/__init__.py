@@ -8,9 +8,10 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     {  # loaded on first use
         "._engine": ("sweep",),
         "._errors": ("SweepError",),
-        "._maps": ("STABILITY_KIND_NAMES", "critical_load", "stability_map"),
+        "._maps": ("critical_load", "stability_map"),
         "._output": ("status_counts", "summary_line"),
         "._space": ("POINT_DIM",),
         "._store": ("open_sweep",),
+        "..stability": ("STABILITY_KIND_NAMES",),  # the names of the map's kind codes
     },
 )

@@ -184,10 +184,10 @@ class Chunks:
         is computed while the previous one is consumed.
 
         The next chunk is dispatched from a worker thread: a program over several CPU devices
-        can block its caller until the devices are free (measured: 23 ms of a 10⁶-point
-        stability map's 29 ms chunks on 2 devices), which in this thread would hold up the
-        previous chunk's host work (its outputs, statuses, store) until then; dispatched
-        there, that work overlaps the next chunk's computation."""
+        can block its caller until the devices are free (most of a chunk's time in a stability
+        map: benchmarks/README.md, History), which in this thread would hold up the previous
+        chunk's host work (its outputs, statuses, store) until then; dispatched there, that
+        work overlaps the next chunk's computation."""
         pending = None
         pool = ThreadPoolExecutor(1, thread_name_prefix="rbo_jax-dispatch")
         try:

@@ -206,12 +206,9 @@ def _result_array(shape, dtype) -> np.ndarray:
     huge pages (``madvise``) from 4 MiB on.
 
     Where the kernel must compact memory to find free huge pages (``defrag = madvise``, as on
-    the benchmark machine), the first write to such an array stalls: the 10⁶-point Newton map's
-    results (130 MB) took 0.53-0.62 s to fill chunk by chunk, against 0.04-0.05 s when the
-    memory of a freed map was reused. With ordinary pages the map (one pinned core, its
-    previous result alive, as in ``bench_cores.py``) took 2.64 s against 2.89 s, on 2 devices
-    1.46-1.54 s against 1.68-1.79 s; a map that reuses the huge pages of the one it replaced
-    was 0.05-0.1 s faster with NumPy's, which a fresh map never is."""
+    the benchmark machine), the first write to such an array stalls, and a map's results are
+    written chunk by chunk into fresh memory; ordinary pages do not stall (figures:
+    benchmarks/README.md, History)."""
     nbytes = math.prod(shape) * np.dtype(dtype).itemsize
     if nbytes < SMALL_PAGES_FROM:
         return np.empty(shape, dtype)
@@ -329,9 +326,7 @@ def sweep(
       default :data:`CHUNK_PER_DEVICE` (8192) per CPU device, 2²⁰ per GPU. The chunks are
       blocks of the grid, dealt to the devices point by point; every call is padded to one
       shape. Larger chunks waste less at the end of each call (the last trajectories of a share
-      run on few lanes;
-      measured on 2 devices: 4096 points per chunk 5.2 s, 8192 4.3 s, 16384 4.0 s for the same
-      16,384 simulations), smaller ones report progress and save to the store more often.
+      run on few lanes), smaller ones report progress and save to the store more often.
     - `store`: a directory for a zarr store written chunk by chunk (else results stay in memory).
     - `resume`: continue the sweep already in ``store`` (its chunk layout is kept; only chunks not
       yet written are computed). It must be the same sweep: same names, values, outputs, ``attrs``.

@@ -41,23 +41,12 @@ import numpy as np
 
 from ._output import OutputSpec
 from ._space import Space
+from .progress import chunk_ranges
 
 log = logging.getLogger("rbo_jax.sweep")
 
 #: The key of a process's "pid host" in the coordination service's key-value store.
 _WHO = "rbo_jax/process/{}"
-
-
-def chunk_ranges(ids: list[int], most: int = 8) -> str:
-    """``[1, 2, 3, 5, 8, 9]`` as ``"1-3, 5, 8-9"``; past ``most`` ranges the rest as "..."."""
-    ranges: list[list[int]] = []
-    for i in sorted(ids):
-        if ranges and i == ranges[-1][1] + 1:
-            ranges[-1][1] = i
-        else:
-            ranges.append([i, i])
-    words = [str(a) if a == b else f"{a}-{b}" for a, b in ranges]
-    return ", ".join(words[:most] + (["..."] if len(words) > most else []))
 
 
 def lost_line(lost: list[int], count: int, left: list[int], who: dict[int, str]) -> str:

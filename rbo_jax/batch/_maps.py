@@ -1,27 +1,33 @@
-r"""Eigenvalue stability maps and critical loads: presets of the batch engine.
+r"""Eigenvalue stability maps and critical loads: presets of the batch engine, for every model.
 
 :func:`stability_map` evaluates :func:`rbo_jax.equilibrium_stability` (equilibrium (4.61) →
 spectrum (4.63)–(4.69) → classification) on the Cartesian product of named parameter axes with
 :func:`rbo_jax.sweep`, so chunking, padding, device sharding, stores, progress and per-point
-statuses are the sweep's. :func:`critical_load` finds, along one axis, where the spectral abscissa
-first becomes positive, e.g. the critical follower load against the damping ``b``.
+statuses are the sweep's. :func:`critical_load` finds, along one axis, where the stable interval
+of a load ends (:mod:`rbo_jax.stability._critical`), e.g. the critical follower load against the
+damping ``b``. A rigid body, a lattice and a rod are mapped by the same code: ``model_fn`` may
+return any of them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..kinematics import _as_vector
-from ..maps import STABILITY_KIND_NAMES, critical_value, equilibrium_stability, is_unstable
-from ..model import RigidBodyOscillator
+from ..mechanics import AbstractMechanics
+from ..stability import (
+    critical_between,
+    equilibrium_stability,
+    stability_code,
+)
 from ._engine import sweep
 from ._output import sort_eigenvalues
-from ._rod_maps import returns_rod, rod_critical_load, rod_stability_map
 
-__all__ = ["stability_map", "critical_load", "STABILITY_KIND_NAMES"]
+__all__ = ["stability_map", "critical_load"]
 
 
 def _items(kwargs: dict) -> tuple:
@@ -49,29 +55,44 @@ def _check_axes(axes: Mapping[str, object]) -> dict[str, np.ndarray]:
     return out
 
 
-def _no_rigid_options(theta_eq_fn, theta_guess) -> None:
-    for name, value in (("theta_eq_fn", theta_eq_fn), ("theta_guess", theta_guess)):
-        if value is not None:
-            raise ValueError(f"{name} does not apply to a rod (its equilibrium is solved from "
-                             "the straight rod by rbo_jax.lattice.solve_equilibrium).")  # fmt: skip
+def _guess(theta_guess):
+    """The equilibrium guess as a hashable ``(shape, values)`` (``None``: the model's rest)."""
+    if theta_guess is None:
+        return None
+    g = np.asarray(theta_guess, dtype=np.float64)
+    return tuple(g.shape), tuple(float(x) for x in g.ravel())
 
 
-def _guess(theta_guess) -> tuple[float, float, float]:
-    g = np.zeros(3) if theta_guess is None else np.asarray(_as_vector(theta_guess, "theta_guess"))
-    return tuple(float(x) for x in g)
+def _bodies(model_fn, axes) -> int | None:
+    """The number of bodies of the model at the grid's first point (traced abstractly), or
+    ``None`` for one rigid body."""
+    point = {name: np.asarray(v[0]) for name, v in axes.items()}
+    model = eqx.filter_eval_shape(lambda p: model_fn(**p), point)
+    shape = (
+        jax.eval_shape(lambda m: m.rest(), model) if isinstance(model, AbstractMechanics) else None
+    )
+    theta = getattr(shape, "theta", shape)
+    return None if theta is None or len(theta.shape) == 1 else int(theta.shape[0])
+
+
+def _has_tip(model_fn, axes) -> bool:
+    point = {name: np.asarray(v[0]) for name, v in axes.items()}
+    model = eqx.filter_eval_shape(lambda p: model_fn(**p), point)
+    # on the type: the property itself would index the abstract shapes
+    return hasattr(type(jax.eval_shape(lambda m: m.rest(), model)), "tip")
 
 
 def _point_stability(model_fn, theta_eq_fn, guess, rtol, fast, eq_items, point):
     """:func:`rbo_jax.equilibrium_stability` of ``model_fn(**point)``."""
     model = model_fn(**point)
-    if not isinstance(model, RigidBodyOscillator):
-        raise TypeError(f"model_fn must return a RigidBodyOscillator, got {type(model).__name__}.")
-    theta_eq = None
-    if theta_eq_fn is not None:
-        theta_eq = _as_vector(theta_eq_fn(**point), "theta_eq_fn(...)")
-    return equilibrium_stability(
-        model, jnp.asarray(guess), theta_eq=theta_eq, rtol=rtol, fast=fast, **dict(eq_items)
-    )
+    if not isinstance(model, AbstractMechanics):
+        raise TypeError(
+            "model_fn must return a RigidBodyOscillator, a Lattice or a Rod, got "
+            f"{type(model).__name__}."
+        )
+    state = None if theta_eq_fn is None else theta_eq_fn(**point)
+    start = None if guess is None else jnp.reshape(jnp.asarray(guess[1]), guess[0])
+    return equilibrium_stability(model, start, state=state, rtol=rtol, fast=fast, **dict(eq_items))
 
 
 def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
@@ -87,13 +108,15 @@ def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
             "kind": r.kind,
             "theta_eq": r.theta,
         }
+        if hasattr(r.state, "tip"):  # a rod: its tip too
+            values["tip"] = r.state.tip
         return values, r.status
 
     return stability
 
 
 def stability_map(
-    model_fn: Callable[..., RigidBodyOscillator],
+    model_fn: Callable[..., AbstractMechanics],
     axes: Mapping[str, object],
     *,
     theta_eq_fn: Callable[..., object] | None = None,
@@ -112,47 +135,38 @@ def stability_map(
 
     **Arguments:**
 
-    - `model_fn`: ``model_fn(**point) -> RigidBodyOscillator`` for one grid point, e.g.
-      ``lambda M, c, A3: RigidBodyOscillator(transversely_isotropic_inertia(1.0, A3, k),
-      QuadraticFoundation(c, 1.0, k), FollowerMoment(M, k))``. Traced (vmapped) values are
-      passed, so build the model from them directly.
+    - `model_fn`: ``model_fn(**point)`` for one grid point, returning a
+      :class:`rbo_jax.RigidBodyOscillator`, a :class:`rbo_jax.lattice.Lattice` or a
+      :class:`rbo_jax.lattice.Rod`, e.g. ``lambda M, c, A3: RigidBodyOscillator(
+      transversely_isotropic_inertia(1.0, A3, k), QuadraticFoundation(c, 1.0, k),
+      FollowerMoment(M, k))``. Traced (vmapped) values are passed, so build the model from them
+      directly.
     - `axes`: ``{name: 1-D values}``; the grid is their Cartesian product in this order.
-    - `theta_eq_fn`: optional ``theta_eq_fn(**point) -> (3,)``, the equilibrium in closed form
-      (e.g. :func:`rbo_jax.nikolai_equilibrium`, (4.62)); otherwise the equilibrium is solved by
-      Newton from ``theta_guess`` (default zero) with :func:`rbo_jax.solve_equilibrium`, and
-      points where it fails are flagged in ``equilibrium_status`` with NaN spectra (the rest of
-      the map completes).
+    - `theta_eq_fn`: optional ``theta_eq_fn(**point)``, the equilibrium in closed form (e.g.
+      :func:`rbo_jax.nikolai_equilibrium`, (4.62)); otherwise the equilibrium is solved by
+      Newton (:func:`rbo_jax.solve_equilibrium`) from ``theta_guess`` (an array of the model's
+      turn-vectors; default: the configuration at rest) with ``equilibrium_kwargs`` (such as a
+      rod's ``steps=``), and points where it fails are flagged in ``equilibrium_status`` with
+      NaN spectra (the rest of the map completes).
     - `chunk_size`: points per compiled call; memory is O(chunk_size).
-    - `rtol`: tolerance of :func:`rbo_jax.classify` (relative to max|p|).
-    - `fast`: use :func:`rbo_jax.fast_spectrum` (block structure) instead of the plain 6×6
-      eigenproblem of :func:`rbo_jax.spectrum`; same eigenvalues.
+    - `rtol`: tolerance of :func:`rbo_jax.classify` (each root against its own modulus).
+    - `fast`: :func:`rbo_jax.fast_spectrum` (block structure, where no force depends on the
+      velocities) instead of the whole eigenproblem of :func:`rbo_jax.spectrum`; the same
+      eigenvalues.
     - `progress`: tqdm progress bar over points.
     - `store`, `resume`, `overwrite`, `devices`: as for :func:`rbo_jax.sweep` (the map is a
       sweep); without a store the map stays in memory.
 
-    **Returns:** a Dataset with coordinates the axes (plus ``mode`` 0..5 and ``component``)
-    and variables ``eigenvalues`` (complex, axes × mode, sorted by real then imaginary part),
-    ``spectral_abscissa`` (max Re p),
+    **Returns:** a Dataset with coordinates the axes (plus ``mode``, ``component``, and
+    ``body`` for a lattice or a rod) and variables ``eigenvalues`` (complex, axes × mode,
+    sorted by real then imaginary part: 6 for a rigid body, $6N$ for a lattice of $N$ bodies,
+    $12N$ for a clamped rod of $N$ bodies past the base), ``spectral_abscissa`` (max Re p),
     ``kind`` (int8 codes of :class:`rbo_jax.StabilityKind`, names in its ``flag_meanings``),
     ``equilibrium_status`` (int8 codes of :class:`rbo_jax.EquilibriumStatus`, the sweep's
-    per-point status) and ``theta_eq``.
-
-    **Rods.** A ``model_fn`` returning a :class:`rbo_jax.lattice.Rod` is mapped the same way
-    (:mod:`rbo_jax.batch._rod_maps`): the equilibrium by :func:`rbo_jax.lattice.solve_equilibrium`
-    (``equilibrium_kwargs`` such as ``steps=``), all $12N$ eigenvalues of
-    :func:`rbo_jax.lattice.linearize` over ``mode`` (a clamped rod of $N$ bodies past the base),
-    ``tip`` (component) in place of ``theta_eq``, and ``equilibrium_status`` the codes of
-    :class:`rbo_jax.lattice.RodEquilibriumStatus` (failed points: NaN spectra, kind
-    ``undefined``). ``theta_eq_fn``, ``theta_guess`` and ``fast`` do not apply.
+    per-point status), ``theta_eq`` (the equilibrium's turn-vectors) and, for a rod, ``tip``
+    (the equilibrium's tip position).
     """
     axes = _check_axes(axes)
-    if returns_rod(model_fn, axes):
-        _no_rigid_options(theta_eq_fn, theta_guess)
-        options = dict(chunk_size=chunk_size, store=store, resume=resume, overwrite=overwrite)
-        return rod_stability_map(
-            model_fn, axes, rtol=float(rtol), eq_items=_items(equilibrium_kwargs),
-            progress=progress, devices=devices, **options,
-        )  # fmt: skip
     quantity = _map_quantity(
         model_fn,
         theta_eq_fn,
@@ -161,6 +175,11 @@ def stability_map(
         bool(fast),
         _items(equilibrium_kwargs),
     )
+    bodies = _bodies(model_fn, axes)
+    turn = ("component",) if bodies is None else ("body", "component")
+    dims = {"eigenvalues": ("mode",), "theta_eq": turn}
+    if bodies is not None and _has_tip(model_fn, axes):
+        dims["tip"] = ("component",)
     ds = sweep(
         quantity,
         axes,
@@ -170,13 +189,15 @@ def stability_map(
         overwrite=overwrite,
         progress=progress,
         devices=devices,
-        dims={"eigenvalues": ("mode",), "theta_eq": ("component",)},
+        dims=dims,
         attrs={"classify_rtol": rtol},
         desc="stability map",
         postprocess=sort_eigenvalues,
     )
     ds = ds.rename({"status": "equilibrium_status"})
-    ds = ds.assign_coords(mode=np.arange(6), component=["x", "y", "z"])
+    ds = ds.assign_coords(mode=np.arange(ds.sizes["mode"]), component=["x", "y", "z"])
+    if bodies is not None:
+        ds = ds.assign_coords(body=np.arange(bodies))
     ds["kind"].attrs["long_name"] = "stability classification (Lyapunov's first method)"
     ds["spectral_abscissa"].attrs["long_name"] = "max Re p"
     return ds
@@ -186,24 +207,24 @@ def _critical_quantity(
     model_fn, theta_eq_fn, guess, rtol, eq_items, load, load_min, load_max, n_scan, n_bisect
 ):
     def critical(**point):
-        def unstable(value):
-            return is_unstable(
-                _point_stability(
-                    model_fn, theta_eq_fn, guess, rtol, True, eq_items, {**point, load: value}
-                )
+        def code_at(value):
+            result = _point_stability(
+                model_fn, theta_eq_fn, guess, rtol, True, eq_items, {**point, load: value}
             )
+            return stability_code(result)
 
-        return {
-            "critical": critical_value(
-                unstable, load_min, load_max, n_scan=n_scan, n_bisect=n_bisect
-            )
-        }
+        def model_at(value):
+            return model_fn(**{**point, load: value})
+
+        lo, hi = jnp.asarray(load_min), jnp.asarray(load_max)
+        return {"critical": critical_between(model_at, code_at, lo, hi, n_scan=n_scan,
+                                             n_bisect=n_bisect)}  # fmt: skip
 
     return critical
 
 
 def critical_load(
-    model_fn: Callable[..., RigidBodyOscillator],
+    model_fn: Callable[..., AbstractMechanics],
     axes: Mapping[str, object],
     load: str,
     load_max: float,
@@ -219,35 +240,25 @@ def critical_load(
     **equilibrium_kwargs,
 ):
     r"""The smallest value of the parameter ``load`` in ``(load_min, load_max]`` at which the
-    equilibrium loses stability (spectral abscissa > ``rtol``·max|p|), for every point of the
-    grid ``axes`` of the other parameters.
+    equilibrium loses stability (:func:`rbo_jax.classify`: an unstable root, each against its
+    own modulus), for every point of the grid ``axes`` of the other parameters; any model.
 
-    The interval is scanned at ``n_scan`` points, then the first sign change is refined by
-    ``n_bisect`` bisection steps (everything vmapped; if the first scan point is already
-    unstable, the interval from ``load_min`` to it is bisected). Returns an
-    :class:`xarray.DataArray` over ``axes``; ``inf`` where the equilibrium is stable on the whole
-    interval, ``load_min`` where it is unstable already at the first scan point past
-    ``load_min``. Example: the critical follower load of the Nikolai problem against the damping
-    ``b`` (with damping the paradox disappears below a critical load that tends to 0 with
-    ``b``). Points whose equilibrium cannot be computed (classification ``undefined``) count as
-    not unstable; check them with :func:`stability_map` when equilibria are solved by Newton.
-
-    **Rods.** A ``model_fn`` returning a :class:`rbo_jax.lattice.Rod` is searched the same way
-    with the rod's equilibrium and spectrum (:func:`stability_map`); as in
-    :func:`rbo_jax.lattice.critical_load`, a load whose equilibrium fails counts as unstable.
+    The interval is scanned at ``n_scan`` points, then the end of the stable interval is
+    refined by ``n_bisect`` bisection steps (everything vmapped; if the first scan point is
+    already unstable, the interval from ``load_min`` to it is bisected). Returns an
+    :class:`xarray.DataArray` over ``axes`` (0-d for ``axes={}``: one model): ``inf`` where the
+    equilibrium is stable on the whole interval; NaN where the stable interval ends at a load
+    whose equilibrium cannot be computed (undefined, not unstable: a limit point of the
+    branch, a singular point, Newton failing; check such points with :func:`stability_map`),
+    and where the model's parameters are invalid at ``load_min`` or ``load_max``. Example: the
+    critical follower load of the Nikolai problem against the damping ``b`` (with damping the
+    paradox disappears below a critical load that tends to 0 with ``b``).
     """
     axes = _check_axes(axes)
     if load in axes:
         raise ValueError(f"{load!r} is the searched parameter; it cannot also be an axis.")
     if not load_max > load_min:
         raise ValueError(f"load_max ({load_max}) must exceed load_min ({load_min}).")
-    if returns_rod(model_fn, {**axes, load: load_max}):
-        _no_rigid_options(theta_eq_fn, theta_guess)
-        return rod_critical_load(
-            model_fn, axes, load, float(load_min), float(load_max), rtol=float(rtol),
-            eq_items=_items(equilibrium_kwargs), n_scan=int(n_scan), n_bisect=int(n_bisect),
-            chunk_size=chunk_size, progress=progress,
-        )  # fmt: skip
     quantity = _critical_quantity(
         model_fn,
         theta_eq_fn,

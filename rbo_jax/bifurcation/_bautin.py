@@ -1,10 +1,10 @@
 r"""Generalized Hopf (Bautin) points: where the first Lyapunov coefficient of a Hopf curve in two
 parameters changes sign, so that flutter turns from soft to hard.
 
-Along the Hopf curve $\alpha_H(\beta)$ of two parameters $(\alpha, \beta)$ (the Hopf system of
-:mod:`._hopf`, solved for the equilibrium, $\alpha$ and the pair $\pm i\omega$ at each $\beta$),
-the first Lyapunov coefficient $\ell_1(\beta)$ is a smooth function; a Bautin point is a root
-$\ell_1(\beta_B) = 0$ with $\ell_1'(\beta_B) \ne 0$ and second Lyapunov coefficient
+Along the Hopf curve $\alpha_H(\beta)$ of two parameters $(\alpha, \beta)$ (the flutter system
+of :mod:`._hopf_system`, solved for the equilibrium, $\alpha$ and the pair $\pm i\omega$ at each
+$\beta$), the first Lyapunov coefficient $\ell_1(\beta)$ is a smooth function; a Bautin point is
+a root $\ell_1(\beta_B) = 0$ with $\ell_1'(\beta_B) \ne 0$ and second Lyapunov coefficient
 $\ell_2 \ne 0$ (:mod:`._normal_form`). With the normal form $\rho' = \rho(\mu + \ell_1\rho^2 +
 \ell_2\rho^4)$ ($\mu$ the distance to the Hopf curve times the transversality over $\omega$):
 for $\ell_2 < 0$ the cycles born on the hard side ($\ell_1 > 0$) at $\alpha_H$ turn back at a
@@ -12,29 +12,27 @@ fold of cycles at $\mu_F = \ell_1^2/(4|\ell_2|)$ on the stable side of the equil
 $\alpha_F - \alpha_H \approx \omega\ell_1^2/(4\ell_2\,\mathrm{transversality})$, and between
 $\alpha_F$ and $\alpha_H$ the equilibrium and a large stable cycle coexist (hysteresis).
 
-**Solve.** The secant method on $\ell_1(\beta)$, each value from the Hopf program of
-:mod:`._system` warm-started at the previous Hopf point; it stops when the step in $\beta$ is
-below ``atol + rtol·|β|`` (superlinear convergence). The same loop then solves the Hopf points
-at $q \pm he_i$, $q \pm 2he_i$ around the solution $q = (p, \beta_B)$ ($p$ the other parameters,
+**Solve.** The secant method on $\ell_1(\beta)$, each value from the flutter program warm-started
+at the previous Hopf point; it stops when the step in $\beta$ is below ``atol + rtol·|β|``
+(superlinear convergence). The same loop then solves the Hopf points at $q \pm he_i$,
+$q \pm 2he_i$ around the solution $q = (p, \beta_B)$ ($p$ the other parameters,
 $h = 10^{-3}\max(1, |q_i|)$): the gradient of $\ell_1$ along the Hopf curve by Richardson's
 central differences, $O(h^4)$, ~1e-9 relative (the exact derivative would need fourth
-derivatives of the vector field, whose traced program took minutes to compile), and finally the
-second Lyapunov coefficient $\ell_2$ at the solution (:mod:`._normal_form`). All of it is ONE
-compiled loop around ONE traced third-order jet of the vector field (:func:`._field.jet`), one
-evaluation per iteration: the Hopf system's rows, then those of $\ell_2$ (:func:`_program`).
+derivatives of the vector field). All of it is one loop (:func:`rbo_jax.solvers.iterate`)
+around one copy of the flutter program, one solve per iteration; then the second Lyapunov
+coefficient $\ell_2$ at the solution (:mod:`._normal_form`).
 
 **Derivatives** of the Bautin point follow from the implicit function theorem for the pair of
-equations (Hopf system, $\ell_1 = 0$): $d\beta_B = -\nabla_p\ell_1\cdot dp/\partial_\beta\ell_1$,
-and $du = -(\partial_u r)^{-1}\partial_{(p,\beta)} r\,d(p, \beta)$ of the Hopf system
-(:mod:`._hopf`) at $(dp, d\beta_B)$: ``jax.grad`` and ``jax.jacfwd`` work through
+equations (flutter system, $\ell_1 = 0$), $\ell_1$ linearised by its gradient along the curve:
+$d\beta_B = -\nabla_p\ell_1\cdot dp/\partial_\beta\ell_1$ and $du = -J^{+}\partial_{(p,\beta)}r\,
+d(p, \beta)$ (:func:`rbo_jax.solvers.implicit`): ``jax.grad`` and ``jax.jacfwd`` work through
 :func:`bautin_point`.
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Mapping
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -43,25 +41,15 @@ import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
-from .._programs import jit, program
-from ..model import RigidBodyOscillator
-from ._field import jet
-from ._hopf import (
-    HopfStatus,
-    Static,
-    _is_traced,
-    _nan_unless,
-    _zero_tangent,
-    canonical,
-    flat_parameters,
-)
-from ._interface import Outcome, check_model_fn, check_params, check_theta_eq_fn, theta_guess_vector
-from ._normal_form import STENCIL, WEIGHTS, Schedule
-from ._system import DONE, _code, _oriented, _Problem, _typed, normalisation_vector
+from .._programs import program
+from ..mechanics import AbstractMechanics
+from ..solvers import Implicit, LeastSquares, Outcome, implicit, iterate
+from ._hopf import cold_start, prepare
+from ._hopf_program import flutter_program
+from ._hopf_system import Layout, Spec, model_at, oriented, residual
+from ._normal_form import STENCIL, WEIGHTS, second_lyapunov_coefficient
 
 __all__ = ["BautinPoint", "BautinStatus", "bautin_point"]
-
-_HOPF_OK = int(np.asarray(enum.code(HopfStatus.successful)))
 
 
 class BautinStatus(eqx.Enumeration):
@@ -84,18 +72,17 @@ class BautinStatus(eqx.Enumeration):
 
 class BautinPoint(Outcome):
     r"""A generalized Hopf (Bautin) point (module docstring): ``value`` $= (\alpha_B, \beta_B)$
-    of the two ``parameters``, the ``frequency`` $\omega$, the equilibrium ``theta``, the critical
-    ``eigenvector``, ``first_lyapunov`` (≈ 0: the residual of $\ell_1 = 0$), its derivative
-    ``lyapunov_slope`` $d\ell_1/d\beta$ along the Hopf curve, the ``second_lyapunov``
-    coefficient $\ell_2$ (:mod:`._normal_form`; $\ell_2 < 0$: the cycles of the hard side fold
-    back into a large stable cycle), the ``transversality`` of the Hopf point, the secant's
-    ``num_steps`` and the ``status`` (:class:`BautinStatus`)."""
+    of the two ``parameters``, the ``frequency`` $\omega$, the equilibrium ``state`` (``theta``
+    its turn-vectors), the critical ``eigenvector``, ``first_lyapunov`` (≈ 0: the residual of
+    $\ell_1 = 0$), its derivative ``lyapunov_slope`` $d\ell_1/d\beta$ along the Hopf curve, the
+    ``second_lyapunov`` coefficient $\ell_2$ (:mod:`._normal_form`; $\ell_2 < 0$: the cycles of
+    the hard side fold back into a large stable cycle), the ``transversality`` of the Hopf
+    point, the secant's ``num_steps`` and the ``status`` (:class:`BautinStatus`)."""
 
-    # this result's own fields, declared here (its pytree and its docs); `ok` is Outcome's
     value: Float[Array, "2"]
     frequency: Float[Array, ""]
-    theta: Float[Array, "3"]
-    eigenvector: Complex[Array, "6"]
+    state: Any
+    eigenvector: Complex[Array, " n"]
     first_lyapunov: Float[Array, ""]
     lyapunov_slope: Float[Array, ""]
     second_lyapunov: Float[Array, ""]
@@ -103,218 +90,189 @@ class BautinPoint(Outcome):
     num_steps: Int[Array, ""]
     status: BautinStatus
 
+    @property
+    def theta(self):
+        """The turn-vector(s) of the equilibrium."""
+        return getattr(self.state, "theta", self.state)
 
-class BStatic(NamedTuple):
-    """What the Bautin program is compiled for: the Hopf program's static data (its flat
-    parameters end with $\\beta$) and the secant's tolerances and budget."""
 
-    hopf: Static
+class Secant(NamedTuple):
+    """The secant's settings (static)."""
+
     rtol: float
     atol: float
     max_steps: int
 
 
-SECANT, GRADIENT, SECOND, FINISHED = range(4)  # the phases of the program's loop
-
-
-class _Bautin:
-    r"""The Bautin point in ONE loop around ONE traced third-order jet of the vector field
-    (:func:`._field.jet`), one evaluation per iteration (:meth:`body`): the Hopf solves of the
-    secant iteration on $\ell_1(\beta)$ (module docstring; the Hopf system's loop of
-    :class:`._system._Problem`, restarted warm at each new $\beta$), then those at
-    $q \pm he_i$, $q \pm 2he_i$ around the solution $q = (p, \beta)$ ($h = 10^{-3}\max(1,
-    |q_i|)$: the gradient of $\ell_1$ along the Hopf curve by Richardson's central differences,
-    ~1e-9 relative), then the evaluations of $\ell_2$ at the solution
-    (:class:`._normal_form.Schedule`)."""
-
-    def __init__(self, static: BStatic, p, guess, theta0, t, step):
-        self.static, self.p, self.guess, self.theta0, self.t, self.step = (
-            static, p, guess, theta0, t, step,
-        )  # fmt: skip
-        self.dtype, self.n = p.dtype, p.shape[0] + 1
-        self.schedule = Schedule(6, p.dtype)
-
-    def problem(self, q) -> _Problem:
-        """The Hopf system at the flat parameters $q = (p, \beta)$."""
-        h = self.static.hopf
-        return _Problem(
-            h.model_fn, h.parameter, h.names, h.shapes, h.rtol, h.atol, h.max_steps, q, self.t
-        )
-
-    def point(self, c):
-        r"""The flat parameters $q = (p, \beta)$ of the next Hopf solve: the secant's next
-        $\beta$ (phase ``SECANT``), or the ``j``-th point of the stencil around the solution
-        (``GRADIENT``); and the secant's slope."""
-        p, b0, n = self.p, self.guess[1], self.n
-        slope = (c["l"] - c["l_prev"]) / (c["b"] - c["b_prev"])
-        b = jnp.where(c["k"] == 0, b0, b0 + self.step * jnp.maximum(jnp.abs(b0), 1.0))
-        b = jnp.where(c["k"] >= 2, c["b"] - c["l"] / slope, b)
-        i, j = c["j"] % n, c["j"] // n
-        q = jnp.concatenate([p, c["b"][None]])
-        h_i = 1e-3 * jnp.maximum(jnp.abs(q[i]), 1.0)
-        fd = q.at[i].add(jnp.asarray(STENCIL, self.dtype)[jnp.minimum(j, 3)] * h_i)
-        return jnp.where(c["phase"] == SECANT, jnp.concatenate([p, b[None]]), fd), slope
-
-    def initial(self) -> dict:
-        """The first carry: the cold Hopf solve at the guess, nothing else done."""
-        dtype, i32, guess, cdtype = self.dtype, jnp.int32, self.guess, self.schedule.cdtype
-        q0 = jnp.concatenate([self.p, guess[1:]])
-        cold = jnp.zeros(17, dtype), jnp.zeros(12, dtype), jnp.asarray(False)
-        h = self.static.hopf
-        start = self.problem(q0).first_state(h.theta_eq_fn, guess[0], self.theta0, *cold)
-        zero = jnp.zeros((), dtype)
-        c = dict(hopf=start, q=q0, b_prev=guess[1], l_prev=zero, b=guess[1], l=zero)
-        c.update(k=jnp.asarray(0, i32), j=jnp.asarray(0, i32), values=jnp.zeros(4 * self.n, dtype))
-        c.update(code=jnp.asarray(_code(BautinStatus.successful), i32))
-        c.update(phase=jnp.asarray(SECANT, i32))
-        # the last secant solve (its Jacobians: the implicit function theorem) and l2's loop
-        c.update(u=cold[0], Ju=jnp.zeros((17, 17), dtype), Jp=jnp.zeros((17, self.n), dtype))
-        z6 = jnp.zeros(6, cdtype)
-        second = self.schedule.initial_state(jnp.zeros((6, 6), dtype), 0.0, z6, z6)
-        return jax.tree.map(jnp.asarray, {**c, "transversality": zero, "second": second})
-
-    def solved(self, c):
-        r"""After a Hopf solve: the secant's step or the stencil's value, then the next solve
-        (warm, from the secant's last point) or the evaluations of $\ell_2$."""
-        static, s, i32 = self.static, c["hopf"], jnp.int32
-        ok_code, failed = _code(BautinStatus.successful), _code(BautinStatus.hopf_failed)
-        u, Ju, Jp, _, _, status, adjoint, l1, trans = self.problem(c["q"]).outputs(
-            s, self.guess[0], c["k"] > 0
-        )
-        hopf_ok = status == _HOPF_OK
-        _, slope = self.point(c)
-        b, k = c["q"][-1], c["k"] + 1
-        small = (k >= 3) & (jnp.abs(b - c["b"]) <= static.atol + static.rtol * jnp.abs(b))
-        flat = (k <= 2) | (jnp.isfinite(slope) & (slope != 0))
-        code = jnp.where(hopf_ok, ok_code, failed)
-        code = jnp.where(flat, code, _code(BautinStatus.degenerate))
-        code = jnp.where(~small & (k >= static.max_steps), _code(BautinStatus.not_converged), code)
-        stop = (code != ok_code) | small
-        omega, a, b_, _, _ = _oriented(u)
-        second = self.schedule.initial_state(s["J"], omega, jax.lax.complex(a, b_), adjoint)
-        secant = dict(c, b_prev=c["b"], l_prev=c["l"], b=b, l=l1, u=u, Ju=Ju, Jp=Jp, k=k)
-        secant.update(transversality=trans, code=code.astype(i32), second=second)
-        secant["phase"] = jnp.where(stop, jnp.where(code == ok_code, GRADIENT, FINISHED), SECANT)
-        last = c["j"] + 1 >= 4 * self.n
-        fd = dict(c, values=c["values"].at[c["j"]].set(l1), j=c["j"] + 1)
-        fd["code"] = jnp.where(hopf_ok, c["code"], failed).astype(i32)
-        fd["phase"] = jnp.where(~hopf_ok, FINISHED, jnp.where(last, SECOND, GRADIENT))
-        new = jax.tree.map(lambda x, y: jnp.where(c["phase"] == SECANT, x, y), secant, fd)
-        new = _typed(new, c)
-        q, _ = self.point(new)
-        w = normalisation_vector(new["u"])
-        again = self.problem(q).initial_state(new["u"], w, True, s["theta_eq"])
-        return _typed({**new, "q": q, "hopf": again}, c)
-
-    def body(self, c):
-        """One evaluation of the jet: a row of the Hopf system (:meth:`._system._Problem.
-        evaluation`) or of $\\ell_2$ (:meth:`._normal_form.Schedule.evaluation`), then the
-        step of the one that asked for it."""
-        dtype, schedule = self.dtype, self.schedule
-        hopf = self.problem(c["q"])
-        y_h, t_h = hopf.evaluation(c["hopf"])
-        shift, t_2, scale = schedule.evaluation(c["second"])
-        m, u = y_h.shape[0], c["u"]
-        y_2 = jnp.concatenate([u[:3] + shift[:3], shift[3:], u[3:4], self.p, c["b"][None]])
-        t_2 = jnp.concatenate([t_2, jnp.zeros((3, m - 6), dtype)], axis=1)
-        second = c["phase"] == SECOND
-        y, d = jnp.where(second, y_2, y_h), jnp.where(second, t_2, t_h)
-        derivatives = jet(hopf.field, y, d[0], d[1], d[2])
-
-        def hopf_step(c):
-            c = _typed({**c, "hopf": hopf.advance(c["hopf"], *derivatives)}, c)
-            return jax.lax.cond(c["hopf"]["phase"] >= DONE, self.solved, lambda c: c, c)
-
-        def second_step(c):
-            st = schedule.advance(c["second"], scale, *derivatives[1:])
-            phase = jnp.where(schedule.done(st), FINISHED, SECOND)
-            return _typed({**c, "second": st, "phase": phase}, c)
-
-        return jax.lax.cond(second, second_step, hopf_step, c)
-
-
-def _program(static: BStatic, p, guess, theta0, t, step):
-    """:class:`_Bautin`'s loop. Returns ``(beta, u, Ju, Jp, transversality, l1, grad, steps,
-    code, l2)``."""
-    bautin = _Bautin(static, p, guess, theta0, t, step)
-    c = jax.lax.while_loop(lambda c: c["phase"] < FINISHED, bautin.body, bautin.initial())
-    q = jnp.concatenate([p, c["b"][None]])
-    h_q = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
-    values = c["values"].reshape(4, bautin.n)
-    grad = jnp.tensordot(jnp.asarray(WEIGHTS, p.dtype), values, 1) / h_q
-    out = (c["b"], c["u"], c["Ju"], c["Jp"], c["transversality"], c["l"], grad, c["k"])
-    return out + (c["code"], Schedule.result(c["second"]))
-
-
-_bautin_program = program(_program, fast_compile=True)
+SECANT, GRADIENT = 0, 1
+_OK, _HOPF_FAILED, _NOT_CONVERGED, _DEGENERATE = range(4)
 
 
 class Raw(NamedTuple):
-    beta: Array
+    config: Any
     u: Array
+    C: Array
+    beta: Array
+    grad: Array  # of l1 along the Hopf curve, in q = (p, beta)
     transversality: Array
     l1: Array
-    grad: Array
     l2: Array
-    steps: Array
+    num_steps: Array
     status: Array
-    Ju: Array  # the Hopf system's Jacobians at the solution (implicit function theorem)
-    Jp: Array
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def bautin_solution(static: BStatic, p, guess, theta0, t, step) -> Raw:
-    """The raw Bautin point; differentiable in ``p`` (module docstring)."""
-    beta, u, Ju, Jp, trans, l1, grad, steps, code, l2 = _bautin_program(
-        static, p, guess, theta0, t, step
-    )
-    return Raw(beta, u, trans, l1, grad, l2, steps, code, Ju, Jp)
+def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Raw:
+    r"""The secant iteration and the stencil of the gradient in one loop around one flutter
+    program (module docstring), then $\\ell_2$."""
+    model = model_at(spec, alpha0, jnp.concatenate([p, beta0[None]]))
+    guess = model.configuration(guess, "theta_guess")  # None: at rest
+    layout = Layout(model.free_size(), spec.kind)
+    nq = p.shape[0] + 1
+    u0, C0 = (jnp.asarray(x) for x in cold_start(spec, model, p.dtype))
+
+    def point(c):
+        slope = (c["l"] - c["l_prev"]) / (c["b"] - c["b_prev"])
+        b = jnp.where(c["k"] == 1, beta0 + step * jnp.maximum(jnp.abs(beta0), 1.0), beta0)
+        b = jnp.where(c["k"] >= 2, c["b"] - c["l"] / slope, b)
+        qs = jnp.concatenate([p, c["b"][None]])
+        i, j = c["j"] % nq, c["j"] // nq
+        h = 1e-3 * jnp.maximum(jnp.abs(qs[i]), 1.0)
+        fd = qs.at[i].add(jnp.asarray(STENCIL, p.dtype)[jnp.minimum(j, 3)] * h)
+        return jnp.where(c["phase"] == SECANT, jnp.concatenate([p, b[None]]), fd), slope
+
+    def one(_, c):
+        q, slope = point(c)
+        raw = flutter_program(spec, q, alpha0, c["config"], t, c["k"] > 0, c["u"], c["C"])
+        ok, l1, b = raw.status == 0, raw.first_lyapunov, q[-1]
+        k = c["k"] + 1
+        small = (k >= 3) & (jnp.abs(b - c["b"]) <= secant.atol + secant.rtol * jnp.abs(b))
+        flat = (k <= 2) | (jnp.isfinite(slope) & (slope != 0))
+        code = jnp.where(ok, _OK, _HOPF_FAILED)
+        code = jnp.where(flat, code, _DEGENERATE)
+        code = jnp.where(~small & (k >= secant.max_steps), _NOT_CONVERGED, code)
+        found = {**c, "config": raw.config, "u": raw.u, "C": raw.C, "b_prev": c["b"],
+                 "l_prev": c["l"], "b": b, "l": l1, "k": k, "adjoint": raw.adjoint,
+                 "transversality": raw.transversality, "J": raw.jacobian}  # fmt: skip
+        found["phase"] = jnp.where(small & (code == _OK), GRADIENT, SECANT)
+        stop_secant = (code != _OK) | small
+        s_code = jnp.where(stop_secant & (code != _OK), code, -1)
+        last = c["j"] + 1 >= 4 * nq
+        fd = {**c, "values": c["values"].at[c["j"]].set(l1), "j": c["j"] + 1}
+        g_code = jnp.where(ok, jnp.where(last, _OK, -1), _HOPF_FAILED)
+        new = _select(c["phase"] == SECANT, found, fd)
+        return None, _typed(new, c), jnp.where(c["phase"] == SECANT, s_code, g_code)
+
+    n, cdtype = layout.n, C0.dtype
+    zero = jnp.zeros((), p.dtype)
+    c0 = dict(phase=jnp.asarray(SECANT, jnp.int32), k=jnp.asarray(0, jnp.int32),
+              j=jnp.asarray(0, jnp.int32), config=guess, u=u0, C=C0, b_prev=beta0, l_prev=zero,
+              b=beta0, l=zero, values=jnp.zeros(4 * nq, p.dtype), adjoint=jnp.zeros(n, cdtype),
+              transversality=zero, J=jnp.zeros((n, n), p.dtype))  # fmt: skip
+    c0 = jax.tree_util.tree_map(jnp.asarray, c0)
+    budget = secant.max_steps + 4 * nq
+    _, c, code, _ = iterate(one, None, c0, max_steps=budget, exhausted=_NOT_CONVERGED)
+    q = jnp.concatenate([p, c["b"][None]])
+    h = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
+    grad = jnp.tensordot(jnp.asarray(WEIGHTS, p.dtype), c["values"].reshape(4, nq), 1) / h
+    omega, qv = oriented(layout, c["u"])
+    F = model_at(spec, c["u"][layout.m], q).field(t, c["config"])
+    l2 = second_lyapunov_coefficient(F, jnp.zeros(n, p.dtype), omega, qv, c["adjoint"])
+    return Raw(c["config"], c["u"], c["C"], c["b"], grad, c["transversality"], c["l"], l2,
+               c["k"], code)  # fmt: skip
 
 
-@bautin_solution.defjvp
-def _bautin_jvp(static, primals, tangents):
-    # the custom_jvp function itself, not its body: so jax.grad runs the programs the value
-    # compiled (a traced body would compile them again, without the small-program options)
-    raw = bautin_solution(static, *primals)
-    dbeta, du = _implicit_tangent(raw.grad, raw.Ju, raw.Jp, tangents[0])
-    zeros = jax.tree.map(_zero_tangent, raw)
-    return raw, zeros._replace(beta=dbeta, u=du)
+def _flat_program(spec: Spec, secant: Secant, tree, p, alpha0, beta0, leaves, t, step):
+    """:func:`_program` on flat containers (the program store exports plain arrays: the
+    configurations in and out as their leaves, their structure ``tree`` static)."""
+    guess = None if tree is None else jax.tree_util.tree_unflatten(tree, leaves)
+    raw = _program(spec, secant, p, alpha0, beta0, guess, t, step)
+    return (tuple(jax.tree_util.tree_leaves(raw.config)),) + tuple(raw[1:])
 
 
-@jax.jit
-def _implicit_tangent(grad, Ju, Jp, dp):
-    """$(d\beta_B, du)$ for $dp$ (module docstring): one compiled program, also for the batch
-    of tangents of ``jax.jacfwd``."""
-    n_p = dp.shape[0]
-    dbeta = -(grad[:n_p] @ dp) / grad[n_p]
-    return dbeta, -jnp.linalg.solve(Ju, Jp @ jnp.concatenate([dp, dbeta[None]]))
+_bautin_program = program(_flat_program, fast_compile=True)
 
 
-@functools.partial(jit, fast_compile=True)
-def _finish(raw: Raw) -> BautinPoint:
-    omega, a, b, _, _ = _oriented(raw.u)
-    good = raw.status == _code(BautinStatus.successful)
+def _select(pred, a, b):
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+
+
+def _typed(new, old):
+    return jax.tree_util.tree_map(lambda x, y: jnp.asarray(x, dtype=y.dtype), new, old)
+
+
+# --------------------------------------------------------------------------------------------
+# The implicit derivative: the flutter system and l1 = 0, l1 linearised by its gradient
+# --------------------------------------------------------------------------------------------
+
+
+class _Residual(NamedTuple):
+    spec: Spec
+
+    def __call__(self, y, x, params):
+        config, u, C, beta, qstar, grad = y
+        p, t, _ = params
+        q = jnp.concatenate([p, (beta + x[-1])[None]])
+        layout = Layout(model_at(self.spec, q[-1], q).free_size(), self.spec.kind)  # structure
+        r = residual(self.spec, layout, u + x[:-1], config, C, q, t)
+        return jnp.concatenate([r, (grad @ (q - qstar))[None]])
+
+
+class _Retract(NamedTuple):
+    spec: Spec
+
+    def __call__(self, y, x, params):
+        config, u, C, beta, qstar, grad = y
+        p = params[0]
+        q = jnp.concatenate([p, beta[None]])
+        model = model_at(self.spec, u[0], q)  # only its structure is used
+        m = model.free_size()
+        config = model.retract(config, model.free_increments(x[:m]))
+        return config, u + x[:-1].at[:m].set(0.0), C, beta + x[-1], qstar, grad
+
+
+def _increment(y, params):
+    return jnp.zeros(y[1].shape[0] + 1, y[1].dtype)
+
+
+def _solve(params, spec: Spec, secant: Secant):
+    p, t, (alpha0, beta0, guess, step) = params
+    leaves, tree = jax.tree_util.tree_flatten(guess)
+    out = _bautin_program(spec, secant, None if guess is None else tree, p, alpha0, beta0,
+                          tuple(leaves), t, step)  # fmt: skip
+    q = jnp.concatenate([p, jnp.asarray(beta0)[None]])
+    shape = eqx.filter_eval_shape(lambda q, a: model_at(spec, a, q).rest(), q, alpha0)
+    raw = Raw(jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shape), out[0]), *out[1:])
+    q = jax.lax.stop_gradient(jnp.concatenate([p, raw.beta[None]]))
+    y = (raw.config, raw.u, raw.C, raw.beta, q, jax.lax.stop_gradient(raw.grad))
+    return Implicit(y, None, raw.status == _OK, raw)
+
+
+def _finish(spec: Spec, model: AbstractMechanics, y, raw: Raw) -> BautinPoint:
+    config, u, _, beta, _, _ = y
+    layout = Layout(model.free_size(), spec.kind)
+    omega, q = oriented(layout, u)
+    good = raw.status == _OK
+    nan = lambda x: jnp.where(good, x, jnp.full_like(x, jnp.nan))  # noqa: E731
     return BautinPoint(
-        value=_nan_unless(good, jnp.stack([raw.u[3], raw.beta])),
-        frequency=_nan_unless(good, omega),
-        theta=_nan_unless(good, raw.u[:3]),
-        eigenvector=_nan_unless(good, jax.lax.complex(a, b)),
-        first_lyapunov=_nan_unless(good, raw.l1),
-        lyapunov_slope=_nan_unless(good, raw.grad[-1]),
-        second_lyapunov=_nan_unless(good, raw.l2),
-        transversality=_nan_unless(good, raw.transversality),
-        num_steps=raw.steps,
+        value=nan(jnp.stack([u[layout.m], beta])),
+        frequency=nan(omega),
+        state=jax.tree_util.tree_map(nan, model.state_at_rest(config)),
+        eigenvector=nan(q),
+        first_lyapunov=nan(raw.l1),
+        lyapunov_slope=nan(raw.grad[-1]),
+        second_lyapunov=nan(raw.l2),
+        transversality=nan(raw.transversality),
+        num_steps=raw.num_steps,
         status=enum.from_code(BautinStatus, raw.status),
     )
 
 
 def bautin_point(
-    model_fn: Callable[..., RigidBodyOscillator],
+    model_fn: Callable[..., AbstractMechanics],
     params: Mapping[str, object],
     parameters: tuple[str, str],
     guess,
     *,
-    # keywords shared with hopf_point, continue_hopf (a public, documented signature)
     theta_eq_fn: Callable[..., object] | None = None,
     theta_guess=None,
     t=0.0,
@@ -325,19 +283,20 @@ def bautin_point(
 ) -> BautinPoint:
     r"""The generalized Hopf (Bautin) point nearest ``guess`` of the equilibria of
     ``model_fn(**params)`` in the two ``parameters`` $(\alpha, \beta)$: the point of the Hopf
-    curve $\alpha_H(\beta)$ where the first Lyapunov coefficient changes sign, i.e. where flutter
-    turns from soft ($\ell_1 < 0$) to hard ($\ell_1 > 0$) (module docstring).
+    curve $\alpha_H(\beta)$ where the first Lyapunov coefficient changes sign, i.e. where
+    flutter turns from soft ($\ell_1 < 0$) to hard ($\ell_1 > 0$) (module docstring); any
+    model.
 
     **Arguments:** ``model_fn`` and ``params`` as for :func:`rbo_jax.hopf_point` (the entries
     ``parameters`` may be absent; the others are fixed and differentiable); ``guess`` the pair
     $(\alpha_0, \beta_0)$: the Hopf point is first solved at $\beta_0$ from $\alpha_0$ (and
     ``theta_eq_fn``/``theta_guess``, as for :func:`rbo_jax.hopf_point`) and at
     $\beta_0 + \text{step}\cdot\max(1, |\beta_0|)$, then $\beta$ moves by the secant method
-    on $\ell_1(\beta)$ until its step is below ``atol + rtol·|β|``, at most
-    ``max_steps`` steps.
+    on $\ell_1(\beta)$ until its step is below ``atol + rtol·|β|``, at most ``max_steps``
+    steps.
 
     **Returns** a :class:`BautinPoint`; never raises for a failed solve (``status`` says why,
-    values are NaN). ``jax.grad``/``jax.jacfwd`` of ``value`` (and ``frequency``, ``theta``)
+    values are NaN). ``jax.grad``/``jax.jacfwd`` of ``value`` (and ``frequency``, ``state``)
     with respect to the other entries of ``params`` by the implicit function theorem; ``vmap``
     over them works. One compiled program per model structure (module docstring), kept by the
     program store when it is on (:func:`rbo_jax.enable_compilation_cache`).
@@ -347,8 +306,6 @@ def bautin_point(
     ``bautin_point(lambda M, b, A3: nikolai_model(M, 1.0, 2.0, A3=A3, friction=b), {"b": 0.1},
     ("M", "A3"), (0.2, 1.2))``.
     """
-    check_model_fn(model_fn)
-    check_params(params)
     if (
         not isinstance(parameters, (tuple, list))
         or len(parameters) != 2
@@ -356,26 +313,27 @@ def bautin_point(
         or parameters[0] == parameters[1]
     ):
         raise ValueError(f"parameters must be two different names of params, got {parameters!r}.")
-    check_theta_eq_fn(theta_eq_fn)
-    dtype = jnp.result_type(float)
     alpha, beta = (str(n) for n in parameters)
-    guess = guess if _is_traced(guess) else np.asarray(guess, dtype)
+    dtype = jnp.result_type(float)
+    traced = isinstance(guess, jax.core.Tracer)
+    guess = guess if traced else np.asarray(guess, dtype)
     if jnp.shape(guess) != (2,):
         raise ValueError(f"guess must be a pair ({alpha}, {beta}), got shape {jnp.shape(guess)}.")
     others = {str(k): v for k, v in params.items() if k not in (alpha, beta)}
-    theta_guess = theta_guess_vector(theta_guess, dtype)
-    names, shapes, p = flat_parameters(others)
-    hopf = Static(
-        canonical(model_fn),
-        canonical(theta_eq_fn),
-        alpha,
-        names + (beta,),
-        shapes + ((),),
-        1e-11,
-        1e-11,
-        64,
+    options = dict(kind="hopf", theta_eq_fn=theta_eq_fn, theta_guess=theta_guess, t=t,
+                   rtol=1e-11, atol=1e-11, max_steps=64, steps=1, cluster=1e-5, frequency=None,
+                   multiplicity=1, lyapunov=True)  # fmt: skip
+    spec, model, p, alpha0, config, t = prepare(model_fn, others, alpha, guess[0], options,
+                                                along=(beta, guess[1]))  # fmt: skip
+    secant = Secant(float(rtol), float(atol), int(max_steps))
+    step = step if isinstance(step, jax.core.Tracer) else np.asarray(step, dtype)
+    params_ = (p[:-1], t, (alpha0, p[-1], config, step))
+    out = implicit(
+        lambda params: _solve(params, spec, secant),
+        _Residual(spec),
+        params_,
+        linear=LeastSquares(),
+        retract=_Retract(spec),
+        increment=_increment,
     )
-    static = BStatic(hopf, float(rtol), float(atol), int(max_steps))
-    t = t if _is_traced(t) else np.asarray(t, dtype)
-    step = step if _is_traced(step) else np.asarray(step, dtype)
-    return _finish(bautin_solution(static, p, guess, theta_guess, t, step))
+    return _finish(spec, model, out.y, out.extra)

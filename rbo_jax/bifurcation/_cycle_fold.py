@@ -51,13 +51,15 @@ import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
+from .._callables import canonical
 from .._programs import program
-from ..model import RigidBodyOscillator
+from ..models.rigid_body import RigidBodyOscillator
+from ..solvers import Dense, Implicit, Outcome, implicit, iterate, newton_update
 from ._field import flat_field
-from ._hopf import _zero_tangent, canonical, flat_parameters
-from ._interface import Outcome, check_model_fn
+from ._hopf import flat_parameters
+from ._hopf_system import unpack_parameters
+from ._models import rigid_model as _build
 from ._orbit import OrbitStatus, _sorted, flow
-from ._system import _build, unpack_parameters
 
 __all__ = ["FoldOfCycles", "fold_of_cycles"]
 
@@ -96,13 +98,12 @@ class Static(NamedTuple):
 
 
 class Raw(NamedTuple):
-    # this program's outputs, in its order (alike other programs' Raw, not the same)
     y: Array  # (x0, T, alpha)
     residual: Array
     num_steps: Array
     status: Array
     multipliers: Array
-    gradient: Array  # d alpha* / dp
+    null_vector: Array  # c: the right null vector of G_z at the fold
 
 
 def _evaluate(model_fn, parameter, names, shapes, solver, p, y, v):
@@ -165,8 +166,8 @@ def fold_program(model_fn, parameter, names, shapes, rtol, atol, max_steps, tol,
     g = g / jnp.linalg.norm(g)
     ev = functools.partial(_evaluate, model_fn, parameter, names, shapes, solver, p)
 
-    def body(c):
-        y, v, b, cc, k = c["y"], c["v"], c["b"], c["c"], c["k"]
+    def step(y, c):
+        v, b, cc, k = c["v"], c["b"], c["c"], c["k"]
         xT, ok, D, f, H = ev(y, v)
         top = jnp.concatenate([D[:, :6] - jnp.eye(6, dtype=y.dtype), f[:, None]], axis=1)
         Gz = jnp.concatenate([top, jnp.concatenate([g, jnp.zeros(1, g.dtype)])[None]])
@@ -177,44 +178,31 @@ def fold_program(model_fn, parameter, names, shapes, rtol, atol, max_steps, tol,
         r = jnp.concatenate([xT - y[:6], (g @ (y[:6] - y0[:6]))[None], h[None]])
         Gy = jnp.concatenate([Gz, jnp.concatenate([D[:, 6], jnp.zeros(1, y.dtype)])[:, None]], 1)
         J = jnp.concatenate([Gy, -(w[:6] @ H)[None]])
-        delta = jnp.linalg.solve(J, -r)
+        new, _, converged, finite = newton_update(r, J, Dense(), y, rtol=0, atol=-1.0, floor=tol)
+        stop = (k > 0) & (converged | ~ok | ~finite | (y[6] <= 0) | (k >= max_newton))
+        y = jnp.where(stop | (k == 0), y, new)
         res = jnp.max(jnp.abs(r))
-        done = (k > 0) & ((res <= tol) | ~ok | ~jnp.isfinite(res) | (y[6] <= 0) | (k >= max_newton))
-        step = jnp.where(done | (k == 0), 0.0, delta)
-        grad = -(w[:6] @ D[:, 7:]) / (w[:6] @ D[:, 6])
-        return dict(
-            y=y + step,
-            v=v_new,
-            b=b,
-            c=cc,
-            k=k + 1,
-            done=done,
-            res=res,
-            ok=ok,
-            M=D[:, :6],
-            grad=grad,
-        )
+        c = dict(v=v_new, b=b, c=cc, k=k + 1, res=res, ok=ok, M=D[:, :6], Gy=Gy)
+        return y, c, jnp.where(stop, 0, -1)
 
     init = dict(
-        y=y0,
         v=jnp.zeros(7, y0.dtype),
         b=jnp.zeros(7, y0.dtype),
         c=jnp.zeros(7, y0.dtype),
         k=jnp.asarray(0),
-        done=jnp.asarray(False),
         res=jnp.asarray(jnp.inf, y0.dtype),
         ok=jnp.asarray(True),
         M=jnp.zeros((6, 6), y0.dtype),
-        grad=jnp.zeros(p.shape[0], y0.dtype),
+        Gy=jnp.zeros((7, 8), y0.dtype),
     )
-    s = jax.lax.while_loop(lambda c: ~c["done"], body, init)
+    y, s, _, _ = iterate(step, y0, init, max_steps=max_newton + 2, exhausted=0)
     S = OrbitStatus
     status = S.where(s["res"] <= tol, S.successful, S.not_converged)
     status = S.where(s["ok"], status, S.solve_failed)
-    status = S.where(s["y"][6] > 0, status, S.nonpositive_period)
+    status = S.where(y[6] > 0, status, S.nonpositive_period)
     mu = _sorted(jnp.linalg.eigvals(s["M"]))
     mu = jnp.where(s["ok"], mu, jnp.full_like(mu, jnp.nan))
-    return s["y"], s["res"], s["k"] - 1, enum.code(status), mu, s["grad"]
+    return y, s["res"], s["k"] - 1, enum.code(status), mu, s["c"], g, s["Gy"]
 
 
 # One program per model structure: with the program store on (rbo_jax.enable_compilation_cache)
@@ -222,20 +210,45 @@ def fold_program(model_fn, parameter, names, shapes, rtol, atol, max_steps, tol,
 _program = program(fold_program, small=True)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+class _Residual(NamedTuple):
+    r"""The shooting equations at $y \oplus x$ and the gauge $c\cdot x_z = 0$ ($c$ the right
+    null vector of $G_z$ at the fold): $G_y\,dy = -G_p\,dp$ with it is regular, and its
+    $d\alpha$ is the envelope theorem's $-w^TG_p\,dp/w^TG_\alpha$ (module docstring)."""
+
+    static: Static
+
+    def __call__(self, y, x, params):
+        z, g, x_ref, c = y
+        (p,) = params
+        st, w = self.static, z + x
+        model = _build(
+            st.model_fn, {**unpack_parameters(st.names, st.shapes, p), st.parameter: w[7]}
+        )
+        xT, _ = flow(model, w[:6], w[6], rtol=st.rtol, atol=st.atol, max_steps=st.max_steps)
+        gauge = c @ x[:7]
+        return jnp.concatenate([xT - w[:6], (g @ (w[:6] - x_ref))[None], gauge[None]])
+
+
+def _solve(params, static: Static, y0):
+    (p,) = params
+    y, res, k, code, mu, c, g, Gy = _program(*static, p, y0)
+    good = code == enum.code(OrbitStatus.successful)
+    # the shooting equations' Jacobian at the fold (its period column F(phi_T)) and the gauge
+    operator = jnp.concatenate([Gy, jnp.concatenate([c, jnp.zeros(1, c.dtype)])[None]])
+    return Implicit((y, g, y0[:6], c), operator, good, Raw(y, res, k, code, mu, c))
+
+
 def solution(static: Static, p, y0) -> Raw:
     """The raw solution of the fold program; its ``y[7]`` (the fold's parameter) is
-    differentiable with respect to ``p`` (module docstring), nothing else is."""
-    return Raw(*_program(*static, p, y0))
-
-
-@solution.defjvp
-def _solution_jvp(static, primals, tangents):
-    raw = solution(static, *primals)
-    zeros = jax.tree.map(_zero_tangent, raw)
-    good = raw.status == enum.code(OrbitStatus.successful)
-    dvalue = jnp.where(good, raw.gradient @ tangents[0], jnp.nan)
-    return raw, zeros._replace(y=zeros.y.at[7].set(dvalue))
+    differentiable with respect to ``p`` (the implicit rule of :mod:`rbo_jax.solvers` on the
+    shooting equations and the gauge, :class:`_Residual`), nothing else is."""
+    out = implicit(lambda params: _solve(params, static, y0), _Residual(static), (p,),
+                   linear=Dense(), increment=lambda y, params: jnp.zeros_like(y[0]),
+                   retract=lambda y, x, params: (y[0] + x,) + tuple(y[1:]),
+                   forward=True)  # fmt: skip
+    y = out.y[0]
+    y = jnp.concatenate([jax.lax.stop_gradient(y[:7]), y[7:]])  # only alpha's derivative is right
+    return out.extra._replace(y=y)
 
 
 def _guess_vector(guess, parameter, dtype):
@@ -284,7 +297,8 @@ def fold_of_cycles(
     derivatives of the flow with respect to $p$). Compiled once per structure of ``model_fn``
     and ``params``.
     """
-    check_model_fn(model_fn)
+    if not callable(model_fn):
+        raise TypeError("model_fn must be a callable model_fn(**params) -> RigidBodyOscillator.")
     dtype = jnp.result_type(float)
     others = {str(k): v for k, v in params.items() if k != parameter}  # flat, by sorted name
     names, shapes, p = flat_parameters(others)

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..continuation import crossing, sign_changes
+
 __all__ = ["multiplier_crossings", "detect", "fold_guess"]
 
 IMAG_TOL = 1e-7  # a multiplier with |Im mu| <= IMAG_TOL max(1, |mu|) is real
@@ -73,23 +75,18 @@ def detect(rows, parameter_index: int = 7) -> list[tuple[str, float, int]]:
     multipliers)`` per cycle; the Hopf point, row 0, is skipped): folds from the tangent's
     parameter component (value: its linear zero, refined by the caller), period doubling and
     Neimark–Sacker from :func:`multiplier_crossings`; ``index`` the cycle before the point."""
-    special = []
+    alpha = [float(u[parameter_index]) for u, _, _ in rows]
+    slope = [float(t[parameter_index]) for _, t, _ in rows]
+    special = [("fold", float(crossing(slope[i], slope[i + 1], alpha[i], alpha[i + 1])[0]), i)
+               for i in sign_changes(slope) if i >= 1]  # fmt: skip
     for i in range(1, len(rows) - 1):
-        (u0, t0, mu0), (u1, t1, mu1) = rows[i], rows[i + 1]
-        a0, a1 = float(u0[parameter_index]), float(u1[parameter_index])
-        ta0, ta1 = float(t0[parameter_index]), float(t1[parameter_index])
-        if ta0 * ta1 < 0:
-            w = ta0 / (ta0 - ta1)
-            special.append(("fold", a0 + w * (a1 - a0), i))
-        for kind, w in multiplier_crossings(mu0, mu1):
-            special.append((kind, a0 + w * (a1 - a0), i))
-    return special
+        for kind, w in multiplier_crossings(rows[i][2], rows[i + 1][2]):
+            special.append((kind, alpha[i] + w * (alpha[i + 1] - alpha[i]), i))
+    return sorted(special, key=lambda s: s[2])
 
 
 def fold_guess(rows, index: int, parameter_index: int = 7):
     """The linear interpolation of cycles ``index`` and ``index + 1`` at the zero of the
     tangent's parameter component (the starting point of the fold's Newton solve)."""
     (u0, t0, _), (u1, t1, _) = rows[index], rows[index + 1]
-    ta0, ta1 = float(t0[parameter_index]), float(t1[parameter_index])
-    w = ta0 / (ta0 - ta1)
-    return np.asarray(u0) + w * (np.asarray(u1) - np.asarray(u0))
+    return crossing(float(t0[parameter_index]), float(t1[parameter_index]), u0, u1)[0]

@@ -33,21 +33,25 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Mapping
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .. import _enumeration as enum
+from .._callables import canonical
 from .._programs import jit
+from ..continuation import Steps, follow
 from ..ensemble import fast_simulate
-from ..model import RigidBodyOscillator
+from ..models.rigid_body import RigidBodyOscillator
 from ._cycle_fold import fold_of_cycles
 from ._cycle_special import detect, fold_guess
 from ._field import flat_field
-from ._hopf import HopfPoint, _point, canonical
-from ._orbit import OrbitStatus, _lstsq, _sorted, flow
-from ._system import _build
+from ._hopf import HopfPoint
+from ._models import rigid_model as _build
+from ._models import with_value as _point
+from ._orbit import OrbitStatus, _sorted, flow, shooting_newton
 
 __all__ = ["continue_limit_cycles"]
 
@@ -78,19 +82,10 @@ def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref,
     g = flat_field(_build(model_fn, _point(others, parameter, alpha_ref)))(x_ref)
     g = g / jnp.linalg.norm(g)
 
-    def cond(carry):
-        return (carry[2] <= max_newton) & ~carry[3]
+    def system(u):
+        return _system(model_fn, parameter, others, solver, u, g, x_ref, tau, u_k, s)
 
-    def body(carry):
-        u, _, k, _, _, _ = carry
-        r, A, _, ok = _system(model_fn, parameter, others, solver, u, g, x_ref, tau, u_k, s)
-        delta = _lstsq(A, -r)
-        res = jnp.max(jnp.abs(r))
-        done = (res <= tol) | ~ok | ~jnp.isfinite(res) | (u[6] <= 0) | (k == max_newton)
-        return u + jnp.where(done, 0.0, delta), res, k + 1, done, A, ok
-
-    init = (u_k + s * tau, jnp.asarray(jnp.inf), 0, False, jnp.zeros((8, 8)), True)
-    u, res, k, _, A, ok = jax.lax.while_loop(cond, body, init)
+    u, k, _, res, ok, A = shooting_newton(system, u_k + s * tau, tol, max_newton, step_tol=False)
     model = _build(model_fn, _point(others, parameter, u[7]))
     # N_SAMPLES equally spaced samples of one period (t = T, a repeat of t = 0, left out)
     ts = jnp.linspace(0.0, 1.0, N_SAMPLES + 1) * jnp.where(u[6] > 0, u[6], 1.0)
@@ -103,7 +98,7 @@ def _correct(model_fn, parameter, others, solver, u_k, tau, s, x_ref, alpha_ref,
     tangent = jnp.linalg.solve(A, jnp.zeros(8).at[7].set(1.0))  # A's last row: tau
     tangent = tangent / jnp.linalg.norm(tangent)
     M = A[:6, :6] + jnp.eye(6)
-    return u, enum.code(status), k - 1, _sorted(jnp.linalg.eigvals(M)), amplitude, tangent
+    return u, enum.code(status), k, _sorted(jnp.linalg.eigvals(M)), amplitude, tangent
 
 
 def continue_limit_cycles(
@@ -159,44 +154,58 @@ def continue_limit_cycles(
     model_fn = canonical(model_fn)  # a new but identical function: the same program
     correct = functools.partial(_correct, model_fn, parameter, others, solver)
     steps = dict(s=float(amplitude), ds_max=float(ds_max), tol=float(tol), bounds=bounds)
-    rows, reason = _march(correct, hopf, steps, max_points, _bar(progress, max_points))
+    rows, reason = _march(correct, hopf, steps, max_points, progress)
     special = detect([(u, t, _nontrivial(mu)) for u, mu, _, t in rows])
     if locate_folds:
         _locate_folds(special, rows, model_fn, others, parameter, solver, float(tol))
     return _dataset(xr, parameter, rows, special, reason)
 
 
-def _march(correct, hopf, steps, max_points, bar):
-    """The predictor-corrector loop (``rows``: ``(u, multipliers, amplitude, tangent)``)."""
+class _Cycle(NamedTuple):
+    """A point of the branch: the cycle ``u``, its multipliers, amplitude and tangent, and the
+    direction ``tau`` of the next predictor (the secant of the last two points)."""
+
+    u: jax.Array
+    multipliers: jax.Array
+    amplitude: float
+    tangent: jax.Array
+    tau: jax.Array
+
+
+def _march(correct, hopf, steps, max_points, progress):
+    """The branch by the one continuation loop (:func:`rbo_jax.continuation.follow`): its
+    points and the stop reason."""
     x_h = jnp.concatenate([hopf.theta, jnp.zeros(3)])
     d = jnp.real(hopf.eigenvector)
-    u_k = jnp.concatenate([x_h, jnp.stack([hopf.period, hopf.value])])
     tau = jnp.concatenate([d / jnp.linalg.norm(d), jnp.zeros(2)])
-    rows = [(u_k, jnp.full(6, jnp.nan + 0j), 0.0, tau)]
-    s, s_min, bounds = steps["s"], steps["s"] * 1e-3, steps["bounds"]
-    x_ref, alpha_ref = x_h + s * tau[:6], hopf.value
-    reason = "max_points"
-    while len(rows) < max_points:
+    first = _Cycle(jnp.concatenate([x_h, jnp.stack([hopf.period, hopf.value])]),
+                   jnp.full(6, jnp.nan + 0j), 0.0, tau, tau)  # fmt: skip
+    failures = []
+
+    def advance(point, ds):
+        # the phase condition's reference: the predicted state off the Hopf point, else the cycle
+        x_ref = point.u[:6] + (ds * point.tau[:6] if point is first else 0.0)
         u, code, k, mu, amp, tangent = correct(
-            u_k, tau, jnp.asarray(s), x_ref, alpha_ref, steps["tol"], 12
+            point.u, point.tau, jnp.asarray(ds), x_ref, point.u[7], steps["tol"], 12
         )
         if int(code) != int(np.asarray(enum.code(OrbitStatus.successful))):
-            s *= 0.5
-            if s < s_min:
-                failure = enum.name(enum.from_code(OrbitStatus, code))
-                reason = f"step size below amplitude/1000 (last correction: {failure})"
-                break
-            continue
-        rows.append((u, mu, float(amp), tangent))
-        bar.update(1)
-        tau = (u - u_k) / jnp.linalg.norm(u - u_k)
-        u_k, x_ref, alpha_ref = u, u[:6], u[7]
-        s = min(s * 1.5, steps["ds_max"]) if int(k) <= 3 else s
-        if not bounds[0] <= float(u[7]) <= bounds[1]:
-            reason = "left bounds"
-            break
-    bar.close()
-    return rows, reason
+            failures.append(enum.name(enum.from_code(OrbitStatus, code)))
+            return None, 0
+        return _Cycle(
+            u, mu, float(amp), tangent, (u - point.u) / jnp.linalg.norm(u - point.u)
+        ), int(k)
+
+    def accept(points, new):
+        inside = steps["bounds"][0] <= float(new.u[7]) <= steps["bounds"][1]
+        return True, None if inside else "left bounds"
+
+    s = steps["s"]
+    points, reason = follow(advance, first, Steps(s, s * 1e-3, steps["ds_max"]),
+                            max_points=max_points, accept=accept, progress=progress,
+                            desc="limit cycles")  # fmt: skip
+    if reason == "step size below ds_min":
+        reason = f"step size below amplitude/1000 (last correction: {failures[-1]})"
+    return [(p.u, p.multipliers, p.amplitude, p.tangent) for p in points], reason
 
 
 def _locate_folds(special, rows, model_fn, others, parameter, solver, tol):
@@ -216,12 +225,6 @@ def _nontrivial(mu):
     """The multipliers without the one nearest 1 (NumPy)."""
     mu = np.asarray(mu)
     return np.delete(mu, np.argmin(np.abs(mu - 1.0))) if np.all(np.isfinite(mu)) else mu[1:]
-
-
-def _bar(progress, total):
-    from ._equilibria import _progress
-
-    return _progress(progress, total)
 
 
 def _dataset(xr, parameter, rows, special, reason):

@@ -32,11 +32,11 @@ import numpy as np
 
 from .._programs import jit
 from ..ensemble import fast_simulate
-from ..model import RigidBodyOscillator
+from ..models.rigid_body import RigidBodyOscillator
 from ..trajectory import SolveStatus
 from ._bautin import bautin_point
 from ._hopf import hopf_point
-from ._system import _build
+from ._models import rigid_model as _build
 
 __all__ = ["flutter_map", "hysteresis_loop"]
 

@@ -1,47 +1,46 @@
-r"""The Hopf boundary in two parameters by pseudo-arclength continuation: it passes turning points
-of the boundary, carries the first Lyapunov coefficient and finds the codimension-two points.
+r"""The flutter boundary in two parameters by pseudo-arclength continuation, for every model: it
+passes turning points of the boundary, carries the first Lyapunov coefficient and finds the
+codimension-two points.
 
-With $u = (\theta, \alpha, \omega, v_r, v_i)$ the 17 unknowns of the Hopf system $r(u; \beta) = 0$
-of :mod:`._hopf` (the moment balance (4.61), $Jv_r + \omega v_i = 0$, $Jv_i - \omega v_r = 0$
-with $J$ the linearization (4.63)–(4.67), and $\mathrm{Re}(w^Hq) = 1$, $\mathrm{Im}(w^Hq) = 0$),
-$\alpha$ = ``parameter`` and $\beta$ = ``along``, the boundary is the curve of solutions
-$U = (u, \beta) \in \mathbb R^{18}$ of the 17 equations. Keller's pseudo-arclength method follows
-it: from a point $U_k$ with unit tangent $\tau_k$ (the null vector of $[r_u, r_\beta]$, oriented
-along the previous tangent), the predictor $U_k + s\,\tau_k$ is corrected by Newton's method on
+With $u$ the unknowns of the flutter system $r(u; \beta) = 0$ of :mod:`._hopf_system` (the
+configuration's increments $q$, $\alpha$ = ``parameter``, $\omega$, the eigenvector, for a
+collision the Jordan chain) and $\beta$ = ``along``, the boundary is the curve of solutions
+$U = (u, \beta)$. Keller's pseudo-arclength method follows it: from a point $U_k$ with unit
+tangent $\tau_k$, the predictor $U_k + s\,\tau_k$ is corrected by Newton's method (the one loop
+of :mod:`rbo_jax.solvers`) on
 
 $$r(u; \beta) = 0, \qquad \tau_k\cdot(U - U_k) = s,$$
 
-whose Jacobian $\begin{pmatrix} r_u & r_\beta\\ \tau_k^T\end{pmatrix}$ stays regular where
-$\beta$ turns back (there $r_u$ alone, the Jacobian of natural continuation, is singular). The
-new tangent solves $\begin{pmatrix} r_u & r_\beta\\ \tau_k^T\end{pmatrix}\tau = e_{18}$,
-normalised. $r_u$ and $r_\beta$ are those of :mod:`._system` (directional derivatives of the
-vector field, :func:`._field.jet`) with $\beta$ the last entry of the flat parameter vector,
-in one small compiled program per model structure (:func:`_corrector`). After each corrected
-point the normalisation vector becomes $w = v/|v|^2$ (so that $w^Hv = 1$ there), and the Hopf
-program of :mod:`._system` started at the point (one Newton step at fixed $\beta$) gives the
-first Lyapunov coefficient $\ell_1$, the transversality and the status.
+whose Jacobian $\begin{pmatrix} r_u & r_\beta\\ \tau_k^T\end{pmatrix}$ keeps full column rank
+where $\beta$ turns back (there $r_u$ alone, the Jacobian of natural continuation, is
+singular): least-squares steps, rows equilibrated, $r_u$ as the flutter program builds it
+(:func:`._hopf_system.evaluate`) and $r_\beta$ by forward mode. The new tangent solves
+$\begin{pmatrix} r_u & r_\beta\\ \tau_k^T\end{pmatrix}\tau = e$ (the last unit vector),
+normalised. Each corrected point is then handed to the flutter program, warm-started there (its
+chart moved to the point's equilibrium, one Newton step at fixed $\beta$), which gives the
+point's status, the first Lyapunov coefficient $\ell_1$ and the transversality. The step
+control and the detection are the continuation's (:mod:`rbo_jax.continuation`).
 
-**Special points** between consecutive points $U_k$, $U_{k+1}$ (arclength $\sigma$ measured
-along the chords):
+**Special points** between consecutive points $U_k$, $U_{k+1}$ (arclength $\sigma$ along the
+chords):
 
 - **turning point** of the boundary in $\beta$: the $\beta$-component of the tangent changes
   sign; located by the vertex of the parabola $\beta(\sigma)$ through three points around it
-  (error $O(s^3)$), as the folds of :mod:`._equilibria`;
-- **Bautin point** (generalised Hopf): $\ell_1$ changes sign; located by linear interpolation
-  of $\ell_1(\sigma)$ (:func:`_locate_bautin`, error $O(s^2)$);
+  (error $O(s^3)$), as the folds of equilibria;
+- **Bautin point** (generalised Hopf): $\ell_1$ changes sign; located by
+  :func:`rbo_jax.bautin_point` from the linear interpolation of $\ell_1(\sigma)$ (the
+  interpolation itself, error $O(s^2)$, where that solve fails);
 - **Bogdanov–Takens point**: the frequency tends to 0 (a double zero eigenvalue). Along the
-  solution curve of the Hopf system $\omega$ is a regular coordinate through such a point (the
-  curve goes on with $-\omega$ and the conjugate eigenvector, retracing the boundary), so
-  $\omega$, not $\omega^2$, is linear in the arclength, while $\omega^2$ is linear in the
-  distance along the boundary in the $(\alpha, \beta)$ plane. It is reported when $\omega$
-  changes sign between two points, when the Hopf solve returns ``zero_frequency``, or when
-  $|\omega|$ falls below ``1e-3`` of the Jacobian's scale $\max|J_{ij}|$, at the zero of the
-  line $\omega(\sigma)$ through the last two points; the branch ends there.
+  solution curve of the flutter system $\omega$ is a regular coordinate through such a point
+  (the curve goes on with $-\omega$ and the conjugate eigenvector, retracing the boundary), so
+  $\omega$, not $\omega^2$, is linear in the arclength. It is reported when $\omega$ changes
+  sign between two points, when the flutter program returns ``zero_frequency``, or when
+  $|\omega|$ falls below ``1e-3`` of the largest frequency met along the boundary, at the zero
+  of the line $\omega(\sigma)$ through the last two points; the branch ends there.
 """
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -50,201 +49,163 @@ import numpy as np
 
 from .. import _enumeration as enum
 from .._programs import jit
-from ._field import jet
-from ._hopf import HopfStatus, Raw, Static, solution
-from ._system import _Problem, _rows, _small, _system, normalisation_vector
+from ..continuation import Steps, crossing, follow, parabola_vertex, sign_changes
+from ..solvers import converged, equilibrated_lstsq, iterate
+from ._hopf import cold_start, prepare, solution
+from ._hopf_system import HopfStatus, Layout, Spec, code_of, evaluate, residual
 
-__all__ = ["continue_hopf_arclength"]
+__all__ = ["arclength_steps", "continue_hopf_arclength", "label_boundary"]
 
-_SUCCESSFUL = int(np.asarray(enum.code(HopfStatus.successful)))
-_ZERO_FREQUENCY = int(np.asarray(enum.code(HopfStatus.zero_frequency)))
-SMALL_FREQUENCY = 1e-3  # |omega| below this times max|J|: the end at a Bogdanov-Takens point
+SMALL_FREQUENCY = 1e-3  # |omega| below this times the largest met: a Bogdanov-Takens end
+MAX_OVERSHOOTS = 12  # steps past the Bogdanov-Takens point retried shorter before it is taken
+BOGDANOV_TAKENS = "Bogdanov-Takens point: the frequency tends to 0"
 MIN_COSINE = 0.9  # a step whose tangent turns further (tau_k . tau_k+1 below) is retried shorter
+_ROUNDING = 64  # machine epsilons: an equilibrated residual at the rounding level has converged
 
 
-def _derivatives(problem: _Problem, p, X, w):
-    r"""$r$, $r_u$, $r_\beta$ and $\max|J_{ij}|$ at $U = X$ (``X = [u, beta]``): the rows of
-    :func:`._system._rows` evaluated one per iteration of a loop (one traced copy of
-    :func:`._field.jet`, as in the Hopf program), then :func:`._system._system`."""
-    dtype, m, n_p = problem.dtype, problem.m, problem.n_p
-    u = X[:17]
-    y = jnp.concatenate([u[:3], jnp.zeros(3, dtype), u[3:4], p, X[17:]])
-    rows = _rows(m, u[5:11], u[11:17], n_p)
+def _system(spec: Spec, layout: Layout, X, config, C, p, t):
+    """``(r, [r_u, r_beta])`` at ``X = [u, beta]``: the flutter system with beta as the last
+    of the flat parameters."""
+    u, beta = X[:-1], X[-1]
+    q = jnp.concatenate([p, beta[None]])
+    r, Ju, _ = evaluate(spec, layout, u, config, C, q, t)
 
-    def body(i, carry):
-        _, D1, D2 = carry
-        f0, d1, d2, _ = jet(problem.field, y, rows[i, 0], rows[i, 1], rows[i, 2])
-        put = jax.lax.dynamic_update_index_in_dim
-        return f0, put(D1, d1, i, 0), put(D2, d2, i, 0)
+    def of_beta(b):
+        return residual(spec, layout, u, config, C, jnp.concatenate([p, b[None]]), t)
 
-    zeros = jnp.zeros((rows.shape[0], 6), dtype)
-    f0, D1, D2 = jax.lax.fori_loop(0, rows.shape[0], body, (jnp.zeros(6, dtype), zeros, zeros))
-    r, Ju, Jp, J, _, _ = _system(u, w, f0, D1, D2, n_p)
-    return r, Ju, Jp[:, -1], jnp.max(jnp.abs(J)), (f0, D1, D2)
+    _, r_beta = jax.jvp(of_beta, (beta,), (jnp.ones_like(beta),))
+    return r, jnp.concatenate([Ju, r_beta[:, None]], axis=1)
 
 
-def _bordered(Ju, Jb, tau):
-    return jnp.concatenate([jnp.concatenate([Ju, Jb[:, None]], axis=1), tau[None, :]])
-
-
-@functools.partial(jit, small=True)
-def _corrector(static: Static, t, p, X, tau, s, w, max_newton):
-    r"""Predictor $X + s\tau$, Newton's corrector on the bordered system (module docstring),
-    the new normalisation vector $w = v/|v|^2$ and the new tangent (at the last evaluation,
-    whose correction is below the tolerance, with the new $w$). Returns ``(X, converged,
-    num_steps, tangent, w, scale)``."""
-    problem = _Problem(  # its parameter vector: p and beta, the last unknown
-        static.model_fn, static.parameter, static.names, static.shapes,
-        static.rtol, static.atol, static.max_steps, jnp.concatenate([p, X[17:]]), t,
-    )  # fmt: skip
-    dtype = p.dtype
+def _corrector(spec: Spec, layout: Layout, config, C, p, t, X, tau, s):
+    r"""Predictor $X + s\tau$, Newton's corrector on the bordered system (module docstring)
+    and the new tangent at the last evaluation. Returns ``(X, converged, num_steps,
+    tangent)``."""
     X_pred = X + s * tau
-    e = jnp.zeros(18, dtype).at[17].set(1.0)
+    floor = _ROUNDING * float(jnp.finfo(X.dtype).eps)
 
-    def body(carry):
-        V, k, _, _, _ = carry
-        r, Ju, Jb, scale, D = _derivatives(problem, p, V, w)
+    def bordered(V):
+        r, B = _system(spec, layout, V, config, C, p, t)
         R = jnp.concatenate([r, (tau @ (V - X_pred))[None]])
-        delta = jnp.linalg.solve(_bordered(Ju, Jb, tau), -R)
-        done = _small(delta, V, static.rtol, static.atol) & jnp.all(jnp.isfinite(delta))
-        return V + delta, k + 1, done, scale, (V, D)
+        return R, jnp.concatenate([B, tau[None, :]], axis=0)
 
-    zeros = jnp.zeros((18 + 3 * problem.n_p, 6), dtype)
-    init = (X_pred, jnp.asarray(0), jnp.asarray(False), jnp.asarray(0.0, dtype))
-    init = init + ((X_pred, (jnp.zeros(6, dtype), zeros, zeros)),)
-    V, k, done, scale, (V_last, D) = jax.lax.while_loop(
-        lambda c: ~c[2] & (c[1] < max_newton), body, init
-    )
-    converged = done & jnp.all(jnp.isfinite(V))
-    w_new = normalisation_vector(V)
-    _, Ju, Jp, _, _, _ = _system(V_last[:17], w_new, *D, problem.n_p)
-    tangent = jnp.linalg.solve(_bordered(Ju, Jp[:, -1], tau), e)
-    return V, converged, k, tangent / jnp.linalg.norm(tangent), w_new, scale
+    def step(V, _):
+        R, B = bordered(V)
+        scale = jnp.linalg.norm(B, axis=1)
+        scale = jnp.where(scale > 0, scale, 1.0)
+        delta = equilibrated_lstsq(B, -R)
+        finite = jnp.all(jnp.isfinite(delta))
+        done = converged(delta, V, spec.rtol, spec.atol) | (jnp.max(jnp.abs(R / scale)) <= floor)
+        new = jnp.where(finite, V + delta, V)
+        return new, B, jnp.where(finite, jnp.where(done, 0, -1), 1)
+
+    B0 = jnp.zeros((jax.eval_shape(bordered, X_pred)[1].shape), X.dtype)
+    V, B, code, k = iterate(step, X_pred, B0, max_steps=spec.max_steps, exhausted=1)
+    tangent = equilibrated_lstsq(B, jnp.zeros(B.shape[0], B.dtype).at[-1].set(1.0))
+    return V, code == 0, k, tangent / jnp.linalg.norm(tangent)
+
+
+_corrector_program = jit(_corrector, fast_compile=True)
 
 
 class _Point(NamedTuple):
-    """A corrected point: ``X = [u, beta]``, the tangent, the normalisation vector, the
-    arclength ``sigma`` (along the chords) and the Hopf program's outputs."""
+    """A point of the boundary: ``X = [u, beta]`` (its $q$ zero: the chart at ``config``),
+    the configuration, the normalisation basis, the tangent, the arclength ``sigma`` and the
+    flutter program's outputs there."""
 
     X: np.ndarray
+    config: object
+    C: object
     tau: np.ndarray
-    w: np.ndarray
     sigma: float
-    scale: float
-    raw: Raw
+    raw: object
 
 
 class _Run(NamedTuple):
-    static: Static
+    spec: Spec
+    layout: Layout
+    model: object
+    p: object  # the flat parameters without beta
     t: object
-    p: object
-    beta0: float
     direction: float
     bounds: tuple[float, float]
-    max_newton: int
 
 
-def _hopf_at(run: _Run, X, w) -> Raw:
-    """The Hopf program at the point ``X`` (fixed beta), warm-started: l1, transversality,
-    status."""
-    q = jnp.concatenate([run.p, jnp.asarray(X[17:])])
-    X = jnp.asarray(X)
-    return solution(run.static, q, X[3], X[:3], run.t, X[:17], jnp.asarray(w), jnp.asarray(True))
+def _at(run: _Run, X, config, C, alpha0):
+    """The flutter program warm-started at ``X`` (fixed beta): the point in its own chart,
+    with its status, l1 and transversality."""
+    q = jnp.concatenate([run.p, jnp.asarray(X[-1:])])
+    y, raw = solution(run.spec, q, run.t, alpha0, config, jnp.asarray(True), jnp.asarray(X[:-1]), C)
+    return y, raw
 
 
-def _first_point(run: _Run, guess, theta_guess) -> _Point:
-    """The Hopf point at beta0 (cold start from ``guess``, as :func:`rbo_jax.hopf_point`) and
-    its tangent oriented along ``run.direction`` in beta."""
-    beta0 = run.beta0
-    q = jnp.concatenate([run.p, jnp.asarray([beta0], dtype=run.p.dtype)])
-    dtype = run.p.dtype
-    raw = solution(
-        run.static, q, guess, theta_guess, run.t, jnp.zeros(17, dtype), jnp.zeros(12, dtype),
-        jnp.asarray(False),
-    )  # fmt: skip
-    status = int(raw.status)
-    if status != _SUCCESSFUL:
+def _first_point(run: _Run, alpha0, config, beta0):
+    spec, layout = run.spec, run.layout
+    u0, C0 = cold_start(spec, run.model, run.p.dtype)
+    q = jnp.concatenate([run.p, jnp.asarray([beta0], run.p.dtype)])
+    (config, u, C), raw = solution(spec, q, run.t, alpha0, config, jnp.asarray(False), u0, C0)
+    if int(raw.status) != 0:
         raise ValueError(
-            f"no Hopf point found from the guess at {run.static.names[-1]} = {beta0}: "
-            f"HopfStatus.{enum.name(enum.from_code(HopfStatus, status))}."
+            f"no flutter point found from the guess at {spec.names[-1]} = {beta0}: "
+            f"HopfStatus.{enum.name(enum.from_code(HopfStatus, int(raw.status)))}."
         )
-    u = np.asarray(raw.u)
-    w = np.asarray(normalisation_vector(u))
-    X = np.concatenate([u, [beta0]])
-    tau0 = np.zeros(18)
-    tau0[17] = run.direction
-    X1, ok, _, tau, w, scale = _corrector(
-        run.static, run.t, run.p, jnp.asarray(X), jnp.asarray(tau0), jnp.asarray(0.0, dtype),
-        jnp.asarray(w), run.max_newton,
-    )  # fmt: skip
+    X = np.concatenate([np.asarray(u), [beta0]])
+    tau0 = np.zeros_like(X)
+    tau0[-1] = run.direction
+    _, ok, _, tau = _corrector_program(spec, layout, config, C, run.p, run.t, jnp.asarray(X),
+                                       jnp.asarray(tau0), jnp.asarray(0.0, X.dtype))  # fmt: skip
     if not bool(ok):
-        raise ValueError(f"the Hopf point at {run.static.names[-1]} = {beta0} is singular.")
-    raw = _hopf_at(run, np.asarray(X1), w)
-    return _Point(np.asarray(X1), np.asarray(tau), np.asarray(w), 0.0, float(scale), raw)
+        raise ValueError(f"the flutter point at {spec.names[-1]} = {beta0} is singular.")
+    return _Point(X, config, C, np.asarray(tau), 0.0, raw)
 
 
 def _advance(run: _Run, point: _Point, ds: float):
-    """One step of length ``ds`` from ``point``: the new point and the number of Newton steps,
-    or ``(None, 0)`` when the corrector, the tangent's turn or the Hopf program fails."""
-    X, ok, k, tau, w, scale = _corrector(
-        run.static, run.t, run.p, jnp.asarray(point.X), jnp.asarray(point.tau),
-        jnp.asarray(ds, dtype=run.p.dtype), jnp.asarray(point.w), run.max_newton,
+    """One step of length ``ds``: the new point and the number of Newton steps, or ``(None,
+    0)`` where the corrector, the tangent's turn or the flutter program fails."""
+    X, ok, k, tau = _corrector_program(
+        run.spec, run.layout, point.config, point.C, run.p, run.t, jnp.asarray(point.X),
+        jnp.asarray(point.tau), jnp.asarray(ds, point.X.dtype),
     )  # fmt: skip
     X, tau = np.asarray(X), np.asarray(tau)
     if not bool(ok) or float(tau @ point.tau) < MIN_COSINE:
         return None, 0
-    raw = _hopf_at(run, X, w)
-    if int(raw.status) not in (_SUCCESSFUL, _ZERO_FREQUENCY):
+    (config, u, C), raw = _at(run, X, point.config, point.C, X[run.layout.m])
+    if int(raw.status) not in (0, code_of(HopfStatus.zero_frequency)):
         return None, 0
+    X = np.concatenate([np.asarray(u), X[-1:]])
     sigma = point.sigma + float(np.linalg.norm(X - point.X))
-    return _Point(X, tau, np.asarray(w), sigma, float(scale), raw), int(k)
+    return _Point(X, config, C, tau, sigma, raw), int(k)
 
 
-def _frequency_test(run_sign: float, point: _Point) -> float:
-    """The Bogdanov-Takens test function: the signed frequency, positive along the boundary."""
-    return run_sign * float(point.X[4])
+def _l1(point: _Point) -> float:
+    return float(point.raw.first_lyapunov)
 
 
-def _on_line(a: _Point, b: _Point, fa: float, fb: float):
-    """The point where the line through ``(a.sigma, fa)``, ``(b.sigma, fb)`` crosses zero:
-    ``(alpha, beta, weight)`` (``weight`` 0 at ``a``, 1 at ``b``, above 1 beyond ``b``)."""
-    weight = fa / (fa - fb) if fa != fb else 1.0
-    X = a.X + weight * (b.X - a.X)
-    return float(X[3]), float(X[17]), weight
-
-
-def _locate_bautin(model_fn, params, parameter, along, before: _Point, after: _Point):
-    r"""The Bautin point (generalised Hopf, $\ell_1 = 0$) between two points of the boundary
-    whose first Lyapunov coefficients have opposite signs: :func:`rbo_jax.bautin_point` started
-    from the linear interpolation of $\ell_1$ along the chord, ``(alpha, beta)``; the
-    interpolation itself (error $O(s^2)$) if that solve fails. ``before.X``/``after.X`` are
-    ``[θ(3), α, ω, v_r(6), v_i(6), β]`` and ``before.raw.first_lyapunov`` its $\ell_1$."""
+def _locate_bautin(context, before: _Point, after: _Point, m: int):
+    r"""The Bautin point between two points whose $\ell_1$ have opposite signs:
+    :func:`rbo_jax.bautin_point` from the linear interpolation of $\ell_1$ along the chord,
+    ``(alpha, beta)``; the interpolation itself where that solve fails."""
     from ._bautin import bautin_point
 
-    fa, fb = float(before.raw.first_lyapunov), float(after.raw.first_lyapunov)
-    alpha, beta, _ = _on_line(before, after, fa, fb)
-    point = bautin_point(
-        model_fn,
-        params,
-        (parameter, along),
-        (alpha, beta),
-        theta_guess=np.asarray(before.X[:3]),
-    )
+    model_fn, params, parameter, along, options = context
+    X, _ = crossing(_l1(before), _l1(after), before.X, after.X)
+    alpha, beta = float(X[m]), float(X[-1])
+    point = bautin_point(model_fn, params, (parameter, along), (alpha, beta),
+                         theta_guess=before.config, theta_eq_fn=options["theta_eq_fn"])  # fmt: skip
     if bool(point.ok):
         return float(point.value[0]), float(point.value[1])
     return alpha, beta
 
 
-def _bogdanov_takens(near: list, f: list):
+def _bogdanov_takens(near: list, m: int):
     r"""The end of the boundary where the frequency tends to 0, from the last (up to three)
-    points ``near`` of the branch, all with $\omega > 0$ (``f``): $\sigma_*$ where the line
-    $\omega(\sigma)$ through the last two vanishes, $\alpha$ and $\beta$ at $\sigma_*$ on the
-    parabolas through the three (both have a vertex there: the solution curve of the Hopf
-    system retraces the boundary with $-\omega$ beyond it, module docstring)."""
+    points ``near`` (all with $\omega > 0$): $\sigma_*$ where the line $\omega(\sigma)$ through
+    the last two vanishes, $\alpha$ and $\beta$ there on the parabolas through the three."""
     if len(near) < 2:
         X = near[-1].X
-        return ("bogdanov_takens", float(X[17]), float(X[3]), 0, 0.0, np.nan)
-    (a, b), (fa, fb) = near[-2:], f[-2:]
+        return ("bogdanov_takens", float(X[-1]), float(X[m]), 0, 0.0, np.nan)
+    a, b = near[-2:]
+    fa, fb = float(a.X[m + 1]), float(b.X[m + 1])
     at = b.sigma if fa == fb else a.sigma + fa * (b.sigma - a.sigma) / (fa - fb)
     at = max(at, b.sigma)  # a frequency that does not decrease: the end is the last point
     sigma = np.array([p.sigma for p in near])
@@ -252,142 +213,70 @@ def _bogdanov_takens(near: list, f: list):
     def fit(values):
         return float(np.polyval(np.polyfit(sigma, values, len(near) - 1), at))
 
-    alpha, beta = fit([p.X[3] for p in near]), fit([p.X[17] for p in near])
+    alpha, beta = fit([p.X[m] for p in near]), fit([p.X[-1] for p in near])
     return ("bogdanov_takens", beta, alpha, -1, 0.0, np.nan)
 
 
-def _detect(context, special, points: list, new: _Point, sign: float):
-    """Special points between the last point and ``new`` (module docstring): appends
-    ``(type, beta, alpha, index, frequency, l1)`` to ``special``. Returns whether the branch
-    ends at a Bogdanov-Takens point, and whether ``new`` is kept."""
-    old, index = points[-1], len(points) - 1
-    f_new = _frequency_test(sign, new)
-    zero = int(new.raw.status) == _ZERO_FREQUENCY or f_new <= 0
-    if zero or abs(f_new) < SMALL_FREQUENCY * new.scale:
-        near = (points + ([] if zero else [new]))[-3:]
-        special.append(_bogdanov_takens(near, [_frequency_test(sign, p) for p in near]))
-        return True, not zero
-    if float(old.tau[17]) * float(new.tau[17]) < 0:
-        _, beta, w = _on_line(old, new, float(old.tau[17]), float(new.tau[17]))
-        alpha = float(old.X[3] + w * (new.X[3] - old.X[3]))
-        special.append(("turning_point", beta, alpha, index, np.nan, np.nan))
-    l1_old, l1_new = float(old.raw.first_lyapunov), float(new.raw.first_lyapunov)
-    if l1_old * l1_new < 0:
-        alpha, beta = _locate_bautin(*context, old, new)
-        w = l1_old / (l1_old - l1_new)
-        frequency = abs(float(old.X[4] + w * (new.X[4] - old.X[4])))
-        special.append(("bautin", beta, alpha, index, frequency, 0.0))
-    return False, True
+def _accept(run: _Run, special: list):
+    """Whether a new point joins the boundary, and whether the boundary ends there (module
+    docstring: a Bogdanov-Takens point, or beta leaving its bounds). A step whose frequency
+    vanished or changed sign overshot the Bogdanov-Takens point: it is refused (the step
+    halves, :func:`rbo_jax.continuation.follow`) so that the boundary comes to the end with
+    steps short enough for the extrapolation, at most ``MAX_OVERSHOOTS`` times."""
+    m, lo, hi = run.layout.m, *run.bounds
+    largest, overshoots = [0.0], [0]
+
+    def accept(points, new):
+        largest[0] = max(largest[0], *(abs(float(p.X[m + 1])) for p in points))
+        omega = float(new.X[m + 1]) * np.sign(float(points[0].X[m + 1]))
+        zero = int(new.raw.status) == code_of(HopfStatus.zero_frequency) or omega <= 0
+        if zero and overshoots[0] < MAX_OVERSHOOTS:
+            overshoots[0] += 1
+            return False, None
+        if zero or abs(omega) < SMALL_FREQUENCY * largest[0]:
+            special.append(bogdanov_takens(points + ([] if zero else [new])))
+            return not zero, BOGDANOV_TAKENS
+        if not lo <= float(new.X[-1]) <= hi:
+            return True, f"{run.spec.names[-1]} left [{lo}, {hi}]"
+        return True, None
+
+    def bogdanov_takens(points):
+        item = _bogdanov_takens(points[-3:], m)
+        return item[:3] + (len(points) - 1,) + item[4:]  # the last point of the boundary
+
+    accept.overshot = lambda: overshoots[0] > 0
+    accept.end = bogdanov_takens
+    return accept
 
 
-def _refine_turning_points(special, points):
-    """A turning point's beta as the vertex of the parabola beta(sigma) through three points
-    around it (error O(s^3)); alpha, the frequency and l1 from the parabolas through the same
-    points, at the vertex."""
-    for i, item in enumerate(special):
-        kind, index = item[0], item[3]
-        lo = min(max(index - 1, 0), len(points) - 3)
-        if kind != "turning_point" or lo < 0:
-            continue
-        near = points[lo : lo + 3]
-        sigma = np.array([p.sigma for p in near])
-        a, b, c = np.polyfit(sigma, [p.X[17] for p in near], 2)
-        if a == 0 or not sigma[0] <= -b / (2 * a) <= sigma[-1]:
-            continue
-        at = -b / (2 * a)
-
-        def fit(values):
-            return float(np.polyval(np.polyfit(sigma, values, 2), at))
-
-        alpha = fit([p.X[3] for p in near])
-        frequency = fit([abs(p.X[4]) for p in near])
-        l1 = fit([float(p.raw.first_lyapunov) for p in near])
-        special[i] = (kind, float(c - b * b / (4 * a)), alpha, index, frequency, l1)
-
-
-def progress_bar(progress: bool, total: int, desc: str = "Hopf boundary"):
-    """A tqdm bar of ``total`` points, or one that does nothing."""
-    from ._equilibria import _NoBar
-
-    if not progress:
-        return _NoBar()
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit="point")
-
-
-def _follow(run: _Run, context, first: _Point, ds, ds_min, ds_max, max_points, progress):
-    """The continuation loop: step control (×1.5 after corrections of at most 3 Newton steps,
-    ×0.5 after failures), detection, stopping rules. Returns ``(points, special, reason)``."""
-    points, special = [first], []
-    sign = 1.0 if float(first.X[4]) >= 0 else -1.0
-    lo, hi = run.bounds
-    reason = "max_points"
-    bar = progress_bar(progress, max_points)
-    bar.update(1)
-    while len(points) < max_points:
-        new, k = _advance(run, points[-1], ds)
-        if new is None:
-            ds *= 0.5
-            if ds < ds_min:
-                reason = "step size below ds_min"
-                break
-            continue
-        end, keep = _detect(context, special, points, new, sign)
-        if keep:
-            points.append(new)
-            bar.update(1)
-        if end:
-            special[-1] = special[-1][:3] + (len(points) - 1,) + special[-1][4:]
-            reason = "Bogdanov-Takens point: the frequency tends to 0"
-            break
-        ds = min(ds * 1.5, ds_max) if k <= 3 else ds
-        if not lo <= float(new.X[17]) <= hi:
-            reason = f"{context[3]} left [{lo}, {hi}]"
-            break
-    bar.close()
-    _refine_turning_points(special, points)
-    return points, special, reason
-
-
-def _dataset(points, special, parameter, along, reason):
-    import xarray as xr
-
-    X = np.stack([p.X for p in points])
-    raws = [p.raw for p in points]
-    special = sorted(special, key=lambda s: s[3])
-    column = list(zip(*special)) if special else [()] * 6
-    ds = xr.Dataset(
-        {
-            parameter: ("point", X[:, 3]),
-            along: ("point", X[:, 17]),
-            "frequency": ("point", np.abs(X[:, 4])),
-            "first_lyapunov": ("point", np.array([float(r.first_lyapunov) for r in raws])),
-            "transversality": ("point", np.array([float(r.transversality) for r in raws])),
-            "theta": (("point", "component"), X[:, :3]),
-            "status": ("point", np.array([int(r.status) for r in raws], dtype=np.int8)),
-            "special_type": ("special", np.array(column[0], dtype=str)),
-            "special_value": ("special", np.array(column[1], dtype=float)),
-            "special_parameter": ("special", np.array(column[2], dtype=float)),
-            "special_index": ("special", np.array(column[3], dtype=int)),
-            "special_frequency": ("special", np.array(column[4], dtype=float)),
-            "special_first_lyapunov": ("special", np.array(column[5], dtype=float)),
-        },
-        coords={"component": ["x", "y", "z"]},
-        attrs={
-            "parameter": parameter,
-            "along": along,
-            "method": "arclength",
-            "stop_reason": reason,
-        },
-    )
-    return label_boundary(ds, parameter, along)
+def _special(context, points: list, m: int) -> list:
+    """Turning points and Bautin points between consecutive points (module docstring):
+    ``(type, beta, alpha, index, frequency, l1)``."""
+    special = []
+    for i in sign_changes([p.tau[-1] for p in points]):
+        X, _ = crossing(points[i].tau[-1], points[i + 1].tau[-1], points[i].X, points[i + 1].X)
+        item = ("turning_point", float(X[-1]), float(X[m]), i, np.nan, np.nan)
+        lo = min(max(i - 1, 0), len(points) - 3)
+        if lo >= 0:
+            near = points[lo : lo + 3]
+            others = ([p.X[m] for p in near], [abs(p.X[m + 1]) for p in near],
+                      [_l1(p) for p in near])  # fmt: skip
+            vertex = parabola_vertex([p.sigma for p in near], [p.X[-1] for p in near], others)
+            if vertex is not None:
+                beta, (alpha, frequency, l1) = vertex
+                item = ("turning_point", beta, alpha, i, frequency, l1)
+        special.append(item)
+    for i in sign_changes([_l1(p) for p in points]):
+        alpha, beta = _locate_bautin(context, points[i], points[i + 1], m)
+        X, _ = crossing(_l1(points[i]), _l1(points[i + 1]), points[i].X, points[i + 1].X)
+        special.append(("bautin", beta, alpha, i, abs(float(X[m + 1])), 0.0))
+    return special
 
 
 def arclength_steps(values, along: str, ds, ds_min, ds_max):
     """The bounds and steps of a boundary's arclength continuation over ``values`` of
-    ``along`` (checked): ``(lo, hi, ds, ds_min, ds_max)``, the steps by default 0.02, 1e-6 and
-    0.1 of the span ``hi - lo`` (:func:`rbo_jax.continue_hopf`)."""
+    ``along`` (checked): ``(lo, hi, steps)``, the steps by default 0.02, 1e-6 and 0.1 of the
+    span ``hi - lo`` (:func:`rbo_jax.continue_hopf`)."""
     values = np.asarray(values, dtype=float)
     if values.size < 2 or not values.max() > values.min():
         raise ValueError(
@@ -400,39 +289,81 @@ def arclength_steps(values, along: str, ds, ds_min, ds_max):
     ds = 0.02 * span if ds is None else float(ds)
     ds_max = max(0.1 * span, ds) if ds_max is None else float(ds_max)
     ds_min = 1e-6 * span if ds_min is None else float(ds_min)
-    if not (0 < ds_min <= ds <= ds_max):
-        raise ValueError(f"need 0 < ds_min <= ds <= ds_max, got {ds_min}, {ds}, {ds_max}.")
-    return lo, hi, ds, ds_min, ds_max
+    return lo, hi, Steps(ds, ds_min, ds_max).check("continue_hopf")
 
 
-def label_boundary(ds, parameter: str, along: str, point: str = "Hopf point"):
-    """The attributes of a boundary of :func:`continue_hopf_arclength` (and of a rod's,
-    :mod:`rbo_jax.lattice._rod_hopf_arclength`): the status's flag meanings, long names."""
+def label_boundary(ds, parameter: str, along: str):
+    """The attributes of a boundary's Dataset: the status's flag meanings, long names."""
     ds["status"].attrs["flag_meanings"] = " ".join(enum.names(HopfStatus))
-    ds[parameter].attrs["long_name"] = f"critical {parameter} ({point})"
+    ds[parameter].attrs["long_name"] = f"critical {parameter} (flutter point)"
     ds["special_value"].attrs["long_name"] = f"{along} at the special point"
     ds["special_parameter"].attrs["long_name"] = f"{parameter} at the special point"
     return ds
 
 
-def continue_hopf_arclength(
-    static: Static, context, others, guess, values, theta_guess, t, *, ds, ds_min, ds_max,
-    max_points, progress,
-):  # fmt: skip
-    r"""The Hopf boundary by pseudo-arclength continuation (module docstring), for
-    :func:`rbo_jax.continue_hopf` with ``method="arclength"``: from the Hopf point at
-    ``values[0]`` (``static`` names the parameters, the ``along`` parameter last; ``context``
-    is ``(model_fn, params, parameter, along)``), first towards ``values[1]``, until β leaves
-    ``[min(values), max(values)]``."""
-    dtype = jnp.result_type(float)
-    parts = [jnp.ravel(v) for v in others.values()]
-    p = jnp.concatenate(parts) if parts else jnp.zeros(0, dtype)
-    values = np.asarray(values, dtype=float)
-    lo, hi, ds, ds_min, ds_max = arclength_steps(values, static.names[-1], ds, ds_min, ds_max)
-    run = _Run(
-        static, jnp.asarray(t, dtype=dtype), p, float(values[0]),
-        1.0 if values[1] >= values[0] else -1.0, (lo, hi), max(int(static.max_steps), 1),
-    )  # fmt: skip
-    first = _first_point(run, jnp.asarray(guess, dtype=dtype), theta_guess)
-    points, special, reason = _follow(run, context, first, ds, ds_min, ds_max, max_points, progress)
-    return _dataset(points, special, context[2], context[3], reason)
+def continue_hopf_arclength(model_fn, params, parameter, guess, along, values, options, *, ds,
+                            ds_min, ds_max, max_points, progress):  # fmt: skip
+    r"""The flutter boundary by pseudo-arclength continuation (module docstring), for
+    :func:`rbo_jax.continue_hopf` with ``method="arclength"``: from the flutter point at
+    ``values[0]``, first towards ``values[1]``, until β leaves ``[min(values),
+    max(values)]``."""
+    lo, hi, steps = arclength_steps(values, along, ds, ds_min, ds_max)
+    if max_points < 1:
+        raise ValueError(f"max_points must be at least 1, got {max_points}.")
+    spec, model, p, alpha0, config, t = prepare(model_fn, params, parameter, guess, options,
+                                                along=(along, values[0]))  # fmt: skip
+    layout = Layout(model.free_size(), spec.kind)
+    direction = 1.0 if values[1] >= values[0] else -1.0
+    run = _Run(spec, layout, model, jnp.asarray(p[:-1]), t, direction, (lo, hi))
+    first = _first_point(run, alpha0, config, float(values[0]))
+    end_points: list = []
+    accept = _accept(run, end_points)
+    points, reason = follow(lambda point, ds: _advance(run, point, ds), first, steps,
+                            max_points=max_points, accept=accept, progress=progress,
+                            desc="flutter boundary")  # fmt: skip
+    if reason == "step size below ds_min" and accept.overshot():  # halved to the end
+        end_points.append(accept.end(points))
+        reason = BOGDANOV_TAKENS
+    context = (model_fn, {k: v for k, v in params.items() if k != parameter}, parameter, along,
+               options)  # fmt: skip
+    special = sorted(_special(context, points, layout.m) + end_points, key=lambda s: s[3])
+    return _dataset(points, special, spec, model, along, reason)
+
+
+def _dataset(points, special, spec: Spec, model, along: str, reason: str):
+    import xarray as xr
+
+    m = model.free_size()
+    X = np.stack([p.X for p in points])
+    states = [model.state_at_rest(p.config) for p in points]
+    theta = np.stack([np.asarray(getattr(s, "theta", s)) for s in states])
+    turn = ("point", "component") if theta.ndim == 2 else ("point", "body", "component")
+    column = list(zip(*special)) if special else [()] * 6
+    raws = [p.raw for p in points]
+    ds = xr.Dataset(
+        {
+            spec.parameter: ("point", X[:, m]),
+            along: ("point", X[:, -1]),
+            "frequency": ("point", np.abs(X[:, m + 1])),
+            "first_lyapunov": ("point", np.array([float(r.first_lyapunov) for r in raws])),
+            "transversality": ("point", np.array([float(r.transversality) for r in raws])),
+            "theta": (turn, theta),
+            "num_steps": ("point", np.array([int(r.num_steps) for r in raws], np.int32)),
+            "status": ("point", np.array([int(r.status) for r in raws], dtype=np.int8)),
+            "special_type": ("special", np.array(column[0], dtype=str)),
+            "special_value": ("special", np.array(column[1], dtype=float)),
+            "special_parameter": ("special", np.array(column[2], dtype=float)),
+            "special_index": ("special", np.array(column[3], dtype=int)),
+            "special_frequency": ("special", np.array(column[4], dtype=float)),
+            "special_first_lyapunov": ("special", np.array(column[5], dtype=float)),
+        },
+        coords={"component": ["x", "y", "z"]},
+        attrs={
+            "parameter": spec.parameter,
+            "along": along,
+            "method": "arclength",
+            "kind": spec.kind,
+            "stop_reason": reason,
+        },  # fmt: skip
+    )
+    return label_boundary(ds, spec.parameter, along)

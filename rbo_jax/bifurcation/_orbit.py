@@ -10,7 +10,8 @@ the others lie inside the unit circle.
 
 **Shooting** solves $\varphi_T(x_0) - x_0 = 0$ together with the phase condition
 $F(\hat x_0)\cdot(x_0 - \hat x_0) = 0$ (the correction is orthogonal to the flow at the guess
-$\hat x_0$) for $(x_0, T)$ by Newton's method on the 7×7 system
+$\hat x_0$) for $(x_0, T)$ by Newton's method (the one loop of :mod:`rbo_jax.solvers`) on the
+7×7 system
 
 $$\begin{pmatrix} M - E & F(\varphi_T(x_0)) \\ F(\hat x_0)^T & 0\end{pmatrix}
   \begin{pmatrix}\delta x_0 \\ \delta T\end{pmatrix} = -\begin{pmatrix}\varphi_T(x_0) - x_0 \\
@@ -67,12 +68,12 @@ from jaxtyping import Array, Complex, Float, Int
 from .. import _enumeration as enum
 from .._programs import jit, program
 from ..ensemble import fast_simulate
-from ..kinematics import _as_vector
+from ..kinematics import as_vector
 from ..loads import AbstractLoad, PotentialLoad
-from ..model import RigidBodyOscillator
+from ..models.rigid_body import RigidBodyOscillator
+from ..solvers import Outcome, TruncatedLeastSquares, iterate, newton_update
 from ..trajectory import SolveStatus
 from ._field import flat_field
-from ._interface import Outcome
 
 __all__ = [
     "OrbitStatus",
@@ -177,7 +178,7 @@ def monodromy(model: RigidBodyOscillator, x0, period, **solver):
 
 
 def _state(theta0, Omega0):
-    return jnp.concatenate([_as_vector(theta0, "theta0"), _as_vector(Omega0, "Omega0")])
+    return jnp.concatenate([as_vector(theta0, "theta0"), as_vector(Omega0, "Omega0")])
 
 
 @functools.partial(jit, small=True)
@@ -209,34 +210,33 @@ def shooting_system(model, F, x, T, x_ref, solver):
     return r, jnp.concatenate([top, bottom]), M, ok
 
 
-def _lstsq(A, b, rcond=1e-9):
-    """Least-squares solution, singular values below ``rcond`` of the largest truncated."""
-    return jnp.linalg.lstsq(A, b, rcond=rcond)[0]
+def shooting_newton(system, z0, tol, max_newton, rcond=1e-9, step_tol=True):
+    r"""Newton's method (:func:`rbo_jax.solvers.newton_update` in the one loop
+    :func:`rbo_jax.solvers.iterate`) on ``system(z) -> (r, A, M, ok)`` (residual, its Jacobian,
+    the monodromy matrix and the solver's flag) from ``z0``, minimum-norm least-squares steps
+    truncated below ``rcond`` (:class:`rbo_jax.solvers.TruncatedLeastSquares`); ``z[6]`` is the
+    period. It stops where the residual's max norm is at most ``tol`` (or, with ``step_tol``,
+    the step at most ``tol``/100), where the integration fails or the period is not positive,
+    or after ``max_newton`` steps, without moving then. Returns ``(z, k, M, residual, ok, A)``,
+    ``M`` and ``A`` at the last ``z``: one evaluation per iteration, so the loop stops on the
+    monodromy matrix it carries, without a second compiled copy."""
+    linear = TruncatedLeastSquares(rcond)
 
-
-def _newton(system, z0, tol, max_newton, rcond=1e-9):
-    r"""Newton's method on ``system(z) -> (r, A, M, ok)`` (residual, its Jacobian, the monodromy
-    matrix and the solver's flag) from ``z0`` with the least-squares step of :func:`_lstsq`;
-    ``z[6]`` is the period. Returns ``(z, k, M, residual, ok)``, ``M`` at the last ``z``."""
-
-    # One evaluation per iteration: the carry holds the monodromy matrix at the current state,
-    # so the loop stops on it (and the multipliers come from it) without a second compiled copy.
-    def cond(carry):
-        k, done = carry[1], carry[2]
-        return (k <= max_newton) & ~done
-
-    def body(carry):
-        z, k, _, _, _, _ = carry
+    def step(z, carry):
+        k = carry[0]
         r, A, M, ok = system(z)
-        delta = _lstsq(A, -r, rcond)
-        res = jnp.max(jnp.abs(r))
-        converged = (res <= tol) | (jnp.max(jnp.abs(delta)) <= 0.01 * tol)
-        done = converged | ~ok | ~jnp.isfinite(res) | (z[6] <= 0) | (k == max_newton)
-        return z + jnp.where(done, 0.0, delta), k + 1, done, M, res, ok
+        new, _, done, finite = newton_update(
+            r, A, linear, z, rtol=0, atol=0.01 * tol if step_tol else -1.0, floor=tol
+        )
+        stop = done | ~ok | ~finite | (z[6] <= 0) | (k == max_newton)
+        z = jnp.where(stop, z, new)
+        return z, (k + 1, M, jnp.max(jnp.abs(r)), ok, A), jnp.where(stop, 0, -1)
 
-    init = (z0, 0, False, jnp.zeros((6, 6), z0.dtype), jnp.asarray(jnp.inf, z0.dtype), True)
-    z, k, _, M, residual, ok = jax.lax.while_loop(cond, body, init)
-    return z, k - 1, M, residual, ok
+    carry = jax.eval_shape(lambda: step(z0, (jnp.asarray(0),) + (None,) * 4)[1])
+    carry = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), carry)
+    z, (k, M, residual, ok, A), _, _ = iterate(step, z0, carry, max_steps=max_newton + 1,
+                                               exhausted=0)  # fmt: skip
+    return z, k - 1, M, residual, ok, A
 
 
 def _outcome(T, M, residual, ok, tol):
@@ -258,7 +258,7 @@ def _shoot(model, x_ref, period, tol, max_newton, rtol, atol, max_steps):
         return shooting_system(model, F, z[:6], z[6], x_ref, solver)
 
     z0 = jnp.concatenate([x_ref, jnp.asarray(period, dtype=x_ref.dtype)[None]])
-    z, k, M, residual, ok = _newton(system, z0, tol, max_newton)
+    z, k, M, residual, ok, _ = shooting_newton(system, z0, tol, max_newton)
     status, mu = _outcome(z[6], M, residual, ok, tol)
     return z[:6], z[6], mu, residual, k, enum.code(status)
 
@@ -278,7 +278,7 @@ class _Unfolding(AbstractLoad):
     depends_on_velocity: ClassVar[bool] = True
 
     def moment(self, t, theta, omega):
-        return -self.eps * _as_vector(omega, "omega")
+        return -self.eps * as_vector(omega, "omega")
 
     def body_moment(self, t, theta, Omega, turn):
         """Pᵀ·(−ε P·Ω) = −ε Ω."""
@@ -343,7 +343,7 @@ def _shoot_conservative(model, x_ref, period, energy, tol, max_newton, rcond, rt
 
     T0 = jnp.asarray(period, dtype=x_ref.dtype)
     z0 = jnp.concatenate([x_ref, jnp.stack([T0, jnp.zeros_like(T0)])])
-    z, k, M, residual, ok = _newton(system, z0, tol, max_newton, rcond)
+    z, k, M, residual, ok, _ = shooting_newton(system, z0, tol, max_newton, rcond)
     status, mu = _outcome(z[6], M, residual, ok, tol)
     S = OrbitStatus
     status = S.where(

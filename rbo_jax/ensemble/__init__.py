@@ -9,17 +9,19 @@ takes the steps ``scipy.integrate.solve_ivp(method="DOP853")`` takes.
 It is written for one trajectory and batched with ``jax.vmap``, as :func:`rbo_jax.simulate`; a
 batching rule (:func:`jax.custom_batching.custom_vmap`) then runs the batch as a structure of
 arrays on up to 1000 refilled lanes on a CPU, 2¹⁸ on a GPU (``_solve.py``, where the layout is
-explained and measured).
+explained); a batch whose inputs are sharded over several devices (a ``NamedSharding``) runs
+each device's share on lanes of its own under ``jax.shard_map`` (``_sharded.py``).
 Forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``, also under ``vmap``) are a
 :func:`jax.custom_jvp` rule: with respect to model parameters and the initial state, one loop
 carries the primal and all tangent directions (``_tangents.py``: ``jax.jacfwd`` does not batch a
 differentiated loop, which cost tens of seconds of tracing and compilation); with respect to the
 sample times, JAX's JVP of the per-trajectory loop. Reverse mode is :func:`rbo_jax.simulate`'s.
 
-Modules: ``_tableau`` (the coefficients), ``_dop853`` (one step, shape-polymorphic),
-``_problem`` (the model as a function of the six state components, the per-step checks),
-``_solve`` (the per-trajectory loop and the refilled lanes), ``_tangents`` (the loop of
-forward-mode derivatives).
+Modules: ``_problem`` (the model as a function of the six state components, the per-step
+checks), ``_solve`` (the per-trajectory loop and the refilled lanes), ``_sharded`` (a sharded
+batch, a share on each device), ``_tangents`` (the loop of forward-mode derivatives); the step
+itself, shape-polymorphic, and its samples are :mod:`rbo_jax.integrate.dop853`'s (the
+coefficients: :mod:`rbo_jax.integrate.tableau`), shared with the lattices' DOP853.
 """
 
 from __future__ import annotations
@@ -34,10 +36,10 @@ from jax.custom_derivatives import SymbolicZero
 
 from .. import _enumeration as enum
 from .._programs import stored
-from ..model import RigidBodyOscillator
-from ..trajectory import SolveStatus, Trajectory, finish, prepare_inputs
+from ..models.rigid_body import RigidBodyOscillator
+from ..trajectory import SolveStatus, Trajectory, finish, prepare_inputs, status_code
 from ._problem import Problem
-from ._problem import code as status_code
+from ._sharded import batch_mesh, over_mesh
 from ._solve import WAVES, Config, solve_lanes, solve_one
 from ._tangents import solve_one_tangents
 
@@ -81,17 +83,25 @@ def _integrator(cfg: Config):
     @batched.def_vmap
     def _rule(axis_size, in_batched, problem, y0, ts):
         p_batched, y_batched, ts_batched = in_batched
-        if ts_batched:  # every trajectory has its own times: lockstep per-trajectory loops
-            axes = (
-                jax.tree_util.tree_map(lambda b: 0 if b else None, p_batched),
-                0 if y_batched else None,
-                0,
-            )
-            return jax.vmap(one, in_axes=axes)(problem, y0, ts), (True, True, True)
         if not y_batched:
             y0 = jnp.broadcast_to(y0, (axis_size, 6))
-        out = solve_lanes(problem, p_batched, tuple(y0[:, i] for i in range(6)), ts, cfg, *lanes())
-        return out, (True, True, True)
+        if ts_batched:  # every trajectory has its own times: lockstep per-trajectory loops
+            axes = (jax.tree_util.tree_map(lambda b: 0 if b else None, p_batched), 0, 0)
+
+            def local(problem, y0, ts):
+                return jax.vmap(one, in_axes=axes)(problem, y0, ts)
+
+        else:
+
+            def local(problem, y0, ts):
+                y = tuple(y0[:, i] for i in range(6))
+                return solve_lanes(problem, p_batched, y, ts, cfg, *lanes())
+
+        args = (problem, y0, ts)
+        mesh = batch_mesh(args)  # inputs sharded over several devices: each runs its share
+        if mesh is None:
+            return local(*args), (True, True, True)
+        return over_mesh(local, mesh, args, (p_batched, True, ts_batched)), (True, True, True)
 
     integrate = jax.custom_jvp(batched)
 
@@ -158,13 +168,12 @@ def _tangent_solver(cfg: Config, static):
     one tangent direction; batched over directions alone (``jax.jacfwd``) it runs them all in
     one loop (:mod:`._tangents`), otherwise (a batch of trajectories) it is ``vmap`` of that.
 
-    A custom_vmap function is traced when it is called, also where a ``vmap`` then runs its
-    rule instead: for ``jax.jacfwd`` (a fit's Jacobian) that traced the loop for one direction
-    (~0.25 s of a fresh process's tracing of a fit, which the program does not hold) before the
-    rule traced it for K. Where :func:`_batched` says a vmap batches the arguments, the call
-    goes to a custom_vmap with the same rule whose function only gives the outputs' shapes (NaN
-    samples, never run: the same vmap runs the rule); elsewhere to the one that runs the loop
-    for one direction."""
+    A custom_vmap function is traced when it is called, also where a ``vmap`` then runs its rule
+    instead: for ``jax.jacfwd`` (a fit's Jacobian) that traced the loop for one direction (which the
+    program does not hold) before the rule traced it for K. Where :func:`_batched` says a vmap
+    batches the arguments, the call goes to a custom_vmap with the same rule whose function only
+    gives the outputs' shapes (NaN samples, never run: the same vmap runs the rule); elsewhere to
+    the one that runs the loop for one direction."""
 
     def one_direction(dyn, y0, ts, d_dyn, dy0):
         d_dyn = jax.tree_util.tree_map(lambda x: x[None], d_dyn)
@@ -268,7 +277,11 @@ def fast_simulate(
 
     **Batches.** ``jax.jit(jax.vmap(lambda c: fast_simulate(model_of(c), ...)))(cs)`` runs the
     batch as a structure of arrays on refilled lanes (module docstring): build the models inside
-    the vmapped function, as for :func:`rbo_jax.simulate`. Forward-mode derivatives (``jax.jvp``,
+    the vmapped function, as for :func:`rbo_jax.simulate`. With ``cs`` placed on a
+    :class:`jax.sharding.NamedSharding` over several devices (or under ``jax.set_mesh``), every
+    device of its mesh runs its share of the batch on lanes of its own, with no communication
+    inside the loop, and the outputs are the bits of the same batch on one device; inputs on
+    one device run on that device. Forward-mode derivatives (``jax.jvp``,
     ``jax.jacfwd``) with respect to model parameters and the initial state work, also batched;
     step sizes are constants for them. Reverse mode: use :func:`rbo_jax.simulate`.
     """

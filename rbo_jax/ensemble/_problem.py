@@ -12,34 +12,15 @@ the vector field becomes element-wise code over the lanes.
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .. import _enumeration as enum
+from ..integrate.dop853 import Store
 from ..kinematics import distance_to_singularity, dot3, storing
-from ..model import RightForm
-from ..trajectory import TRANSVERSE_TOL, SolveStatus, transverse_fraction
-from ._dop853 import Store
-
-_CODE = {
-    name: int(enum.code(getattr(SolveStatus, name)))
-    for name in (
-        "successful",
-        "max_steps_reached",
-        "step_size_collapse",
-        "singular_point",
-        "domain_error",
-        "nonfinite_state",
-    )
-}
-
-
-def code(name: str) -> int:
-    """The integer code of a :class:`SolveStatus` name."""
-    return _CODE[name]
+from ..models.rigid_body import RightForm
+from ..trajectory import crossed_sphere, is_transverse
+from ..trajectory import status_code as code
 
 
 def _norm(v):
@@ -65,11 +46,8 @@ class Problem(eqx.Module):
         theta, Omega = jnp.stack(y_new[:3]), jnp.stack(y_new[3:])
         near = distance_to_singularity(theta) < singular_tol
         n, n_old = _norm(theta), _norm(jnp.stack(y_old[:3]))
-        two_pi = 2.0 * math.pi
-        crossed = (jnp.floor(n / two_pi) != jnp.floor(n_old / two_pi)) & (
-            jnp.maximum(n, n_old) >= math.pi
-        )
-        transverse = transverse_fraction(theta, Omega) > TRANSVERSE_TOL
+        crossed = crossed_sphere(n, n_old)
+        transverse = is_transverse(theta, Omega)
         finite = jnp.all(jnp.isfinite(jnp.stack(y_new)))
         outside = ~(self.rhs.model.domain_margin(theta) > 0)
         status = jnp.where(outside, code("domain_error"), code("successful"))

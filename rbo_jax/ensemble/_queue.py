@@ -19,24 +19,20 @@ remaining work extrapolated from the probe: attempts so far × (t1 − t) / (t �
 same steps with the same bits as in one go. The lanes still running then (the last started)
 go on to their ends unparked: waiting for their probes would idle the other lanes, and a batch
 without long trajectories would lose its narrower tail (``_solve.tail_widths``).
-
-A model of the lanes (0.4 µs a lane-step, 26 µs an iteration) on that chunk's step counts:
-273 s in the batch's order, 232 s longest first by the true counts; a device's share of two
-151 s and 118 s.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._problem import code
+from ..trajectory import status_code as code
 
 RUNNING = -1
 PARKED = -2  # the status of a lane whose trajectory spent its probe (a trajectory of the queue)
 PROBE = 256
 # Only a batch of several waves and from this many trajectories on (a long run) is ordered: the
-# order's program (the saves, the sort) adds ~0.8 s to XLA's compilation of a 1,000-lane batch
-# (4.1-4.4 -> 5.0 s, one core), which a small batch's first answer would pay for a short tail.
+# order's program (the saves, the sort) adds to XLA's compilation of a batch
+# (benchmarks/README.md, History), which a small batch's first answer would pay for a short tail.
 ORDER_FROM = 2048
 
 
@@ -53,8 +49,7 @@ def record(c, N):
 def pack(st, idx):
     """A lane's state as two rows: ``x`` its 14 reals (t, y, f, h), ``n`` its 4 integers (the
     rejection flag, accepted steps, attempts, next sample). Saved and restored as two arrays,
-    not 18 (one scatter and one gather each: XLA compiled a 1,000-lane batch in 4.98 s against
-    5.14-5.23 s with 18, one core)."""
+    not 18 (one scatter and one gather each: a smaller program)."""
     x = jnp.stack([st["t"], *st["y"], *st["f"], st["h"]], -1)
     n = jnp.stack([st["rej"].astype(jnp.int32), st["nacc"], st["natt"], idx], -1)
     return x, n

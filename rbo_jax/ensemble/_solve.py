@@ -3,27 +3,21 @@ r"""The two loops of the ensemble integrator, around one shape-polymorphic step 
 - :func:`solve_one` integrates one trajectory (scalar components): a ``lax.while_loop`` of step
   attempts. It is what ``jax.jvp`` differentiates and what ``jax.vmap`` of a derivative batches
   (then in lockstep).
-- :func:`solve_lanes` integrates N trajectories on B lanes, a structure of arrays: every
-  iteration makes one step attempt on every lane (accept and reject by masks, which reproduces
-  SciPy's step sequence per lane), and when at least R lanes are idle, up to R of them take the
-  next trajectories from the queue ("refill"). Lockstep batching wastes the iterations that
-  fast lanes spend waiting for the slowest (measured: 40 % of the work); refilling keeps ~92 % of
-  lane work useful. The queue is run longest first (:mod:`._queue`): every trajectory makes a few
-  step attempts, then the unfinished ones resume from their saved states in the order of their
-  extrapolated remaining work, so that the longest do not start last. When the queue is empty,
-  a large batch's running lanes are gathered into a narrower loop (:func:`tail_widths`), so that
-  its last, longest trajectories do not cost every lane.
+- :func:`solve_lanes` integrates N trajectories on B lanes, a structure of arrays: every iteration
+  makes one step attempt on every lane (accept and reject by masks, which reproduces SciPy's step
+  sequence per lane), and when at least R lanes are idle, up to R of them take the next trajectories
+  from the queue ("refill"). Lockstep batching wastes the iterations that fast lanes spend waiting
+  for the slowest; refilling keeps most lane work useful. The queue is run longest first
+  (:mod:`._queue`): every trajectory makes a few step attempts, then the unfinished ones resume from
+  their saved states in the order of their extrapolated remaining work, so that the longest do not
+  start last. When the queue is empty, a large batch's running lanes are gathered into a narrower
+  loop (:func:`tail_widths`), so that its last, longest trajectories do not cost every lane.
 
-Why this layout (measured with a stand-alone prototype of this integrator on the Nikolai
-benchmark, one core, against a hand-written numba DOP853 at 23.2 µs per trajectory):
-``jax.vmap`` of the per-trajectory loop 19–22 µs, the structure of arrays in lockstep 15–19 µs,
-with refill 9.9–10 µs. This package's version (the model's own vector field, every status
-check) measured 28 µs against numba's 64 µs in one run of ``benchmarks/bench_simulate.py``
-(benchmarks/README.md). Stages as a
-tuple of ``(B,)`` arrays (not stacked ``(6, B)`` arrays: 4.6× slower; not a ``(13, 6, B)`` array
-with ``tensordot``: 2.3× slower), the stages in a loop over the tableau's rows (one traced copy
-of the vector field, :func:`._dop853.stages`), every stage value stored
-(:class:`._dop853.Store`).
+The layout (refilled lanes rather than ``jax.vmap`` of the per-trajectory loop or lockstep
+lanes; benchmarks/README.md, History): stages as a tuple of ``(B,)`` arrays (not stacked
+``(6, B)`` arrays, not a ``(13, 6, B)`` array with ``tensordot``), the stages in a loop over the
+tableau's rows (one traced copy of the vector field, :func:`rbo_jax.integrate.dop853.stages`),
+every stage value stored (:class:`rbo_jax.integrate.dop853.Store`).
 
 Samples at ``ts`` come from the method's dense output (7th order), computed only on steps that
 contain a sample (three more evaluations, made by the step's stage loop when a lane has a sample
@@ -39,10 +33,11 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..integrate import dop853 as D
 from ..kinematics import storing
-from . import _dop853 as D
+from ..trajectory import status_code as code
 from . import _queue as Q
-from ._problem import Problem, code, lane_axes, lanes, to_lanes, traced_once
+from ._problem import Problem, lane_axes, lanes, to_lanes, traced_once
 from ._queue import PARKED, RUNNING, record
 
 
@@ -77,13 +72,13 @@ def _initial(f, failure, t0, y0, t_bound, cfg: Config):
 def attempt(
     f, failure, st, t_bound, cfg: Config, store: D.Store, stages=D.stages, wants_dense=None
 ):
-    """One step attempt for every running lane (``RungeKutta._step_impl`` unrolled by one
-    attempt). Returns the new state and what the dense output needs. ``stages``: the
-    Runge–Kutta map, :func:`._dop853.stages` or one that also pushes tangents through it.
-    ``wants_dense(t_new)``: whether a lane has a sample in (t, t_new]; if any running lane has,
-    the stage loop also makes the dense output's three extra stages (used only if the step is
-    accepted: a rejected step with a sample wastes them, a rare case); ``False``: never (only
-    the ends of the interval are sampled, :func:`samplers`)."""
+    """One step attempt for every running lane (``RungeKutta._step_impl`` unrolled by one attempt).
+    Returns the new state and what the dense output needs. ``stages``: the Runge–Kutta map,
+    :func:`rbo_jax.integrate.dop853.stages` or one that also pushes tangents through it.
+    ``wants_dense(t_new)``: whether a lane has a sample in (t, t_new]; if any running lane has, the
+    stage loop also makes the dense output's three extra stages (used only if the step is accepted:
+    a rejected step with a sample wastes them, a rare case); ``False``: never (only the ends of the
+    interval are sampled, :func:`rbo_jax.integrate.dop853.samplers`)."""
     t, y, f0, rej, status = st["t"], st["y"], st["f"], st["rej"], st["status"]
     running = status == RUNNING
     t_new, h, h_abs, too_small = D.trial_step(t, st["h"], rej, t_bound)
@@ -118,90 +113,9 @@ def attempt(
     return new, (commit, t, y, y_new, K, h)
 
 
-def _pending(idx, ts, commit, t_new):
-    nts = ts.shape[0]
-    return commit & (idx < nts) & (ts[jnp.minimum(idx, nts - 1)] <= t_new)
-
-
-def sample_ahead(idx, ts):
-    """``wants_dense`` of :func:`attempt`: the lanes whose next sample ``ts[idx]`` lies in the
-    attempted step."""
-    return lambda t_new: _pending(idx, ts, True, t_new)
-
-
-def _sample(F, step, ts, idx, t_new):
-    """The state at ts[idx] within the step (the new state itself at its end)."""
-    commit, t_old, y_old, y_new, K, h = step
-    tj = ts[jnp.minimum(idx, ts.shape[0] - 1)]
-    value = D.dense_value(F, y_old, (tj - t_old) / h)
-    return jnp.stack([jnp.where(tj == t_new, a, b) for a, b in zip(y_new, value)], axis=-1)
-
-
-def dense_sampler(step, ts, t_new, slope=D.slope, sums=D.dense_sums):
-    """The ``sampler`` of :func:`_emit` for the state: the step's dense output from its 16
-    slopes (the three extra stages were made by the step's stage loop,
-    ``attempt(wants_dense=...)``). ``slope(K, j)`` and ``sums(K, i)`` read the step's slopes
-    (:func:`rbo_jax.ensemble._dop853.slope`, ``dense_sums``), or what another layout keeps of
-    them (a lattice's blocks: :mod:`rbo_jax.lattice._halo`)."""
-
-    def sampler():
-        commit, t_old, y_old, y_new, K, h = step
-        F = D.interpolant(K, y_old, y_new, slope(K, 0), slope(K, D.NS), h, sums=sums)
-        return lambda idx: _sample(F, step, ts, idx, t_new)
-
-    return sampler
-
-
-def samplers(ts, idx):
-    """``(wants_dense, sampler(step, t_new))`` of a loop sampling at ``ts`` (next sample
-    ``ts[idx]``): :func:`sample_ahead` and :func:`dense_sampler`; when ``ts`` holds only the two
-    ends of the interval (a final state: the last step ends at ``ts[-1]`` exactly), no dense
-    output at all, the sample being the step's own new state (the program holds neither the
-    dense output's three stages nor its interpolant)."""
-    if ts.shape[0] == 2:
-        return False, lambda step, t_new: lambda: lambda i: jnp.stack(step[3], axis=-1)
-    return sample_ahead(idx, ts), lambda step, t_new: dense_sampler(step, ts, t_new)
-
-
-def _emit(step, ts, idx, out, t_new, write, sampler):
-    """Write every sample of ts in (t_old, t_new] of the committing lanes: ``sampler()``
-    returns ``value(idx)``, the samples at ``ts[idx]`` (:func:`dense_sampler`); ``write(out,
-    idx, mask, values)`` scatters one sample per lane."""
-    commit = step[0]
-
-    def with_samples(args):
-        idx, out = args
-        value = sampler()
-
-        def body(c):
-            idx, out = c
-            mask = _pending(idx, ts, commit, t_new)
-            out = write(out, idx, mask, value(idx))
-            return idx + mask.astype(jnp.int32), out
-
-        return lax.while_loop(
-            lambda c: jnp.any(_pending(c[0], ts, commit, t_new)), body, (idx, out)
-        )
-
-    return lax.cond(
-        jnp.any(_pending(idx, ts, commit, t_new)), with_samples, lambda a: a, (idx, out)
-    )
-
-
-def _one(x):
-    """A run-time 1.0 that XLA cannot fold (from the data, finite or not)."""
-    leaves = [
-        jnp.ravel(v)[0]
-        for v in jax.tree_util.tree_leaves(x)
-        if jnp.issubdtype(jnp.result_type(v), jnp.floating) and jnp.size(v)
-    ]
-    s = sum(jnp.where(jnp.isfinite(v), v, 0.0) for v in leaves)
-    return lax.stop_gradient(s * 0.0 + 1.0)
-
-
 def solve_one(problem: Problem, y0, ts, cfg: Config):
     """One trajectory: ``(samples (n_ts, 6), status, accepted steps)``."""
-    store = D.Store(_one((problem, y0, ts)))
+    store = D.Store(D.runtime_one((problem, y0, ts)))
     t_bound = ts[-1]
     with storing(store):
         f = traced_once(problem, store)
@@ -214,9 +128,9 @@ def solve_one(problem: Problem, y0, ts, cfg: Config):
 
         def body(c):
             st, idx, out = c
-            wants, sampler = samplers(ts, idx)
+            wants, sampler = D.samplers(ts, idx)
             st, step = attempt(f, problem.failure, st, t_bound, cfg, store, wants_dense=wants)
-            idx, out = _emit(step, ts, idx, out, st["t"], write, sampler(step, st["t"]))
+            idx, out = D.emit(step, ts, idx, out, st["t"], write, sampler(step, st["t"]))
             return st, idx, out
 
         st, _, out = lax.while_loop(
@@ -300,8 +214,7 @@ def _refill(c, pool, batched, y0, ts, cfg: Config, fns: _Lanes, R: int, ordered:
 
 # Lane counts (B) and refill widths (R) are multiples of this, so that no trajectory lands in the
 # scalar remainder of a vectorised loop: XLA's CPU code for the remainder rounds some fused
-# expressions differently from the vector body (measured: identical trajectories on lanes 60 and
-# 61 of a 62-wide refill ended 1e-12 apart), which made a trajectory's last bits depend on its
+# expressions differently from the vector body, which made a trajectory's last bits depend on its
 # position in the batch, hence on the chunk layout and the number of devices. 16 covers AVX-512
 # in float32 (and every narrower vector).
 VECTOR = 16
@@ -315,12 +228,9 @@ def _round_up(n: int, m: int) -> int:
 # still costs all B of them while the last, longest trajectories run on few (with 2 devices each
 # has a tail as long as one device's). From :data:`COMPACT_FROM` trajectories on (a batch of
 # several waves: a long run), the running lanes are then gathered into a narrower loop of B/4
-# lanes (1008 -> 256 on a CPU). Each width is one more traced copy of the step: measured on one
-# pinned core, a 2-device share of the `rbo-jax sweep` benchmark (2,965 Nikolai trajectories of
-# 500-160k steps, t1 = 150, final states): one loop 7.0-7.8 s to run, 6.5 s to compile; B/4
-# 4.6-4.7 s, 10.7 s; B/2, B/16: 4.5-4.9 s, 14.5 s; B/2, B/8, B/32: 4.4-5.0 s, 17-19 s; the same
-# bits. One narrower loop keeps most of the gain for the least compilation; smaller batches,
-# whose first answer matters more than their tail, keep the one loop.
+# lanes (1008 -> 256 on a CPU). Each width is one more traced copy of the step: one narrower
+# loop keeps most of the gain for the least compilation (benchmarks/README.md, History);
+# smaller batches, whose first answer matters more than their tail, keep the one loop.
 COMPACT_FROM = 2048
 COMPACT_DIVISORS = (4,)
 
@@ -372,19 +282,9 @@ def _tail(c, step, batched, N, widths):
 # The lanes of a batch (issue 31): at most ``lanes_`` (1000 on a CPU), and no more than a
 # :data:`WAVES`-th of the batch (but :data:`MIN_LANES`), so that the queue refills every lane
 # several times before it is empty. A batch on as many lanes as trajectories is one wave, which
-# lasts as long as its longest trajectory while the other lanes idle. Measured on one pinned
-# core, shares of the `rbo-jax sweep` benchmark (Nikolai final states, t1 = 600, 1,050-343,397
-# steps a trajectory), the same bits every time:
-# - 989 trajectories: 129.6 s on 992 lanes, 68.1 s on 256, 70.7 s on 128;
-# - 1,483: 160.1 s on 1008 lanes, 93.1 s on 384 (four waves);
-# - 2,965: 155.4 s on 1008 lanes, 153.1 s on 256 (compacted tails both);
-# - t1 = 150, 989 trajectories: 4.7-4.9 s on 992 lanes, 2.1-2.3 s on 256; 988 trajectories of one
-#   length: 0.49-0.53 s on 992 lanes, 0.28-0.29 s on 256; 4,000 of one length: 1.07-1.15 s on
-#   1008 lanes, 1.16 on 256, 1.32 on 128 (the floor: below 256 lanes an iteration's fixed cost,
-#   ~26 µs, weighs).
-# A model of these runs (0.4 µs a lane-step plus 26 µs an iteration, within 5 %) puts four
-# waves near the best for every share up to ~4,000 trajectories; from 4,000 on it is 1008 lanes
-# as before.
+# lasts as long as its longest trajectory while the other lanes idle. Four waves are near the
+# best for every batch up to ~4,000 trajectories; from 4,000 on it is 1008 lanes
+# (benchmarks/README.md, History).
 WAVES = 4
 MIN_LANES = 256
 
@@ -401,8 +301,7 @@ def _start(pool, batched, y0, ts, cfg: Config, fns: _Lanes, B: int, ordered: boo
     N, nts = y0[0].shape[0], ts.shape[0]
     # Every lane starts idle, holding no trajectory (tid N): the loop's refill gives them
     # their first ones, so the program holds the initial step once (a separate start on B
-    # lanes was a second copy of the vector field: 336 -> 291 fusions, XLA's compilation of
-    # the 1000-lane program 3.2-3.3 -> 2.5-2.6 s, measured side by side)
+    # lanes was a second copy of the vector field)
     problem = _gather(pool, batched, jnp.zeros(B, jnp.int32))
     zero = jnp.zeros(B, ts.dtype)
     st = dict(
@@ -448,7 +347,7 @@ def solve_lanes(
     B = lane_count(N, lanes_, waves)
     R = _round_up(max(1, B // 16), VECTOR)
     fns = _Lanes(batched)
-    store = D.Store(_one((pool, y0, ts)))
+    store = D.Store(D.runtime_one((pool, y0, ts)))
     with storing(store):
         # longest first (:mod:`._queue`), not for one wave (as many lanes as trajectories:
         # every trajectory starts at once) nor for a small batch (``ORDER_FROM``)
@@ -470,7 +369,7 @@ def solve_lanes(
 
         def step(c):
             c = dict(c)
-            wants, sampler = samplers(ts, c["idx"])
+            wants, sampler = D.samplers(ts, c["idx"])
             problem = c["problem"]
             st, step = attempt(
                 fns.f(problem), fns.failure(problem), c["st"], ts[-1], cfg, store, wants_dense=wants
@@ -480,7 +379,7 @@ def solve_lanes(
             def write(out, idx, mask, values):
                 return out.at[jnp.where(mask, tid, N), idx].set(values, mode="drop")
 
-            c["idx"], c["out"] = _emit(
+            c["idx"], c["out"] = D.emit(
                 step, ts, c["idx"], c["out"], st["t"], write, sampler(step, st["t"])
             )
             if ordered:  # the probe's attempts spent: the lane is parked

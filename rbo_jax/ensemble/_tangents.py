@@ -4,23 +4,21 @@ r"""Forward-mode derivatives of one trajectory: the primal loop and K tangent di
 ``jax.jacfwd`` of the per-trajectory loop would be ``jax.vmap`` of its JVP: JAX then
 differentiates the loop body (a fixed point over the carries with non-zero tangents), batches the
 differentiated body (a second fixed point over the batched carries), and XLA compiles a body with
-~35 copies of the vector field (4.55)–(4.56) and of its derivative: measured for a fit's residuals
-on the development machine, 18 s of tracing and 14 s of compilation, against 3 s and 4 s for
-diffrax's forward mode. Here the loop is written once, for K directions: every step attempt is
+~35 copies of the vector field (4.55)–(4.56) and of its derivative (benchmarks/README.md,
+History). Here the loop is written once, for K directions: every step attempt is
 :func:`._solve.attempt` (the same controller, checks and statuses), its stages are a
 ``fori_loop`` over the tableau's rows that evaluates the vector field and its derivative along
 the K directions (``vmap`` of ``jax.jvp``: the value once, the tangents as a batch) — one copy
 of each in the program — and the dense output's three extra stages are that loop again, run
 on the steps with a sample ahead (as the primal's, :func:`._solve.attempt`).
 
-The tableau, controller and checks are those of :mod:`._dop853` and :func:`._solve.attempt`,
-but the sums over the slopes are dot products here (XLA's order of summation, not SciPy's), so
-the primal can differ from :func:`._solve.solve_one`'s by rounding; it takes the same steps
-unless an error norm lies within rounding of the acceptance threshold. The derivatives are those
-of the Runge–Kutta map along that step sequence, with step sizes and error norms constant: what
-``jax.jvp`` of the per-trajectory loop computes. The sample times are
-constants here; derivatives with respect to them go through ``jax.jvp`` of the loop
-(``rbo_jax.ensemble``).
+The tableau, controller and checks are those of :mod:`rbo_jax.integrate.dop853` and
+:func:`._solve.attempt`, but the sums over the slopes are dot products here (XLA's order of
+summation, not SciPy's), so the primal can differ from :func:`._solve.solve_one`'s by rounding; it
+takes the same steps unless an error norm lies within rounding of the acceptance threshold. The
+derivatives are those of the Runge–Kutta map along that step sequence, with step sizes and error
+norms constant: what ``jax.jvp`` of the per-trajectory loop computes. The sample times are constants
+here; derivatives with respect to them go through ``jax.jvp`` of the loop (``rbo_jax.ensemble``).
 """
 
 from __future__ import annotations
@@ -31,12 +29,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..integrate import dop853 as D
+from ..integrate import tableau as T
 from ..kinematics import storing
-from . import _dop853 as D
-from . import _tableau as T
 from ._problem import traced_once
 from ._queue import RUNNING
-from ._solve import Config, _emit, _initial, _one, _sample, attempt, sample_ahead
+from ._solve import Config, _initial, attempt
 
 __all__ = ["solve_one_tangents"]
 
@@ -53,7 +51,7 @@ def _jvp_k(fn, primals, tangents):
 
 def _dot(a, k):
     """Σ_j a[j] k[..., j] as one dot product (its order of summation is XLA's: the sums differ
-    from :mod:`._dop853`'s, in SciPy's order, by rounding)."""
+    from :mod:`rbo_jax.integrate.dop853`'s, in SciPy's order, by rounding)."""
     return k @ a
 
 
@@ -80,8 +78,8 @@ def _components(v):
 
 
 def _by_column(K, i):
-    """``sums`` of :func:`._dop853.interpolant` for slopes with the slope index last: the four
-    D-row sums of component i as one product."""
+    """``sums`` of :func:`rbo_jax.integrate.dop853.interpolant` for slopes with the slope index
+    last: the four D-row sums of component i as one product."""
     d = K[i] @ np.asarray(T.D).T
     return tuple(d[..., r] for r in range(4))
 
@@ -96,7 +94,7 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
     starts at row 0 of the tableau, which is zero: K[0] = f(t0, y0) again, bit for bit), so the
     program holds one copy of the differentiated vector field."""
     problem = eqx.combine(dyn, static)
-    store = D.Store(_one((problem, y0, ts)))
+    store = D.Store(D.runtime_one((problem, y0, ts)))
     t_bound, nts, nk = ts[-1], ts.shape[0], dy0.shape[0]
 
     def f_jvp(t, y, dy):
@@ -137,7 +135,7 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
                 return y_new, K
 
             st, step = attempt(
-                f, problem.failure, st, t_bound, cfg, store, stages, sample_ahead(idx, ts)
+                f, problem.failure, st, t_bound, cfg, store, stages, D.sample_ahead(idx, ts)
             )
             commit, t_old, _, y_new, _, h = step
             (K, dK), dy_new = kept["slopes"], kept["dy_new"]
@@ -150,11 +148,11 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
                 dF = D.interpolant(dK, dy, dy_new, dK0, dK12, h, _by_column)
                 dstep = (commit, t_old, dy, dy_new, None, h)
                 return lambda i: (
-                    _sample(F, step, ts, i, st["t"]),
-                    _sample(dF, dstep, ts, i, st["t"]),
+                    D.sample(F, step, ts, i, st["t"]),
+                    D.sample(dF, dstep, ts, i, st["t"]),
                 )
 
-            idx, outs = _emit(step, ts, idx, outs, st["t"], write, sampler)
+            idx, outs = D.emit(step, ts, idx, outs, st["t"], write, sampler)
             dy = tuple(jnp.where(commit, a, b) for a, b in zip(dy_new, dy))
             df = tuple(jnp.where(commit, a, b) for a, b in zip(dK12, dK0))
             return st, idx, outs, dy, df, jnp.asarray(True)

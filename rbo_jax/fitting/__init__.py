@@ -19,8 +19,8 @@ by clipping. The least-squares solvers (Levenberg–Marquardt, default; damped G
 forward-mode Jacobians through the ODE solve — by default :func:`rbo_jax.fast_simulate`'s, every
 fitted scalar a tangent direction of one loop (``integrator="simulate"``: diffrax's
 ``ForwardMode``); memory independent of the number of steps either way — and iterate on the host
-around one compiled program (see :func:`_least_squares.run_least_squares` for why not
-optimistix's solvers). That program holds no host callback, so the command line's persistent
+around one compiled program (:func:`rbo_jax.solvers.run_least_squares`, which the lattice's and
+rod's fits share). That program holds no host callback, so the command line's persistent
 compilation cache keeps it. The first-order optimisers (Adam, L-BFGS) come from optax with
 reverse-mode gradients through :func:`rbo_jax.simulate`
 (``diffrax.RecursiveCheckpointAdjoint``: memory logarithmic in the number of steps).
@@ -37,8 +37,8 @@ becomes rugged. ``horizons=(0.25, 0.5, 1.0)`` fits the first quarter of each rec
 then all, each stage starting from the previous estimate (one compilation per stage).
 
 Modules: ``_data`` (:class:`TrajectoryData`), ``_residuals`` (residuals, reparametrisation, the
-compiled programs), ``_least_squares`` (Levenberg–Marquardt, Gauss–Newton), ``_optax`` (Adam,
-L-BFGS), ``_fit`` (:func:`fit`, :class:`FitResult`).
+compiled programs), ``_optax`` (Adam, L-BFGS), ``_fit`` (:func:`fit`, :class:`FitResult`); the
+least-squares solvers and the covariance live in :mod:`rbo_jax.solvers`.
 """
 
 from .. import _lazy

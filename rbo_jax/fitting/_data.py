@@ -206,7 +206,7 @@ class TrajectoryData(eqx.Module):
             raise ValueError(f"t0 = {t0} is after the first sample ts[0] = {ts[0]}.")
 
         def j(x):  # a checked NumPy array to the device: a transfer (jnp.asarray would compile
-            # a small XLA program per shape, 5-30 ms each)
+            # a small XLA program per shape)
             return None if x is None else jax.device_put(x)
 
         self.ts, self.theta0, self.Omega0 = j(ts), j(theta0), j(Omega0)

@@ -10,13 +10,12 @@ from collections.abc import Callable, Sequence
 import equinox as eqx
 import numpy as np
 
-from ..model import RigidBodyOscillator
+from ..models.rigid_body import RigidBodyOscillator
+from ..solvers import gauss_newton_covariance, run_least_squares
 from ._data import TrajectoryData
-from ._least_squares import run_least_squares
 from ._residuals import (
     INTEGRATORS,
     Spec,
-    jacobian_matrix,
     leaf_paths,
     residuals_and_jacobian,
     resolve_transforms,
@@ -164,38 +163,24 @@ def _covariance(u, model, datas, spec: Spec):
     the reparametrised coordinates u, times du/dx (chain rule); initial states are not
     reparametrised. Returns (residuals, covariance, standard errors per parameter, note)."""
     _, natural, _ = unpack(u, model, len(datas), spec)
-    r, J_tree = residuals_and_jacobian(u, model, datas, dataclasses.replace(spec, forward=True))
+    r, J = residuals_and_jacobian(u, model, datas, dataclasses.replace(spec, forward=True))
     r = np.asarray(r, dtype=np.float64)
-    J = jacobian_matrix(J_tree, r.size)
     scale = [transform_derivative(n, x).ravel() for n, x in zip(spec.transforms, natural)]
     if spec.fit_initial_state:
-        scale.append(np.ones(J.shape[1] - sum(v.size for v in scale)))
-    J = J * np.concatenate(scale)[None, :]
-    n_res, n_par = J.shape
+        scale.append(np.ones(sum(np.size(x) for state in u["x0"] for x in state)))  # (θ0, Ω0)
     sigma_known = all(
         (d.sigma_theta is not None or (d.theta is None and d.Q is None))
         and (d.sigma_omega is not None or d.omega is None)
         and (d.sigma_Omega is not None or d.Omega is None)
         for d in datas
     )
-    s2 = 1.0 if sigma_known else float(r @ r) / max(n_res - n_par, 1)
-    note = ""
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        cov = np.full((n_par, n_par), np.inf)
-        note = "; J^T J is singular: the parameters are not identifiable from these data"
-    se_flat = np.sqrt(np.clip(np.diag(cov), 0.0, np.inf))
+    measured = None if sigma_known else r.size  # s² = 1, or the residual variance
+    cov, se_flat, note = gauss_newton_covariance(r, J, np.concatenate(scale), measured)
     offsets = np.cumsum([0] + [int(np.size(x)) for x in natural])  # parameters come first in u
     se = tuple(
         se_flat[offsets[i] : offsets[i + 1]].reshape(np.shape(v)) for i, v in enumerate(natural)
     )
     return r, cov, se, note
-
-
-def _evaluate(u, model, datas, spec):
-    """The residuals and Jacobian of one fit at ``u`` (the compiled program of a fit)."""
-    return residuals_and_jacobian(u, model, datas, spec)
 
 
 def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, verbose):
@@ -207,33 +192,17 @@ def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, v
             d if h >= 1.0 else d.truncate(float(d.t0) + h * (float(d.ts[-1]) - float(d.t0)))
             for d in datas
         )
-        if optimizer in LEAST_SQUARES:
-            u, steps, converged, message = run_least_squares(
-                functools.partial(_evaluate, model=model, datas=stage, spec=spec),
-                u,
-                optimizer,
-                options["tol"],
-                options["max_steps"],
-                history,
-                bar,
-                verbose,
+        if optimizer in LEAST_SQUARES:  # one signature: (u, optimizer, tol, max_steps, ...)
+            solver = functools.partial(
+                run_least_squares, lambda v: residuals_and_jacobian(v, model, stage, spec)
             )
         else:
             from ._optax import run_optax  # optax: only for the first-order optimizers
 
-            u, steps, converged, message = run_optax(
-                u,
-                model,
-                stage,
-                spec,
-                optimizer,
-                options["learning_rate"],
-                options["max_steps"],
-                options["tol"],
-                history,
-                bar,
-                verbose,
-            )
+            solver = functools.partial(run_optax, model, stage, spec, options["learning_rate"])
+        u, steps, converged, message = solver(
+            u, optimizer, options["tol"], options["max_steps"], history, bar, verbose
+        )
         total += steps
     return u, total, converged, message
 

@@ -9,13 +9,16 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._least_squares import log
+from ..solvers import record_loss
 from ._residuals import loss, loss_and_grad
 
 
 def run_optax(
-    u, model, datas, spec, optimizer, learning_rate, max_steps, tol, history, bar, verbose
+    model, datas, spec, learning_rate, u, optimizer, tol, max_steps, history, bar, verbose
 ):
+    """Adam or L-BFGS from ``u`` on the loss of ``model`` and ``datas``; the signature from ``u``
+    on is :func:`rbo_jax.solvers.run_least_squares`'s. Returns ``(u, steps, converged,
+    message)``."""
     opt = optax.adam(learning_rate) if optimizer == "adam" else optax.lbfgs()
     state = opt.init(u)
 
@@ -42,12 +45,12 @@ def run_optax(
         return optax.apply_updates(u, updates), state
 
     value, grad = loss_and_grad(u, model, datas, spec)
-    log(history, value, bar, verbose)
+    record_loss(history, value, bar, verbose)
     steps = 0
     for steps in range(1, max_steps + 1):
         u, state = update(u, state, value, grad, model, datas)
         new_value, grad = loss_and_grad(u, model, datas, spec)
-        log(history, new_value, bar, verbose)
+        record_loss(history, new_value, bar, verbose)
         gnorm = float(np.sqrt(sum(float(jnp.sum(x**2)) for x in jax.tree_util.tree_leaves(grad))))
         if abs(float(value) - float(new_value)) <= tol * abs(float(value)) and gnorm <= tol:
             return u, steps, True, "converged"

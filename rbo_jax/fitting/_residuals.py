@@ -4,7 +4,7 @@ solver of :func:`rbo_jax.fit` uses.
 diffrax and :func:`rbo_jax.simulate` are imported when a fit integrates with ``simulate`` (the
 optax optimizers, or ``integrator="simulate"``): the least-squares fits integrate with
 :func:`rbo_jax.fast_simulate`, and a process that loads their program from the program store
-never traces it (diffrax's import: ~0.25 s of ``rbo-jax fit``'s warm process).
+never traces it, nor imports diffrax.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ import numpy as np
 from .._programs import program
 from ..ensemble import fast_simulate
 from ..kinematics import turn_tensor, turn_vector
-from ..model import RigidBodyOscillator
+from ..models.rigid_body import RigidBodyOscillator
+from ..solvers import value_and_jacfwd
 from ..trajectory import Trajectory
 from ._data import TrajectoryData
 
@@ -116,19 +117,24 @@ def _fast_trajectory(model, theta0, Omega0, data: TrajectoryData, rtol, atol, ma
     )
 
 
-TRANSFORMS = {
-    "log": (jnp.log, jnp.exp),
-    "softplus": (lambda x: x + jnp.log(-jnp.expm1(-x)), jax.nn.softplus),
-    "identity": (lambda x: x, lambda u: u),
-}
+def _transforms(xp):
+    r"""The reparametrisations in the array module ``xp``: natural x -> unconstrained u, back,
+    and du/dx. ``log``; ``softplus``, $u = \log(e^x - 1)$ and back $x = \log(1 + e^u)$."""
+    return {
+        "log": (xp.log, xp.exp, lambda x: 1.0 / x),
+        "softplus": (
+            lambda x: x + xp.log(-xp.expm1(-x)),
+            lambda u: xp.logaddexp(u, 0.0),
+            lambda x: 1.0 / -xp.expm1(-x),
+        ),
+        "identity": (lambda x: x, lambda u: u, xp.ones_like),
+    }
+
+
+TRANSFORMS = _transforms(jnp)
 # The same maps in NumPy, for concrete values on the host (the start and the result of a fit):
-# each jnp call on a concrete value would be a small program compiled eagerly (0.02-0.05 s each
-# in a fresh process).
-_NUMPY_TRANSFORMS = {
-    "log": (np.log, np.exp),
-    "softplus": (lambda x: x + np.log(-np.expm1(-x)), lambda u: np.logaddexp(0.0, u)),
-    "identity": (lambda x: x, lambda u: u),
-}
+# each jnp call on a concrete value would be a small program compiled eagerly.
+_NUMPY_TRANSFORMS = _transforms(np)
 
 
 def transform(name: str, x, inverse: bool = False):
@@ -257,49 +263,13 @@ def residuals_and_jacobian(u, model, datas, spec):
     the covariance all reuse it. With the program store on
     (:func:`rbo_jax.enable_compilation_cache`, the command line), a second process loads it
     traced and compiled (:mod:`rbo_jax._programs`)."""
-
-    def f(u):
-        r = residual_vector(u, model, datas, spec)
-        return r, r
-
-    J, r = jax.jacfwd(f, has_aux=True)(u)
-    return r, J
+    return value_and_jacfwd(lambda v: residual_vector(v, model, datas, spec), u)
 
 
 # XLA's options for small programs: an iteration takes milliseconds, the compilation seconds
 residuals_and_jacobian = program(residuals_and_jacobian, small=True)
 
 
-def flatten(tree):
-    leaves = jax.tree_util.tree_leaves(tree)
-    return np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in leaves])
-
-
-def unflatten_like(flat, tree):
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    out, i = [], 0
-    for x in leaves:
-        n = int(np.size(x))
-        out.append(jnp.asarray(flat[i : i + n].reshape(np.shape(x)), dtype=jnp.result_type(float)))
-        i += n
-    return jax.tree_util.tree_unflatten(treedef, out)
-
-
-def jacobian_matrix(J_tree, n_res):
-    return np.concatenate(
-        [
-            np.asarray(b, dtype=np.float64).reshape(n_res, -1)
-            for b in jax.tree_util.tree_leaves(J_tree)
-        ],
-        axis=1,
-    )
-
-
 def transform_derivative(name, x):
     """du/dx of the reparametrisation u = forward(x) at the natural value x."""
-    x = np.asarray(x, dtype=np.float64)
-    if name == "log":
-        return 1.0 / x
-    if name == "softplus":
-        return 1.0 / -np.expm1(-x)
-    return np.ones_like(x)
+    return _NUMPY_TRANSFORMS[name][2](np.asarray(x, dtype=np.float64))

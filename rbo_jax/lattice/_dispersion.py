@@ -32,11 +32,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from .._validation import _is_traced
-from ..kinematics import _as_vector
+from .._validation import is_traced
+from ..kinematics import as_vector
+from ..models.lattice import Lattice, rates, right_forms
 from ..stability import solve_equilibrium
-from ._field import rates, right_forms
-from ._lattice import Lattice
 
 __all__ = ["bloch_blocks", "bloch_matrix", "dispersion", "group_velocity", "uniform_equilibrium"]
 
@@ -61,39 +60,10 @@ def _require_grid(lattice: Lattice, what: str):
 def uniform_equilibrium(lattice: Lattice, theta_guess=None):
     r"""$\theta_{eq}$ of one body (Newton, :func:`rbo_jax.solve_equilibrium`, from
     ``theta_guess``, default 0): with every body there, the lattice is at rest.
-
-    Differentiable with respect to the parameters by the implicit function theorem, a
-    :func:`jax.custom_jvp` at the converged point: $\dot\theta = -J^{-1}\,\partial M/\partial p
-    \cdot\dot p$ (no solver is differentiated: this also works inside other solvers'
-    derivatives, e.g. a fit's Levenberg–Marquardt)."""
+    Differentiable with respect to the parameters by the implicit function theorem
+    (:func:`rbo_jax.solve_equilibrium`'s)."""
     _require_grid(lattice, "uniform_equilibrium")
-    body = lattice.body
-    guess = jnp.zeros(3) if theta_guess is None else _as_vector(theta_guess, "theta_guess")
-    # the Newton solve on constants: its own derivative rule (a linear solve) is not traced
-    theta = solve_equilibrium(lax.stop_gradient(body), lax.stop_gradient(guess)).theta
-    return _converged(body, theta)
-
-
-def _moment(body, theta):
-    return body.world_moment(0.0, theta, jnp.zeros_like(theta))
-
-
-@jax.custom_jvp
-def _converged(body, theta):
-    """``theta``, a converged equilibrium of ``body``, with the implicit derivative."""
-    return theta
-
-
-@_converged.defjvp
-def _converged_jvp(primals, tangents):
-    r"""$\dot\theta = -J^{-1}\,\partial M/\partial p\cdot\dot p$ with $J = \partial M/\partial
-    \theta$ at the solution (itself not differentiated: a second derivative of the vector field
-    made a fit's Jacobian program 2.7x larger, 16.7 s instead of 2.4 s to compile)."""
-    body, theta = primals
-    d_body, _ = tangents
-    J = jax.jacfwd(_moment, argnums=1)(body, theta)
-    _, dM = jax.jvp(lambda b: _moment(b, theta), (body,), (d_body,))
-    return theta, -jnp.linalg.solve(J, dM)
+    return solve_equilibrium(lattice.body, theta_guess).theta
 
 
 def _cell(lattice: Lattice) -> Lattice:
@@ -115,7 +85,7 @@ def bloch_blocks(lattice: Lattice, theta_eq=None):
     :func:`uniform_equilibrium`): $J_d = \partial\dot y_0/\partial y_d$, the state ordered
     $[\theta, \Omega]$ as in :func:`rbo_jax.linearize`."""
     _require_grid(lattice, "bloch_blocks")
-    theta_eq = uniform_equilibrium(lattice) if theta_eq is None else _as_vector(theta_eq)
+    theta_eq = uniform_equilibrium(lattice) if theta_eq is None else as_vector(theta_eq)
     cell = _cell(lattice)
     n = cell.size
     forms = right_forms(cell)
@@ -160,7 +130,7 @@ def group_velocity(lattice: Lattice, q, theta_eq=None, blocks=None):
     r"""$\partial\omega_k/\partial q$ of the six branches of :func:`dispersion` (``(6, dim)``;
     ``(6,)`` for a number ``q``), by forward-mode differentiation of the eigenvalues."""
     blocks = bloch_blocks(lattice, theta_eq) if blocks is None else blocks
-    scalar = not _is_traced(q) and np.ndim(q) == 0
+    scalar = not is_traced(q) and np.ndim(q) == 0
     q = jnp.atleast_1d(jnp.asarray(q, dtype=blocks[0].dtype))
     v = jax.jacfwd(lambda k: jnp.imag(dispersion(lattice, k, blocks=blocks)))(q)
     return v[:, 0] if scalar else v

@@ -32,13 +32,13 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import lax
 
-from ..ensemble import _dop853 as D
-from ._field import chain_moments, rates
+from ..integrate import dop853 as D
+from ..models.lattice import chain_moments, rates
 
 __all__ = ["HALO", "Halo", "Whole"]
 
 HALO = 16
-# Bodies per block: measured on one core (AMD EPYC, 2 MiB L2, 32 MiB L3; benchmarks/README.md).
+# Bodies per block: for a core's caches (benchmarks/README.md, History).
 BLOCK = 4096
 
 
@@ -51,7 +51,7 @@ class Whole(NamedTuple):
         return jnp.sum(x)
 
     def initial(self, problem, t0, y0, t_bound, cfg):
-        """``(f0, h0, flags)``: :func:`rbo_jax.ensemble._dop853.initial_step` and the checks of
+        """``(f0, h0, flags)``: :func:`rbo_jax.integrate.dop853.initial_step` and the checks of
         the initial state (:meth:`._integrate.Problem.flags`)."""
         f0, h0 = D.initial_step(
             problem.f, t0, y0, t_bound, cfg.rtol, cfg.atol, total=self.sum, size=self.size
@@ -59,7 +59,7 @@ class Whole(NamedTuple):
         return f0, h0, problem.flags(y0, y0, cfg)
 
     def step(self, problem, t, y, f0, h, h_abs, store, last, first, cfg):
-        """``(y_new, K, err, flags)``: :func:`rbo_jax.ensemble._dop853.stages`, the error norm
+        """``(y_new, K, err, flags)``: :func:`rbo_jax.integrate.dop853.stages`, the error norm
         of the whole state and the checks of the step (:meth:`._integrate.Problem.flags`)."""
         y_new, K = D.stages(problem.f, t, y, f0, h, store, last, first=first)
         err = D.error_norm(K, y, y_new, h_abs, cfg.rtol, cfg.atol, total=self.sum, size=self.size)
@@ -170,7 +170,7 @@ class Halo(NamedTuple):
         )
 
     def initial(self, problem, t0, y0, t_bound, cfg):
-        """:func:`rbo_jax.ensemble._dop853.initial_step` in blocks, and the checks of the initial
+        """:func:`rbo_jax.integrate.dop853.initial_step` in blocks, and the checks of the initial
         state: ``(f0, h0, flags)``. As there, a loop of two passes (one traced copy of the
         field): pass 0 makes f0 = f(t0, y0) from zero slopes at h = 0, with the sums of squares
         of d0 = ‖y0/scale‖ and d1 = ‖f0/scale‖ and the checks; pass 1, at the first guess h0,
@@ -229,21 +229,18 @@ class Halo(NamedTuple):
         return f0, D.initial_choice(h0, d1, d2, interval), flags
 
     def step(self, problem, t, y, f0, h, h_abs, store, last, first, cfg):
-        """:func:`rbo_jax.ensemble._dop853.stages` of this device's bodies, block by block, the
+        """:func:`rbo_jax.integrate.dop853.stages` of this device's bodies, block by block, the
         error norm of the whole chain and the step's checks: ``(y_new, R, err, flags)``. The 16
         slopes of a block stay in the cache: the block adds its bodies' terms to the two sums of
-        the error norm (:func:`~rbo_jax.ensemble._dop853.error_sums`; the last block counts only
+        the error norm (:func:`~rbo_jax.integrate.dop853.error_sums`; the last block counts only
         the bodies the others did not), makes its bodies' checks
         (:meth:`._integrate.Problem.flags`) and keeps of its slopes only what the step needs
         afterwards, ``R`` one ``(6, n)`` array per component: the first slope K[0], the slope at
         the new point K[12] (the next first slope) and the four sums of the dense output
-        (:func:`~rbo_jax.ensemble._dop853.dense_sums`; read by :meth:`slope` and
-        :meth:`dense_sums`). Written out whole, the slopes were 16 × 6 numbers a body per step,
-        read again by the norm; keeping 6 rows made a step of 10⁶ bodies 7 % faster on one core
-        (benchmarks/README.md, 2026-11-27). The checks were two more passes over the whole
-        state (~115 ms each at 10⁶ bodies on one core, timed alone); made in the blocks, with
-        the shards' sums and checks one ``psum``, a step of 10⁶ bodies on 2 devices took 15-19 %
-        less time, on one core the same (benchmarks/README.md, 2026-11-28)."""
+        (:func:`~rbo_jax.integrate.dop853.dense_sums`; read by :meth:`slope` and
+        :meth:`dense_sums`): written out whole, the slopes were 16 × 6 numbers a body per step,
+        read again by the norm, and the checks two more passes over the whole state
+        (benchmarks/README.md, History)."""
         n = self.local
         nb = math.ceil(n / self.block)
         B = math.ceil(n / nb)

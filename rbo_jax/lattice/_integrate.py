@@ -3,7 +3,7 @@ r"""DOP853 for a whole lattice: one system of $6N$ equations, SciPy's steps.
 The lattice is one ODE system: one step size, one error norm over all $6N$ scalars (SciPy's
 ``DOP853._estimate_error_norm`` of the whole state), SciPy's controller and initial step — the
 steps ``scipy.integrate.solve_ivp(method="DOP853")`` takes on the flattened system. The step is
-:mod:`rbo_jax.ensemble._dop853`'s (the same tableau, stages in one loop, dense output on steps
+:mod:`rbo_jax.integrate.dop853`'s (the same tableau, stages in one loop, dense output on steps
 with samples), with the state as six ``(N,)`` component arrays; only the norms sum over the
 bodies. Memory is bounded: the sixteen slopes of a step, ``16 × 6 × N`` numbers (a chain in
 blocks keeps ``6 × 6 × N`` of them, :mod:`._halo`), and the samples asked for.
@@ -21,7 +21,6 @@ it; a foundation such as (4.50) is then evaluated at the re-centred vector. With
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import equinox as eqx
@@ -29,19 +28,18 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ..ensemble import _dop853 as D
-from ..ensemble._problem import code
-from ..ensemble._solve import _emit, _one, dense_sampler
+from ..integrate import dop853 as D
 from ..kinematics import distance_to_singularity, storing
-from ..model import RightForm
-from ._field import rates, recentre, recentre_due, right_forms, transverse
+from ..models.lattice import Lattice, rates, right_forms
+from ..models.rigid_body import RightForm
+from ..trajectory import crossed_sphere
+from ..trajectory import status_code as code
 from ._halo import Whole
-from ._lattice import Lattice
+from ._recentre import recentre, recentre_due, transverse
 
 __all__ = ["Config", "Problem", "solve"]
 
 RUNNING = -1
-TWO_PI = 2.0 * math.pi
 # the checks of a step, in :meth:`Problem.flags`'s order
 NONFINITE, DOMAIN, SINGULAR, RECENTRE = range(4)
 
@@ -87,10 +85,7 @@ class Problem(eqx.Module):
         y_old, y_new = lax.stop_gradient((tuple(y_old), tuple(y_new)))
         theta = jnp.stack(y_new[:3])
         n, n_old = _norm(theta), _norm(jnp.stack(y_old[:3]))
-        crossed = (jnp.floor(n / TWO_PI) != jnp.floor(n_old / TWO_PI)) & (
-            jnp.maximum(n, n_old) >= math.pi
-        )
-        singular = crossed
+        singular = crossed_sphere(n, n_old)
         if not cfg.recenter:
             near = jax.vmap(distance_to_singularity, in_axes=1)(theta) < cfg.singular_tol
             singular = singular | near
@@ -150,14 +145,14 @@ def _attempt(problem: Problem, c: dict, ts, cfg: Config, store, plan):
         tout = tout.at[jnp.where(mask, i, nts)].set(turns, mode="drop")
         return out, tout
 
-    c["idx"], (c["out"], c["turns_out"]) = _emit(
+    c["idx"], (c["out"], c["turns_out"]) = D.emit(
         step,
         ts,
         idx,
         (c["out"], c["turns_out"]),
         t_new,
         write,
-        dense_sampler(step, ts, t_new, plan.slope, plan.dense_sums),
+        D.dense_sampler(step, ts, t_new, plan.slope, plan.dense_sums),
     )
     status = jnp.where(too_small, code("step_size_collapse"), c["status"])
     status = jnp.where(~jnp.isfinite(err), code("nonfinite_state"), status)
@@ -213,7 +208,7 @@ def solve(problem: Problem, y0, ts, cfg: Config, plan=None):
     y0 = tuple(y0)
     N, nts = y0[0].shape[0], ts.shape[0]
     plan = Whole(N) if plan is None else plan
-    store = D.Store(_one((problem.lattice, y0, ts)))
+    store = D.Store(D.runtime_one((problem.lattice, y0, ts)))
     with storing(store):
         f0, h0, flags0 = plan.initial(problem, ts[0], y0, ts[-1], cfg)
         failed = problem.status_of(flags0)

@@ -72,9 +72,17 @@ import numpy as np
 from jax import lax
 
 from .. import _programs
-from .._validation import _is_traced
-from ._rod import Rod, RodState
-from ._rod_field import _attached, _matrix_of, forces_tangent, log_unit, strains, tensors
+from .._validation import is_traced
+from ..models.rod import (
+    Rod,
+    RodState,
+    attached,
+    forces_tangent,
+    log_unit,
+    matrix_of,
+    strains,
+    tensors,
+)
 
 __all__ = ["SAFETY", "stable_step", "verlet", "verlet_traced"]
 
@@ -189,8 +197,7 @@ def stable_step(rod: Rod, state: RodState, safety: float = SAFETY):
 
 
 # a program that runs once per call, in microseconds: compiled without LLVM's optimisation
-# (_programs.fast_compile_options; n = 20 on one pinned core: 3.35 -> 1.06 s to compile, the
-# same step to the last bit)
+# (_programs.fast_compile_options: the same step to the last bit; benchmarks/README.md, History)
 stable_step = _programs.jit(stable_step, fast_compile=True)
 
 
@@ -252,7 +259,7 @@ def _skipped_axes(rod: Rod):
     """The principal axes $k = 2, 3$ whose moments equal the smallest on every body (their
     free rotation is the identity), known before tracing; none where the inertia is traced."""
     A = rod.inertia
-    if _is_traced(A):
+    if is_traced(A):
         return ()
     a = np.linalg.eigvalsh(np.asarray(A))
     return tuple(k for k in (1, 2) if np.all(np.abs(a[:, k] - a[:, 0]) <= 1e-12 * a[:, k]))
@@ -262,9 +269,9 @@ def _static_zeros(rod: Rod):
     """``rod`` with its attachment offsets ``None`` where they are concrete zeros (a rod's
     segments: the strains skip them in the compiled step) and whether it is damped."""
     for name in ("attach_a", "attach_b"):
-        if not _attached(getattr(rod, name)):
+        if not attached(getattr(rod, name)):
             rod = eqx.tree_at(lambda r, name=name: getattr(r, name), rod, None)
-    return rod, _attached(rod.turn_damping) or _attached(rod.gap_damping)
+    return rod, attached(rod.turn_damping) or attached(rod.gap_damping)
 
 
 def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, principal, fixed=None):
@@ -281,7 +288,7 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
         return jnp.einsum("bij,bj->bi", A_inv, Pi)
 
     def forces(q, r, Pi, v):
-        Q = _matrix_of(q[0], jnp.stack(q[1:], axis=-1))
+        Q = matrix_of(q[0], jnp.stack(q[1:], axis=-1))
         if damped:
             return forces_tangent(rod, Q, r, omega(Pi), v)
         return forces_tangent(rod, Q, r)
@@ -331,9 +338,8 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
     return states, jnp.all(finite)
 
 
-# XLA's options for small programs (_programs.small_program_options): the vibrating cantilever
-# of benchmarks/bench_rod.py on one pinned core, n = 20 and 50, first call 7.7 -> 5.5 s and
-# 8.0 -> 4.6 s, 2 time units 0.189 -> 0.178 s and 0.406 -> 0.360 s
+# XLA's options for small programs (_programs.small_program_options: a faster first call, and
+# no slower run; benchmarks/README.md, History)
 _run_jit = _programs.jit(_run, small=True)
 
 
@@ -391,11 +397,11 @@ def verlet_traced(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_0
     (evenly spaced ``ts``) each interval is a loop of fixed length, which reverse-mode autodiff
     (``jax.grad``) can transpose."""
     fixed = None
-    if dt is not None and not _is_traced(dt):
+    if dt is not None and not is_traced(dt):
         value = float(dt)
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {value}.")
-        if not _is_traced(ts):
+        if not is_traced(ts):
             span = np.diff(np.asarray(ts, dtype=np.float64))
             counts = _step_counts(span, value)
             if np.sum(counts) <= max_steps and np.all(counts == counts[0]):

@@ -24,20 +24,15 @@ import numpy as np
 
 from .. import _enumeration as enum
 from .._programs import jit, program
-from .._validation import (
-    _common_float_dtype,
-    _is_traced,
-    checked_inputs_trusted,
-)
+from .._validation import common_float_dtype, is_traced
+from ..integrate import diffeq
 from ..kinematics import distance_to_singularity
-from ..simulate import _solve_sampled, _status_from_solution
-from ..simulate import _trusted as _trusted_solve
-from ..trajectory import SolveStatus, check_times, warn_if_float32
-from ._field import rates, right_forms, transverse
+from ..models.lattice import Lattice, rates, right_forms
+from ..models.rod import Rod
+from ..trajectory import SolveStatus, check_times, flag, raise_failure, warn_if_float32
 from ._halo import BLOCK, HALO, Halo, Whole
 from ._integrate import Config, Problem, solve
-from ._lattice import Lattice
-from ._rod import Rod
+from ._recentre import transverse
 from ._rod_dynamics import RodTrajectory, simulate_rod
 from ._splitting import split
 from ._trajectory import LatticeTrajectory
@@ -49,7 +44,7 @@ METHODS = ("dop853", "diffrax", "splitting")
 
 def _state(x, lattice: Lattice, name: str, dtype):
     """``x`` (``(N, 3)`` or ``(*shape, 3)``) as a component-major ``(3, N)`` array."""
-    traced = _is_traced(x)
+    traced = is_traced(x)
     # a JAX array stays where it is (a GPU's input is not copied to the host and back)
     on_device = isinstance(x, jax.Array) and not traced
     a = x if traced or on_device else np.asarray(x)
@@ -71,29 +66,31 @@ def _state(x, lattice: Lattice, name: str, dtype):
     return jnp.reshape(a, (n, 3)).T.astype(dtype)
 
 
-def _cast(lattice: Lattice, dtype):
-    """The lattice with its float leaves in ``dtype`` (integers, the edges, kept)."""
-    return jax.tree_util.tree_map(
+def _in_precision(lattice: Lattice, theta0, Omega0, ts, dtype):
+    """``(lattice, theta0, Omega0, ts, dtype)`` in the solve's precision: ``dtype``, by default
+    the inputs' and parameters' (the lattice's float leaves cast; integers, the edges, kept);
+    the states component-major (:func:`_state`)."""
+    if dtype is None:
+        params = jax.tree_util.tree_leaves(eqx.filter(lattice, eqx.is_inexact_array))
+        states = (x for x in (theta0, Omega0) if hasattr(x, "dtype"))
+        dtype = common_float_dtype(ts, *params, *states)
+    dtype = jax.dtypes.canonicalize_dtype(dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"lattice.simulate: dtype must be a float type, got {dtype}.")
+    lattice = jax.tree_util.tree_map(
         lambda x: x.astype(dtype) if eqx.is_inexact_array(x) and x.dtype != dtype else x, lattice
     )
+    theta0 = _state(theta0, lattice, "theta0", dtype)
+    Omega0 = _state(Omega0, lattice, "Omega0", dtype)
+    return lattice, theta0, Omega0, ts.astype(dtype), dtype
 
 
 def _parameters_ok(lattice: Lattice):
     """Whether every parameter is valid (bodies and coupling): a NumPy bool for concrete ones
-    (the constructors checked them), else a traced bool (:meth:`parameter_status`)."""
-    leaves = jax.tree_util.tree_leaves(lattice)
-    if not any(_is_traced(x) for x in leaves):
+    (the constructors checked them), else a traced bool (:meth:`Lattice.parameter_status`)."""
+    if not any(is_traced(x) for x in jax.tree_util.tree_leaves(lattice)):
         return np.bool_(True)
-    if lattice.per_site:
-        ok = jax.vmap(lambda b: b.parameter_status()[0], in_axes=(lattice.body_axes(),))(
-            lattice.site_bodies()
-        )
-        ok = jnp.all(ok)
-    else:
-        ok = lattice.body.parameter_status()[0]
-    for valid, _ in lattice.coupling.parameter_checks():
-        ok = ok & jnp.all(jnp.asarray(valid))
-    return ok
+    return lattice.parameter_status()[0]
 
 
 class Layout(NamedTuple):
@@ -106,15 +103,30 @@ class Layout(NamedTuple):
     block: int = BLOCK
 
 
-def _dop853(lattice, theta0, Omega0, ts, cfg: Config, layout: Layout):
+class Options(NamedTuple):
+    """The static settings of a lattice's solve, every method's (:func:`simulate`): the
+    adaptive methods' :class:`._integrate.Config`, DOP853's :class:`Layout`, diffrax's solver
+    and adjoint."""
+
+    cfg: Config
+    layout: Layout | None
+    solver: diffrax.AbstractSolver | None
+    adjoint: diffrax.AbstractAdjoint | None
+
+
+# The methods: (lattice, theta0, Omega0 (3, N), ts, step (the splitting's dt, diffrax's dt0, or
+# None), options) -> (theta, Omega, turns, status code, steps, bodies re-centred).
+
+
+def _dop853(lattice, theta0, Omega0, ts, dt, o: Options):
     problem = Problem.of(lattice)
     y0 = tuple(theta0) + tuple(Omega0)
     n = lattice.size
-    if len(layout.devices) > 1:
-        out = _sharded(problem, y0, ts, cfg, layout)
+    if len(o.layout.devices) > 1:
+        out = _sharded(problem, y0, ts, o.cfg, o.layout)
     else:
-        plan = Halo(n, n, lattice.periodic[0], layout.block) if layout.halo else Whole(n)
-        out = solve(problem, y0, ts, cfg, plan)
+        plan = Halo(n, n, lattice.periodic[0], o.layout.block) if o.layout.halo else Whole(n)
+        out = solve(problem, y0, ts, o.cfg, plan)
     return _split(out["samples"]) + (
         out["turns"],
         out["status"],
@@ -124,8 +136,8 @@ def _dop853(lattice, theta0, Omega0, ts, cfg: Config, layout: Layout):
 
 
 def _split(samples):
-    """``(theta, Omega)`` of the ``(T, N, 6)`` samples, in the program (two slices after it
-    were ~0.2 ms of a call's fixed cost)."""
+    """``(theta, Omega)`` of the ``(T, N, 6)`` samples, in the program (not two more slices
+    after it)."""
     return samples[..., :3], samples[..., 3:]
 
 
@@ -166,31 +178,35 @@ def _near_singular(lattice, singular_tol, t, y, args, **kwargs):
     return jnp.any(near & transverse(theta, Omega))
 
 
-def _diffrax(lattice, theta0, Omega0, ts, solver, rtol, atol, max_steps, singular_tol, adjoint):
+def _diffrax(lattice, theta0, Omega0, ts, dt, o: Options):
     forms = right_forms(lattice)
 
     def field(t, y, args):
         return rates(lattice, forms, t, *y)
 
-    cond = jax.tree_util.Partial(_near_singular, lattice, jnp.asarray(singular_tol, ts.dtype))
-    sol = _solve_sampled(
-        field, (theta0, Omega0), ts, [cond], solver, rtol, atol, max_steps, adjoint
+    cond = jax.tree_util.Partial(_near_singular, lattice, jnp.asarray(o.cfg.singular_tol, ts.dtype))
+    (theta, Omega), status, steps = diffeq.solve(
+        field,
+        o.solver,
+        (theta0, Omega0),
+        ts,
+        dt0=dt,
+        rtol=o.cfg.rtol,
+        atol=o.cfg.atol,
+        events=[("singular_point", cond)],
+        adjoint=o.adjoint,
+        max_steps=o.cfg.max_steps,
     )
-    status = _status_from_solution(sol, ("singular_point",))
-    theta, Omega = sol.ys
     samples = jnp.concatenate([theta, Omega], axis=1).transpose(0, 2, 1)
     samples = jnp.where(jnp.isfinite(samples), samples, jnp.inf)
     turns = jnp.zeros((ts.shape[0], theta0.shape[1]), jnp.int32)
-    return _split(samples) + (
-        turns,
-        enum.code(status),
-        sol.stats["num_accepted_steps"],
-        jnp.asarray(0, jnp.int32),
+    return _split(samples) + (turns, enum.code(status), steps, jnp.asarray(0, jnp.int32))
+
+
+def _splitting(lattice, theta0, Omega0, ts, dt, o: Options):
+    samples, turns, steps = split(
+        lattice, theta0, Omega0, ts, dt, o.cfg.recenter, o.cfg.recenter_margin
     )
-
-
-def _splitting(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin):
-    samples, turns, steps = split(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin)
     finite = jnp.all(jnp.isfinite(samples))
     status = jnp.where(
         finite, enum.code(SolveStatus.successful), enum.code(SolveStatus.nonfinite_state)
@@ -200,11 +216,8 @@ def _splitting(lattice, theta0, Omega0, ts, dt, recenter, recenter_margin):
 
 _TRACED = {"dop853": _dop853, "diffrax": _diffrax, "splitting": _splitting}
 # Lattices of fewer bodies compile with XLA's options for small programs (their run time is
-# dominated by per-operation costs; measured on one core for a chain of 8: compilation 4.7 ->
-# 3.4 s, the same run time; of 10 000: 5.5 -> 4.0 s but +15 % run time). Larger ones keep
-# XLA's defaults: best call with the small options / with the defaults, one pinned core,
-# alternating (benchmark chain, t1 = 2): 64 bodies 1.58 / 1.42 ms, 256: 3.14 / 2.36 ms,
-# 1000: 9.37 / 6.50 ms.
+# dominated by per-operation costs: they compile faster and run as fast); larger ones keep
+# XLA's defaults, with which they run faster (benchmarks/README.md, History).
 SMALL = 64
 _PROGRAMS = {
     (name, small): program(fn, small=small)
@@ -253,7 +266,7 @@ def _config(
             f"and 0 < recenter_margin < pi, got {cfg}."
         )
     if method == "splitting":
-        if dt is None or _is_traced(dt) or not (float(dt) > 0 and math.isfinite(float(dt))):
+        if dt is None or is_traced(dt) or not (float(dt) > 0 and math.isfinite(float(dt))):
             raise ValueError(
                 f"lattice.simulate: method='splitting' needs a step dt > 0 (a number), got {dt!r}."
             )
@@ -266,11 +279,9 @@ def _config(
     return cfg
 
 
-# The step in blocks (:mod:`._halo`) against whole arrays, µs per body-step on one pinned core,
-# alternating (benchmark chain, loaded 2-core machine): 10⁴ bodies 1.46 / 1.39, 3·10⁴ 1.30 /
-# 1.27, 10⁵ 1.66 / 2.07, 2·10⁵ 1.19 / 1.59: blocks from HALO_MIN bodies on (the 16 slopes of
-# 5·10⁴ bodies, 38 MB, exceed the 32 MiB L3). A chain is split over the local devices by default
-# from SHARD_MIN bodies on.
+# The step in blocks (:mod:`._halo`) from HALO_MIN bodies on (the 16 slopes of 5·10⁴ bodies,
+# 38 MB, exceed a 32 MiB L3; benchmarks/README.md, History). A chain is split over the local
+# devices by default from SHARD_MIN bodies on.
 HALO_MIN = 50_000
 SHARD_MIN = 100_000
 
@@ -326,64 +337,17 @@ def _layout(lattice: Lattice, devices, traced: bool) -> Layout:
     return Layout(tuple(d.id for d in chosen), halo, BLOCK if cpu else n)
 
 
-def _method_args(method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout):
-    """The arguments of the method's program."""
-    if method == "dop853":
-        args = (lattice, theta0, Omega0, ts, cfg, layout)
-    elif method == "diffrax":
-        args = (
-            lattice,
-            theta0,
-            Omega0,
-            ts,
-            solver,
-            cfg.rtol,
-            cfg.atol,
-            cfg.max_steps,
-            cfg.singular_tol,
-            adjoint,
-        )
-    else:
-        # dt traced: one program for every step size
-        args = (
-            lattice,
-            theta0,
-            Omega0,
-            ts,
-            jnp.asarray(dt, dtype),
-            cfg.recenter,
-            cfg.recenter_margin,
-        )
-    return args
-
-
-def _trusted(lattice, method, solver, adjoint) -> bool:
-    """Whether diffrax's own input checks may be left out (rbo_jax checked the inputs; the
-    lattice, solver and adjoint are library code): the rule of :func:`rbo_jax.simulate`."""
-    return method == "diffrax" and _trusted_solve(lattice, solver, adjoint)
-
-
-def _simulate_rod(rod, state0, ts, extra, method, solver, rtol, atol, max_steps, dt, throw):
+def _simulate_rod(rod, state0, at, ts, **options):
     """``simulate(rod, state0, ts)``: the rod's arguments sit where a lattice's ``theta0`` and
-    ``Omega0`` do (``ts`` may also be given by name)."""
-    if ts is not None and extra is not None:
+    ``Omega0`` do (``at``; ``ts`` may also be given by name)."""
+    if at is not None and ts is not None:
         raise TypeError("lattice.simulate of a rod takes (rod, state0, ts).")
-    ts = extra if ts is None else ts
+    ts = at if ts is None else ts
     if ts is None:
         raise TypeError("lattice.simulate(rod, state0, ts): ts is missing.")
-    method = "explicit" if method == "dop853" else method
-    return simulate_rod(
-        rod,
-        state0,
-        ts,
-        method=method,
-        solver=solver,
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
-        dt=dt,
-        throw=throw,
-    )
+    if options["method"] == "dop853":
+        options["method"] = "explicit"
+    return simulate_rod(rod, state0, ts, **options)
 
 
 def simulate(
@@ -405,6 +369,7 @@ def simulate(
     dtype=None,
     devices=None,
     throw: bool = True,
+    dt0: float | None = None,
 ) -> LatticeTrajectory | RodTrajectory:
     r"""Integrate a lattice (every body's (4.55)–(4.56) with the gradient of the total energy)
     from ``(theta0, Omega0)`` at ``ts[0]`` and sample it at ``ts``.
@@ -417,8 +382,9 @@ def simulate(
     - `ts`: strictly increasing sample times.
     - `method`: ``"dop853"`` (default; SciPy's DOP853 on the whole lattice, re-centring),
       ``"diffrax"`` (any ``solver``, default ``Dopri8``, and ``adjoint``: reverse-mode
-      gradients), or ``"splitting"`` (symplectic Lie-group splitting with steps of at most
-      ``dt``; lattices without loads only). See :mod:`rbo_jax.lattice._simulate`.
+      gradients; ``dt0`` its first step, default diffrax's choice), or ``"splitting"``
+      (symplectic Lie-group splitting with steps of at most ``dt``; lattices without loads
+      only). See :mod:`rbo_jax.lattice._simulate`.
     - `rtol`, `atol` (default 1e-8, 1e-10), `max_steps` (step attempts), `singular_tol`: the
       adaptive methods' settings (Python numbers, compiled in).
     - `recenter`, `recenter_margin`: re-centre the turn-vector of a body that comes within
@@ -441,7 +407,7 @@ def simulate(
     forward-mode differentiable (all methods; ``"diffrax"`` also reverse mode).
 
     **A rod** (:class:`rbo_jax.lattice.Rod`): ``simulate(rod, state0, ts, method="explicit" |
-    "implicit" | "splitting", solver=..., rtol=..., atol=..., max_steps=..., dt=...,
+    "implicit" | "splitting", solver=..., rtol=..., atol=..., max_steps=..., dt0=..., dt=...,
     throw=...)`` (``"splitting"``: the Lie-group position Verlet of
     :mod:`rbo_jax.lattice._rod_verlet`, fixed steps of at most ``dt``) with a
     :class:`rbo_jax.lattice.RodState` returns a :class:`rbo_jax.lattice.RodTrajectory`
@@ -451,7 +417,18 @@ def simulate(
     """
     if isinstance(lattice, Rod):
         return _simulate_rod(
-            lattice, theta0, Omega0, ts, method, solver, rtol, atol, max_steps, dt, throw
+            lattice,
+            theta0,
+            Omega0,
+            ts,
+            method=method,
+            solver=solver,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            dt0=dt0,
+            dt=dt,
+            throw=throw,
         )
     if ts is None or Omega0 is None:
         raise TypeError("lattice.simulate(lattice, theta0, Omega0, ts): Omega0 and ts are needed.")
@@ -459,48 +436,23 @@ def simulate(
         lattice, method, rtol, atol, max_steps, singular_tol, recenter, recenter_margin, dt
     )
     ts = check_times(ts, throw)
-    params = jax.tree_util.tree_leaves(eqx.filter(lattice, eqx.is_inexact_array))
-    if dtype is None:
-        dtype = _common_float_dtype(
-            ts, *params, *(x for x in (theta0, Omega0) if hasattr(x, "dtype"))
-        )
-    dtype = jax.dtypes.canonicalize_dtype(dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"lattice.simulate: dtype must be a float type, got {dtype}.")
-    lattice = _cast(lattice, dtype)
-    theta0 = _state(theta0, lattice, "theta0", dtype)
-    Omega0 = _state(Omega0, lattice, "Omega0", dtype)
-    ts = ts.astype(dtype)
+    lattice, theta0, Omega0, ts, dtype = _in_precision(lattice, theta0, Omega0, ts, dtype)
     warn_if_float32(dtype, rtol, atol)
     ok = _parameters_ok(lattice)
 
-    traced = any(_is_traced(x) for x in jax.tree_util.tree_leaves((lattice, theta0, Omega0, ts)))
+    traced = any(is_traced(x) for x in jax.tree_util.tree_leaves((lattice, theta0, Omega0, ts)))
     layout = _layout(lattice, devices, traced) if method == "dop853" else None
-    args = _method_args(
-        method, lattice, theta0, Omega0, ts, cfg, solver, adjoint, dt, dtype, layout
-    )
-    if traced:
-        out = _TRACED[method](*args)
-    else:
-        with checked_inputs_trusted(_trusted(lattice, method, solver, adjoint)):
-            if layout is not None and len(layout.devices) > 1:
-                out = _SHARDED(*args)
-            else:
-                out = _PROGRAMS[method, lattice.size < SMALL](*args)
+    diffeq.check_start(None, dt0, ts)
+    step = {"splitting": dt, "diffrax": dt0}.get(method)  # traced: one program for every step
+    step = None if step is None else jnp.asarray(step, dtype)
+    args = (lattice, theta0, Omega0, ts, step, Options(cfg, layout, solver, adjoint))
+    sharded = layout is not None and len(layout.devices) > 1
+    compiled = _SHARDED if sharded else _PROGRAMS[method, lattice.size < SMALL]
+    checked = method == "diffrax" and diffeq.trusted(lattice, solver, adjoint)
+    out = diffeq.run(compiled, _TRACED[method], args, checked)
     theta, Omega, turns, code, num_steps, num_recentred = out
     status = enum.from_code(SolveStatus, code)
     if not (isinstance(ok, np.bool_) and ok):
-        status = SolveStatus.where(ok, status, SolveStatus.invalid_parameters)
-        theta, Omega = jnp.where(ok, theta, jnp.nan), jnp.where(ok, Omega, jnp.nan)
-    if throw and (_is_traced(enum.code(status)) or enum.name(status) != "successful"):
-        theta = status.error_if(theta, status != SolveStatus.successful)
-    return LatticeTrajectory(
-        ts=ts,
-        theta=theta,
-        Omega=Omega,
-        turns=turns,
-        lattice=lattice,
-        status=status,
-        num_steps=num_steps,
-        num_recentred=num_recentred,
-    )
+        status, (theta, Omega) = flag(status, (theta, Omega), ~ok, "invalid_parameters", jnp.nan)
+    theta = raise_failure(theta, status, throw)
+    return LatticeTrajectory(ts, theta, Omega, turns, lattice, status, num_steps, num_recentred)

@@ -37,16 +37,16 @@ import jax.numpy as jnp
 from jax import lax
 
 from ..kinematics import (
-    _log_quaternion,
-    _quaternion,
-    _quaternion_product,
     cross3,
     dot3,
+    log_quaternion,
     matvec3,
+    quaternion_of,
+    quaternion_product,
 )
-from ..model import inverse3
-from ._field import body_moments, recentre
-from ._lattice import Lattice
+from ..models.lattice import Lattice, body_moments
+from ..models.rigid_body import inverse3
+from ._recentre import recentre
 
 __all__ = ["split"]
 
@@ -110,7 +110,7 @@ def split(lattice: Lattice, theta0, Omega0, ts, dt: float, recenter: bool, recen
             axis = d_[:, k]
             alpha = tau * dot3(axis, P) / a_[k]
             half = 0.5 * alpha
-            w, v = _quaternion_product((w, v), (jnp.cos(half), jnp.sin(half) * axis))
+            w, v = quaternion_product((w, v), (jnp.cos(half), jnp.sin(half) * axis))
             return w, v, _rotate(P, axis, -alpha)
 
         w, v, Pi = bodies(one, (a, d), (q[0], q[1], Pi))
@@ -121,7 +121,7 @@ def split(lattice: Lattice, theta0, Omega0, ts, dt: float, recenter: bool, recen
         Pi = Pi + (0.5 * h) * tau
         for k, f in ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5)):
             q, Pi = free(k, f * h, q, Pi)
-        theta_p = bodies(_log_quaternion, (), (q[0], q[1]))
+        theta_p = bodies(log_quaternion, (), (q[0], q[1]))
         theta = bodies(_continue, (), (theta_p, theta))
         if recenter:
             theta, k = recentre(theta, omega(Pi), recenter_margin)
@@ -130,7 +130,7 @@ def split(lattice: Lattice, theta0, Omega0, ts, dt: float, recenter: bool, recen
         return (q, theta, Pi + (0.5 * h) * tau, tau, turns)
 
     Pi0 = bodies(matvec3, (inertia,), (Omega0,))
-    q0 = bodies(_quaternion, (), (theta0,))
+    q0 = bodies(quaternion_of, (), (theta0,))
     turns0 = jnp.zeros(theta0.shape[1], jnp.int32)
     carry0 = (q0, theta0, Pi0, torque(theta0), turns0)
 

@@ -2,27 +2,23 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ..trajectory import SolveStatus, _AbstractSolved
-from ._field import kinetic_moment, total_energy
-from ._lattice import Lattice
+from ..models.lattice import Lattice, kinetic_moment, total_energy
+from ..trajectory import OMEGA_ATTRS, THETA_ATTRS, AbstractTrajectory, SolveStatus, per_sample
 
 __all__ = ["LatticeTrajectory"]
 
 
-@eqx.filter_jit
-def _per_sample(fn, lattice, theta, Omega):
-    """``fn(lattice, theta (3, N), Omega (3, N))`` for every sample of ``(T, N, 3)`` arrays:
-    one compiled program per quantity and lattice structure."""
-    return jax.vmap(lambda th, Om: fn(lattice, th.T, Om.T))(theta, Omega)
+def _of_sample(fn, lattice, theta, Omega):
+    """``fn(lattice, theta (3, N), Omega (3, N))`` of one sample's ``(N, 3)`` arrays."""
+    return fn(lattice, theta.T, Omega.T)
 
 
-class LatticeTrajectory(_AbstractSolved):
+class LatticeTrajectory(AbstractTrajectory):
     r"""Samples of a lattice's motion (:func:`rbo_jax.lattice.simulate`).
 
     Fields: ``ts`` (T,); ``theta`` (T, N, 3) the turn-vectors and ``Omega`` (T, N, 3) the right
@@ -48,13 +44,19 @@ class LatticeTrajectory(_AbstractSolved):
     num_steps: Int[Array, ""]
     num_recentred: Int[Array, ""]
 
+    def _map(self, fn):
+        """``fn(lattice, theta, Omega)`` for every sample: one compiled program per quantity
+        and lattice structure (:func:`rbo_jax.trajectory.per_sample`)."""
+        f = jax.tree_util.Partial(_of_sample, fn, self.lattice)
+        return per_sample(f, self.theta, self.Omega)
+
     @property
     def energy(self) -> Float[Array, " T"]:
-        return _per_sample(total_energy, self.lattice, self.theta, self.Omega)
+        return self._map(total_energy)
 
     @property
     def kinetic_moment(self) -> Float[Array, "T 3"]:
-        return _per_sample(kinetic_moment, self.lattice, self.theta, self.Omega)
+        return self._map(kinetic_moment)
 
     def on_grid(self, x):
         """A per-site sample array ``(T, N, ...)`` reshaped to the lattice's shape,
@@ -66,20 +68,10 @@ class LatticeTrajectory(_AbstractSolved):
         """The samples as an :class:`xarray.Dataset` (concrete, unbatched): dimensions ``t``,
         ``site`` and ``component``; variables ``theta``, ``Omega``, ``turns``, ``energy``;
         attributes ``status``, ``message``, ``num_steps``, ``shape``, plus ``attrs``."""
-        import xarray as xr
-
         vec = ("t", "site", "component")
         data = {
-            "theta": (
-                vec,
-                np.asarray(self.theta),
-                {"long_name": "turn-vector theta (4.1)", "units": "rad"},
-            ),
-            "Omega": (
-                vec,
-                np.asarray(self.Omega),
-                {"long_name": "right (body-frame) angular velocity Omega", "units": "rad s-1"},
-            ),
+            "theta": (vec, np.asarray(self.theta), THETA_ATTRS),
+            "Omega": (vec, np.asarray(self.Omega), OMEGA_ATTRS),
             "turns": (
                 ("t", "site"),
                 np.asarray(self.turns),
@@ -91,19 +83,5 @@ class LatticeTrajectory(_AbstractSolved):
                 {"long_name": "total mechanical energy", "units": "J"},
             ),
         }
-        ds = xr.Dataset(
-            data,
-            coords={
-                "t": ("t", np.asarray(self.ts), {"units": "s"}),
-                "site": np.arange(self.lattice.size),
-                "component": ["x", "y", "z"],
-            },
-        )
-        ds.attrs.update(
-            status=self.status_name,
-            message=self.message,
-            num_steps=int(self.num_steps),
-            shape=list(self.lattice.shape),
-            **attrs,
-        )
-        return ds
+        coords = {"site": np.arange(self.lattice.size), "component": ["x", "y", "z"]}
+        return self._dataset(data, coords, shape=list(self.lattice.shape), **attrs)

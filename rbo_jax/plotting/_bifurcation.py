@@ -175,7 +175,7 @@ def _draw_cycles(ax, cycles, name, specials):
 
 
 def _hopf_curve_names(curve):
-    known = {"frequency", "first_lyapunov", "transversality", "theta", "status"}
+    known = {"frequency", "first_lyapunov", "transversality", "theta", "num_steps", "status"}
     names = [n for n in curve.data_vars if n not in known]
     if len(names) != 1 or "status" not in curve:
         raise ValueError(

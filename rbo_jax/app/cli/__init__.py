@@ -21,10 +21,10 @@ not keep programs with host callbacks, which equinox's runtime checks (``eqx.err
 ``simulate`` leaves out diffrax's checks of inputs it has checked itself
 (:func:`rbo_jax._validation.checked_inputs_trusted`); a check in a user's function keeps its
 program out of both stores. The console command ends its process at once when the command is
-done (:func:`exit_process`: the interpreter's teardown of JAX took 0.2–0.4 s), and while it runs
-Python's cyclic garbage collector waits for more allocations than its default
-(:func:`fewer_collections`: its full collections over the heap of JAX, xarray and pandas took
-0.2 s of a warm ``rbo-jax fit`` and 0.4 s of a cold one). Both stores are
+done (:func:`exit_process`: no teardown of JAX by the interpreter), and while it runs Python's
+cyclic garbage collector waits for more allocations than its default (:func:`fewer_collections`:
+no full collections over the heap of JAX, xarray and pandas); what each saves is measured in
+benchmarks/README.md, History. Both stores are
 :func:`rbo_jax.enable_compilation_cache`'s; the directory is ``$RBO_JAX_COMPILATION_CACHE``, by
 default ``rbo_jax/jax-cache`` under the user's cache directory (``$XDG_CACHE_HOME`` or
 ``~/.cache``); ``RBO_JAX_COMPILATION_CACHE=off`` turns it off.
@@ -107,9 +107,8 @@ def fewer_collections(threshold: int = GC_THRESHOLD):
     A command allocates hundreds of thousands of objects at its start (imports of xarray and
     pandas, JAX's tracing of a program), and at the default a collection of the whole heap,
     also of the objects of every module already imported, can follow every 70,000 net
-    allocations (700 x 10 x 10). Measured for ``rbo-jax fit`` (benchmarks/README.md): 0.23 s
-    of collections in the warm process and 0.44 s in the cold one, against 0.06 s and 0.11 s
-    with 10,000 (no full collection). Garbage cycles are still collected, a little later;
+    allocations (700 x 10 x 10); with 10,000 a command makes no full collection
+    (benchmarks/README.md, History). Garbage cycles are still collected, a little later;
     results do not change."""
     old = gc.get_threshold()
     gc.set_threshold(max(old[0], threshold), *old[1:])
@@ -167,9 +166,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def exit_process(code: int) -> NoReturn:
     """End the process with ``code`` at once: standard output and error flushed, the
-    interpreter's teardown (JAX's and XLA's objects, every module; 0.2–0.4 s measured after the
-    last statement of a command) skipped. Every file a command writes is closed before it
-    returns, and JAX writes its cache entries when it compiles."""
+    interpreter's teardown (JAX's and XLA's objects, every module) skipped. Every file a
+    command writes is closed before it returns, and JAX writes its cache entries when it
+    compiles."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

@@ -37,6 +37,13 @@ def refuse_group(args: argparse.Namespace, dests, option: str, what: str, exampl
         )
 
 
+def settings(args: argparse.Namespace, defaults: dict) -> argparse.Namespace:
+    """The options of a group that default to None (so that :func:`refuse_group` sees which
+    were given), with their ``defaults`` filled in."""
+    given = {d: getattr(args, d) for d in defaults}
+    return argparse.Namespace(**{d: defaults[d] if v is None else v for d, v in given.items()})
+
+
 def floats(text: str) -> tuple[float, ...]:
     """``"x,y,z"`` -> floats (any count: the model description checks the shape)."""
     try:
@@ -131,6 +138,13 @@ def check_number(value, option: str, *, minimum=None, above=None, maximum=None) 
         raise Failure(f"{option} must be {need}, got {shown}.")
 
 
+def check_times(args: argparse.Namespace) -> None:
+    """``--t1`` (> 0) and ``--samples`` (>= 2): the sample times of a run."""
+    check_number(args.t1, "--t1", above=0)
+    if args.samples < 2:
+        raise Failure(f"--samples must be >= 2, got {args.samples}.")
+
+
 # the largest step budget or iteration count: far above any useful one, and below every integer
 # type a solver may count in
 MAX_COUNT = 2**31 - 1
@@ -185,10 +199,10 @@ def check_suffix(path: str, allowed: tuple[str, ...], option: str) -> str:
 
 def check_vector(x, name: str):
     """A (3,) vector, or exit status 2 with the package's message naming ``name``."""
-    from ...kinematics import _as_vector
+    from ...kinematics import as_vector
 
     try:
-        return _as_vector(x, name)
+        return as_vector(x, name)
     except (ValueError, TypeError) as e:
         raise Failure(str(e)) from None
 

@@ -120,30 +120,6 @@ def _lost_process(log: str, count: int) -> str:
     )
 
 
-def _missing(store: Path) -> list[int] | None:
-    """The ids of the chunks that the store is missing (None: not readable)."""
-    from ...batch import _store
-
-    try:
-        return _store.missing_chunks(_store.open_group(store, "r"), None)
-    except Exception:  # a store being created, or not one of a sweep
-        return None
-
-
-def _release_lock(store: Path, pid: int):
-    """Remove the store's lock if the (dead) child ``pid`` held it."""
-    import json
-    import socket
-
-    lock = Path(str(store) + ".lock")
-    try:
-        owner = json.loads(lock.read_text())
-    except (OSError, ValueError):
-        return
-    if owner.get("pid") == pid and owner.get("host") == socket.gethostname():
-        lock.unlink(missing_ok=True)
-
-
 def supervise(args: argparse.Namespace, store: Path) -> int:
     """Run the command in a child process and turn its death by a signal into one line."""
     fd, log_path = tempfile.mkstemp(prefix="rbo-jax-sweep-", suffix=".log")
@@ -184,12 +160,12 @@ def supervise(args: argparse.Namespace, store: Path) -> int:
         if -rc == signal.SIGABRT
         else f"process {args.process_id} was killed ({name})"
     )
-    from ...batch._hosts import chunk_ranges
-    from ._sweep_store import _chunks_done, resume_command
+    from ...batch.progress import chunk_ranges, chunks_done, missing_chunks, release_lock_of
+    from ._sweep_store import resume_command
 
-    _release_lock(store, child.pid)
-    counts = _chunks_done(store)
-    missing = _missing(store) if counts is not None else None
+    release_lock_of(store, child.pid)
+    counts = chunks_done(store)
+    missing = missing_chunks(store) if counts is not None else None
     kept = (
         f"{counts[0]} of {counts[1]} chunks are kept in {store}"
         + (f" ({len(missing)} missing: {chunk_ranges(missing)})" if missing else "")

@@ -13,6 +13,7 @@ from ._common import (
     check_output,
     check_state,
     check_suffix,
+    check_times,
     check_vector,
     load_index,
     model_spec,
@@ -140,9 +141,7 @@ def _synthetic(args, table, options, names, theta0, Omega0):
 
     from ... import TrajectoryData, simulate
 
-    check_number(args.t1, "--t1", above=0)
-    if args.samples < 2:
-        raise Failure(f"--samples must be >= 2, got {args.samples}.")
+    check_times(args)
     check_number(args.noise, "--noise", minimum=0)
     check_number(args.offset, "--offset", above=-1)
     if args.seed < 0:

@@ -12,7 +12,7 @@ reading it (blocked in ``read``, it holds no GIL; JAX releases the GIL while XLA
 thread gets it at once). On a signal that thread runs the cleanups (:func:`_stop`): the
 temporaries of unfinished outputs are removed (outputs are written whole:
 :mod:`rbo_jax.app._outputs`), the lock files of sweep stores are released
-(:func:`rbo_jax.batch._lock.release_held`), the one line is printed, and the process ends with
+(:func:`rbo_jax.batch.progress.release_locks`), the one line is printed, and the process ends with
 ``os._exit``, whatever the main thread is doing. A watchdog ends it anyway after
 :data:`DEADLINE_S`, should a cleanup hang (a stalled network file system).
 
@@ -34,6 +34,8 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
+
+from ...batch.progress import release_locks
 
 __all__ = ["DEADLINE_S", "install", "message", "set_command", "set_describer"]
 
@@ -83,9 +85,7 @@ def cleanup() -> None:
     from .._outputs import remove_pending
 
     remove_pending()
-    lock = sys.modules.get("rbo_jax.batch._lock")  # loaded only if a sweep ran
-    if lock is not None:
-        lock.release_held()
+    release_locks()
 
 
 def _stop(signum: int) -> None:

@@ -16,9 +16,9 @@ import time
 from .._io import DATASET_SUFFIXES
 from .._reader import SpecError
 from ..spec import LatticeSpec, ModelSpec
-from ._common import Failure, check_suffix, flag, refuse_group
+from ._common import Failure, check_suffix, flag, refuse_group, settings
 from ._memory import BYTES_PER_BODY, BYTES_PER_BODY_SAMPLE, check_memory
-from ._samples import check_reached, initial_state, print_samples, solver_options
+from ._samples import finish, initial_state, solver_options
 
 DEFAULTS = {
     "coupling_kb": 1.0,
@@ -47,9 +47,7 @@ def refuse_lattice_options(args: argparse.Namespace) -> None:
 
 def _settings(args: argparse.Namespace) -> argparse.Namespace:
     """The lattice options with their defaults, checked on their own."""
-    s = argparse.Namespace(
-        **{d: DEFAULTS[d] if getattr(args, d) is None else getattr(args, d) for d in DEFAULTS}
-    )
+    s = settings(args, DEFAULTS)
     for dest, wave in _WAVE_OPTIONS.items():
         if getattr(args, dest) is not None and s.wave != wave:
             raise Failure(f"{flag(dest)} belongs to --wave {wave}, not --wave {s.wave}.")
@@ -184,26 +182,12 @@ def _initial_states(args, s, spec: ModelSpec, lattice: LatticeSpec, model, k):
     )
 
 
-def _print_table(ds, max_rows):
-    import numpy as np
-
-    t, theta = ds["t"].values, ds["theta"].values
-    reached = np.all(np.isfinite(theta), axis=(1, 2))
-    largest = np.max(np.linalg.norm(theta, axis=2), axis=1)
-
-    def values(i):
-        return [float(t[i]), float(largest[i])]
-
-    return print_samples(ds, reached, ["t", "max |theta_i|"], values, max_rows), reached
-
-
 def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
     """``rbo-jax simulate --lattice SPEC``: the motion of a lattice of the model's bodies."""
     import jax.numpy as jnp
     import numpy as np
 
     from ...lattice import simulate
-    from .._io import write_dataset
 
     s = _settings(args)
     lattice = _lattice_spec(args, s)
@@ -239,13 +223,12 @@ def simulate_lattice(args: argparse.Namespace, spec: ModelSpec) -> int:
         command="rbo-jax " + " ".join(args.argv),
     )
     elapsed = time.perf_counter() - start
-    drift, reached = _print_table(ds, args.max_rows)
-    if args.out is not None:
-        write_dataset(ds, args.out)
-    print(
-        f"   {int(traj.num_steps)} steps, {int(traj.num_recentred)} turn-vectors re-centred, "
-        f"status: {traj.status_name}, {drift}, wall time {elapsed:.2f} s (compilation "
-        f"included)" + (f"; trajectory -> {args.out}" if args.out else "")
-    )
-    check_reached(traj, ds, reached)
-    return 0
+    t, theta = ds["t"].values, ds["theta"].values
+    reached = np.all(np.isfinite(theta), axis=(1, 2))
+    largest = np.max(np.linalg.norm(theta, axis=2), axis=1)
+
+    def values(i):
+        return [float(t[i]), float(largest[i])]
+
+    recentred = f"{int(traj.num_recentred)} turn-vectors re-centred, "
+    return finish(args, traj, ds, reached, ["t", "max |theta_i|"], values, elapsed, recentred)

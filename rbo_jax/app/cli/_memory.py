@@ -6,10 +6,10 @@ its peak from its sizes (samples, bodies, grid points) and refuses, with exit st
 estimate above half the physical memory (the share :func:`rbo_jax.sweep` allows an in-memory
 result), naming the number, the estimate, the machine's memory and the way out.
 
-The bytes per unit below are about twice what was measured (peak resident memory of the command
-at two sizes, the difference divided by the difference of the sizes; float64, this repository's
-2-core machine, 2026-11): they cover the device arrays of the solve, their host copies, the
-xarray Dataset and the file writers, with room for other versions of the libraries.
+The bytes per unit below are about twice the measured peak (the peak resident memory of the
+command at two sizes, the difference divided by the difference of the sizes: benchmarks/README.md,
+History): they cover the device arrays of the solve, their host copies, the xarray Dataset and
+the file writers, with room for other versions of the libraries.
 """
 
 from __future__ import annotations
@@ -20,16 +20,15 @@ from ._common import Failure
 
 SHARE = 0.5
 
-# One body, per sample: measured 150-220 B (simulate and fast_simulate; .nc, .zarr, .csv)
+# One body, per sample
 BYTES_PER_SAMPLE = 400
-# A lattice, per sample and body: measured 183 B; per body (the solver's stages, the couplings,
-# the compiled program's buffers): measured 1.5 kB
+# A lattice or a rod, per sample and body; per body (the solver's stages, the couplings, the
+# compiled program's buffers)
 BYTES_PER_BODY_SAMPLE = 400
 BYTES_PER_BODY = 4000
-# A stability map, per grid point: measured 450 B (with --out .nc)
+# A stability map, per grid point
 BYTES_PER_MAP_POINT = 1000
-# A fit, per sample and fitted direction (the residuals, their Jacobian, the solver's tangents):
-# measured 250 B (c and d fitted to synthetic data)
+# A fit, per sample and fitted direction (the residuals, their Jacobian, the solver's tangents)
 BYTES_PER_FIT_SAMPLE = 500
 
 

@@ -17,13 +17,11 @@ def demo(args: argparse.Namespace) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from ._common import Failure, check_number
+    from ._common import check_times
     from ._memory import BYTES_PER_SAMPLE
     from ._simulate import check_samples_memory
 
-    check_number(args.t1, "--t1", above=0)
-    if args.samples < 2:
-        raise Failure(f"--samples must be >= 2, got {args.samples}.")
+    check_times(args)
     check_samples_memory(args.samples, 2 * BYTES_PER_SAMPLE)  # two trajectories
 
     from ... import (
@@ -115,17 +113,12 @@ def sweep_command(args: argparse.Namespace) -> int:
 
     check_cluster_options(args)  # --scheduler / --workers (Dask): exit 2 before anything starts
     multi_process = _distributed.check_options(args)  # jax.distributed: the same
-    try:
-        # on Dask, --devices counts each worker's devices, which this process cannot see
-        check_devices(args.devices, local=args.scheduler is None and args.workers is None)
-    except Failure as e:
-        print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
-        return 2
+    # on Dask, --devices counts each worker's devices, which this process cannot see
+    check_devices(args.devices, local=args.scheduler is None and args.workers is None)
     try:
         cfg = load_config(args.config)
     except ConfigError as e:
-        print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
-        return 2
+        raise Failure(str(e)) from None
     try:
         import matplotlib
 
@@ -157,8 +150,7 @@ def sweep_command(args: argparse.Namespace) -> int:
             devices=args.devices,
         )
     except (FileExistsError, SweepError) as e:
-        print(f"rbo-jax sweep: error: {e}", file=sys.stderr)
-        return 2
+        raise Failure(str(e)) from None
     out = args.output or cfg.output
     counts = status_counts(ds)
     failed = {k: v for k, v in counts.items() if v and k != "successful"}

@@ -25,10 +25,10 @@ from pathlib import Path
 from .._io import DATASET_SUFFIXES
 from .._reader import SpecError
 from ..rodspec import RodSpec
-from ._common import Failure, check_number, check_suffix, refuse_group
+from ._common import Failure, check_number, check_suffix, refuse_group, settings
 from ._memory import BYTES_PER_BODY, BYTES_PER_BODY_SAMPLE, check_memory
 from ._options import table
-from ._samples import print_samples
+from ._samples import equilibrium, finish, solver_options
 
 DEFAULTS = {"rod_start": "straight", "rod_perturbation": None, "rod_steps": 1, "rod_method": None}
 _PERTURBATION = {"straight": 0.0, "equilibrium": 1e-3}
@@ -93,9 +93,7 @@ def _read_table(text: str) -> dict:
 def _settings(args: argparse.Namespace) -> argparse.Namespace:
     """The rod options with their defaults, checked; the body options refused."""
     _refuse_body_options(args)
-    s = argparse.Namespace(
-        **{d: DEFAULTS[d] if getattr(args, d) is None else getattr(args, d) for d in DEFAULTS}
-    )
+    s = settings(args, DEFAULTS)
     if s.rod_perturbation is None:
         s.rod_perturbation = _PERTURBATION[s.rod_start]
     check_number(s.rod_perturbation, "--rod-perturbation", above=None)
@@ -119,21 +117,14 @@ def _initial_state(rod, s):
     """The state of --rod-start plus the perturbation of the velocities, and a line."""
     import jax.numpy as jnp
 
-    from ...lattice import RodEquilibriumStatus, RodState, solve_equilibrium
+    from ...lattice import RodState
 
     if s.rod_start == "equilibrium":
-        sol = solve_equilibrium(rod, steps=s.rod_steps)
-        if not bool(sol.ok):
-            raise Failure(
-                f"no equilibrium for --rod-start equilibrium: {RodEquilibriumStatus[sol.status]}",
-                code=1,
-            )
-        state, what = (
-            sol.state,
-            (
-                f"the equilibrium under the loads (Newton, {int(sol.iterations)} steps, residual "
-                f"{float(sol.residual):.1e})"
-            ),
+        sol = equilibrium(rod, "--rod-start equilibrium", steps=s.rod_steps)
+        state = sol.state
+        what = (
+            f"the equilibrium under the loads (Newton, {int(sol.iterations)} steps, residual "
+            f"{float(sol.residual):.1e})"
         )
     else:
         state, what = rod.straight(), "the straight rod at rest, released under the loads"
@@ -149,9 +140,6 @@ def _dataset(traj, **attrs):
     ``Omega``, ``v``, ``tip`` (t, component), ``energy`` (t)."""
     import numpy as np
     import xarray as xr
-
-    from ... import _enumeration
-    from ...simulate import SolveStatus
 
     vec = ("t", "body", "component")
     st = traj.states
@@ -173,10 +161,7 @@ def _dataset(traj, **attrs):
         },
     )
     ds.attrs.update(
-        status=_enumeration.name(traj.status),
-        message=SolveStatus[traj.status] or "successful",
-        num_steps=int(traj.num_steps),
-        **attrs,
+        status=traj.status_name, message=traj.message, num_steps=int(traj.num_steps), **attrs
     )
     return ds
 
@@ -187,7 +172,6 @@ def simulate_rod_command(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ...lattice import simulate
-    from .._io import write_dataset
 
     s = _settings(args)
     spec = _rod_spec(args)
@@ -207,16 +191,7 @@ def simulate_rod_command(args: argparse.Namespace) -> int:
     print(f"initial state: {initial}; method {method}")
     ts = jnp.linspace(0.0, args.t1, args.samples)
     start = time.perf_counter()
-    traj = simulate(
-        rod,
-        state0,
-        ts,
-        method=method,
-        rtol=args.rtol,
-        atol=args.atol,
-        max_steps=args.max_steps,
-        throw=False,
-    )
+    traj = simulate(rod, state0, ts, method=method, throw=False, **solver_options(args))
     ds = _dataset(
         traj,
         rod=spec.describe(),
@@ -225,24 +200,10 @@ def simulate_rod_command(args: argparse.Namespace) -> int:
         command="rbo-jax " + " ".join(args.argv),
     )
     elapsed = time.perf_counter() - start
-    tip = ds["tip"].values
+    t, tip = ds["t"].values, ds["tip"].values
     reached = np.all(np.isfinite(ds["centreline"].values), axis=(1, 2))
-    drift = print_samples(
-        ds,
-        reached,
-        ["t", "tip x", "tip y", "tip z"],
-        lambda i: [float(ds["t"].values[i]), *map(float, tip[i])],
-        args.max_rows,
-    )
-    if args.out is not None:
-        write_dataset(ds, args.out)
-    print(
-        f"   {int(traj.num_steps)} steps, status: {ds.attrs['status']}, {drift}, wall time "
-        f"{elapsed:.2f} s (compilation included)"
-        + (f"; trajectory -> {args.out}" if args.out else "")
-    )
-    if not bool(traj.ok):
-        last = ds["t"].values[reached][-1] if reached.any() else None
-        where = f" after t = {last:g} (later samples are inf)" if last is not None else ""
-        raise Failure(f"the solver stopped{where}: {ds.attrs['message']}", code=1)
-    return 0
+
+    def values(i):
+        return [float(t[i]), *map(float, tip[i])]
+
+    return finish(args, traj, ds, reached, ["t", "tip x", "tip y", "tip z"], values, elapsed)

@@ -1,7 +1,8 @@
-"""What ``rbo-jax simulate`` does alike for one body (:mod:`._simulate`) and a lattice
-(:mod:`._lattice`): the initial state of the options, the solver's options, the printed table of
-the samples with the energy drift, and the failure of a solve that stopped early. Both command
-modules import it; neither imports the other's helpers."""
+"""What ``rbo-jax simulate`` does alike for one body (:mod:`._simulate`), a lattice
+(:mod:`._lattice`) and a rod (:mod:`._rod`): the initial state of the options, the solver's
+options, and the end of every run (:func:`finish`): the printed table of the samples with the
+energy drift, the output file, the summary line and the failure of a solve that stopped early.
+The command modules import it; none imports another's helpers."""
 
 from __future__ import annotations
 
@@ -20,22 +21,26 @@ def spread(indices: list[int], n: int) -> list[int]:
     return [indices[i] for i in pick]
 
 
+def equilibrium(model, option: str, guess=None, **kwargs):
+    """:func:`rbo_jax.solve_equilibrium` of ``model``, or exit status 1 naming ``option``."""
+    from ... import EquilibriumStatus, solve_equilibrium
+
+    sol = solve_equilibrium(model, guess, **kwargs)
+    if not bool(sol.ok):
+        raise Failure(f"no equilibrium for {option}: {EquilibriumStatus[sol.status]}", code=1)
+    return sol
+
+
 def initial_state(args, model):
     """``(theta0, Omega0)`` of --theta0 and --Omega0 (with --about-equilibrium: theta0 about the
     equilibrium Newton finds from 0)."""
     import jax.numpy as jnp
     import numpy as np
 
-    from ... import EquilibriumStatus, solve_equilibrium
-
     theta0 = check_vector(args.theta0, "theta0")
     Omega0 = check_vector(args.Omega0, "Omega0")
     if args.about_equilibrium:
-        sol = solve_equilibrium(model, jnp.zeros(3))
-        if not bool(sol.ok):
-            raise Failure(
-                f"no equilibrium for --about-equilibrium: {EquilibriumStatus[sol.status]}", code=1
-            )
+        sol = equilibrium(model, "--about-equilibrium", jnp.zeros(3))
         print(
             f"equilibrium theta_eq = {np.asarray(sol.theta).tolist()} (Newton from 0, "
             f"|moment| = {float(sol.residual):.1e}); theta0 = theta_eq + --theta0"
@@ -71,9 +76,27 @@ def print_samples(ds, reached, columns, values, max_rows) -> str:
     return f"max |energy drift| = {max_drift:.2e} ({where})"
 
 
-def check_reached(traj, ds, reached) -> None:
-    """A solve that stopped before the last sample fails (exit status 1) with its message."""
+def finish(args, traj, ds, reached, columns, values, elapsed: float, counted: str = "") -> int:
+    """The end of ``rbo-jax simulate``: the table of the ``reached`` samples of ``ds``
+    (:func:`print_samples`), ``ds`` written to ``--out`` (CSV or a dataset, by the suffix), one
+    line with the steps (and ``counted``), the status, the energy drift and the wall time
+    ``elapsed``; exit status 1 with the solver's message when the solve stopped before the last
+    sample."""
+    from .._io import write_dataset, write_trajectory_csv
+
+    drift = print_samples(ds, reached, columns, values, args.max_rows)
+    if args.out is not None:
+        if args.out.lower().rstrip("/").endswith(".csv"):
+            write_trajectory_csv(ds, args.out)
+        else:
+            write_dataset(ds, args.out)
+    print(
+        f"   {int(traj.num_steps)} steps, {counted}status: {traj.status_name}, {drift}, wall "
+        f"time {elapsed:.2f} s (compilation included)"
+        + (f"; trajectory -> {args.out}" if args.out else "")
+    )
     if not bool(traj.ok):
         last = ds["t"].values[reached][-1] if reached.any() else None
         where = f" after t = {last:g} (later samples are inf)" if last is not None else ""
         raise Failure(f"the solver stopped{where}: {traj.message}", code=1)
+    return 0

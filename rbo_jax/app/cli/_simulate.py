@@ -14,12 +14,13 @@ from ._common import (
     check_number,
     check_output,
     check_state,
+    check_times,
     spec_from_args,
 )
 from ._lattice import refuse_lattice_options, simulate_lattice
 from ._memory import BYTES_PER_SAMPLE, check_memory
 from ._rod import refuse_rod_options, simulate_rod_command
-from ._samples import check_reached, initial_state, print_samples, solver_options
+from ._samples import finish, initial_state, solver_options
 
 OUT_SUFFIXES = (".nc", ".zarr", ".csv")
 
@@ -27,9 +28,7 @@ OUT_SUFFIXES = (".nc", ".zarr", ".csv")
 def check_solve_options(args) -> None:
     """The options of the solve shared by one body and a lattice (and ``demo``'s --t1,
     --samples): everything checked before anything is computed."""
-    check_number(args.t1, "--t1", above=0)
-    if args.samples < 2:
-        raise Failure(f"--samples must be >= 2, got {args.samples}.")
+    check_times(args)
     check_count(args.max_steps, "--max-steps")
     if args.max_rows < 0:
         raise Failure(f"--max-rows must be >= 0, got {args.max_rows}.")
@@ -49,45 +48,28 @@ def check_samples_memory(samples: int, per_sample: float, fixed: float = 0.0) ->
     )
 
 
-def _check_options(args):
+def simulate_command(args: argparse.Namespace) -> int:
+    """``rbo-jax simulate``: one trajectory of the model given by the options, as a table (with
+    ``--lattice``: :func:`._lattice.simulate_lattice`; with ``--rod``:
+    :func:`._rod.simulate_rod_command`)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ... import fast_simulate, simulate
+
+    if args.rod is None:  # the rod's own checks refuse the options of one body
+        refuse_rod_options(args)
+        if args.lattice is None:
+            refuse_lattice_options(args)
     if args.out is not None:
         check_output(args.out, "--out", OUT_SUFFIXES)
     check_solve_options(args)
+    if args.rod is not None:
+        return simulate_rod_command(args)
     if args.progress and args.integrator != "simulate" and args.lattice is None:
         raise Failure("--progress needs --integrator simulate (fast_simulate has no progress bar).")
     if args.lattice is None:
         check_samples_memory(args.samples, BYTES_PER_SAMPLE)
-
-
-def _print_table(ds, max_rows) -> str:
-    import numpy as np
-
-    t, theta = ds["t"].values, ds["theta"].values
-
-    def values(i):
-        return [float(t[i]), float(np.linalg.norm(theta[i])), *map(float, theta[i])]
-
-    columns = ["t", "|theta|", "theta_x", "theta_y", "theta_z"]
-    return print_samples(ds, ds["reached"].values, columns, values, max_rows)
-
-
-def simulate_command(args: argparse.Namespace) -> int:
-    """``rbo-jax simulate``: one trajectory of the model given by the options, as a table (with
-    ``--lattice``: :func:`._lattice.simulate_lattice`)."""
-    import jax.numpy as jnp
-
-    from ... import fast_simulate, simulate
-    from .._io import write_dataset, write_trajectory_csv
-
-    if args.rod is not None:  # the rod's own checks refuse the options of one body
-        if args.out is not None:
-            check_output(args.out, "--out", OUT_SUFFIXES)
-        check_solve_options(args)
-        return simulate_rod_command(args)
-    refuse_rod_options(args)
-    if args.lattice is None:
-        refuse_lattice_options(args)
-    _check_options(args)
     spec = spec_from_args(args)
     if args.lattice is not None:
         return simulate_lattice(args, spec)
@@ -109,16 +91,10 @@ def simulate_command(args: argparse.Namespace) -> int:
     traj = solve(model, theta0, Omega0, ts, **solver_options(args), throw=False, **progress)
     ds = traj.to_xarray(model=spec.describe(), command="rbo-jax " + " ".join(args.argv))
     elapsed = time.perf_counter() - start
-    drift = _print_table(ds, args.max_rows)
-    if args.out is not None:
-        if args.out.lower().rstrip("/").endswith(".csv"):
-            write_trajectory_csv(ds, args.out)
-        else:
-            write_dataset(ds, args.out)
-    print(
-        f"   {int(traj.num_steps)} steps, status: {traj.status_name}, {drift}, "
-        f"wall time {elapsed:.2f} s (compilation included)"
-        + (f"; trajectory -> {args.out}" if args.out else "")
-    )
-    check_reached(traj, ds, ds["reached"].values)
-    return 0
+    t, theta = ds["t"].values, ds["theta"].values
+
+    def values(i):
+        return [float(t[i]), float(np.linalg.norm(theta[i])), *map(float, theta[i])]
+
+    columns = ["t", "|theta|", "theta_x", "theta_y", "theta_z"]
+    return finish(args, traj, ds, ds["reached"].values, columns, values, elapsed)

@@ -58,26 +58,13 @@ def resume_command(args: argparse.Namespace) -> str:
     return "rbo-jax " + shlex.join(argv)
 
 
-def _chunks_done(store: Path) -> tuple[int, int] | None:
-    """(done, all) chunks of the store, or None where there is no store (yet)."""
-    import numpy as np
-
-    from ...batch import _store
-
-    if not (store / "zarr.json").exists():
-        return None
-    try:
-        done = np.asarray(_store.open_group(store, "r")[f"{_store.META}/chunk_done"][...])
-    except Exception:  # a store being created, or not one of a sweep
-        return None
-    return int((done == 1).sum()), int(done.size)
-
-
 def report_on_interrupt(args: argparse.Namespace, store: Path) -> None:
     """Say, when the sweep is interrupted, how many chunks the store kept and how to finish."""
 
+    from ...batch.progress import chunks_done
+
     def describe() -> str:
-        counts = _chunks_done(store)
+        counts = chunks_done(store)
         if counts is None:
             return f"no store was written ({store}); run the command again"
         done, total = counts

@@ -24,7 +24,7 @@ from ...bifurcation import (
 )
 from ...foundations import QuadraticFoundation
 from ...inertia import transversely_isotropic_inertia
-from ...model import RigidBodyOscillator
+from ...models.rigid_body import RigidBodyOscillator
 from ...precession import precession_spectrum, regular_precession
 from ...problems import nikolai_model
 from ._common import Check, K, fmt, save
@@ -250,10 +250,10 @@ def _boundary(out, plt):
 
 
 def bifurcation(out: str, plt, quick: bool) -> list[Check]:
-    """The quick run (one compiled Hopf solver and the equilibrium continuation, ~30 s) checks
-    the Hopf points and draws the diagram of the equilibria; the full run adds the Floquet
+    """The quick run (one compiled Hopf solver and the equilibrium continuation) checks the
+    Hopf points and draws the diagram of the equilibria; the full run adds the Floquet
     multipliers, the derivative, the limit cycles and the flutter boundary (each a program of
-    its own to compile, ~30-40 s)."""
+    its own to compile)."""
     checks, h = _hopf_checks((0.05, 0.1, 0.2))
     eq = continue_equilibria(_model_fn, {"b": 0.1}, "M", 0.15, 0.25, ds=0.01, ds_max=0.01)
     hopfs = eq["special_value"].values[eq["special_type"].values == "hopf"]

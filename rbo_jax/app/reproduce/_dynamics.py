@@ -11,7 +11,7 @@ from ...foundations import BarrierFoundation, IsotropicFoundation
 from ...inertia import transversely_isotropic_inertia
 from ...kinematics import integrating_tensor
 from ...loads import Friction, SemiTangentialMoment
-from ...model import RigidBodyOscillator
+from ...models.rigid_body import RigidBodyOscillator
 from ...simulate import simulate
 from ._common import TIGHT, Check, K, save
 

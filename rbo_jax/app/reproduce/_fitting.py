@@ -10,7 +10,7 @@ from ...fitting import TrajectoryData, fit
 from ...foundations import QuadraticFoundation
 from ...inertia import transversely_isotropic_inertia
 from ...kinematics import turn_tensor
-from ...model import RigidBodyOscillator
+from ...models.rigid_body import RigidBodyOscillator
 from ...simulate import simulate
 from ._common import TIGHT, Check, K
 

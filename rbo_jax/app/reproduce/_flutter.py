@@ -156,7 +156,7 @@ def _map(out, plt):
 
 
 def flutter(out: str, plt) -> list[Check]:
-    """The full run only (four programs of their own to compile, ~40 s)."""
+    """The full run only (four programs of their own to compile)."""
     checks, bp, l2 = _bautin_checks()
     checks.append(_l2_check(bp, l2))
     checks += _hard_side(out, plt)

@@ -24,7 +24,7 @@ from ...analytic import nikolai_bending_stiffness, nikolai_equilibrium, nikolai_
 from ...foundations import CosineFoundation, QuadraticFoundation
 from ...inertia import transversely_isotropic_inertia
 from ...lattice import bloch_blocks, chain, dispersion, kink, simulate, twist
-from ...model import RigidBodyOscillator
+from ...models.rigid_body import RigidBodyOscillator
 from ...problems import nikolai_model
 from ._common import Check, K, fmt, save
 
@@ -282,8 +282,7 @@ def _waves(n_ring: int, t_end: float, n_samples: int, out, plt) -> list[Check]:
 
 def lattice(out: str, plt, quick: bool) -> list[Check]:
     """The quick run checks everything at small sizes; the full run at finer grids and on a
-    longer, larger ring. Either compiles the same two programs, most of its time (~9 s on two
-    cores, ~2 s with a warm compilation cache)."""
+    longer, larger ring. Either compiles the same two programs, most of its time."""
     if quick:
         return _dispersion_checks(13, 8, out, plt) + _waves(96, 6.4, 17, out, plt)
     return _dispersion_checks(61, 36, out, plt) + _waves(160, 12.0, 49, out, plt)

@@ -11,7 +11,7 @@ from ...analytic import precession_rate
 from ...foundations import QuadraticFoundation, TransverselyIsotropicFoundation
 from ...inertia import transversely_isotropic_inertia
 from ...kinematics import turn_tensor
-from ...model import RigidBodyOscillator
+from ...models.rigid_body import RigidBodyOscillator
 from ...precession import precession_spectrum, regular_precession
 from ...simulate import simulate
 from ._common import TIGHT, Check, K, save

@@ -54,19 +54,18 @@ KV_ETA = (1e-3, 1e-2, 3e-2)  # Kelvin-Voigt times of Beck's column (bending and 
 ZIEGLER_B = (1e-2, 3e-2, 0.1, 0.3)  # hinge dampers of Ziegler's pendulum (units of c s)
 
 
+def _cantilever(n, loads, shear, stretch, rotary, **constants):
+    """A clamped rod of ``n`` bodies, EI = GJ = ρA = L = 1, under ``loads``."""
+    unit = dict(bending=1.0, torsion=1.0, mass=1.0)
+    return rod(
+        n, 1.0, shear=shear, stretch=stretch, rotary=rotary, loads=loads, **unit, **constants
+    )
+
+
 def _statics_rod(F, M, kGA):
     """A cantilever under a dead tip force F e1 and a dead tip moment M e2."""
-    return rod(
-        N_STATICS,
-        1.0,
-        bending=1.0,
-        torsion=1.0,
-        shear=kGA,
-        stretch=STIFF,
-        mass=1.0,
-        rotary=ROTARY,
-        loads=(TipForce(jnp.stack([F, 0.0, 0.0])), TipMoment(jnp.stack([0.0, M, 0.0]))),
-    )
+    loads = (TipForce(jnp.stack([F, 0.0, 0.0])), TipMoment(jnp.stack([0.0, M, 0.0])))
+    return _cantilever(N_STATICS, loads, kGA, STIFF, ROTARY)
 
 
 @functools.partial(jit, fast_compile=True)
@@ -85,22 +84,12 @@ def column(P, case):
     follower (Beck), ``1 - f`` dead (Euler). ``case`` = (f, Kelvin–Voigt η in bending and twist,
     tip mass μρAL, shear = stretch stiffness, rotary inertia per length)."""
     f, eta, mu, stiff, rotary = case
-    return rod(
-        N_COLUMN,
-        1.0,
-        bending=1.0,
-        torsion=1.0,
-        shear=stiff,
-        stretch=stiff,
-        mass=1.0,
-        rotary=rotary,
-        damping=eta,
-        shear_damping=0.0,
-        tip_mass=mu,
-        loads=(
-            TipForce(jnp.stack([0.0, 0.0, -(1.0 - f) * P])),
-            TipForce(jnp.stack([0.0, 0.0, -f * P]), follower=True),
-        ),
+    loads = (
+        TipForce(jnp.stack([0.0, 0.0, -(1.0 - f) * P])),
+        TipForce(jnp.stack([0.0, 0.0, -f * P]), follower=True),
+    )
+    return _cantilever(
+        N_COLUMN, loads, stiff, stiff, rotary, damping=eta, shear_damping=0.0, tip_mass=mu
     )
 
 
@@ -133,6 +122,11 @@ def _ziegler_loads(b, rtol):
 
 def _rel(ours, ref_value) -> float:
     return abs(ours / ref_value - 1.0)
+
+
+def _relative(quantity: str, paper: str, ours, exact, tolerance: float, spec=".6g") -> Check:
+    """``ours`` against ``exact`` (relative), shown with the format ``spec``."""
+    return Check(SECTION, quantity, paper, format(ours, spec), _rel(ours, exact), tolerance)
 
 
 def _statics_checks(out, plt) -> list[Check]:
@@ -214,50 +208,49 @@ def _cases(quick: bool):
 def _damping_checks(etas, Pc_eta) -> list[Check]:
     """Beck's column with Kelvin-Voigt damping against the Galerkin reference at the same η, the
     reference against Beck's load and the limit η → 0, and the paradox."""
-    checks = []
-    galerkin_eta = [ref.column_galerkin(0.0, eta) for eta in etas]
-    for eta, ours, exact in zip(etas, Pc_eta, galerkin_eta, strict=True):
-        checks.append(
-            Check(
-                SECTION,
-                f"Beck's column, Kelvin–Voigt damping η = {eta:g} in bending (N = {N_COLUMN}): "
-                "flutter load, relative",
-                f"{exact:.4f} (Galerkin at η)",
-                fmt(ours),
-                _rel(ours, exact),
-                2e-2,
-            )
-        )
     beck, limit = ref.column_galerkin(0.0), ref.column_galerkin(0.0, 1e-5)
-    checks += [
-        Check(
-            SECTION,
-            f"the reference: Galerkin ({ref.MODES} modes) of Beck's column",
-            f"{ref.BECK} EI/L² (Beck)",
-            f"{beck:.4f}",
-            _rel(beck, ref.BECK),
-            1e-4,
-        ),
-        Check(
-            SECTION,
-            f"the reference: Galerkin ({ref.MODES} modes) at η = 1e-5",
-            f"{ref.BECK_KV_LIMIT} EI/L² (η → 0)",
-            f"{limit:.4f}",
-            _rel(limit, ref.BECK_KV_LIMIT),
-            1e-3,
-        ),
-    ]
-    checks.append(
-        Check(
-            SECTION,
-            f"the paradox: Beck's column at η = {etas[0]:g} against the limit η → 0, relative",
-            f"{ref.BECK_KV_LIMIT} EI/L² (undamped: {ref.BECK})",
-            fmt(Pc_eta[0]),
-            _rel(Pc_eta[0], ref.BECK_KV_LIMIT),
+    damped = (
+        (
+            f"Beck's column, Kelvin–Voigt damping η = {eta:g} in bending (N = {N_COLUMN}): "
+            "flutter load, relative",
+            f"{exact:.4f} (Galerkin at η)",
+            ours,
+            exact,
             2e-2,
         )
+        for eta, ours, exact in zip(etas, Pc_eta, map(_galerkin_at, etas), strict=True)
     )
-    return checks
+    rows = [
+        *damped,
+        (
+            f"the reference: Galerkin ({ref.MODES} modes) of Beck's column",
+            f"{ref.BECK} EI/L² (Beck)",
+            beck,
+            ref.BECK,
+            1e-4,
+            ".4f",
+        ),
+        (
+            f"the reference: Galerkin ({ref.MODES} modes) at η = 1e-5",
+            f"{ref.BECK_KV_LIMIT} EI/L² (η → 0)",
+            limit,
+            ref.BECK_KV_LIMIT,
+            1e-3,
+            ".4f",
+        ),
+        (
+            f"the paradox: Beck's column at η = {etas[0]:g} against the limit η → 0, relative",
+            f"{ref.BECK_KV_LIMIT} EI/L² (undamped: {ref.BECK})",
+            Pc_eta[0],
+            ref.BECK_KV_LIMIT,
+            2e-2,
+        ),
+    ]
+    return [_relative(*row) for row in rows]
+
+
+def _galerkin_at(eta):
+    return ref.column_galerkin(0.0, eta)
 
 
 def _column_checks(quick: bool):
@@ -268,13 +261,13 @@ def _column_checks(quick: bool):
     p = np.asarray(_column_spectrum(jnp.asarray(0.0), jnp.asarray(rows[1])))
     w = np.sort(p.imag[p.imag > 1e-6])
     n = f"N = {N_COLUMN}"
+    euler = math.pi**2 / 4
     checks = [
-        Check(
-            SECTION,
+        _relative(
             f"Euler buckling, dead compressive tip force ({n}), relative",
-            f"π²EI/4L² = {math.pi**2 / 4:.6f}",
-            fmt(Pc[0]),
-            _rel(Pc[0], math.pi**2 / 4),
+            f"π²EI/4L² = {euler:.6f}",
+            Pc[0],
+            euler,
             2e-3,
         ),
     ]
@@ -290,25 +283,16 @@ def _column_checks(quick: bool):
                 1e-3,
             )
         )
-    checks.append(
-        Check(
-            SECTION,
-            f"Beck's column, follower tip force ({n}): flutter load, relative",
-            f"{ref.BECK} EI/L²",
-            fmt(Pc[1]),
-            _rel(Pc[1], ref.BECK),
-            1e-2,
-        )
-    )
-    galerkin_mu = [ref.column_galerkin(mu) for mu in mus]
-    for mu, ours, exact in zip(mus, Pc[2 : 2 + len(mus)], galerkin_mu, strict=True):
+    beck = (f"Beck's column, follower tip force ({n}): flutter load, relative", f"{ref.BECK} EI/L²")
+    checks.append(_relative(*beck, Pc[1], ref.BECK, 1e-2))
+    for mu, ours in zip(mus, Pc[2 : 2 + len(mus)], strict=True):
+        exact = ref.column_galerkin(mu)
         checks.append(
-            Check(
-                SECTION,
+            _relative(
                 f"Pflüger's column, tip mass {mu:g} ρAL ({n}): flutter load, relative",
                 f"{exact:.4f} (Galerkin, {ref.MODES} modes)",
-                fmt(ours),
-                _rel(ours, exact),
+                ours,
+                exact,
                 1e-2,
             )
         )
@@ -321,30 +305,25 @@ def _ziegler_checks(quick: bool):
     bs = np.array((0.0, *(ZIEGLER_B[:1] + ZIEGLER_B[2:3] if quick else ZIEGLER_B)))
     rtol = np.where(bs > 0, 1e-14, 1e-9)  # small damping: slow growth near the boundary
     Pc = np.asarray(_ziegler_loads(jnp.asarray(bs), jnp.asarray(rtol)))
-    checks = [
-        Check(
-            SECTION,
+    rows = [
+        (
             "Ziegler's pendulum (masses 2m, m; links l; springs c), undamped: "
             "flutter load, relative",
             f"(7/2 − √2) c/l = {ref.ZIEGLER:.7f}",
-            f"{Pc[0]:.7f}",
-            _rel(Pc[0], ref.ZIEGLER),
-            1e-5,
-        )
-    ]
-    for b, ours in zip(bs[1:], Pc[1:], strict=True):
-        exact = ref.ziegler_damped(b)
-        checks.append(
-            Check(
-                SECTION,
+            Pc[0],
+            ref.ZIEGLER,
+        ),
+        *(
+            (
                 f"Ziegler's pendulum, equal hinge dampers b = {b:g} c·s: flutter load, relative",
-                f"41/28 + b²/2 = {exact:.7f} c/l",
-                f"{ours:.7f}",
-                _rel(ours, exact),
-                1e-5,
+                f"41/28 + b²/2 = {ref.ziegler_damped(b):.7f} c/l",
+                ours,
+                ref.ziegler_damped(b),
             )
-        )
-    return checks, dict(bs=bs, Pc=Pc)
+            for b, ours in zip(bs[1:], Pc[1:], strict=True)
+        ),
+    ]
+    return [_relative(*row, 1e-5, ".7f") for row in rows], dict(bs=bs, Pc=Pc)
 
 
 def _compressed(P, stretch: float) -> RodState:
@@ -386,22 +365,19 @@ def _flutter_checks(P_sim, case, quick: bool):
         sigma = float(np.polyfit(tp[window], np.log(hp[window]), 1)[0])
         omega = float(np.pi / np.mean(np.diff(tp[window])))  # |x| peaks twice a period
     label = f"Beck's column (N = {N_COLUMN}, κGA = EA = {case[3]:g}, ρI = {case[4]:g}) at 1.05 P_c"
+    growth = f"{label}: growth rate of the tip's flutter ({int(window.sum())} peaks)"
+    frequency = abs(unstable.imag)
     checks = [
-        Check(
-            SECTION,
-            f"{label}: growth rate of the tip's flutter ({int(window.sum())} peaks)",
-            f"Re p = {unstable.real:.5f} (spectrum)",
-            f"{sigma:.5f}",
-            _rel(sigma, unstable.real),
-            2e-2,
+        _relative(
+            growth, f"Re p = {unstable.real:.5f} (spectrum)", sigma, unstable.real, 2e-2, ".5f"
         ),
-        Check(
-            SECTION,
+        _relative(
             f"{label}: frequency of the tip's flutter",
-            f"Im p = {abs(unstable.imag):.5f} (spectrum)",
-            f"{omega:.5f}",
-            _rel(omega, abs(unstable.imag)),
+            f"Im p = {frequency:.5f} (spectrum)",
+            omega,
+            frequency,
             1e-2,
+            ".5f",
         ),
     ]
     return checks, dict(ts=ts, x=x, p=unstable, P=P, Pc=P_sim, tp=tp[window], hp=hp[window])

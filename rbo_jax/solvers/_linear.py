@@ -1,0 +1,234 @@
+r"""The linear solvers that a model's structure asks for.
+
+Every Newton step, implicit derivative and bordered continuation step solves with the
+Jacobian of a residual. How that Jacobian is built and factored depends on the structure of
+the problem, which the model declares (:meth:`rbo_jax.mechanics.AbstractMechanics.linear_solver`):
+
+- :class:`Dense`: a few unknowns (a rigid body, an extended Hopf system): the whole Jacobian by
+  forward mode, an LU solve;
+- :class:`Tridiagonal`: $N$ blocks of $m$ unknowns, block $i$ coupled to $i \pm 1$ only (an
+  open chain of bodies, a rod): the blocks from $3m$ Jacobian-vector products
+  (:func:`tridiagonal_jacobian`), block Gaussian elimination (:func:`tridiagonal_solve`), O(N);
+- :class:`LeastSquares`: a consistent over-determined system (a flutter point followed in a
+  multiple eigenspace): rows equilibrated, QR (:func:`equilibrated_lstsq`).
+
+**Block-tridiagonal Jacobians.** A function $R(x)$ of $N$ blocks of $m$ unknowns whose block
+$i$ depends on blocks $i-1$, $i$, $i+1$ only has a block-tridiagonal Jacobian
+$J = \mathrm{tridiag}(L_i, D_i, U_i)$, whose blocks come from $3m$ Jacobian-vector products
+(the blocks coloured $i \bmod 3$ perturbed together: Curtis, Powell & Reid 1974), not $Nm$;
+$Jx = b$ is solved by block Gaussian elimination (the block Thomas algorithm), one ``lax.scan``
+forward and one back, each block an $m\times m$ LU with partial pivoting. Both cost
+O(N m³), memory O(N m²). The solve is linear in $b$ and differentiable (its transpose is a
+solve with $J^T$), so an implicit derivative costs one more solve.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+class AbstractLinearSolver(eqx.Module):
+    """How the Jacobian of a residual is built (:meth:`jacobian`), solved with (:meth:`solve`)
+    and made harmless where a solve failed (:meth:`identity_where`). ``matrix``: the Jacobian
+    is the dense matrix of the flattened unknowns (forward mode)."""
+
+    matrix: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def jacobian(self, fn, x):
+        """The Jacobian of ``fn`` at ``x`` (``fn(x)`` of the shape of ``x`` for a square
+        structure) in this solver's form."""
+
+    @abc.abstractmethod
+    def solve(self, operator, b):
+        """$x$ with $J x = b$ (least squares for :class:`LeastSquares`), ``x`` shaped as the
+        unknowns."""
+
+    @abc.abstractmethod
+    def identity_where(self, bad, operator):
+        """``operator``, or the identity where ``bad`` (so that a failed solve's derivative is a
+        finite zero, not NaN, in a batch)."""
+
+    def det_sign(self, operator):
+        r"""The sign of $\\det J$ (branch-point tests)."""
+        raise NotImplementedError(f"{type(self).__name__} has no determinant.")
+
+
+class Dense(AbstractLinearSolver):
+    """The whole Jacobian (forward mode over the flattened unknowns), solved by LU."""
+
+    matrix: ClassVar[bool] = True
+
+    def jacobian(self, fn, x):
+        shape = jnp.shape(x)
+        flat = lambda z: jnp.ravel(fn(jnp.reshape(z, shape)))  # noqa: E731
+        return jax.jacfwd(flat)(jnp.ravel(x))
+
+    def solve(self, operator, b):
+        return jnp.reshape(jnp.linalg.solve(operator, jnp.ravel(b)), jnp.shape(b))
+
+    def identity_where(self, bad, operator):
+        return jnp.where(bad, jnp.eye(operator.shape[0], dtype=operator.dtype), operator)
+
+    def det_sign(self, operator):
+        return jnp.linalg.slogdet(operator)[0]
+
+
+class LeastSquares(AbstractLinearSolver):
+    """A consistent over-determined system: the least-squares solution, rows equilibrated
+    (:func:`equilibrated_lstsq`)."""
+
+    matrix: ClassVar[bool] = True
+
+    def jacobian(self, fn, x):
+        return jax.jacfwd(lambda z: jnp.ravel(fn(z)))(x)
+
+    def solve(self, operator, b):
+        return equilibrated_lstsq(operator, jnp.ravel(b))
+
+    def identity_where(self, bad, operator):
+        n, m = operator.shape
+        return jnp.where(bad, jnp.eye(n, m, dtype=operator.dtype), operator)
+
+
+class TruncatedLeastSquares(AbstractLinearSolver):
+    """The minimum-norm least-squares solution, singular values below ``rcond`` times the
+    largest truncated (SVD): a Jacobian with a kernel (a family of periodic orbits) steps
+    orthogonally to it."""
+
+    matrix: ClassVar[bool] = True
+    rcond: float = eqx.field(static=True, default=1e-9)
+
+    def jacobian(self, fn, x):
+        return jax.jacfwd(lambda z: jnp.ravel(fn(z)))(x)
+
+    def solve(self, operator, b):
+        return jnp.linalg.lstsq(operator, jnp.ravel(b), rcond=self.rcond)[0]
+
+    def identity_where(self, bad, operator):
+        n, m = operator.shape
+        return jnp.where(bad, jnp.eye(n, m, dtype=operator.dtype), operator)
+
+
+class Tridiagonal(AbstractLinearSolver):
+    """$N$ blocks of $m$ unknowns coupled to their neighbours: ``(L, D, U)`` blocks
+    (:func:`tridiagonal_jacobian`), block elimination (:func:`tridiagonal_solve`)."""
+
+    def jacobian(self, fn, x):
+        return tridiagonal_jacobian(fn, x)
+
+    def solve(self, operator, b):
+        return tridiagonal_solve(*operator, b)
+
+    def identity_where(self, bad, operator):
+        L, D, U = operator
+        eye = jnp.broadcast_to(jnp.eye(D.shape[-1], dtype=D.dtype), D.shape)
+        zero = jnp.zeros_like(L)
+        return jnp.where(bad, zero, L), jnp.where(bad, eye, D), jnp.where(bad, zero, U)
+
+    def det_sign(self, operator):
+        pivots, _ = _factor(*operator)
+        return jnp.prod(jnp.linalg.slogdet(pivots)[0])
+
+
+def equilibrated_lstsq(J, b):
+    r"""The least-squares solution of $Jx = b$, each row divided by its norm first (1 for a zero
+    row), by QR. A stiff system (a rod's shear and stretch rows $10^{12}$ times its bending
+    rows) unscaled leaves the soft rows' rounding at the stiff rows' level."""
+    scale = jnp.linalg.norm(J, axis=1)
+    scale = jnp.where(scale > 0, scale, 1.0)
+    Q, R = jnp.linalg.qr(J / scale[:, None])
+    return jax.scipy.linalg.solve_triangular(R, Q.T @ (b / scale))
+
+
+def bordered_solve(linear: AbstractLinearSolver, operator, b, c, d, f, g):
+    r"""$(x, s)$ with $\begin{pmatrix} J & b\\ c^T & d\end{pmatrix}\begin{pmatrix} x\\ s
+    \end{pmatrix} = \begin{pmatrix} f\\ g\end{pmatrix}$ by Keller's bordering algorithm: two
+    solves with $J$ (``linear``, its structure kept), $a = J^{-1}f$, $z = J^{-1}b$, then
+    $s = (g - c\cdot a)/(d - c\cdot z)$, $x = a - s z$. Also returns $z$ and the pivot
+    $d - c\cdot z$ (the bordered determinant is $\det J$ times it)."""
+    a, z = jax.vmap(lambda rhs: linear.solve(operator, rhs))(jnp.stack([f, b]))
+    pivot = d - jnp.sum(c * z)
+    s = (g - jnp.sum(c * a)) / pivot
+    return a - s * z, s, z, pivot
+
+
+# --------------------------------------------------------------------------------------------
+# Block-tridiagonal Jacobians and solves
+# --------------------------------------------------------------------------------------------
+
+
+def tridiagonal_jacobian(fn, x):
+    r"""``(L, D, U)``, each ``(N, m, m)``, of the Jacobian of ``fn: (N, m) -> (N, m)`` at ``x``:
+    $\partial R_i/\partial x_{i-1}$ (``L[0]`` zero), $\partial R_i/\partial x_i$,
+    $\partial R_i/\partial x_{i+1}$ (``U[-1]`` zero). ``fn`` must couple neighbours only."""
+    N, m = x.shape
+    colour = jnp.arange(N) % 3
+    eye = jnp.eye(m, dtype=x.dtype)
+    # tangents (3 m, N, m): colour c, direction j on every block of colour c
+    same = colour[None, None, :, None] == jnp.arange(3)[:, None, None, None]
+    tangents = jnp.where(same, eye[None, :, None, :], 0.0).reshape(3 * m, N, m)
+    _, lin = jax.linearize(fn, x)
+    out = jax.vmap(lin)(tangents).reshape(3, m, N, m)  # [colour, j, i, row]
+
+    def block(offset):
+        # the block (i, i + offset): colour of i + offset, columns j, rows of R_i
+        c = (jnp.arange(N) + offset) % 3
+        b = out[c, :, jnp.arange(N), :]  # (N, j, row)
+        return jnp.swapaxes(b, 1, 2)  # (N, row, j)
+
+    lo = jnp.where((jnp.arange(N) > 0)[:, None, None], block(-1), 0.0)
+    hi = jnp.where((jnp.arange(N) < N - 1)[:, None, None], block(1), 0.0)
+    return lo, block(0), hi
+
+
+def _factor(L, D, U):
+    """The pivots of block elimination: $D'_0 = D_0$, $D'_i = D_i - L_i D'^{-1}_{i-1} U_{i-1}$,
+    and the multipliers $W_i = L_i D'^{-1}_{i-1}$."""
+
+    def step(Dp, inputs):
+        Li, Di, Ui_prev = inputs
+        W = jnp.linalg.solve(Dp.T, Li.T).T
+        new = Di - W @ Ui_prev
+        return new, (new, W)
+
+    Uprev = jnp.concatenate([jnp.zeros_like(U[:1]), U[:-1]])
+    _, (Dp, W) = jax.lax.scan(step, jnp.eye(D.shape[1], dtype=D.dtype), (L, D, Uprev))
+    # the first step: W_0 = L_0 (zero) D'^{-1}, D'_0 = D_0 - 0
+    return Dp, W
+
+
+def tridiagonal_solve(L, D, U, b):
+    r"""$x$ with $\mathrm{tridiag}(L, D, U)\,x = b$, ``b`` ``(N, m)``: forward elimination and
+    back substitution (module docstring). Differentiable in ``b`` (and in the blocks)."""
+    Dp, W = _factor(L, D, U)
+
+    def forward(y_prev, inputs):
+        Wi, bi = inputs
+        y = bi - Wi @ y_prev
+        return y, y
+
+    _, y = jax.lax.scan(forward, jnp.zeros_like(b[0]), (W, b))
+
+    def back(x_next, inputs):
+        Dpi, Ui, yi = inputs
+        x = jnp.linalg.solve(Dpi, yi - Ui @ x_next)
+        return x, x
+
+    _, x = jax.lax.scan(back, jnp.zeros_like(b[0]), (Dp, U, y), reverse=True)
+    return x
+
+
+def linear_solver(structure: str) -> AbstractLinearSolver:
+    """The solver of a model's structure (:meth:`rbo_jax.mechanics.AbstractMechanics.structure`):
+    ``"dense"`` or ``"tridiagonal"``."""
+    if structure == "tridiagonal":
+        return Tridiagonal()
+    if structure == "dense":
+        return Dense()
+    raise ValueError(f"unknown structure {structure!r} (expected 'dense' or 'tridiagonal').")

@@ -1,0 +1,112 @@
+r"""What a stability map computes at one point: the equilibrium (4.61), its spectrum
+(4.63)–(4.69) and the classification, in one function (:func:`equilibrium_stability`), and the
+critical value of a load parameter along one line (:func:`critical_value`). Any model.
+
+The grids themselves are run by the batch engine: :func:`rbo_jax.stability_map` and
+:func:`rbo_jax.critical_load` are presets of :func:`rbo_jax.sweep` built on these functions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Complex, Float
+
+from .. import _enumeration as enum
+from .._validation import tree_finite
+from ..mechanics import AbstractMechanics
+from ..solvers import Outcome
+from ._classify import StabilityKind, classify
+from ._equilibrium import EquilibriumStatus, solve_equilibrium
+from ._linearize import eigenvalues
+
+__all__ = [
+    "STABILITY_KIND_NAMES",
+    "EquilibriumStability",
+    "critical_value",
+    "equilibrium_stability",
+]
+
+STABILITY_KIND_NAMES = enum.names(StabilityKind)
+
+
+class EquilibriumStability(Outcome):
+    r"""Result of :func:`equilibrium_stability`: the equilibrium ``state`` (the model's
+    configuration; ``theta`` its turn-vectors), its ``eigenvalues`` (NaN where the equilibrium
+    could not be computed), the spectral ``abscissa`` max Re p, the classification ``kind``
+    (:class:`StabilityKind`) and the equilibrium ``status`` (:class:`EquilibriumStatus`)."""
+
+    state: Any
+    eigenvalues: Complex[Array, " n"]
+    abscissa: Float[Array, ""]
+    kind: StabilityKind
+    status: EquilibriumStatus
+
+    @property
+    def theta(self):
+        """The turn-vector(s) of the equilibrium."""
+        return getattr(self.state, "theta", self.state)
+
+
+def equilibrium_stability(
+    model: AbstractMechanics,
+    guess=None,
+    *,
+    state=None,
+    theta_eq=None,
+    rtol: float = 1e-9,
+    fast: bool = True,
+    t=0.0,
+    **equilibrium_kwargs,
+) -> EquilibriumStability:
+    r"""The stability of an equilibrium of ``model``: Lyapunov's first method in one call.
+
+    1. The equilibrium: ``state`` (or ``theta_eq``) if given (a closed form such as (4.62),
+       checked finite), else :func:`rbo_jax.solve_equilibrium` from ``guess`` (default: the
+       configuration at rest) with ``equilibrium_kwargs``.
+    2. Its spectrum (4.63)–(4.69): :func:`rbo_jax.fast_spectrum` (block structure) or, with
+       ``fast=False``, the whole linearisation's; NaN when the equilibrium failed.
+    3. :func:`rbo_jax.classify` with tolerance ``rtol``, ``reversible`` where no force depends
+       on the velocities.
+
+    Never raises for a failed equilibrium: ``status`` says why. This is what
+    :func:`rbo_jax.stability_map`, the ``spectral_abscissa`` quantity of ``rbo-jax sweep`` and
+    ``rbo-jax stability-map`` compute at every point; jit- and vmap-compatible.
+    """
+    given = theta_eq if state is None else state
+    if given is not None:
+        config = model.configuration(given, "state")
+        finite = tree_finite(config)
+        S = EquilibriumStatus
+        status = S.where(finite, S.successful, S.nonfinite)
+    else:
+        sol = solve_equilibrium(model, guess, t=t, **equilibrium_kwargs)
+        config, status = sol.state, sol.status
+    p = eigenvalues(model, config, t, fast=fast)
+    p = jnp.where(status == EquilibriumStatus.successful, p, jnp.nan + 0j)
+    kind, a = classify(p, rtol=rtol, reversible=not model.depends_on_velocity())
+    return EquilibriumStability(state=config, eigenvalues=p, abscissa=a, kind=kind, status=status)
+
+
+def critical_value(unstable: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48):
+    r"""The smallest value $x \in (lo, hi]$ at which ``unstable(x)`` (a traced boolean) becomes
+    true: a scan at ``n_scan`` points, then ``n_bisect`` bisection steps on the first change (if
+    the first scan point is already unstable, the interval from ``lo`` to it is bisected).
+    ``inf`` if ``unstable`` is false on the whole scan. jit- and vmap-compatible."""
+    scan = jnp.linspace(lo, hi, n_scan + 1)[1:]
+    flags = jax.vmap(unstable)(scan)
+    i = jnp.argmax(flags)
+    upper = scan[i]
+    lower = jnp.where(i > 0, scan[jnp.maximum(i - 1, 0)], lo)
+
+    def body(_, bounds):
+        lower, upper = bounds
+        mid = 0.5 * (lower + upper)
+        u = unstable(mid)
+        return jnp.where(u, lower, mid), jnp.where(u, mid, upper)
+
+    lower, upper = jax.lax.fori_loop(0, n_bisect, body, (lower, upper))
+    return jnp.where(jnp.any(flags), upper, jnp.inf)
