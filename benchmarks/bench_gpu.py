@@ -48,7 +48,7 @@ import numpy as np
 import rbo_jax
 from rbo_jax import ensemble
 from rbo_jax import lattice as L
-from rbo_jax.ensemble import _dop853 as D
+from rbo_jax.integrate import dop853 as D
 
 try:
     from _problem import A1, A3, PERTURBATION, K
@@ -84,7 +84,7 @@ class Budget:
 
 
 def use_stages(variant: str) -> None:
-    """The stage loop of DOP853 as a loop or unrolled (:data:`rbo_jax.ensemble._dop853.UNROLL`),
+    """The stage loop of DOP853 as a loop or unrolled (:data:`rbo_jax.integrate.dop853.UNROLL`),
     with JAX's caches cleared so that every program is traced again under it."""
     value = {"loop": False, "unrolled": True, "default": False}[variant]
     if D.UNROLL is not value:

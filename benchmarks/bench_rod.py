@@ -675,7 +675,7 @@ def _rates_cost(rod, state, evaluations=200):
     three runs of a compiled loop of ``evaluations``."""
     import equinox as eqx
 
-    from rbo_jax.lattice._rod_field import rates
+    from rbo_jax.models.rod import rates
 
     @eqx.filter_jit
     def loop(s):
@@ -697,7 +697,8 @@ def _splitting_parts(rod, state, evaluations=2000):
     import equinox as eqx
 
     from rbo_jax.lattice import _rod_verlet as V
-    from rbo_jax.lattice._rod_field import _matrix_of, forces_tangent
+    from rbo_jax.models.rod import forces_tangent
+    from rbo_jax.models.rod._field import matrix_of
 
     stripped, _ = V._static_zeros(rod)
     w, u = V._quaternion_of_vector(state.theta)
@@ -708,7 +709,7 @@ def _splitting_parts(rod, state, evaluations=2000):
     def forces(rod, q, r):
         def body(i, c):
             q, r = c
-            M, F = forces_tangent(rod, _matrix_of(q[0], jnp.stack(q[1:], -1)), r)
+            M, F = forces_tangent(rod, matrix_of(q[0], jnp.stack(q[1:], -1)), r)
             return tuple(x + 1e-12 * M[:, min(j, 2)] for j, x in enumerate(q)), r + 1e-12 * F
 
         return jax.lax.fori_loop(0, evaluations, body, (q, r))
@@ -737,7 +738,7 @@ def _jacobian_cost(rod, state):
     import equinox as eqx
     from jax.flatten_util import ravel_pytree
 
-    from rbo_jax.lattice._rod_field import rates
+    from rbo_jax.models.rod import rates
 
     flat, unravel = ravel_pytree(state)
 
@@ -799,8 +800,8 @@ def options_study(alpha):
     import equinox as eqx
 
     from rbo_jax import _programs
-    from rbo_jax.lattice._rod_dynamics import _sorted_spectrum
-    from rbo_jax.lattice._rod_statics import _equilibrium
+    from rbo_jax.stability._equilibrium import _equilibrium
+    from rbo_jax.stability._linearize import _sorted_spectrum
 
     rows = []
     rod_s = timoshenko_rod(TIMO["n"], alpha)
@@ -813,8 +814,8 @@ def options_study(alpha):
         ("XLA defaults", None),
     ):
         for prog, fn, call in (
-            ("equilibrium n=100", _equilibrium, lambda f: f(rod_s, st.theta, st.r, 1, 1e-10, 50)),
-            ("spectrum n=50", _sorted_spectrum, lambda f: f(rod_v, eq_v)),
+            ("equilibrium n=100", _equilibrium, lambda f: f(rod_s, st, 0.0, 1, 1e-10, 64, 1e-6)),
+            ("spectrum n=50", _sorted_spectrum, lambda f: f(rod_v, eq_v, 0.0)),
         ):
             # a fresh function: nothing compiled before is reused
             f = eqx.filter_jit(lambda *a, fn=fn: fn(*a), compiler_options=opts)

@@ -23,17 +23,22 @@ are printed. Compilation is timed separately (JAX: the first call; numba: a firs
 point) and not included in the per-trajectory times. The one-core rows (everything but numba's
 ``prange``) run in a fresh process started on core 0 (``_common.run_child``, as ``taskset -c 0``
 starts one: ``import rbo_jax`` then makes one CPU device and XLA sizes its pools for one core),
-when this process may use several cores; numba's ``prange`` then runs here, on all of them.
+when this process may use several cores; numba's ``prange`` then runs here, on all of them, side
+by side with the JAX idiom for a sharded batch: ``jax.jit(jax.vmap(fast_simulate))`` on inputs
+placed with a ``NamedSharding`` over every local device (``import rbo_jax`` made one per core),
+in ``--rounds`` rounds of one call each, the two in turn (medians; the final states' sha1
+compared with the one-core run's).
 The error of each method against a tight reference (``simulate`` at rtol = atol = 1e-13) is
 printed for the scipy sample.
 
 Usage: ``python benchmarks/bench_simulate.py [--n 10000] [--scipy-sample 20] [--chunk 500]
-[--no-numba-parallel]``
+[--rounds 5] [--no-numba-parallel]``
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import platform
 import sys
@@ -91,6 +96,54 @@ def run_fast(points: np.ndarray):
     return np.asarray(y), np.asarray(steps), elapsed, first - elapsed
 
 
+def sha1(y) -> str:
+    """The first 12 hex digits of the sha1 of an array's bytes (C order)."""
+    return hashlib.sha1(np.ascontiguousarray(y).tobytes()).hexdigest()[:12]
+
+
+def sharded_program(points: np.ndarray):
+    """``jax.jit(jax.vmap(fast_simulate))`` and the points placed with a ``NamedSharding`` over
+    every local device (padded with copies of the last point to a multiple of the devices)."""
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    devices = jax.devices()
+    pad = (-len(points)) % len(devices)
+    padded = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)])
+    mesh = Mesh(np.array(devices), ("batch",))
+    x = jax.device_put(padded, NamedSharding(mesh, P("batch")))
+    return jax.jit(jax.vmap(fast_final_state)), x
+
+
+def prange_and_sharded(points: np.ndarray, rounds: int) -> dict:
+    """numba's ``prange`` and the sharded ``jit(vmap(fast_simulate))``, one call each per
+    round, in turn: their median seconds per call, the sharded call's first (compilation), its
+    final states' sha1, and numba's last result."""
+    fn, x = sharded_program(points)
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(x))
+    first = time.perf_counter() - t0
+    par, nb_times, jax_times = None, [], []
+    for _ in range(max(1, rounds)):
+        par = run_numba(points, parallel=True)
+        nb_times.append(par["seconds"])
+        t0 = time.perf_counter()
+        y, _ = jax.block_until_ready(fn(x))
+        jax_times.append(time.perf_counter() - t0)
+    y = np.asarray(y)[: len(points)]
+    return {
+        "numba": par,
+        "prange": float(np.median(nb_times)),
+        "sharded": float(np.median(jax_times)),
+        "sharded_rounds": jax_times,
+        "prange_rounds": nb_times,
+        "first": first - min(jax_times),
+        "devices": len(jax.devices()),
+        "sha1": sha1(y),
+        "finite": bool(np.isfinite(y).all()),
+    }
+
+
 def tight_reference(points: np.ndarray) -> np.ndarray:
     fn = jax.jit(jax.vmap(lambda p: jax_final_state(p, rtol=1e-13, atol=1e-13)[0]))
     return np.asarray(fn(jnp.asarray(points)))
@@ -132,6 +185,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--chunk", type=int, default=500, help="vmap chunk size")
     parser.add_argument(
         "--no-numba-parallel", action="store_true", help="skip the numba prange run (all cores)"
+    )
+    parser.add_argument(
+        "--rounds", type=int, default=5, help="rounds of numba prange vs the sharded jit(vmap)"
     )
 
     parser.add_argument("--json", default=None, help="also write the figures to this file")
@@ -240,6 +296,7 @@ def main(argv=None) -> dict:
             "steps_equal_scipy": steps_equal,
             "max_diff_scipy": float(np.max(np.abs(y_fast[:ns] - y_sp))) if ns else float("nan"),
             "steps": float(steps_fast.mean()),
+            "sha1": sha1(y_fast),
         },
         "accuracy": acc,
     }
@@ -313,15 +370,17 @@ def main(argv=None) -> dict:
 
 def _one_core_child_and_prange(args, argv) -> dict:
     """The one-core rows in a fresh process started on core 0, numba's prange here (all
-    cores), compared with the child's per-trajectory times."""
+    cores) side by side with the sharded ``jit(vmap(fast_simulate))`` (every device), both
+    compared with the child's per-trajectory times."""
     child = [a for a in argv if a != "--no-numba-parallel"] + ["--no-numba-parallel"]
     if "--json" in child:
         i = child.index("--json")
         del child[i : i + 2]
     out = run_child("bench_simulate", child, core=0)
     if numba_ref is not None and not args.no_numba_parallel and out["numba"]:
-        par = run_numba(parameter_points(args.n), parallel=True)
-        per = par["seconds"] / args.n
+        both = prange_and_sharded(parameter_points(args.n), args.rounds)
+        par = both["numba"]
+        per = both["prange"] / args.n
         out["numba"].update(
             per_prange=per,
             compile_prange=par["compile_s"],
@@ -329,11 +388,47 @@ def _one_core_child_and_prange(args, argv) -> dict:
             ratio_prange=per / out["per_jax"],
         )
         out["fast"]["ratio_numba_prange"] = per / out["fast"]["per"]
+        per_sharded = both["sharded"] / args.n
+        out["sharded"] = {
+            "per": per_sharded,
+            "devices": both["devices"],
+            "compile": both["first"],
+            "ratio_numba_prange": per / per_sharded,
+            "speedup_one_core": out["fast"]["per"] / per_sharded,
+            "rounds_us": [t / args.n * 1e6 for t in both["sharded_rounds"]],
+            "prange_rounds_us": [t / args.n * 1e6 for t in both["prange_rounds"]],
+            "same_bits_as_one_core": both["sha1"] == out["fast"].get("sha1"),
+            "sha1": both["sha1"],
+        }
         print(
             f"numba DOP853, prange ({par['threads']} threads, this process): {per:.3e} s per "
             f"trajectory; fast_simulate (1 core) vs numba prange: "
             f"{out['fast']['ratio_numba_prange']:.2f}x; vmap(simulate) (1 core) vs numba "
             f"prange: {out['numba']['ratio_prange']:.2f}x"
+        )
+        sh = out["sharded"]
+        print(f"side by side, {args.rounds} rounds in turn (us per trajectory, median):")
+        header = f"{'method':<62}{'us / traj':>10}{'vs prange':>11}"
+        print(header)
+        print("-" * len(header))
+        for name, us, ratio in [
+            (f"numba DOP853, prange ({par['threads']} threads)", per * 1e6, 1.0),
+            (
+                f"jit(vmap(fast_simulate)) on a NamedSharding ({sh['devices']} devices)",
+                per_sharded * 1e6,
+                sh["ratio_numba_prange"],
+            ),
+            ("jax.vmap(fast_simulate), 1 core (child process)", out["fast"]["per"] * 1e6, None),
+        ]:
+            r = f"{ratio:.2f}x" if ratio is not None else f"{per / out['fast']['per']:.2f}x"
+            print(f"{name:<62}{us:>10.1f}{r:>11}")
+        print(
+            f"rounds: sharded {', '.join(f'{t:.1f}' for t in sh['rounds_us'])}; prange "
+            f"{', '.join(f'{t:.1f}' for t in sh['prange_rounds_us'])} us per trajectory; the "
+            f"sharded call {sh['speedup_one_core']:.2f}x one core; its first call "
+            f"{sh['compile']:.1f} s more; final states the one-core run's bits: "
+            f"{sh['same_bits_as_one_core']} (sha1 {sh['sha1']}); load average "
+            f"{os.getloadavg()[0]:.2f}"
         )
     write_json(args.json, out, indent=2, default=float)
     return out

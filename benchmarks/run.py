@@ -76,6 +76,17 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                     "",
                 )
             )
+    sh = (sim or {}).get("sharded")
+    if sh:
+        rows.append(
+            (
+                "simulate",
+                f"jit(vmap(fast_simulate)) on a NamedSharding ({sh['devices']} devices) "
+                "vs numba prange (side by side)",
+                _fmt(sh["ratio_numba_prange"], ".2f") + "x",
+                f"{sh['per'] * 1e6:.1f} us; same bits as 1 core: {sh['same_bits_as_one_core']}",
+            )
+        )
     if sim:
         rows.append(
             (

@@ -35,10 +35,11 @@ def identifier(package: str, name: str) -> str:
     """The dotted path of the module that defines ``package.name``, plus the name."""
     from rbo_jax import _lazy
 
+    importlib.import_module(package)  # its table of lazy exports
     exports = _lazy._EXPORTS.get(package)
     if exports is None or name not in exports:
         return f"{package}.{name}"
     module = importlib.util.resolve_name(exports[name], package)
-    if module in PACKAGES and module != package:
+    if module != package:  # followed through every package that exports lazily
         return identifier(module, name)
     return f"{module}.{name}"
