@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from .. import _programs
 from ._classify import is_unstable
-from ._point import critical_value, equilibrium_stability
+from ._point import equilibrium_stability, first_change
 
 __all__ = [
     "STABLE",
@@ -44,8 +44,7 @@ def stability_code(result) -> jax.Array:
 def critical_search(code_at: Callable, lo, hi, *, n_scan: int, n_bisect: int):
     """The critical value (module docstring) of ``code_at(P)`` (a traced code) on
     ``(lo, hi]``; jit- and vmap-compatible."""
-    value = critical_value(lambda P: code_at(P) != STABLE, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
-    end = code_at(jnp.where(jnp.isfinite(value), value, hi))
+    value, end = first_change(code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect, base=STABLE)
     return jnp.where(jnp.isfinite(value) & (end == UNDEFINED), jnp.nan, value)
 
 
@@ -79,13 +78,27 @@ def critical_load_along(
     if not load_max > load_min:
         raise ValueError(f"critical_load: load_max ({load_max}) must exceed load_min ({load_min}).")
 
-    def run(lo, hi):
-        def code_at(P):
-            result = equilibrium_stability(model_fn(P), guess, rtol=rtol, steps=steps)
-            return stability_code(result)
-
-        return critical_between(model_fn, code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
-
-    return _programs.jit(run, fast_compile=True)(
-        jnp.asarray(float(load_min)), jnp.asarray(float(load_max))
+    return _critical_load_program(
+        model_fn,
+        guess,
+        rtol,
+        int(steps),
+        int(n_scan),
+        int(n_bisect),
+        jnp.asarray(float(load_min)),
+        jnp.asarray(float(load_max)),
     )
+
+
+def _critical_load(model_fn, guess, rtol, steps, n_scan, n_bisect, lo, hi):
+    """:func:`critical_load_along`'s program: one per ``model_fn`` (a static argument, by
+    identity) and settings, so a second call with the same function compiles nothing."""
+
+    def code_at(P):
+        result = equilibrium_stability(model_fn(P), guess, rtol=rtol, steps=steps)
+        return stability_code(result)
+
+    return critical_between(model_fn, code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
+
+
+_critical_load_program = _programs.jit(_critical_load, fast_compile=True)

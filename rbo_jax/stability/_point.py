@@ -91,22 +91,34 @@ def equilibrium_stability(
     return EquilibriumStability(state=config, eigenvalues=p, abscissa=a, kind=kind, status=status)
 
 
-def critical_value(unstable: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48):
-    r"""The smallest value $x \in (lo, hi]$ at which ``unstable(x)`` (a traced boolean) becomes
-    true: a scan at ``n_scan`` points, then ``n_bisect`` bisection steps on the first change (if
-    the first scan point is already unstable, the interval from ``lo`` to it is bisected).
-    ``inf`` if ``unstable`` is false on the whole scan. jit- and vmap-compatible."""
+def first_change(code_at: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48, base=0):
+    r"""``(x, code)``: the smallest value $x \in (lo, hi]$ at which ``code_at(x)`` (a traced
+    integer code) is no longer ``base``, and the code there: a scan at ``n_scan`` points, then
+    ``n_bisect`` bisection steps on the first change (if the first scan point has already
+    changed, the interval from ``lo`` to it is bisected). ``x`` is ``inf`` if the code is
+    ``base`` on the whole scan. ``code_at`` is traced twice (the scan, the bisection), and the
+    code at ``x`` is the one computed there. jit- and vmap-compatible."""
     scan = jnp.linspace(lo, hi, n_scan + 1)[1:]
-    flags = jax.vmap(unstable)(scan)
+    codes = jax.vmap(code_at)(scan)
+    flags = codes != base
     i = jnp.argmax(flags)
     upper = scan[i]
     lower = jnp.where(i > 0, scan[jnp.maximum(i - 1, 0)], lo)
 
     def body(_, bounds):
-        lower, upper = bounds
+        lower, upper, code = bounds
         mid = 0.5 * (lower + upper)
-        u = unstable(mid)
-        return jnp.where(u, lower, mid), jnp.where(u, mid, upper)
+        c = code_at(mid)
+        u = c != base
+        return jnp.where(u, lower, mid), jnp.where(u, mid, upper), jnp.where(u, c, code)
 
-    lower, upper = jax.lax.fori_loop(0, n_bisect, body, (lower, upper))
-    return jnp.where(jnp.any(flags), upper, jnp.inf)
+    _, upper, code = jax.lax.fori_loop(0, n_bisect, body, (lower, upper, codes[i]))
+    return jnp.where(jnp.any(flags), upper, jnp.inf), code
+
+
+def critical_value(unstable: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48):
+    r"""The smallest value $x \in (lo, hi]$ at which ``unstable(x)`` (a traced boolean) becomes
+    true (:func:`first_change`); ``inf`` if it is false on the whole scan. jit- and
+    vmap-compatible."""
+    code_at = lambda x: jnp.asarray(unstable(x), jnp.int32)  # noqa: E731
+    return first_change(code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect)[0]
