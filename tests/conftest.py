@@ -1,6 +1,7 @@
 """Strict test configuration (cf. diffrax ``test/conftest.py``): float64, no rank promotion and
 strict dtype promotion (no implicit int -> float or float32 -> float64 mixing)."""
 
+import gc
 import os
 import shutil
 import tempfile
@@ -83,12 +84,27 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
+import equinox as eqx  # noqa: E402
 import hypothesis  # noqa: E402
+import pytest  # noqa: E402
 
 hypothesis.settings.register_profile(
     "rbo", max_examples=60, deadline=None, derandomize=True, print_blob=True
 )
 hypothesis.settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "rbo"))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_programs_after_each_file():
+    """After each test file, the compiled programs in memory are dropped (JAX's and equinox's
+    caches): a worker that runs many files would otherwise keep every program it compiled
+    (measured: one worker of the complete tier held 12 GB after tests/test_cli.py's
+    reproduction, 19 GB used of 24 with the other worker). A later file that needs a program
+    again loads it from the persistent compilation cache."""
+    yield
+    jax.clear_caches()
+    eqx.clear_caches()
+    gc.collect()
 
 
 def pytest_unconfigure(config):
@@ -100,7 +116,18 @@ def pytest_unconfigure(config):
 # loadfile) in collection order, so a long file collected last keeps one worker busy while the
 # other idles at the end (measured: the notebooks, ~3 min of kernels, ran last). Longest first
 # is the classic greedy schedule; the order of the tests inside a file is unchanged.
-_FIRST = ("test_notebooks.py", "test_benchmarks.py", "test_lattice.py", "test_fitting.py")
+# The complete tier's longest files, measured cold (a fresh machine, as CI): test_rod_hopf.py
+# ~15 min of one worker, test_mechanics.py and test_devices.py ~8 min each.
+_FIRST = (
+    "test_rod_hopf.py",
+    "test_notebooks.py",
+    "test_mechanics.py",
+    "test_devices.py",
+    "test_benchmarks.py",
+    "test_distributed_sweep.py",
+    "test_lattice.py",
+    "test_fitting.py",
+)
 
 
 def pytest_collection_modifyitems(config, items):
