@@ -111,10 +111,13 @@ def _parse(argv):
     ints = lambda s: [int(x) for x in s.split(",") if x]  # noqa: E731
     p.add_argument("--final-time", type=float, default=5000.0, help="PyElastica's Timoshenko run")
     p.add_argument("--vib-t", type=float, default=2.0, help="simulated seconds of the vibration")
-    p.add_argument("--pe-n", type=ints, default=[50, 100], help="PyElastica's vibrating sizes")
+    p.add_argument("--pe-n", type=ints, default=[50, 100, 200], help="PyElastica's sizes")
     p.add_argument("--explicit-n", type=ints, default=[5, 10, 50])
     p.add_argument("--implicit-n", type=ints, default=[5, 10])
     p.add_argument("--splitting-n", type=ints, default=[5, 10, 20, 50], help="Lie-group Verlet")
+    p.add_argument(
+        "--midpoint-n", type=ints, default=[50, 100, 200], help="implicit midpoint (same n as PE)"
+    )
     p.add_argument("--spectrum-n", type=ints, default=[5, 10, 50, 100])
     p.add_argument("--scaling-n", type=ints, default=[100, 1000, 10000])
     p.add_argument("--explicit-rtol", type=float, default=1e-6)
@@ -137,7 +140,7 @@ def _parse(argv):
     if args.smoke:
         args.final_time, args.vib_t, args.repeat = 20.0, 0.2, 1
         args.pe_n, args.explicit_n, args.implicit_n = [50], [5], []
-        args.splitting_n = [5]
+        args.splitting_n, args.midpoint_n = [5], [5]
         args.spectrum_n, args.scaling_n, args.statics_n = [10], [100], []
     if args.core is None:
         args.core = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
@@ -470,7 +473,7 @@ def rj_initial_state(rod):
 
 
 def rj_simulate(rod, state0, ts, method, rtol):
-    if method == "splitting":  # fixed steps: the default dt (0.9 of a bound of the limit)
+    if method in ("splitting", "midpoint"):  # fixed steps: each method's default dt
         traj = L.simulate(rod, state0, ts, method=method)
     else:
         traj = L.simulate(rod, state0, ts, method=method, rtol=rtol, atol=rtol * 1e-3)
@@ -547,13 +550,19 @@ def vibration(args, alpha):
         ("explicit", args.explicit_n, args.explicit_rtol),
         ("implicit", args.implicit_n, args.implicit_rtol),
         ("splitting", args.splitting_n, None),
+        ("midpoint", args.midpoint_n, None),
     ):
         for n in ns:
             rod = vib_rod(n, alpha)
             s0 = rj_initial_state(rod)
             first, _ = _timed(lambda: rj_simulate(rod, s0, ts, method, rtol))
             best, (tip, steps) = _best(lambda: rj_simulate(rod, s0, ts, method, rtol), args.repeat)
-            name = {"explicit": "Dopri8", "implicit": "Kvaerno5", "splitting": "splitting"}
+            name = {
+                "explicit": "Dopri8",
+                "implicit": "Kvaerno5",
+                "splitting": "splitting",
+                "midpoint": "midpoint",
+            }
             note = f"dt {T / steps:.3g}" if rtol is None else f"rtol {rtol:g}"
             row(f"rbo_jax {name[method]}", n, first, best, T, two_frequencies(tip), steps, note)
     for n in args.spectrum_n:

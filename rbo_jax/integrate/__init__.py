@@ -8,6 +8,9 @@ r"""What the integrators of every model share (DESIGN.md: the ``integrate`` laye
   lanes of trajectories, or the bodies of one lattice) and its dense samples; the coefficients
   in :mod:`.tableau`. :func:`rbo_jax.fast_simulate` (the ensemble) and a lattice's
   ``method="dop853"`` loop over it.
+- :mod:`.midpoint`: the implicit midpoint rule for a chain of bodies (a rod), its Newton
+  matrices block-tridiagonal (O(N) a step): a rod's ``method="midpoint"``, the default for a
+  stiff rod.
 
 Each model keeps its own integrators and defaults (:mod:`rbo_jax.simulate`,
 :mod:`rbo_jax.ensemble`, :mod:`rbo_jax.lattice`). The modules are imported one by one (none of

@@ -5,10 +5,14 @@ The rod's equations (:func:`rbo_jax.models.rod.rates`: every body's turn and tra
 couplings' forces and moments, Kelvin–Voigt damping, the loads) are integrated by one of
 
 - diffrax (:func:`rbo_jax.integrate.diffeq.solve`): an explicit Runge–Kutta method
-  (``Dopri8``, ``method="explicit"``, the default) or, for the stiff stretch and shear waves of
-  a slender rod, an implicit one (``Kvaerno5``, ``method="implicit"``), or any diffrax solver;
+  (``Dopri8``, ``method="explicit"``: the default, ``method="auto"``, for a rod that is not
+  stiff, :func:`_auto`), an implicit one (``Kvaerno5``, ``method="implicit"``), or any diffrax
+  solver;
 - the fixed-step Lie-group position Verlet of :mod:`._rod_verlet` (``method="splitting"``: one
-  force evaluation per step, the fast one where the stiffest mode holds every explicit step).
+  force evaluation per step, the fast one where the stiffest mode holds every explicit step);
+- the implicit midpoint rule with block-tridiagonal Newton solves
+  (:mod:`rbo_jax.integrate.midpoint`, ``method="midpoint"``): steps set by the motion wanted,
+  not by the stiff waves; the default (``method="auto"``) for a stiff rod.
 
 **Compilation.** The vector field is one jitted call (``_rates``: re-tracing it binds one
 equation, and its derivatives are cached with it); the forces are
@@ -38,6 +42,7 @@ from .. import _enumeration as enum
 from .. import _programs
 from .._validation import is_traced
 from ..integrate import diffeq
+from ..integrate.midpoint import midpoint
 from ..mechanics import checked_parameters
 from ..models.rod import Rod, RodState, energy, kinetic_moment, rates
 from ..trajectory import (
@@ -48,7 +53,7 @@ from ..trajectory import (
     times_ok,
     warn_if_float32,
 )
-from ._rod_verlet import verlet, verlet_traced
+from ._rod_verlet import _step_counts, stable_step, verlet, verlet_traced
 
 __all__ = ["RodTrajectory", "simulate_rod"]
 
@@ -172,7 +177,7 @@ def simulate_rod(
     state0: RodState,
     ts,
     *,
-    method: str = "explicit",
+    method: str = "auto",
     solver: diffrax.AbstractSolver | None = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
@@ -183,11 +188,27 @@ def simulate_rod(
 ) -> RodTrajectory:
     r"""The motion of ``rod`` from ``state0`` sampled at ``ts`` (module docstring).
 
-    ``method``: ``"explicit"`` (diffrax ``Dopri8``, default), ``"implicit"`` (``Kvaerno5``,
-    for stiff stretch and shear), or ``"splitting"``: the Lie-group position Verlet of
-    :mod:`._rod_verlet` (fixed steps of at most ``dt``, default its stable step from the
-    stiffnesses and masses; one force evaluation per step; symplectic on a conservative rod);
-    or any diffrax ``solver``. ``rtol``, ``atol``: the step-size controller's tolerances;
+    ``method``:
+
+    - ``"auto"`` (default): ``"midpoint"`` for a stiff rod, whose explicit stable step
+      (:func:`._rod_verlet.stable_step`, set by its stiffest stretch and shear waves) is below
+      a tenth of the midpoint rule's default step, else ``"explicit"``; ``"explicit"`` with a
+      ``solver`` or under a transformation (the choice is made on the host);
+    - ``"midpoint"``: the implicit midpoint rule (:mod:`rbo_jax.integrate.midpoint`): fixed
+      steps of at most ``dt`` (default the shortest interval of ``ts``, and at most a
+      thousandth of its span), second order, A-stable, the energy of a linear elastic rod kept
+      to the Newton tolerance at any step, the stiff waves neither limiting the step nor losing
+      their energy; a mode of frequency $\omega$ lags by a relative $(\omega\,dt)^2/12$, so
+      ``dt`` is chosen for the slowest motion wanted; each step's Newton iterations use the
+      block-tridiagonal matrix $I - \tfrac{dt}{2}J$ (O(N) a step) and stop within ``atol +
+      rtol |y|``;
+    - ``"explicit"`` (diffrax ``Dopri8``), ``"implicit"`` (``Kvaerno5``, a dense Newton
+      matrix), or any diffrax ``solver``: adaptive steps to ``rtol``, ``atol``;
+    - ``"splitting"``: the Lie-group position Verlet of :mod:`._rod_verlet` (fixed steps of at
+      most ``dt``, default its stable step from the stiffnesses and masses; one force
+      evaluation per step; symplectic on a conservative rod).
+
+    ``rtol``, ``atol``: the step-size controller's tolerances (``"midpoint"``: its Newton's);
     ``dt0``: the first step of the adaptive methods (default a tenth of the first interval of
     ``ts``); ``max_steps``: the most steps (``"splitting"``: checked before the run). A failed
     solve (``"splitting"``: a non-finite state, the step too long for stability) raises with
@@ -213,7 +234,13 @@ def simulate_rod(
     traced = any(is_traced(x) for x in jax.tree_util.tree_leaves((rod, state0, ts, dt, dt0)))
     ts, bad_times, staged = _times(ts, throw, traced)
     state0 = jax.tree_util.tree_map(jnp.asarray, state0)
-    if method == "splitting" and solver is None:
+    if method == "auto":
+        method = _auto(rod, state0, ts, solver, traced)
+    if method == "midpoint" and solver is None:
+        states, status, steps, messages = _midpoint(
+            rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged
+        )
+    elif method == "splitting" and solver is None:
         if max_steps == 100_000:  # the adaptive methods' default; fixed steps are cheap: more room
             max_steps = 10_000_000
         run = _splitting_traced if staged else _splitting
@@ -301,8 +328,8 @@ def _solver(method, solver):
     if method == "implicit":
         return _Kvaerno5(root_finder=diffrax.with_stepsize_controller_tols(_JacobianChord)())
     raise ValueError(
-        f"lattice.simulate: method must be 'explicit', 'implicit' or 'splitting' for a "
-        f"rod, got {method!r}."
+        f"lattice.simulate: method must be 'auto', 'midpoint', 'explicit', 'implicit' or "
+        f"'splitting' for a rod, got {method!r}."
     )
 
 
@@ -360,5 +387,121 @@ def _splitting_traced(rod, state0, ts, bad_times, dt, max_steps):
         ),
         "solver_error": _NONFINITE.format(""),
         "invalid_parameters": f"{what} must be finite and > 0 (method='splitting').",
+    }
+    return states, status, steps, messages
+
+
+# --------------------------------------------------------------------------------------------
+# method="midpoint" and the default's choice
+# --------------------------------------------------------------------------------------------
+
+# method="auto" takes the midpoint rule where the splitting's stable step (which holds every
+# explicit method near it) is below 1/STIFF_RATIO of the midpoint rule's default step
+STIFF_RATIO = 10.0
+# the midpoint rule's default step: the shortest interval of ts, and at most span/MIDPOINT_STEPS
+MIDPOINT_STEPS = 1000
+
+
+def _midpoint_step(ts, xp=np):
+    """The default step of ``method="midpoint"``: the shortest interval between samples, at
+    most the span over :data:`MIDPOINT_STEPS`."""
+    return xp.minimum(xp.min(xp.diff(ts)), (ts[-1] - ts[0]) / MIDPOINT_STEPS)
+
+
+def _auto(rod, state0, ts, solver, traced):
+    """The default method: ``"midpoint"`` for a stiff rod (its explicit stable step below
+    1/:data:`STIFF_RATIO` of the midpoint rule's step), else ``"explicit"``; ``"explicit"``
+    with a ``solver`` or under a transformation (the choice is made on the host)."""
+    if solver is not None or traced:
+        return "explicit"
+    h = stable_step(rod, state0)
+    if is_traced(h) or is_traced(ts):
+        return "explicit"
+    h_mid = float(_midpoint_step(np.asarray(ts, dtype=np.float64)))
+    return "midpoint" if STIFF_RATIO * float(h) < h_mid else "explicit"
+
+
+def _pack(state: RodState):
+    """``(N+1, 12)``: each body's turn, position, angular velocity and velocity."""
+    return jnp.concatenate([state.theta, state.r, state.Omega, state.v], axis=-1)
+
+
+def _unpack(x) -> RodState:
+    return RodState(x[..., 0:3], x[..., 3:6], x[..., 6:9], x[..., 9:12])
+
+
+def _recentred(x):
+    r"""Each turn-vector beyond $|\theta| = \pi$ replaced by the same turn's
+    $\theta\,(1 - 2\pi/|\theta|)$, away from the singular sphere $|\theta| = 2\pi$ of $Z$."""
+    theta = x[:, 0:3]
+    size = jnp.sqrt(jnp.sum(theta * theta, axis=-1, keepdims=True))
+    far = size > np.pi
+    scale = jnp.where(far, 1.0 - 2.0 * np.pi / jnp.where(far, size, 1.0), 1.0)
+    return x.at[:, 0:3].set(theta * scale)
+
+
+def _midpoint_program(rod, state0, ts, dt, rtol, atol, max_steps):
+    """``(states, ok, steps, too_many, bad_dt)`` of ``method="midpoint"``
+    (:func:`rbo_jax.integrate.midpoint.midpoint`), the step counts in the program."""
+    if dt is None:
+        dt = _midpoint_step(ts, jnp)
+    span = jnp.diff(ts)
+    bad_dt = ~(jnp.isfinite(dt) & (dt > 0))
+    n = _step_counts(span, jnp.where(bad_dt, 1.0, dt), jnp)
+    too_many = ~bad_dt & ~((jnp.sum(n) <= max_steps) & (jnp.max(n) < 2.0**31))
+    fail = bad_dt | too_many
+    counts = jnp.where(fail, 0, n).astype(jnp.int32)
+
+    def field(x):
+        return _pack(rates(rod, _unpack(x)))
+
+    xs, ok, _ = midpoint(
+        field, _pack(state0), counts, span / n, rtol=rtol, atol=atol, project=_recentred
+    )
+    xs = jnp.concatenate([xs[:1], jnp.where(fail, jnp.inf, xs[1:])])
+    return _unpack(xs), ok, jnp.sum(counts.astype(jnp.result_type(int))), too_many, bad_dt
+
+
+_midpoint_jit = _programs.jit(_midpoint_program, small=True)
+
+_MIDPOINT_FAILED = (
+    "the midpoint rule's Newton iterations did not converge (method='midpoint'{}): the step "
+    "is too long for the motion, or the motion blew up; pass a smaller dt."
+)
+
+
+def _midpoint(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
+    """``method="midpoint"``: ``(states, status, steps, messages)``; with concrete inputs the
+    step and its counts are checked on the host first (a ``ValueError``)."""
+    if not staged and not is_traced(dt):
+        ts_host = np.asarray(ts, dtype=np.float64)
+        h = float(_midpoint_step(ts_host)) if dt is None else float(dt)
+        if not (np.isfinite(h) and h > 0):
+            raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {h}.")
+        total = int(min(np.sum(_step_counts(np.diff(ts_host), h)), 2.0**62))
+        if total > max_steps:
+            raise ValueError(
+                f"lattice.simulate: method='midpoint' needs {total} steps of dt = {h:.3g} s "
+                f"for ts, more than max_steps = {max_steps}: raise max_steps or dt."
+            )
+        run = _midpoint_jit
+    else:
+        run = _midpoint_program
+        ts = jnp.where(bad_times, jnp.zeros_like(ts), ts) if is_traced(ts) else ts
+    if dt is not None:
+        dt = jnp.asarray(dt, dtype=jnp.result_type(float))
+    states, ok, steps, too_many, bad_dt = run(
+        rod, state0, jnp.asarray(ts), dt, float(rtol), float(atol), int(max_steps)
+    )
+    status = SolveStatus.where(ok, SolveStatus.successful, SolveStatus.solver_error)
+    status = SolveStatus.where(too_many, SolveStatus.max_steps_reached, status)
+    status = SolveStatus.where(bad_dt, SolveStatus.invalid_parameters, status)
+    messages = {
+        "max_steps_reached": (
+            f"method='midpoint' needs more steps of dt for ts than max_steps = {max_steps}: "
+            "raise max_steps or dt."
+        ),
+        "solver_error": _MIDPOINT_FAILED.format(""),
+        "invalid_parameters": "dt must be finite and > 0 (method='midpoint').",
     }
     return states, status, steps, messages

@@ -345,8 +345,8 @@ def _simulate_rod(rod, state0, at, ts, **options):
     ts = at if ts is None else ts
     if ts is None:
         raise TypeError("lattice.simulate(rod, state0, ts): ts is missing.")
-    if options["method"] == "dop853":
-        options["method"] = "explicit"
+    if options["method"] == "dop853":  # the lattices' default: the rod's own (method="auto")
+        options["method"] = "auto"
     return simulate_rod(rod, state0, ts, **options)
 
 
@@ -406,9 +406,10 @@ def simulate(
     ``turns`` (T, N), ``energy`` (T,), ``status``. jit-, vmap- (ensembles of lattices) and
     forward-mode differentiable (all methods; ``"diffrax"`` also reverse mode).
 
-    **A rod** (:class:`rbo_jax.lattice.Rod`): ``simulate(rod, state0, ts, method="explicit" |
-    "implicit" | "splitting", solver=..., rtol=..., atol=..., max_steps=..., dt0=..., dt=...,
-    throw=...)`` (``"splitting"``: the Lie-group position Verlet of
+    **A rod** (:class:`rbo_jax.lattice.Rod`): ``simulate(rod, state0, ts, method="auto" |
+    "midpoint" | "explicit" | "implicit" | "splitting", solver=..., rtol=..., atol=...,
+    max_steps=..., dt0=..., dt=..., throw=...)`` (``"auto"``, the default: the implicit midpoint
+    rule for a stiff rod, Dopri8 otherwise; ``"splitting"``: the Lie-group position Verlet of
     :mod:`rbo_jax.lattice._rod_verlet`, fixed steps of at most ``dt``) with a
     :class:`rbo_jax.lattice.RodState` returns a :class:`rbo_jax.lattice.RodTrajectory`
     (:func:`rbo_jax.lattice._rod_dynamics.simulate_rod`), inside ``jax.jit``, ``jax.vmap``

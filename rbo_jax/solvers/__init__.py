@@ -34,8 +34,11 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "bordered_solve",
             "equilibrated_lstsq",
             "linear_solver",
+            "tridiagonal_factor",
             "tridiagonal_jacobian",
+            "tridiagonal_matvec",
             "tridiagonal_solve",
+            "tridiagonal_substitute",
         ),
     },
 )

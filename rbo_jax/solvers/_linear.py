@@ -206,7 +206,23 @@ def _factor(L, D, U):
 def tridiagonal_solve(L, D, U, b):
     r"""$x$ with $\mathrm{tridiag}(L, D, U)\,x = b$, ``b`` ``(N, m)``: forward elimination and
     back substitution (module docstring). Differentiable in ``b`` (and in the blocks)."""
+    return tridiagonal_substitute(tridiagonal_factor(L, D, U), b)
+
+
+def tridiagonal_factor(L, D, U):
+    r"""The block elimination of $\mathrm{tridiag}(L, D, U)$ done once for many right-hand
+    sides (:func:`tridiagonal_substitute`): the multipliers $W_i$, the pivots $D'_i$ as LU
+    factors with partial pivoting, and $U$. A chord iteration (one matrix, several solves)
+    factors once a step."""
     Dp, W = _factor(L, D, U)
+    lu, piv = jax.vmap(jax.scipy.linalg.lu_factor)(Dp)
+    return W, lu, piv, U
+
+
+def tridiagonal_substitute(factors, b):
+    r"""$x$ with $\mathrm{tridiag}(L, D, U)\,x = b$ from :func:`tridiagonal_factor`'s
+    ``factors``: one ``lax.scan`` forward, one back, O(N m²)."""
+    W, lu, piv, U = factors
 
     def forward(y_prev, inputs):
         Wi, bi = inputs
@@ -216,12 +232,21 @@ def tridiagonal_solve(L, D, U, b):
     _, y = jax.lax.scan(forward, jnp.zeros_like(b[0]), (W, b))
 
     def back(x_next, inputs):
-        Dpi, Ui, yi = inputs
-        x = jnp.linalg.solve(Dpi, yi - Ui @ x_next)
+        lui, pivi, Ui, yi = inputs
+        x = jax.scipy.linalg.lu_solve((lui, pivi), yi - Ui @ x_next)
         return x, x
 
-    _, x = jax.lax.scan(back, jnp.zeros_like(b[0]), (Dp, U, y), reverse=True)
+    _, x = jax.lax.scan(back, jnp.zeros_like(b[0]), (lu, piv, U, y), reverse=True)
     return x
+
+
+def tridiagonal_matvec(L, D, U, x):
+    r"""$\mathrm{tridiag}(L, D, U)\,x$, ``x`` ``(N, m)``."""
+    z = jnp.zeros_like(x[:1])
+    below = jnp.concatenate([z, x[:-1]])
+    above = jnp.concatenate([x[1:], z])
+    mv = lambda A, y: jnp.einsum("nij,nj->ni", A, y)  # noqa: E731
+    return mv(L, below) + mv(D, x) + mv(U, above)
 
 
 def linear_solver(structure: str) -> AbstractLinearSolver:
