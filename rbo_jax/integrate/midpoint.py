@@ -17,16 +17,17 @@ their energy (an L-stable method damps them, a loss the size of their share of t
 the step is chosen for the slow motion that is wanted.
 
 **Newton.** Each step solves $G(y) = y - x_n - h f((x_n + y)/2) = 0$ by the chord method from
-$y = x_n + h\,(x_n - x_{n-1})/h_{n-1}$ (the last step extrapolated; $x_0$ at the first), with the
-matrix $I - \tfrac h2 J$: its blocks from $3m$ Jacobian-vector products
+$y = x_n + h\,(x_n - x_{n-1})/h_{n-1}$ (the last step extrapolated; $x_0$ at the first), with
+the matrix $I - \tfrac h2 J$: its blocks from $3m$ Jacobian-vector products
 (:func:`rbo_jax.solvers.tridiagonal_jacobian`), factored by block elimination
 (:func:`rbo_jax.solvers.tridiagonal_factor`), each iteration two scans
-(:func:`~rbo_jax.solvers.tridiagonal_substitute`): O(N m³) to factor, O(N m²) an iteration. The
-Jacobian is kept from step to step (a small motion barely changes it) and computed anew at the
-current state only when the iterations do not converge within ``max_newton``; the factors are
-made anew when the step changes. The iterations stop when the update is within
-``atol + rtol |y|`` in every component. A step that does not converge with a fresh Jacobian
-ends the solve: ``ok`` is false and the samples from there on are ``inf``.
+(:class:`~rbo_jax.solvers.FactoredTridiagonal`, in the project's one loop of Newton updates:
+:func:`~rbo_jax.solvers.iterate`, :func:`~rbo_jax.solvers.newton_update`): O(N m³) to factor,
+O(N m²) an iteration. The Jacobian is kept from step to step (a small motion barely changes it)
+and computed anew at the current state only when the iterations do not converge within
+``max_newton``; the factors are made anew when the step changes. The iterations stop when the
+update is within ``atol + rtol |y|`` in every component. A step that does not converge with a
+fresh Jacobian ends the solve: ``ok`` is false and the samples from there on are ``inf``.
 """
 
 from __future__ import annotations
@@ -34,7 +35,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax import lax
 
-from ..solvers import tridiagonal_factor, tridiagonal_jacobian, tridiagonal_substitute
+from ..solvers import (
+    RUNNING,
+    FactoredTridiagonal,
+    iterate,
+    newton_update,
+    tridiagonal_factor,
+    tridiagonal_jacobian,
+)
 
 __all__ = ["midpoint"]
 
@@ -59,26 +67,26 @@ def midpoint(field, x0, counts, steps, *, rtol, atol, max_newton: int = 8, proje
     failed step on), whether every step converged, and how many times the Jacobian was
     computed. Differentiable in forward mode (``jax.jvp``); the loops stop on convergence, so
     reverse mode does not transpose them."""
-    dtype = x0.dtype
-    eye = jnp.eye(x0.shape[1], dtype=dtype)
+    eye = jnp.eye(x0.shape[1], dtype=x0.dtype)
 
     def factor(J, h):
         L, D, U = J
         return tridiagonal_factor(-0.5 * h * L, eye[None] - 0.5 * h * D, -0.5 * h * U)
 
+    linear = FactoredTridiagonal()
+
     def newton(x, y0, fac, h):
-        def body(c):
-            y, k, _ = c
-            d = tridiagonal_substitute(fac, y - x - h * field(0.5 * (x + y)))
-            y = y - d
-            return y, k + 1, jnp.max(jnp.abs(d) / (atol + rtol * jnp.abs(y)))
+        """The chord iterations of one step from ``y0``: the project's one loop
+        (:func:`rbo_jax.solvers.iterate`) of Newton's update with the step's factors."""
 
-        def cond(c):
-            _, k, err = c
-            return (k < max_newton) & ~(err <= 1.0)
+        def chord(y, state):
+            r = y - x - h * field(0.5 * (x + y))
+            y, _, done, finite = newton_update(r, fac, linear, y, rtol=rtol, atol=atol)
+            code = jnp.where(finite, jnp.where(done, 0, RUNNING), 1)
+            return y, state, code
 
-        y, _, err = lax.while_loop(cond, body, (y0, 0, jnp.asarray(jnp.inf, dtype)))
-        return y, err <= 1.0
+        y, _, code, _ = iterate(chord, y0, None, max_steps=max_newton, exhausted=1)
+        return y, code == 0
 
     def step(c):
         x, rate, J, fac, h, i, ok, refreshes = c

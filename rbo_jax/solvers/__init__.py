@@ -28,6 +28,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "._linear": (
             "AbstractLinearSolver",
             "Dense",
+            "FactoredTridiagonal",
             "LeastSquares",
             "Tridiagonal",
             "TruncatedLeastSquares",

@@ -136,6 +136,20 @@ class Tridiagonal(AbstractLinearSolver):
         return jnp.prod(jnp.linalg.slogdet(pivots)[0])
 
 
+class FactoredTridiagonal(AbstractLinearSolver):
+    """:class:`Tridiagonal` whose operator is kept factored (:func:`tridiagonal_factor`): a
+    chord iteration solves many times with one matrix, each solve two scans."""
+
+    def jacobian(self, fn, x):
+        return tridiagonal_factor(*tridiagonal_jacobian(fn, x))
+
+    def solve(self, operator, b):
+        return tridiagonal_substitute(operator, b)
+
+    def identity_where(self, bad, operator):
+        raise NotImplementedError("FactoredTridiagonal keeps no blocks to replace.")
+
+
 def equilibrated_lstsq(J, b):
     r"""The least-squares solution of $Jx = b$, each row divided by its norm first (1 for a zero
     row), by QR. A stiff system (a rod's shear and stretch rows $10^{12}$ times its bending
