@@ -53,7 +53,14 @@ from ..trajectory import (
     times_ok,
     warn_if_float32,
 )
-from ._rod_verlet import _step_counts, stable_step, verlet, verlet_traced
+from ._rod_verlet import (
+    failed_after_first,
+    stable_step,
+    step_counts,
+    traced_counts,
+    verlet,
+    verlet_traced,
+)
 
 __all__ = ["RodTrajectory", "simulate_rod"]
 
@@ -445,21 +452,16 @@ def _midpoint_program(rod, state0, ts, dt, rtol, atol, max_steps):
     (:func:`rbo_jax.integrate.midpoint.midpoint`), the step counts in the program."""
     if dt is None:
         dt = _midpoint_step(ts, jnp)
-    span = jnp.diff(ts)
-    bad_dt = ~(jnp.isfinite(dt) & (dt > 0))
-    n = _step_counts(span, jnp.where(bad_dt, 1.0, dt), jnp)
-    too_many = ~bad_dt & ~((jnp.sum(n) <= max_steps) & (jnp.max(n) < 2.0**31))
-    fail = bad_dt | too_many
-    counts = jnp.where(fail, 0, n).astype(jnp.int32)
+    counts, steps, too_many, bad_dt = traced_counts(ts, dt, max_steps)
 
     def field(x):
         return _pack(rates(rod, _unpack(x)))
 
     xs, ok, _ = midpoint(
-        field, _pack(state0), counts, span / n, rtol=rtol, atol=atol, project=_recentred
+        field, _pack(state0), counts, steps, rtol=rtol, atol=atol, project=_recentred
     )
-    xs = jnp.concatenate([xs[:1], jnp.where(fail, jnp.inf, xs[1:])])
-    return _unpack(xs), ok, jnp.sum(counts.astype(jnp.result_type(int))), too_many, bad_dt
+    states = failed_after_first(_unpack(xs), too_many | bad_dt)
+    return states, ok, jnp.sum(counts.astype(jnp.result_type(int))), too_many, bad_dt
 
 
 _midpoint_jit = _programs.jit(_midpoint_program, small=True)
@@ -478,7 +480,7 @@ def _midpoint(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
         h = float(_midpoint_step(ts_host)) if dt is None else float(dt)
         if not (np.isfinite(h) and h > 0):
             raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {h}.")
-        total = int(min(np.sum(_step_counts(np.diff(ts_host), h)), 2.0**62))
+        total = int(min(np.sum(step_counts(np.diff(ts_host), h)), 2.0**62))
         if total > max_steps:
             raise ValueError(
                 f"lattice.simulate: method='midpoint' needs {total} steps of dt = {h:.3g} s "

@@ -84,7 +84,15 @@ from ..models.rod import (
     tensors,
 )
 
-__all__ = ["SAFETY", "stable_step", "verlet", "verlet_traced"]
+__all__ = [
+    "SAFETY",
+    "failed_after_first",
+    "stable_step",
+    "step_counts",
+    "traced_counts",
+    "verlet",
+    "verlet_traced",
+]
 
 SAFETY = 0.9
 TWO_PI = 2.0 * math.pi
@@ -343,7 +351,7 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
 _run_jit = _programs.jit(_run, small=True)
 
 
-def _step_counts(span, dt, xp=np):
+def step_counts(span, dt, xp=np):
     r"""The equal steps of each interval between samples: $\max(\lceil \Delta t_k/dt -
     10^{-9}\rceil, 1)$ (``xp``: NumPy on the host, ``jax.numpy`` in a traced program)."""
     return xp.maximum(xp.ceil(span / dt - 1e-9), 1.0)
@@ -359,7 +367,7 @@ def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000)
         what = "dt" if given else "the default step (from the stiffnesses and masses)"
         raise ValueError(f"lattice.simulate: {what} must be finite and > 0, got {dt}.")
     span = np.diff(np.asarray(ts, dtype=np.float64))
-    counts = _step_counts(span, dt)
+    counts = step_counts(span, dt)
     total = int(min(np.sum(counts), 2.0**62))
     if total > max_steps:
         raise ValueError(
@@ -403,7 +411,7 @@ def verlet_traced(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_0
             raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {value}.")
         if not is_traced(ts):
             span = np.diff(np.asarray(ts, dtype=np.float64))
-            counts = _step_counts(span, value)
+            counts = step_counts(span, value)
             if np.sum(counts) <= max_steps and np.all(counts == counts[0]):
                 fixed = int(counts[0])
     ts = jnp.asarray(ts)
@@ -420,16 +428,30 @@ def _verlet_traced(rod, stripped, state0, ts, dt, max_steps, damped, principal, 
     """:func:`verlet_traced` in one program (inlined in the caller's; batched under vmap)."""
     if dt is None:
         dt = stable_step(rod, state0).astype(ts.dtype)
-    span = jnp.diff(ts)
-    bad_dt = ~(jnp.isfinite(dt) & (dt > 0))
-    n = _step_counts(span, jnp.where(bad_dt, 1.0, dt), jnp)
-    # a NaN total (non-finite ts) counts as too many: nothing is run
-    too_many = ~bad_dt & ~((jnp.sum(n) <= max_steps) & (jnp.max(n) < 2.0**31))
-    fail = bad_dt | too_many
-    counts = jnp.where(fail, 0.0, n).astype(jnp.int32)
-    states, ok = _run(stripped, state0, ts, counts, span / n, damped, principal, fixed)
-    states = jax.tree_util.tree_map(
-        lambda x: jnp.concatenate([x[:1], jnp.where(fail, jnp.inf, x[1:])]), states
-    )
+    counts, steps_of, too_many, bad_dt = traced_counts(ts, dt, max_steps)
+    states, ok = _run(stripped, state0, ts, counts, steps_of, damped, principal, fixed)
+    states = failed_after_first(states, too_many | bad_dt)
     steps = jnp.sum(counts.astype(jnp.result_type(int)))
     return states, ok, steps, dt, too_many, bad_dt
+
+
+def traced_counts(ts, dt, max_steps):
+    r"""``(counts, steps, too_many, bad_dt)`` of a fixed-step method in the program: each
+    interval of ``ts`` in $\max(\lceil \Delta t_k/dt - 10^{-9}\rceil, 1)$ equal steps of
+    ``steps[k]``; ``bad_dt``: ``dt`` not finite and > 0; ``too_many``: the total above
+    ``max_steps`` or a count past int32 (a NaN total, from non-finite ``ts``, counts as too
+    many). Where either flag is set every count is 0: nothing is run."""
+    span = jnp.diff(ts)
+    bad_dt = ~(jnp.isfinite(dt) & (dt > 0))
+    n = step_counts(span, jnp.where(bad_dt, 1.0, dt), jnp)
+    too_many = ~bad_dt & ~((jnp.sum(n) <= max_steps) & (jnp.max(n) < 2.0**31))
+    counts = jnp.where(bad_dt | too_many, 0.0, n).astype(jnp.int32)
+    return counts, span / n, too_many, bad_dt
+
+
+def failed_after_first(states, fail):
+    """``states`` (samples along the leading axis) with every sample after the first ``inf``
+    where ``fail``."""
+    return jax.tree_util.tree_map(
+        lambda x: jnp.concatenate([x[:1], jnp.where(fail, jnp.inf, x[1:])]), states
+    )
