@@ -54,7 +54,10 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         ),
         "..models.rod": (
             "DistributedForce",
+            "FrictionalPlane",
             "Gravity",
+            "MuscleTorques",
+            "RestCurvature",
             "Rod",
             "RodState",
             "TipForce",

@@ -275,17 +275,22 @@ def _skipped_axes(rod: Rod):
 
 def _static_zeros(rod: Rod):
     """``rod`` with its attachment offsets ``None`` where they are concrete zeros (a rod's
-    segments: the strains skip them in the compiled step) and whether it is damped."""
+    segments: the strains skip them in the compiled step) and whether its forces depend on the
+    velocities (Kelvin–Voigt damping, friction)."""
     for name in ("attach_a", "attach_b"):
         if not attached(getattr(rod, name)):
             rod = eqx.tree_at(lambda r, name=name: getattr(r, name), rod, None)
-    return rod, attached(rod.turn_damping) or attached(rod.gap_damping)
+    moving = any(load.needs_velocity for load in rod.loads)
+    return rod, attached(rod.turn_damping) or attached(rod.gap_damping) or moving
 
 
 def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, principal, fixed=None):
     """Samples at ``ts`` with ``counts[k]`` equal steps of ``dt_steps[k]`` in interval k;
     ``fixed``: a Python int equal to every count, known before tracing (a loop of fixed length,
-    which reverse-mode autodiff can transpose; ``counts`` then only for its shape)."""
+    which reverse-mode autodiff can transpose; ``counts`` then only for its shape). ``damped``:
+    the forces depend on the velocities (the second kick's are evaluated at velocities predicted
+    by the first kick's forces); loads that change with time are evaluated at each kick's
+    time."""
     principal = (*jnp.linalg.eigh(jnp.asarray(rod.inertia)), principal)
     A = jnp.asarray(rod.inertia)
     A_inv = jnp.linalg.inv(A)
@@ -295,24 +300,25 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
     def omega(Pi):
         return jnp.einsum("bij,bj->bi", A_inv, Pi)
 
-    def forces(q, r, Pi, v):
+    def forces(q, r, Pi, v, t):
         Q = matrix_of(q[0], jnp.stack(q[1:], axis=-1))
         if damped:
-            return forces_tangent(rod, Q, r, omega(Pi), v)
-        return forces_tangent(rod, Q, r)
+            return forces_tangent(rod, Q, r, omega(Pi), v, t=t)
+        return forces_tangent(rod, Q, r, t=t)
 
     def step(carry, h):
-        q, r, Pi, v, M, F = carry
+        q, r, Pi, v, M, F, t = carry
         Pi = Pi + (0.5 * h) * M
         v = v + (0.5 * h) * F / m
         r = r + h * v
         q, Pi = _free_rotation(principal, q, (Pi[:, 0], Pi[:, 1], Pi[:, 2]), h)
         Pi = jnp.stack(Pi, axis=-1)
+        t = t + h
         if damped:  # the velocities predicted by the first kick's forces
-            M, F = forces(q, r, Pi + (0.5 * h) * M, v + (0.5 * h) * F / m)
+            M, F = forces(q, r, Pi + (0.5 * h) * M, v + (0.5 * h) * F / m, t)
         else:
-            M, F = forces(q, r, Pi, v)
-        return q, r, Pi + (0.5 * h) * M, v + (0.5 * h) * F / m, M, F
+            M, F = forces(q, r, Pi, v, t)
+        return q, r, Pi + (0.5 * h) * M, v + (0.5 * h) * F / m, M, F, t
 
     theta0 = jnp.asarray(state0.theta)
     w0, u0 = _quaternion_of_vector(theta0)
@@ -320,20 +326,21 @@ def _run(rod: Rod, state0: RodState, ts, counts, dt_steps, damped: bool, princip
     Pi0 = jnp.einsum("bij,bj->bi", A, jnp.asarray(state0.Omega)) * turn
     v0 = jnp.asarray(state0.v) * pos
     r0 = jnp.asarray(state0.r)
-    carry0 = (q0, r0, Pi0, v0, *forces(q0, r0, Pi0, v0))
+    carry0 = (q0, r0, Pi0, v0, *forces(q0, r0, Pi0, v0, ts[0]), ts[0])
 
     def interval(c, inputs):
         carry, theta = c
-        n, h = inputs
+        n, h, t_end = inputs
         carry = lax.fori_loop(0, n if fixed is None else fixed, lambda i, x: step(x, h), carry)
-        q, r, Pi, v, M, F = carry
+        q, r, Pi, v, M, F, _ = carry
         norm = lax.rsqrt(sum(c * c for c in q))
         q = tuple(c * norm for c in q)
+        carry = (q, r, Pi, v, M, F, t_end)  # the sample's time, without the steps' rounding
         theta = _log_continued(q[0], jnp.stack(q[1:], axis=-1), theta)
         sample = RodState(theta, r, omega(Pi) * turn, v)
-        return ((q, r, Pi, v, M, F), theta), sample
+        return (carry, theta), sample
 
-    _, samples = lax.scan(interval, (carry0, theta0), (counts, dt_steps))
+    _, samples = lax.scan(interval, (carry0, theta0), (counts, dt_steps, ts[1:]))
     first = RodState(theta0, r0, jnp.asarray(state0.Omega) * turn, v0)
     states = jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x[None], y]), first, samples)
     finite = jnp.stack(

@@ -8,7 +8,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     {  # loaded on first use; in the order they import each other
         "._state": ("RodState",),
-        "._loads": ("DistributedForce", "Gravity", "TipForce", "TipMoment"),
+        "._loads": ("DistributedForce", "Gravity", "Motion", "TipForce", "TipMoment"),
+        "._actuation": ("FrictionalPlane", "MuscleTorques", "RestCurvature"),
         "._field": (
             "attached",
             "body_forces",
@@ -26,6 +27,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "matrix_of",
             "potential_energy",
             "rates",
+            "rest_turns",
             "static_residual",
             "strains",
             "tensors",

@@ -39,7 +39,7 @@ from ...kinematics import (
     turn_tensor,
     turn_vector,
 )
-from ._loads import DistributedForce, Gravity, TipForce
+from ._loads import DistributedForce, Gravity, Motion, TipForce
 from ._state import RodState
 
 __all__ = [
@@ -116,9 +116,17 @@ def attached(x) -> bool:
     return is_traced(x) or bool(np.any(np.asarray(x) != 0))
 
 
-def strains(rod, Q, r):
-    r"""``(phi, gap)``, each ``(N, 3)``: the relative turn $\varphi_s$ of every coupling and its
-    gap $\tilde g_s$ in the mid-frame less the rest gap (module docstring of :mod:`._rod`), from
+def rest_turns(rod, t=0.0):
+    """The couplings' rest relative turns ``(N, 3)`` at time ``t`` from the loads that actuate
+    them (:class:`._actuation.RestCurvature`), or ``None``."""
+    rest = [x for x in (load.rest_turns(rod, t) for load in rod.loads) if x is not None]
+    return sum(rest[1:], rest[0]) if rest else None
+
+
+def strains(rod, Q, r, t=0.0):
+    r"""``(phi, gap)``, each ``(N, 3)``: the relative turn $\varphi_s$ of every coupling (less
+    its rest value at time ``t``, :func:`rest_turns`: zero unless actuated) and its gap
+    $\tilde g_s$ in the mid-frame less the rest gap (module docstring of :mod:`._rod`), from
     the turn-tensors ``Q`` (N+1, 3, 3) and positions ``r``. The relative turns of neighbours
     must stay below $\pi$ (a rod's segments, a pendulum's hinges)."""
     Qa, Qb = Q[:-1], Q[1:]
@@ -131,13 +139,16 @@ def strains(rod, Q, r):
         gap = gap + rotate(Qb, jnp.asarray(rod.attach_b))
     if attached(rod.attach_a):
         gap = gap - rotate(Qa, jnp.asarray(rod.attach_a))
+    rest = rest_turns(rod, t)
+    if rest is not None:
+        phi = phi - rest
     return phi, rotate(mid, gap, back=True) - jnp.asarray(rod.rest_gap)
 
 
-def coupling_energy(rod, q, r):
+def coupling_energy(rod, q, r, t=0.0):
     r"""$\sum_s \tfrac12\varphi_s\cdot K^\varphi_s\varphi_s + \tfrac12\tilde g_s\cdot K^g_s
-    \tilde g_s$."""
-    phi, gap = strains(rod, q, r)
+    \tilde g_s$ (at time ``t``: an actuated rest curvature)."""
+    phi, gap = strains(rod, q, r, t)
     Kp, Kg = jnp.asarray(rod.turn_stiffness), jnp.asarray(rod.gap_stiffness)
     return 0.5 * jnp.sum(Kp * phi * phi) + 0.5 * jnp.sum(Kg * gap * gap)
 
@@ -172,8 +183,9 @@ def _load_potential(rod, r):
     return V
 
 
-def _external(rod, q, scale):
-    """World forces and body moments of the loads, ``(N+1, 3)`` each."""
+def _external(rod, q, scale, at):
+    """World forces and body moments of the loads, ``(N+1, 3)`` each, at the motion ``at``
+    (:class:`._loads.Motion`)."""
     F = jnp.zeros((rod.n_bodies, 3), q.dtype)
     M = jnp.zeros_like(F)
 
@@ -181,17 +193,17 @@ def _external(rod, q, scale):
         return q[i].T @ x if back else q[i] @ x
 
     for load in rod.loads:
-        f, m = load.forces(rod, turn, scale)
+        f, m = load.forces(rod, turn, scale, at)
         F, M = F + f, M + m
     return F, M
 
 
-def body_forces(rod, theta, r, delta, d, Omega=None, v=None, scale=1.0):
+def body_forces(rod, theta, r, delta, d, Omega=None, v=None, scale=1.0, t=0.0):
     r"""``(M, F)``: the body-frame moment and the world force on every body, ``(N+1, 3)`` each,
     at the turns $Q(\theta_i)Q(\delta_i)$ and positions $r_i + d_i$ moving with the angular
     velocities $\Omega_i$ and velocities $v_i$ (``None``: at rest, no damping traced): the
-    couplings (elastic and Kelvin–Voigt), the foundation, and the loads times ``scale``. Zero on
-    the held coordinates of the base.
+    couplings (elastic and Kelvin–Voigt), the foundation, and the loads times ``scale`` at time
+    ``t``. Zero on the held coordinates of the base.
 
     Computed as :func:`forces_tangent` at the composed turn-tensors $Q(\theta_i)Q(\delta_i)$:
     the moment about a body's own frame at its turn is $-Z(\delta_i)\cdot\partial U/\partial
@@ -200,10 +212,10 @@ def body_forces(rod, theta, r, delta, d, Omega=None, v=None, scale=1.0):
     |δ| ~ 0.5, damped rod on a foundation under follower, dead and gravity loads), their
     derivatives too. A smaller program than :func:`forces_at`'s: the equilibrium's and the
     spectrum's programs compile faster (benchmarks/README.md, History)."""
-    return forces_tangent(rod, composed(theta, delta), r + d, Omega, v, scale)
+    return forces_tangent(rod, composed(theta, delta), r + d, Omega, v, scale, t)
 
 
-def forces_at(rod, Q, r, delta, d, Omega=None, v=None, scale=1.0):
+def forces_at(rod, Q, r, delta, d, Omega=None, v=None, scale=1.0, t=0.0):
     r""":func:`body_forces` at the turn-tensors ``Q`` (N+1, 3, 3) instead of turn-vectors, by
     the module docstring's definition (the energy through $Q\cdot Q(\delta)$, moments through
     $Z(\delta)$): the reference of :func:`forces_tangent` (tested) and of the force timings of
@@ -213,7 +225,7 @@ def forces_at(rod, Q, r, delta, d, Omega=None, v=None, scale=1.0):
         return jnp.einsum("bij,bjk->bik", Q, tensors(delta))
 
     def strain_of(delta, d):
-        return strains(rod, composed_q(delta), r + d)
+        return strains(rod, composed_q(delta), r + d, t)
 
     (phi, gap), pull = jax.vjp(strain_of, delta, d)
     Kp, Kg = jnp.asarray(rod.turn_stiffness), jnp.asarray(rod.gap_stiffness)
@@ -226,7 +238,7 @@ def forces_at(rod, Q, r, delta, d, Omega=None, v=None, scale=1.0):
     if rod.foundation is not None:
         G_delta = G_delta + jax.grad(lambda de: site_energy(rod, composed_q(de)))(delta)
     q = composed_q(delta)
-    F_ex, M_ex = _external(rod, q, scale)
+    F_ex, M_ex = _external(rod, q, scale, Motion(q, r + d, Omega, v, t))
     M = -jax.vmap(lambda de, g: Turn(de).Z(g))(delta, G_delta) + M_ex
     F = -G_d + F_ex
     turn, pos = _free(rod)
@@ -246,7 +258,7 @@ def _skew(x):
     )
 
 
-def forces_tangent(rod, Q, r, Omega=None, v=None, scale=1.0):
+def forces_tangent(rod, Q, r, Omega=None, v=None, scale=1.0, t=0.0):
     r""":func:`forces_at` at zero increments ($\delta = d = 0$), the fast path of the explicit
     integrator (:mod:`._rod_verlet`): the forces are first derivatives at $\delta = 0$, where
     $Q\cdot Q(\delta)$ and $Q\cdot(E + \delta\times)$ have the same tangent and
@@ -254,7 +266,7 @@ def forces_tangent(rod, Q, r, Omega=None, v=None, scale=1.0):
     to :func:`forces_at` to rounding (tested)."""
 
     def strain_of(delta, d):
-        return strains(rod, Q + jnp.einsum("bij,bjk->bik", Q, _skew(delta)), r + d)
+        return strains(rod, Q + jnp.einsum("bij,bjk->bik", Q, _skew(delta)), r + d, t)
 
     z = jnp.zeros_like(r)
     (phi, gap), pull = jax.vjp(strain_of, z, z)
@@ -267,19 +279,20 @@ def forces_tangent(rod, Q, r, Omega=None, v=None, scale=1.0):
     if rod.foundation is not None:
         grow = jax.grad(lambda de: site_energy(rod, Q + jnp.einsum("bij,bjk->bik", Q, _skew(de))))
         G_delta = G_delta + grow(z)
-    F_ex, M_ex = _external(rod, Q, scale)
+    F_ex, M_ex = _external(rod, Q, scale, Motion(Q, r, Omega, v, t))
     turn, pos = _free(rod)
     return (M_ex - G_delta) * turn[:, None], (F_ex - G_d) * pos[:, None]
 
 
-def rates(rod, state: RodState, scale=1.0) -> RodState:
+def rates(rod, state: RodState, scale=1.0, t=0.0) -> RodState:
     r"""The time derivative of a state: $\dot\theta = Z^T(\theta)\cdot\Omega$ (4.14),
     $\dot r = v$, $A\cdot\dot\Omega = M - \Omega\times A\cdot\Omega$ (4.55), $m\dot v = F$; the
-    held coordinates of the base stay. The forces by :func:`forces_tangent` (those of
+    held coordinates of the base stay; the loads and the rest curvature at time ``t``. The
+    forces by :func:`forces_tangent` (those of
     :func:`body_forces` at zero increments, to rounding): a smaller program than through
     $Q(\delta)$ and $Z(\delta)$ at $\delta = 0$, whose diffrax solves compile and run faster
     (benchmarks/bench_rod.py; figures: benchmarks/README.md, History)."""
-    M, F = forces_tangent(rod, tensors(state.theta), state.r, state.Omega, state.v, scale)
+    M, F = forces_tangent(rod, tensors(state.theta), state.r, state.Omega, state.v, scale, t)
     A = jnp.asarray(rod.inertia)
     AOm = jnp.einsum("bij,bj->bi", A, state.Omega)
     Omega_dot = jnp.linalg.solve(A, (M - cross3(state.Omega.T, AOm.T).T)[..., None])[..., 0]
@@ -301,16 +314,18 @@ def kinetic_energy(rod, state: RodState):
     return rot + 0.5 * jnp.sum(jnp.asarray(rod.mass) * jnp.sum(state.v**2, axis=-1))
 
 
-def potential_energy(rod, state: RodState):
-    """The couplings' energy, the foundation's and the potential of gravity and dead forces."""
+def potential_energy(rod, state: RodState, t=0.0):
+    """The couplings' energy (their rest curvature at time ``t``), the foundation's and the
+    potential of gravity and dead forces."""
     q = tensors(state.theta)
-    return coupling_energy(rod, q, state.r) + site_energy(rod, q) + _load_potential(rod, state.r)
+    U = coupling_energy(rod, q, state.r, t) + site_energy(rod, q)
+    return U + _load_potential(rod, state.r)
 
 
-def energy(rod, state: RodState):
-    """Kinetic plus potential energy: conserved without damping, follower loads and dead
-    moments."""
-    return kinetic_energy(rod, state) + potential_energy(rod, state)
+def energy(rod, state: RodState, t=0.0):
+    """Kinetic plus potential energy (at time ``t``): conserved without damping, follower
+    loads, dead moments, actuation and friction."""
+    return kinetic_energy(rod, state) + potential_energy(rod, state, t)
 
 
 def kinetic_moment(rod, state: RodState):

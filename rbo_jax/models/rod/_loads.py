@@ -1,15 +1,20 @@
 r"""Loads on the bodies of a rod (:mod:`._rod`): forces and moments at the tip or on any body,
-dead or follower, weight and distributed dead forces.
+dead or follower, weight and distributed dead forces; actuation (muscle torques, a rest
+curvature that changes with time) and a ground with anisotropic friction (:mod:`._actuation`).
 
 A load gives, per body, a world-frame force $F_i$ (at the body's centre) and a body-frame
-moment $M_i$, at the bodies' turn-tensors; ``scale`` multiplies it (the load steps of
+moment $M_i$, at the bodies' turn-tensors, positions and velocities and at the time
+(:class:`Motion`); ``scale`` multiplies it (the load steps of
 :func:`rbo_jax.lattice.equilibrium`). A follower vector is given in the body's frame and turns
 with it: the force analogue of (4.57).
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -18,6 +23,7 @@ from ..._validation import float_dtype, is_traced
 
 __all__ = [
     "AbstractRodLoad",
+    "Motion",
     "DistributedForce",
     "Gravity",
     "TipForce",
@@ -39,20 +45,40 @@ def real_array(x, name: str, owner: str = "rod"):
     return x
 
 
+class Motion(NamedTuple):
+    """Where and when the loads act: the bodies' turn-tensors ``Q`` (N+1, 3, 3), positions ``r``,
+    body-frame angular velocities ``Omega`` and velocities ``v`` (N+1, 3) (``None`` at rest:
+    the statics), and the time ``t`` (0 in the statics)."""
+
+    Q: jax.Array
+    r: jax.Array
+    Omega: jax.Array | None
+    v: jax.Array | None
+    t: jax.Array | float
+
+
 class AbstractRodLoad(eqx.Module):
     """A load on the bodies of a rod: world-frame forces and body-frame moments, ``(N+1, 3)``
-    each, at the turn-tensors and positions of the bodies. ``needs_positions``: a force needs
-    bodies that translate (a plain lattice of bodies with fixed points refuses it)."""
+    each, at the turn-tensors, positions and velocities of the bodies and at the time
+    (:class:`Motion`). ``needs_positions``: a force needs bodies that translate (a plain
+    lattice of bodies with fixed points refuses it); ``needs_velocity``: it depends on the
+    velocities (friction: the explicit splitting then evaluates it at predicted velocities)."""
 
     needs_positions = True
+    needs_velocity = False
 
     def check(self, rod) -> None:
         """Refuse a load that does not fit ``rod`` (a body that does not exist)."""
 
-    def forces(self, rod, rotate, scale):
+    def forces(self, rod, rotate, scale, at: Motion):
         """``(F (N+1, 3) world, M (N+1, 3) body)``; ``rotate(i, x, back)`` turns ``x`` by the
-        turn of body ``i`` (or back)."""
+        turn of body ``i`` (or back); ``at``: the bodies' motion and the time."""
         raise NotImplementedError
+
+    def rest_turns(self, rod, t):
+        """The rest value ``(N, 3)`` this load adds to every coupling's relative turn at time
+        ``t`` (an actuation of the rest curvature), or ``None``."""
+        return None
 
 
 def _body_index(body, rod, owner: str) -> int:
@@ -105,7 +131,7 @@ class TipForce(_PointLoad):
     def force(self):
         return self.vector
 
-    def forces(self, rod, rotate, scale):
+    def forces(self, rod, rotate, scale, at):
         i = self.body % rod.n_bodies
         f = scale * jnp.asarray(self.vector)
         F = rotate(i, f, False) if self.follower else f
@@ -125,7 +151,7 @@ class TipMoment(_PointLoad):
     def moment(self):
         return self.vector
 
-    def forces(self, rod, rotate, scale):
+    def forces(self, rod, rotate, scale, at):
         i = self.body % rod.n_bodies
         m = scale * jnp.asarray(self.vector)
         M = m if self.follower else rotate(i, m, True)
@@ -145,7 +171,7 @@ class Gravity(AbstractRodLoad):
             raise ValueError(f"Gravity: g must be a 3-vector, got shape {np.shape(g)}.")
         self.g = g
 
-    def forces(self, rod, rotate, scale):
+    def forces(self, rod, rotate, scale, at):
         F = scale * jnp.asarray(rod.mass)[:, None] * jnp.asarray(self.g)[None, :]
         return F, jnp.zeros_like(F)
 
@@ -162,7 +188,7 @@ class DistributedForce(AbstractRodLoad):
             raise ValueError(f"DistributedForce: q must be a 3-vector, got shape {np.shape(q)}.")
         self.q = q
 
-    def forces(self, rod, rotate, scale):
+    def forces(self, rod, rotate, scale, at):
         F = scale * jnp.asarray(rod.share)[:, None] * jnp.asarray(self.q)[None, :]
         return F, jnp.zeros_like(F)
 
@@ -175,7 +201,8 @@ def as_rod_loads(loads) -> tuple:
         if not isinstance(load, AbstractRodLoad):
             raise TypeError(
                 "rod: loads must be rbo_jax.lattice loads (TipForce, TipMoment, Gravity, "
-                f"DistributedForce), got {type(load).__name__}. Moments of a single body's "
+                "DistributedForce, MuscleTorques, RestCurvature, FrictionalPlane), got "
+                f"{type(load).__name__}. Moments of a single body's "
                 "foundation go in `foundation`."
             )
     return loads
