@@ -30,11 +30,12 @@ SMOKE_ARGS = {
     "fitting": ["--samples", "20", "--trajectories", "1"],
     "lattice": ["--smoke"],
     "rod": ["--smoke"],  # PyElastica's rows skipped without it (the `bench` extra)
+    "snake": ["--smoke"],  # likewise
     "dask": ["--smoke"],  # skipped without distributed (the `dask` extra)
     "cores": ["--smoke", "--rows", "map"],  # three fresh processes
 }
 # run in a process started on one core (the first this process may use)
-PINNED = {"rod"}
+PINNED = {"rod", "snake"}
 ONE_CORE = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
 README = os.path.join(os.path.dirname(os.path.abspath(__file__)), "README.md")
 BEGIN, END = "<!-- current table: begin (make bench) -->", "<!-- current table: end -->"
@@ -256,6 +257,22 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                     "",
                 )
             )
+    sn = results.get("snake")
+    if sn:
+        rj, pe = sn["snake"][0], (sn["snake"][1:] or [None])[0]
+        if pe is not None:
+            rows.append(
+                (
+                    "snake",
+                    f"continuum snake (n = {sn['n']}, {sn['simulated_s']:.1f} s): midpoint "
+                    f"(dt = {rj['dt']:g}) vs PyElastica PositionVerlet (dt = {pe['dt']:g}), wall; "
+                    f"forward speed {rj['forward'] / pe['forward'] - 1:+.1%}",
+                    _fmt(pe["wall"] / rj["wall"], ".2f") + "x",
+                    f"jax {rj['first'] - rj['wall']:.1f}",
+                )
+            )
+        else:
+            rows.append(("snake", "pyelastica not installed, skipped", "-", ""))
     co = results.get("cores")
     if co:
         for r in co["rows"]:
@@ -384,7 +401,7 @@ def main(argv=None) -> int:
         "--only",
         nargs="*",
         default=None,
-        help="subset of: sweep simulate stability fitting lattice rod dask cores",
+        help="subset of: sweep simulate stability fitting lattice rod snake dask cores",
     )
     parser.add_argument("--no-write", action="store_true", help="do not write README.md")
     args = parser.parse_args(argv)
@@ -400,6 +417,7 @@ def main(argv=None) -> int:
         "fitting": "bench_fitting",
         "lattice": "bench_lattice",
         "rod": "bench_rod",
+        "snake": "bench_snake",
         "dask": "bench_dask",
         "cores": "bench_cores",
     }

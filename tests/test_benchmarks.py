@@ -50,6 +50,7 @@ def test_every_benchmark_runs_and_prints_the_summary(smoke_output):
         "=== fitting ===",
         "=== lattice ===",
         "=== rod ===",
+        "=== snake ===",
         "=== dask ===",
         "=== cores ===",
         "speed-up over one core",
