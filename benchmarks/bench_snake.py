@@ -16,8 +16,9 @@ friction); 11.01 periods.
   same couples), ``FrictionalPlane`` (a contact spring of 10⁴ N/m² per unit length, critically
   damped, its onset smoothed over 10⁻⁴ m; friction smoothed over a slip velocity of 10⁻³ m/s),
   ``lattice.simulate`` with the default method (the implicit midpoint rule: the rod is stiff)
-  at ``--dt`` (10⁻² s by default; 2·10⁻² s, the samples' spacing and the default step, fails to
-  converge where the friction switches direction within a step), no damping.
+  at ``--dt`` (10⁻² s by default; at 2·10⁻² s, the samples' spacing and the default step, the
+  Newton iterations fail where the friction switches direction within a step, and those steps
+  are taken in substeps: it completes, slower), no damping.
 
 Both report the average forward and lateral speed as PyElastica's
 ``compute_projected_velocity`` defines them (the centre of mass's velocity projected on its mean

@@ -116,3 +116,39 @@ def test_midpoint_rule_is_second_order_against_dopri8():
     ratios = np.array(errors[:-1]) / np.array(errors[1:])
     assert np.all((ratios > 3.6) & (ratios < 4.4)), (errors, ratios)
     assert errors[-1] < 1e-3 * np.max(np.abs(flat(ref)))
+
+
+def _pendulums(t, x, k):
+    """Three pendulums in a row, weakly coupled: (q, p) per block."""
+    q, p = x[:, 0], x[:, 1]
+    z = jnp.zeros(1)
+    lap = jnp.concatenate([q[1:], z]) + jnp.concatenate([z, q[:-1]]) - 2 * q
+    return jnp.stack([p, -k * jnp.sin(q) + 0.1 * lap], -1)
+
+
+def test_a_step_whose_newton_fails_is_split_and_differentiated(monkeypatch):
+    """Large swings of pendulums at a step of a sixth of their period: the Newton iterations of
+    a whole step do not converge, and without substeps the solve fails; with them
+    (``MAX_SUBSTEPS``) it completes, and ``jax.grad`` through the substeps' implicit
+    derivatives equals central differences and forward mode."""
+    from rbo_jax.integrate import midpoint as mp
+
+    x0 = jnp.stack([jnp.array([2.5, 2.0, 1.5]), jnp.zeros(3)], -1)
+    ts = jnp.linspace(0.0, 6.0, 7)
+
+    def run(k):
+        counts, steps = jnp.ones(6, jnp.int32), jnp.ones(6)
+        tol = dict(rtol=1e-12, atol=1e-14)
+        return mp.midpoint(_pendulums, x0, ts, counts, steps, args=k, max_count=1, **tol)
+
+    def end(k):
+        return run(k)[0][-1, 0, 0]
+
+    xs, ok, _ = run(1.0)
+    assert bool(ok) and np.all(np.isfinite(np.asarray(xs)))
+    grad = float(jax.grad(end)(1.0))
+    fd = (float(end(1.0 + 1e-6)) - float(end(1.0 - 1e-6))) / 2e-6
+    assert abs(grad / fd - 1) < 1e-6
+    assert abs(float(jax.jacfwd(end)(1.0)) / grad - 1) < 1e-9
+    monkeypatch.setattr(mp, "MAX_SUBSTEPS", 1)
+    assert not bool(run(1.0)[1])

@@ -5,7 +5,7 @@ unknowns ordered body by body ($m$ a body), the Jacobian $J = \partial f/\partia
 equations of motion $\dot x = f(x)$ is block-tridiagonal. One step of the implicit midpoint
 rule,
 
-$$x_{n+1} = x_n + h\,f\!\left(\tfrac12 (x_n + x_{n+1})\right),$$
+$$x_{n+1} = x_n + h\,f\!\left(t_n + \tfrac h2, \tfrac12 (x_n + x_{n+1})\right),$$
 
 is second order, symmetric and A-stable, and it keeps every quadratic invariant exactly: on a
 linear elastic system its energy is kept to the Newton tolerance at any step. A mode of
@@ -24,14 +24,18 @@ the matrix $I - \tfrac h2 J$: its blocks from $3m$ Jacobian-vector products
 (:class:`~rbo_jax.solvers.FactoredTridiagonal`, in the project's one loop of Newton updates:
 :func:`~rbo_jax.solvers.iterate`, :func:`~rbo_jax.solvers.newton_update`): O(N m³) to factor,
 O(N m²) an iteration. The Jacobian is kept from step to step (a small motion barely changes it)
-and computed anew at the current state only when the iterations do not converge within
-``max_newton``; the factors are made anew when the step changes. The iterations stop when the
-update is within ``atol + rtol |y|`` in every component. A step that does not converge with a
-fresh Jacobian ends the solve: ``ok`` is false and the samples from there on are ``inf``.
+and computed anew, at the midpoint of the last iterate, only when the iterations do not
+converge within ``max_newton`` (up to :data:`MAX_REFRESH` times a step); after such a step the
+next :data:`EAGER_STEPS` steps start with a new one (a rod that turns: its stiff directions turn
+with it, and a kept matrix fails at every step). The iterations stop when the update is within
+``atol + rtol |y|`` in every component. A step that still does not converge is taken as 2, 4,
+..., :data:`MAX_SUBSTEPS` equal substeps (the first count whose every substep converges); where
+none does, the solve ends: ``ok`` is false and the samples from there on are ``inf``.
 
-**Derivatives.** Each step's solution $y(x_n, p)$ is differentiated by the project's one
-implicit-derivative rule (:func:`rbo_jax.solvers.implicit`): $dy = (I - \tfrac h2 J)^{-1}
-[(I + \tfrac h2 J)\,dx_n + h\,\partial_p f\,dp]$ with $J$ at the midpoint, its block-tridiagonal
+**Derivatives.** Each step's (or substep's) solution $y(x_n, p)$ is differentiated by the
+project's one implicit-derivative rule (:func:`rbo_jax.solvers.implicit`):
+$dy = (I - \tfrac h2 J)^{-1} [(I + \tfrac h2 J)\,dx_n + h\,\partial_p f\,dp]$ with $J$ at
+the midpoint, its block-tridiagonal
 matrix from $3m$ products and one block elimination; the chord iterations are never
 differentiated. With the steps' counts known before tracing (``max_count``) every loop has a
 fixed length, so ``jax.grad`` (reverse mode) runs through the solve: it transposes one
@@ -67,6 +71,8 @@ __all__ = ["midpoint"]
 EAGER_STEPS = 8
 # the new Jacobians a step may take when its chord iterations do not converge
 MAX_REFRESH = 2
+# the most substeps of a step whose Newton iterations do not converge (2, 4, ... of them)
+MAX_SUBSTEPS = 8
 
 
 def _once_if(pred, fn, x):
@@ -102,6 +108,145 @@ def _found(params):
     return Implicit(params[4], None, params[5], None)
 
 
+class _Stepper(eqx.Module):
+    """The steps of :func:`midpoint`: the chord iterations (on frozen arguments: never
+    differentiated) and each step's differentiable solution through :func:`_found`."""
+
+    field: Callable = eqx.field(static=True)
+    args: object
+    frozen: object
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    max_newton: int = eqx.field(static=True)
+    project: Callable | None = eqx.field(static=True)
+
+    def factor(self, J, h):
+        L, D, U = J
+        eye = jnp.eye(D.shape[-1], dtype=D.dtype)
+        return tridiagonal_factor(-0.5 * h * L, eye[None] - 0.5 * h * D, -0.5 * h * U)
+
+    def newton(self, x, y0, fac, h, t):
+        """The chord iterations of one step from ``y0``: the project's one loop
+        (:func:`rbo_jax.solvers.iterate`) of Newton's update with the step's factors."""
+        residual = _Residual(self.field)
+
+        def chord(y, state):
+            r = residual(y, 0.0, (self.frozen, x, t, h, None, None))
+            y, _, done, finite = newton_update(
+                r, fac, FactoredTridiagonal(), y, rtol=self.rtol, atol=self.atol
+            )
+            code = jnp.where(finite, jnp.where(done, 0, RUNNING), 1)
+            return y, state, code
+
+        y, _, code, _ = iterate(chord, y0, None, max_steps=self.max_newton, exhausted=1)
+        return y, code == 0
+
+    def solve(self, J, fac, refreshes, x, y0, h, t, eager):
+        """``(J, fac, refreshes, y, converged, rounds)`` of one step from ``x``: the kept
+        matrix first (a new one first where ``eager``), then up to :data:`MAX_REFRESH` new
+        ones at the midpoint of the chord's last iterate."""
+
+        def jacobian(c):
+            J, fac, refreshes, y = c
+            y = jnp.where(jnp.all(jnp.isfinite(y)), y, x)
+            J = tridiagonal_jacobian(
+                lambda z: self.field(t + 0.5 * h, z, self.frozen), 0.5 * (x + y)
+            )
+            return J, self.factor(J, h), refreshes + 1, y
+
+        def attempt(c):
+            J, fac, refreshes, y, _, rounds, need = c
+            J, fac, refreshes, y = _once_if(need, jacobian, (J, fac, refreshes, y))
+            y, conv = self.newton(x, y, fac, h, t)
+            return J, fac, refreshes, y, conv, rounds + 1, True
+
+        start = (J, fac, refreshes, y0, jnp.asarray(False), 0, eager)
+        out = lax.while_loop(lambda c: ~c[4] & (c[5] <= MAX_REFRESH), attempt, start)
+        return out[:6]
+
+    def substeps(self, J, fac, refreshes, x, y0, h, t, eager):
+        """``(J, fac, refreshes, states, count, converged, rounds)`` of one step from ``x``:
+        the whole step from ``y0`` (the kept matrix, or a new one first where ``eager``), and
+        where it does not converge 2, 4, ... :data:`MAX_SUBSTEPS` equal substeps, the first
+        count whose every substep converges (each count's first substep with a new matrix).
+        ``states[j]``: the state after substep ``j`` (``states[0] = x``); ``rounds``: the
+        most attempts of one solve (more than one: the kept matrix failed)."""
+
+        def split(c):
+            J, fac, refreshes, states, count, _, rounds = c
+            count = jnp.where(rounds == 0, 1, 2 * count)
+            hs = h / jnp.asarray(count).astype(h.dtype)
+
+            def one(j, s):
+                J, fac, refreshes, states, conv, rounds = s
+                whole = count == 1
+                xj = states[j]
+                start = jnp.where(whole, y0, xj)
+                J, fac, refreshes, y, ok, r = self.solve(
+                    J,
+                    fac,
+                    refreshes,
+                    xj,
+                    start,
+                    hs,
+                    t + jnp.asarray(j).astype(hs.dtype) * hs,
+                    jnp.where(whole, eager, j == 0),
+                )
+                states = states.at[j + 1].set(y)
+                return J, fac, refreshes, states, conv & ok, jnp.maximum(rounds, r)
+
+            J, fac, refreshes, states, conv, rounds = lax.fori_loop(
+                0,
+                count,
+                one,
+                (J, fac, refreshes, states, jnp.asarray(True), jnp.maximum(rounds, 1)),
+            )
+            return J, fac, refreshes, states, count, conv, rounds
+
+        states = jnp.zeros((MAX_SUBSTEPS + 1, *x.shape), x.dtype).at[0].set(x)
+        start = (J, fac, refreshes, states, 1, jnp.asarray(False), 0)
+        return lax.while_loop(lambda c: ~c[5] & (c[4] < MAX_SUBSTEPS), split, start)
+
+    def step(self, c):
+        """One step of the carry ``(x, rate, J, fac, h, t, ok, refreshes, eager_left)``."""
+        x, rate, J, fac, h, t, ok, refreshes, eager_left = c
+        xs, hs = lax.stop_gradient(x), lax.stop_gradient(h)
+        y0 = xs + hs * lax.stop_gradient(rate)  # the last step's rate, extrapolated
+        J, fac, refreshes, states, count, conv, rounds = self.substeps(
+            J, fac, refreshes, xs, y0, hs, t, eager_left > 0
+        )
+        # a new matrix first for the next steps where the kept one failed (or was for substeps)
+        fresh = (rounds > 1) | (count > 1)
+        eager_left = jnp.where(fresh, EAGER_STEPS, jnp.maximum(eager_left - 1, 0))
+        y = self.chain(x, t, h, states, count, conv)
+        rate = (y - x) / h  # the next step's start
+        if self.project is not None:
+            y = self.project(y)
+        good = ok & conv & jnp.all(jnp.isfinite(y))
+        return jnp.where(good, y, x), rate, J, fac, h, t + h, good, refreshes, eager_left
+
+    def chain(self, x, t, h, states, count, conv):
+        """The step's solution through its ``count`` substeps' roots ``states[1:]``, each
+        differentiated by the implicit-derivative rule (the rest skipped)."""
+        residual, hs = _Residual(self.field), h / jnp.asarray(count).astype(h.dtype)
+
+        def one(y, j):
+            def solved(y):
+                params = (
+                    self.args,
+                    y,
+                    t + jnp.asarray(j).astype(hs.dtype) * hs,
+                    hs,
+                    states[j + 1],
+                    conv,
+                )
+                return implicit(_found, residual, params, linear=Tridiagonal()).y
+
+            return lax.cond(j < count, solved, lambda y: y, y), None
+
+        return lax.scan(one, x, jnp.arange(MAX_SUBSTEPS))[0]
+
+
 def midpoint(
     field,
     x0,
@@ -130,75 +275,18 @@ def midpoint(
     Returns ``(xs, ok, refreshes)``: the samples ``(K+1, N, m)`` (``x0`` first; ``inf`` from a
     failed step on), whether every step converged, and how many times the Jacobian was
     computed."""
-    eye = jnp.eye(x0.shape[1], dtype=x0.dtype)
-    residual = _Residual(field)
-
-    def factor(J, h):
-        L, D, U = J
-        return tridiagonal_factor(-0.5 * h * L, eye[None] - 0.5 * h * D, -0.5 * h * U)
-
-    linear = FactoredTridiagonal()
-
-    def newton(a, x, y0, fac, h, t):
-        """The chord iterations of one step from ``y0``: the project's one loop
-        (:func:`rbo_jax.solvers.iterate`) of Newton's update with the step's factors."""
-
-        def chord(y, state):
-            r = residual(y, 0.0, (a, x, t, h, None, None))
-            y, _, done, finite = newton_update(r, fac, linear, y, rtol=rtol, atol=atol)
-            code = jnp.where(finite, jnp.where(done, 0, RUNNING), 1)
-            return y, state, code
-
-        y, _, code, _ = iterate(chord, y0, None, max_steps=max_newton, exhausted=1)
-        return y, code == 0
-
-    def step(c):
-        x, rate, J, fac, h, t, ok, refreshes, eager_left = c
-        eager = eager_left > 0
-        a, xs, hs, ts_ = _frozen(args), lax.stop_gradient(x), lax.stop_gradient(h), t
-        y0 = xs + hs * lax.stop_gradient(rate)  # the last step's rate, extrapolated
-
-        def jacobian(c):
-            J, fac, refreshes, y = c
-            y = jnp.where(jnp.all(jnp.isfinite(y)), y, xs)
-            J = tridiagonal_jacobian(lambda z: field(ts_ + 0.5 * hs, z, a), 0.5 * (xs + y))
-            return J, factor(J, hs), refreshes + 1, y
-
-        def attempt(c):
-            """Chord iterations, with a new Jacobian first where ``need``."""
-            J, fac, refreshes, y, _, rounds, need = c
-            J, fac, refreshes, y = _once_if(need, jacobian, (J, fac, refreshes, y))
-            y, conv = newton(a, xs, y, fac, hs, ts_)
-            return J, fac, refreshes, y, conv, rounds + 1, True
-
-        # the kept Jacobian first (a new one first after a step that needed one), then up to
-        # MAX_REFRESH new ones at the midpoint of the chord's last iterate
-        J, fac, refreshes, y, conv, rounds, _ = lax.while_loop(
-            lambda c: ~c[4] & (c[5] <= MAX_REFRESH),
-            attempt,
-            (J, fac, refreshes, y0, jnp.asarray(False), 0, eager),
-        )
-        # the kept Jacobian failed this step: a new one first for the next EAGER_STEPS steps
-        stale = rounds > 1
-        eager_left = jnp.where(stale, EAGER_STEPS, jnp.maximum(eager_left - 1, 0))
-        y = implicit(_found, residual, (args, x, t, h, y, conv), linear=Tridiagonal()).y
-        rate = (y - x) / h  # the next step's start
-        if project is not None:
-            y = project(y)
-        good = ok & conv & jnp.all(jnp.isfinite(y))
-        return jnp.where(good, y, x), rate, J, fac, h, t + h, good, refreshes, eager_left
-
-    checkpointed = jax.checkpoint(step)
+    stepper = _Stepper(field, args, _frozen(args), rtol, atol, max_newton, project)
+    checkpointed = jax.checkpoint(lambda s: stepper.step(s))  # a closure: the stepper is traced
 
     def interval(c, inputs):
         x, rate, J, fac, h_prev, ok, refreshes, eager = c
         n, h, t = inputs
-        fac = _once_if(h != h_prev, lambda f: factor(J, lax.stop_gradient(h)), fac)
+        fac = _once_if(h != h_prev, lambda f: stepper.factor(J, lax.stop_gradient(h)), fac)
         inner = (x, rate, J, fac, h, t, ok, refreshes, eager)
         if max_count is None:  # each interval its own count
             inner = lax.while_loop(
                 lambda s: (s[0] < n) & s[1][6],
-                lambda s: (s[0] + 1, step(s[1])),
+                lambda s: (s[0] + 1, stepper.step(s[1])),
                 (0, inner),
             )[1]
         else:  # a loop of fixed length, the steps past the count skipped
@@ -212,9 +300,10 @@ def midpoint(
         x, rate, J, fac, _, _, ok, refreshes, eager = inner
         return (x, rate, J, fac, h, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
 
-    J0 = tridiagonal_jacobian(lambda z: field(ts[0], z, _frozen(args)), lax.stop_gradient(x0))
+    frozen = stepper.frozen
+    J0 = tridiagonal_jacobian(lambda z: field(ts[0], z, frozen), lax.stop_gradient(x0))
     h0 = lax.stop_gradient(steps[0])
-    carry = (x0, jnp.zeros_like(x0), J0, factor(J0, h0), h0, True, 1, 0)
+    carry = (x0, jnp.zeros_like(x0), J0, stepper.factor(J0, h0), h0, True, 1, 0)
     carry = jax.tree_util.tree_map(jnp.asarray, carry)
     (_, _, _, _, _, ok, refreshes, _), xs = lax.scan(interval, carry, (counts, steps, ts[:-1]))
     return jnp.concatenate([x0[None], xs]), ok, refreshes
