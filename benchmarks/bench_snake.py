@@ -285,8 +285,9 @@ def main(argv=None):
             f"\nPyElastica / rbo_jax wall time: {ratio:.2f}x; forward speed rbo_jax vs "
             f"PyElastica: {rel:+.2%}"
         )
-    write_json(args.json, {"snake": rows, "n": args.n, "simulated_s": sim_t})
-    return rows
+    result = {"snake": rows, "n": args.n, "simulated_s": sim_t}
+    write_json(args.json, result)
+    return result
 
 
 if __name__ == "__main__":

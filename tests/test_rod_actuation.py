@@ -168,6 +168,7 @@ def driven_rod(bending=1.0, damping=0.01, amplitude=0.05, wave_number=2.0, perio
     )  # fmt: skip
 
 
+@pytest.mark.slow  # two integrators' programs of a driven rod (~16 s)
 def test_driven_rod_splitting_and_midpoint_agree():
     """Muscle torques act at each step's time in both fixed-step methods: the two second-order
     methods at small steps give the same motion (to their O(dt^2) errors)."""

@@ -126,29 +126,37 @@ def _pendulums(t, x, k):
     return jnp.stack([p, -k * jnp.sin(q) + 0.1 * lap], -1)
 
 
-def test_a_step_whose_newton_fails_is_split_and_differentiated(monkeypatch):
-    """Large swings of pendulums at a step of a sixth of their period: the Newton iterations of
-    a whole step do not converge, and without substeps the solve fails; with them
-    (``MAX_SUBSTEPS``) it completes, and ``jax.grad`` through the substeps' implicit
-    derivatives equals central differences and forward mode."""
+def _pendulum_run(k):
+    """Large swings of three pendulums at a step of a sixth of their period (one step per
+    interval): the Newton iterations of a whole step do not converge."""
     from rbo_jax.integrate import midpoint as mp
 
     x0 = jnp.stack([jnp.array([2.5, 2.0, 1.5]), jnp.zeros(3)], -1)
     ts = jnp.linspace(0.0, 6.0, 7)
+    counts, steps = jnp.ones(6, jnp.int32), jnp.ones(6)
+    tol = dict(rtol=1e-12, atol=1e-14)
+    return mp.midpoint(_pendulums, x0, ts, counts, steps, args=k, max_count=1, **tol)
 
-    def run(k):
-        counts, steps = jnp.ones(6, jnp.int32), jnp.ones(6)
-        tol = dict(rtol=1e-12, atol=1e-14)
-        return mp.midpoint(_pendulums, x0, ts, counts, steps, args=k, max_count=1, **tol)
+
+def test_a_step_whose_newton_fails_is_split_into_substeps(monkeypatch):
+    """Without substeps the solve fails; with them (``MAX_SUBSTEPS``) it completes."""
+    from rbo_jax.integrate import midpoint as mp
+
+    xs, ok, _ = _pendulum_run(1.0)
+    assert bool(ok) and np.all(np.isfinite(np.asarray(xs)))
+    monkeypatch.setattr(mp, "MAX_SUBSTEPS", 1)
+    assert not bool(_pendulum_run(1.0)[1])
+
+
+@pytest.mark.slow  # reverse and forward mode of the substeps: two programs (~10 s)
+def test_gradient_through_substeps_matches_central_differences():
+    """``jax.grad`` through the substeps' implicit derivatives (one after the other) equals
+    central differences and forward mode."""
 
     def end(k):
-        return run(k)[0][-1, 0, 0]
+        return _pendulum_run(k)[0][-1, 0, 0]
 
-    xs, ok, _ = run(1.0)
-    assert bool(ok) and np.all(np.isfinite(np.asarray(xs)))
     grad = float(jax.grad(end)(1.0))
     fd = (float(end(1.0 + 1e-6)) - float(end(1.0 - 1e-6))) / 2e-6
     assert abs(grad / fd - 1) < 1e-6
     assert abs(float(jax.jacfwd(end)(1.0)) / grad - 1) < 1e-9
-    monkeypatch.setattr(mp, "MAX_SUBSTEPS", 1)
-    assert not bool(run(1.0)[1])

@@ -514,9 +514,9 @@ def _midpoint(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
     """``method="midpoint"``: ``(states, status, steps, messages)``. With concrete ``ts`` and
     ``dt`` the step and its counts are checked on the host first (a ``ValueError``); under a
     transformation every loop then has a fixed length (``jax.grad`` runs through it), in an
-    eager call each interval runs its own count (a ``while`` loop: 25-35 % faster a step than
-    the loop of fixed length, measured at n = 50). With traced ones the counts are computed in
-    the program."""
+    eager call each interval runs its own count (a ``while`` loop, faster a step than the loop
+    of fixed length: benchmarks/README.md). With traced ones the counts are computed in the
+    program."""
     if not is_traced(ts) and not is_traced(dt):
         ts_host = np.asarray(ts, dtype=np.float64)
         h = float(_midpoint_step(ts_host)) if dt is None else float(dt)
