@@ -55,8 +55,8 @@ from ..trajectory import (
 )
 from ._rod_verlet import (
     failed_after_first,
+    host_counts,
     stable_step,
-    step_counts,
     traced_counts,
     verlet,
     verlet_traced,
@@ -522,14 +522,7 @@ def _midpoint(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
         h = float(_midpoint_step(ts_host)) if dt is None else float(dt)
         if not (np.isfinite(h) and h > 0):
             raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {h}.")
-        span = np.diff(ts_host)
-        counts = step_counts(span, h)
-        total = int(min(np.sum(counts), 2.0**62))
-        if total > max_steps:
-            raise ValueError(
-                f"lattice.simulate: method='midpoint' needs {total} steps of dt = {h:.3g} s "
-                f"for ts, more than max_steps = {max_steps}: raise max_steps or dt."
-            )
+        span, counts, total = host_counts(ts_host, h, max_steps, "midpoint")
         if staged:
             states, ok = _midpoint_fixed_jit(
                 rod, state0, jnp.asarray(ts), jnp.asarray(counts.astype(np.int32)),

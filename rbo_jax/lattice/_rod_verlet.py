@@ -364,6 +364,27 @@ def step_counts(span, dt, xp=np):
     return xp.maximum(xp.ceil(span / dt - 1e-9), 1.0)
 
 
+def host_counts(ts, dt: float, max_steps: int, method: str):
+    r"""``(span, counts, total)`` of a fixed-step method with concrete ``ts`` and ``dt``: each
+    interval in :func:`step_counts` equal steps; a ``ValueError`` where the total is above
+    ``max_steps`` or an interval's count past int32 (the programs count in int32)."""
+    span = np.diff(np.asarray(ts, dtype=np.float64))
+    counts = step_counts(span, dt)
+    total = int(min(np.sum(counts), 2.0**62))
+    if total > max_steps:
+        raise ValueError(
+            f"lattice.simulate: method='{method}' needs {total} steps of dt = {dt:.3g} s for "
+            f"ts, more than max_steps = {max_steps}: raise max_steps or dt."
+        )
+    if np.max(counts) >= 2.0**31:
+        raise ValueError(
+            f"lattice.simulate: method='{method}' needs {int(np.max(counts))} steps of "
+            f"dt = {dt:.3g} s between two samples of ts, more than 2**31 - 1: sample ts more "
+            "densely or raise dt."
+        )
+    return span, counts, total
+
+
 def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000):
     r"""``(states, ok, steps, dt)``: the motion of ``rod`` from ``state0`` sampled at ``ts``
     (module docstring) with steps of at most ``dt`` (default :func:`stable_step` at
@@ -373,20 +394,7 @@ def verlet(rod: Rod, state0: RodState, ts, dt=None, max_steps: int = 10_000_000)
     if not (math.isfinite(dt) and dt > 0):
         what = "dt" if given else "the default step (from the stiffnesses and masses)"
         raise ValueError(f"lattice.simulate: {what} must be finite and > 0, got {dt}.")
-    span = np.diff(np.asarray(ts, dtype=np.float64))
-    counts = step_counts(span, dt)
-    total = int(min(np.sum(counts), 2.0**62))
-    if total > max_steps:
-        raise ValueError(
-            f"lattice.simulate: method='splitting' needs {total} steps of dt = {dt:.3g} s for "
-            f"ts, more than max_steps = {max_steps}: raise max_steps or dt."
-        )
-    if np.max(counts) >= 2.0**31:  # the program counts the steps of an interval in int32
-        raise ValueError(
-            f"lattice.simulate: method='splitting' needs {int(np.max(counts))} steps of "
-            f"dt = {dt:.3g} s between two samples of ts, more than 2**31 - 1: sample ts more "
-            "densely or raise dt."
-        )
+    span, counts, total = host_counts(ts, dt, max_steps, "splitting")
     h = jnp.asarray(span / counts, dtype=ts.dtype)
     counts = counts.astype(np.int32)
     stripped, damped = _static_zeros(rod)
