@@ -338,6 +338,7 @@ BAD_OPTIONS = [
     (["--rod", "n = 4", "--rod-steps", "3"], "--rod-steps belongs to --rod-start equilibrium"),
     (["--rod", "n = 4", "--rod-perturbation", "nan"], "--rod-perturbation must be finite"),
     (["--rod", "n = 4", "--t1", "-1"], "--t1 must be finite and > 0"),
+    (["--rod", "n = 4", "--rod-method", "verlet"], "--rod-method"),
     (
         ["--rod", "n = 4, loads = [{ type = 'gravity', g = [0, 0] }]"],
         "[rod.loads][0] g: must be a list of 3",
