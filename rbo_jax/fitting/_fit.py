@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+import warnings
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -17,8 +18,10 @@ from ._residuals import (
     INTEGRATORS,
     Spec,
     leaf_paths,
+    param_names,
     residuals_and_jacobian,
     resolve_transforms,
+    scalar_names,
     transform,
     transform_derivative,
     unpack,
@@ -35,10 +38,17 @@ class FitResult(eqx.Module):
 
     ``model``: the fitted model; ``params``: fitted values of the selected parameters (tuple, in
     the order of the selector); ``stderr``: their standard errors (same structure);
-    ``covariance``: covariance of all fitted scalars (flattened, parameters then initial states);
-    ``initial_states``: fitted or given ``(theta0, Omega0)`` per trajectory; ``loss_history``:
-    the loss ½Σr² after each iteration (every stage); ``num_steps``; ``converged``;
-    ``message``; ``residual_rms``; ``wall_time`` (seconds, compilation included).
+    ``covariance``: covariance of all fitted scalars (flattened: parameters, the gyroscope's
+    bias, initial states); ``initial_states``: fitted or given ``(theta0, Omega0)`` per
+    trajectory; ``loss_history``: the loss ½Σr² after each iteration (every stage);
+    ``num_steps``; ``converged``; ``message``; ``residual_rms``; ``wall_time`` (seconds,
+    compilation included).
+
+    ``Omega_bias``, ``Omega_bias_standard_errors``: the gyroscope's fitted constant bias (3,)
+    (body frame, rad/s) and its standard errors, where some data asked for it
+    (``TrajectoryData(..., Omega_bias="fit")``), else None. ``names``: the parameters' names,
+    their paths in the model (``"foundation.c"``, ``"loads[0].b"``). ``unconstrained``: the
+    optimum in the coordinates the fit iterates on (log/softplus of the parameters).
     """
 
     model: RigidBodyOscillator
@@ -52,10 +62,15 @@ class FitResult(eqx.Module):
     message: str
     residual_rms: float
     wall_time: float
+    names: tuple = ()
+    Omega_bias: np.ndarray | None = None
+    Omega_bias_standard_errors: np.ndarray | None = None
+    unconstrained: dict | None = None
 
     def to_xarray(self, names: Sequence[str] | None = None, **attrs):
         """The result as an :class:`xarray.Dataset`: ``estimate`` and ``stderr`` over the
-        dimension ``parameter`` (scalar parameters, named by ``names`` or ``p0, p1, ...``),
+        dimension ``parameter`` (scalar parameters, named by ``names`` or by their paths in the
+        model, ``foundation.c``; ``inertia[0]`` for an element of an array),
         ``covariance`` over (``parameter``, ``parameter_2``) of the fitted scalars,
         ``loss_history`` over ``iteration``; attributes ``converged``, ``message``,
         ``num_steps``, ``residual_rms``, ``wall_time`` plus ``attrs``."""
@@ -63,11 +78,13 @@ class FitResult(eqx.Module):
 
         values = np.concatenate([np.ravel(p) for p in self.params])
         errors = np.concatenate([np.ravel(s) for s in self.stderr])
-        names = list(names) if names is not None else [f"p{i}" for i in range(values.size)]
+        names = list(names) if names is not None else scalar_names(self.names, self.params)
         if len(names) != values.size:
             raise ValueError(f"names has {len(names)} entries for {values.size} fitted scalars.")
         n_cov = self.covariance.shape[0]
-        labels = names + [f"initial_state_{i}" for i in range(n_cov - values.size)]
+        bias = [] if self.Omega_bias is None else [f"Omega_bias[{i}]" for i in range(3)]
+        labels = names + bias
+        labels += [f"initial_state_{i}" for i in range(n_cov - len(labels))]
         ds = xr.Dataset(
             {
                 "estimate": ("parameter", values, {"long_name": "fitted value"}),
@@ -166,6 +183,8 @@ def _covariance(u, model, datas, spec: Spec):
     r, J = residuals_and_jacobian(u, model, datas, dataclasses.replace(spec, forward=True))
     r = np.asarray(r, dtype=np.float64)
     scale = [transform_derivative(n, x).ravel() for n, x in zip(spec.transforms, natural)]
+    if spec.fit_bias:
+        scale.append(np.ones(3))
     if spec.fit_initial_state:
         scale.append(np.ones(sum(np.size(x) for state in u["x0"] for x in state)))  # (θ0, Ω0)
     sigma_known = all(
@@ -180,7 +199,8 @@ def _covariance(u, model, datas, spec: Spec):
     se = tuple(
         se_flat[offsets[i] : offsets[i + 1]].reshape(np.shape(v)) for i, v in enumerate(natural)
     )
-    return r, cov, se, note
+    bias_se = se_flat[offsets[-1] : offsets[-1] + 3] if spec.fit_bias else None
+    return r, cov, se, bias_se, note
 
 
 def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, verbose):
@@ -205,6 +225,52 @@ def _stages(u, model, datas, spec, horizons, optimizer, options, history, bar, v
         )
         total += steps
     return u, total, converged, message
+
+
+def setup(
+    model,
+    data,
+    params,
+    *,
+    transforms=None,
+    fit_initial_state=False,
+    optimizer="levenberg_marquardt",
+    solve_rtol=1e-10,
+    solve_atol=1e-10,
+    solve_max_steps=100_000,
+    integrator=None,
+):
+    """The checked problem of a fit: ``(datas, spec, u)`` with ``u`` the starting point in the
+    fit's unconstrained coordinates (``{"p": parameters, "p_bias": the gyroscope's bias,
+    "x0": initial states}``, the last two where fitted). :func:`fit`,
+    :func:`rbo_jax.posterior` and :func:`rbo_jax.profile_likelihood` all start here."""
+    datas = tuple(_as_data_list(data))
+    _check_options(optimizer, (1.0,), 1, solve_max_steps)
+    if not fit_initial_state and any(d.initial_state_guessed for d in datas):
+        warnings.warn(
+            "an initial state was taken from a sample after t0 (the data's first samples are "
+            "missing): give theta0 and Omega0, or fit them (fit_initial_state=True).",
+            stacklevel=3,
+        )
+    integrator = _integrator(integrator, optimizer)
+    values = _selected(model, params)
+    spec = Spec(
+        paths=leaf_paths(model, values),
+        transforms=resolve_transforms(values, transforms),
+        fit_initial_state=bool(fit_initial_state),
+        rtol=float(solve_rtol),
+        atol=float(solve_atol),
+        forward=optimizer in LEAST_SQUARES,
+        max_solver_steps=int(solve_max_steps),
+        integrator=integrator,
+        fit_bias=any(d.fit_Omega_bias for d in datas),
+    )
+    u = {"p": tuple(transform(n, v) for n, v in zip(spec.transforms, values))}
+    if spec.fit_bias:  # the dict's keys sort as p, p_bias, x0: the order of the covariance
+        u["p_bias"] = np.zeros(3)
+    if fit_initial_state:
+        u["x0"] = tuple((d.theta0, d.Omega0) for d in datas)
+    return datas, spec, u
 
 
 def fit(
@@ -257,23 +323,19 @@ def fit(
     so repeated fits (bootstrap, noise studies) compile once.
     """
     start = time.perf_counter()
-    datas = tuple(_as_data_list(data))
-    horizons = _check_options(optimizer, horizons, max_steps, solve_max_steps)
-    integrator = _integrator(integrator, optimizer)
-    values = _selected(model, params)
-    spec = Spec(
-        paths=leaf_paths(model, values),
-        transforms=resolve_transforms(values, transforms),
-        fit_initial_state=bool(fit_initial_state),
-        rtol=float(solve_rtol),
-        atol=float(solve_atol),
-        forward=optimizer in LEAST_SQUARES,
-        max_solver_steps=int(solve_max_steps),
+    datas, spec, u = setup(
+        model,
+        data,
+        params,
+        transforms=transforms,
+        fit_initial_state=fit_initial_state,
+        optimizer=optimizer,
+        solve_rtol=solve_rtol,
+        solve_atol=solve_atol,
+        solve_max_steps=solve_max_steps,
         integrator=integrator,
     )
-    u = {"p": tuple(transform(n, v) for n, v in zip(spec.transforms, values))}
-    if fit_initial_state:
-        u["x0"] = tuple((d.theta0, d.Omega0) for d in datas)
+    horizons = _check_options(optimizer, horizons, max_steps, solve_max_steps)
     history: list[float] = []
     bar = None
     if progress:
@@ -296,7 +358,7 @@ def fit(
     finally:
         if bar is not None:
             bar.close()
-    r, cov, se, note = _covariance(u, model, datas, spec)
+    r, cov, se, bias_se, note = _covariance(u, model, datas, spec)
     fitted_model, natural, states = unpack(u, model, len(datas), spec)
     init_states = tuple(
         (np.asarray(d.theta0 if th0 is None else th0), np.asarray(d.Omega0 if Om0 is None else Om0))
@@ -314,4 +376,8 @@ def fit(
         message=message + note,
         residual_rms=float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
         wall_time=time.perf_counter() - start,
+        names=param_names(spec),
+        Omega_bias=np.asarray(u["p_bias"]) if spec.fit_bias else None,
+        Omega_bias_standard_errors=bias_se,
+        unconstrained=u,
     )

@@ -41,8 +41,12 @@ def residuals(
     adjoint=None,
     max_steps=100_000,
     integrator: str = "simulate",
+    Omega_bias=None,
 ) -> jax.Array:
-    """The whitened residual vector of one trajectory (see the package docstring).
+    r"""The whitened residual vector of one trajectory (see the package docstring).
+
+    ``Omega_bias``: the gyroscope's bias (3,) where the data fits it (``Omega_bias="fit"``):
+    the model's reading is then $\Omega + b$; a known bias comes with the data.
 
     ``integrator``: ``"simulate"`` (diffrax; ``adjoint`` chooses how it is differentiated,
     reverse mode by default) or ``"fast_simulate"`` (DOP853, forward mode only: ``jax.jvp``,
@@ -77,7 +81,13 @@ def residuals(
     if data.Q is not None or (data.theta is not None and data.theta_weight is None):
         Q_obs = data.Q if data.Q is not None else jax.vmap(turn_tensor)(data.theta)
         Q_mod = jax.vmap(turn_tensor)(traj.theta)
+        if data.attitude_weight is not None:  # a missing sample: compared with itself (r = 0,
+            # a finite derivative), then weighed 0
+            seen = data.attitude_weight[:, None, None] > 0
+            Q_obs = jnp.where(seen, Q_obs, jax.lax.stop_gradient(Q_mod))
         r = jax.vmap(lambda a, b: turn_vector(a.T @ b))(Q_obs, Q_mod)
+        if data.attitude_weight is not None:
+            r = data.attitude_weight[:, None] * r
         out.append(r / (data.sigma_theta or 1.0))
     elif data.theta is not None:
         out.append(data.theta_weight * (traj.theta - data.theta) / (data.sigma_theta or 1.0))
@@ -86,7 +96,14 @@ def residuals(
         out.append(w * (traj.omega - data.omega) / (data.sigma_omega or 1.0))
     if data.Omega is not None:
         w = 1.0 if data.Omega_weight is None else data.Omega_weight
-        out.append(w * (traj.Omega - data.Omega) / (data.sigma_Omega or 1.0))
+        reading = traj.Omega
+        if data.fit_Omega_bias:
+            if Omega_bias is None:
+                raise ValueError("the data fits Omega_bias: give the bias (Omega_bias=...).")
+            reading = reading + jnp.asarray(Omega_bias)[None, :]
+        elif data.Omega_bias is not None:
+            reading = reading + data.Omega_bias[None, :]
+        out.append(w * (reading - data.Omega) / (data.sigma_Omega or 1.0))
     return jnp.concatenate([o.ravel() for o in out])
 
 
@@ -180,6 +197,23 @@ class Spec:
     forward: bool
     max_solver_steps: int = 100_000
     integrator: str = "simulate"
+    fit_bias: bool = False
+
+
+def param_names(spec: Spec) -> tuple:
+    """The fitted parameters' names: their paths in the model, ``"foundation.c"``,
+    ``"loads[0].b"``."""
+    return tuple(jax.tree_util.keystr(p).lstrip(".") for p in spec.paths)
+
+
+def scalar_names(names, values) -> list:
+    """One name per fitted scalar: ``name`` for a scalar, ``name[i]`` (flat index) for an
+    element of an array parameter."""
+    out = []
+    for name, v in zip(names, values):
+        size = int(np.size(v))
+        out += [name] if np.ndim(v) == 0 else [f"{name}[{i}]" for i in range(size)]
+    return out
 
 
 def leaf_paths(model, values) -> tuple:
@@ -219,7 +253,7 @@ def unpack(u, model, n_data, spec: Spec):
     return with_params(model, spec, natural), natural, states
 
 
-def stack_residuals(model, datas, states, spec: Spec):
+def stack_residuals(model, datas, states, spec: Spec, bias=None):
     if spec.integrator == "fast_simulate":
         adjoint = None  # forward mode only (custom_jvp)
     else:
@@ -238,6 +272,7 @@ def stack_residuals(model, datas, states, spec: Spec):
                 adjoint=adjoint,
                 max_steps=spec.max_solver_steps,
                 integrator=spec.integrator,
+                Omega_bias=bias,
             )
             for d, (th0, Om0) in zip(datas, states)
         ]
@@ -246,7 +281,7 @@ def stack_residuals(model, datas, states, spec: Spec):
 
 def residual_vector(u, model, datas, spec: Spec):
     m, _, states = unpack(u, model, len(datas), spec)
-    return stack_residuals(m, datas, states, spec)
+    return stack_residuals(m, datas, states, spec, u.get("p_bias"))
 
 
 @eqx.filter_jit
