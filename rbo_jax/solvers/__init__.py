@@ -21,6 +21,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "._implicit": ("Implicit", "implicit"),
         "._least_squares": (
             "gauss_newton_covariance",
+            "levenberg_marquardt",
             "record_loss",
             "run_least_squares",
             "value_and_jacfwd",

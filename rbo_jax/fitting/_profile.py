@@ -1,0 +1,279 @@
+r""":func:`profile_likelihood`: the profile of the negative log-likelihood along one parameter,
+every other fitted quantity re-fitted at each value.
+
+For the whitened residuals $r(u)$ of :func:`rbo_jax.fit` (Gaussian noise with the data's
+$\sigma$), the negative log-likelihood is
+
+$$\ell(u) = \tfrac12 \sum_i r_i^2 + \sum_i \log\big(\sigma_i\sqrt{2\pi}\big),$$
+
+the sum over the observed residual components (missing samples do not count). The profile of a
+parameter $p$ is $\ell_p(v) = \min_{u:\,p = v} \ell(u)$, the others (and the gyroscope's bias and
+the initial states) re-fitted. By Wilks' theorem $2(\ell_p(v) - \min \ell)$ is asymptotically
+$\chi^2_1$, so the interval of level $1 - \alpha$ is where
+$\ell_p(v) - \min\ell \le \chi^2_{1,1-\alpha}/2$ (1.92 at 95 %). Unlike $\pm 1.96$ standard
+errors it follows the likelihood where it is not quadratic: a weakly excited axis, a damping of
+a few percent near zero.
+
+The re-fits are Levenberg–Marquardt iterations in JAX (:func:`rbo_jax.solvers.levenberg_marquardt`)
+with forward-mode Jacobians through the ODE solves, one lane per value, in one program compiled
+once for all values (``lax.map`` over them: a ``vmap`` measured far slower on CPU, see
+:func:`_refit`). Each lane starts from the fit's optimum moved along the
+Gauss–Newton prediction $u_f = u_f^* - H_{ff}^{-1} H_{fp}(u_p - u_p^*)$.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ..solvers import levenberg_marquardt
+from ._fit import fit, setup
+from ._residuals import (
+    leaf_at,
+    param_names,
+    residual_vector,
+    scalar_names,
+    transform,
+    unpack,
+)
+
+__all__ = ["profile_likelihood"]
+
+
+def _observed(datas) -> list:
+    """``(count, sigma)`` of each observed channel: the residual components that count (missing
+    samples do not) and the noise level (None: not given)."""
+    out = []
+    for d in datas:
+        n = d.num_samples
+        if d.Q is not None or (d.theta is not None and d.theta_weight is None):
+            seen = n if d.attitude_weight is None else np.sum(np.asarray(d.attitude_weight) > 0)
+            out.append((3 * int(seen), d.sigma_theta))
+        elif d.theta is not None:
+            out.append((int(np.sum(np.asarray(d.theta_weight) > 0)), d.sigma_theta))
+        for x, w, sigma in (
+            (d.omega, d.omega_weight, d.sigma_omega),
+            (d.Omega, d.Omega_weight, d.sigma_Omega),
+        ):
+            if x is not None:
+                out.append((3 * n if w is None else int(np.sum(np.asarray(w) > 0)), sigma))
+    return out
+
+
+def _which(name, names, values) -> int:
+    scalars = scalar_names(names, values)
+    if name not in scalars:
+        raise ValueError(f"name must be one of the fitted parameters {scalars}, got {name!r}.")
+    return scalars.index(name)
+
+
+def _fixed_values(values, transform_name, name) -> np.ndarray:
+    v = np.asarray(values, dtype=np.float64)
+    if v.ndim != 1 or v.size < 2 or not np.all(np.isfinite(v)):
+        raise ValueError(f"values must be a 1-D array of at least 2 finite values of {name}.")
+    if transform_name in ("log", "softplus") and not np.all(v > 0):
+        raise ValueError(f"values of {name} must be positive (it is fitted as {transform_name}).")
+    return v
+
+
+def _with_jacobian(res, x):
+    """``(res(x), ∂res/∂x)`` by forward mode."""
+
+    def both(z):
+        r = res(z)
+        return r, r
+
+    J, r = jax.jacfwd(both, has_aux=True)(x)
+    return r, J
+
+
+@eqx.filter_jit
+def _at_optimum(x, template, model, datas, spec):
+    """The residuals and their Jacobian at the fit's optimum (all coordinates)."""
+    unravel = ravel_pytree(template)[1]
+    return _with_jacobian(lambda z: residual_vector(unravel(z), model, datas, spec), x)
+
+
+@eqx.filter_jit
+def _refit(x_free0, fixed, k, template, model, datas, spec, max_steps, tol):
+    """The re-fit at each fixed value, in one program: ``(x_free, F, converged, num_steps)``; the
+    unknowns are the flat coordinates of ``template`` (the fit's ``u``) but the ``k``-th."""
+    unravel = ravel_pytree(template)[1]
+
+    def evaluate(x_free, xk):
+        return _with_jacobian(
+            lambda z: residual_vector(unravel(jnp.insert(z, k, xk)), model, datas, spec),
+            x_free,
+        )
+
+    def one(lane):
+        x_free, xk = lane
+        return levenberg_marquardt(lambda y: evaluate(y, xk), x_free, max_steps=max_steps, tol=tol)
+
+    # one lane after another in the compiled program: a vmap of the ODE solves' forward-mode
+    # Jacobians runs every lane for the longest lane's iterations and steps, measured ~30x
+    # slower on CPU (issue 51's closing note)
+    return jax.lax.map(one, (x_free0, fixed))
+
+
+def _predicted_starts(J, x_star, k, fixed) -> np.ndarray:
+    """The free coordinates at each fixed value by the Gauss–Newton prediction
+    $u_f = u_f^* - H_{ff}^{-1} H_{fk} (u_k - u_k^*)$, $H = J^TJ$."""
+    H = J.T @ J
+    free = np.delete(np.arange(x_star.size), k)
+    slope = np.linalg.lstsq(H[np.ix_(free, free)], H[free, k], rcond=None)[0]
+    return x_star[free][None, :] - (fixed - x_star[k])[:, None] * slope[None, :]
+
+
+def _interval(v, delta, threshold, estimate):
+    """The χ² interval from the profile: where Δℓ crosses the threshold on each side of the
+    estimate, interpolated linearly between the values (NaN where it does not cross)."""
+    order = np.argsort(v)
+    v, delta = v[order], delta[order]
+    bounds = []
+    for side in (-1, 1):
+        idx = np.flatnonzero(v < estimate)[::-1] if side < 0 else np.flatnonzero(v > estimate)
+        bound, prev = np.nan, (estimate, 0.0)
+        for i in idx:
+            if np.isfinite(delta[i]) and delta[i] >= threshold:
+                (v0, d0), (v1, d1) = prev, (v[i], delta[i])
+                bound = v0 + (threshold - d0) * (v1 - v0) / (d1 - d0)
+                break
+            prev = (v[i], delta[i])
+        bounds.append(bound)
+    return bounds
+
+
+def profile_likelihood(
+    model,
+    data,
+    params,
+    name: str,
+    values,
+    *,
+    level: float = 0.95,
+    fit_initial_state: bool = True,
+    transforms=None,
+    start=None,
+    max_steps: int = 30,
+    tol: float = 1e-10,
+    solve_rtol: float = 1e-10,
+    solve_atol: float = 1e-10,
+    solve_max_steps: int = 100_000,
+):
+    r"""The profile likelihood of the parameter ``name`` at ``values`` (see the module
+    docstring), and its interval of level ``level`` by the $\chi^2_1$ threshold.
+
+    **Arguments:** `model`, `data`, `params`, `transforms`, `fit_initial_state`, `solve_*` as for
+    :func:`rbo_jax.fit` (the initial states and the gyroscope's bias, where the data fits it,
+    are re-fitted too by default); `name`: the profiled parameter as the fit names it
+    (``"foundation.c"``, ``"loads[0].b"``, ``"inertia[1]"``); `values`: its values (natural
+    units), at least two; `start`: a :class:`rbo_jax.FitResult` of the same problem (else
+    :func:`rbo_jax.fit` runs first); `max_steps`, `tol`: of the re-fits.
+
+    **Returns** an :class:`xarray.Dataset` over the dimension ``value`` (coordinate: the values
+    of ``name``): ``neg_log_likelihood`` ($\ell_p$), ``delta`` ($\ell_p - \min\ell$), the
+    re-fitted parameters under their names, ``Omega_bias`` (``value``, ``component``) where
+    fitted, ``theta0`` and ``Omega0`` (``value``, ``experiment``, ``component``) where fitted,
+    ``converged`` and ``num_steps`` per value. Attributes: ``parameter``, ``estimate``,
+    ``stderr`` (Gauss–Newton), ``level``, ``threshold`` ($\chi^2_{1,level}/2$), ``lower``,
+    ``upper`` (NaN where the profile does not cross the threshold within ``values``: widen
+    them), ``min_neg_log_likelihood``, ``sigma_scale`` (1, or the residual scale estimated by
+    the fit where the data give no ``sigma_*``), ``wall_time``.
+    """
+    t_start = time.perf_counter()
+    _check(level, max_steps)
+    options = dict(
+        transforms=transforms,
+        fit_initial_state=fit_initial_state,
+        solve_rtol=solve_rtol,
+        solve_atol=solve_atol,
+        solve_max_steps=solve_max_steps,
+    )
+    datas, spec, _ = setup(model, data, params, **options)
+    names = param_names(spec)
+    natural0 = tuple(np.asarray(leaf_at(model, p)) for p in spec.paths)
+    k = _which(name, names, natural0)
+    owner = int(np.searchsorted(np.cumsum([np.size(x) for x in natural0]), k, side="right"))
+    v = _fixed_values(values, spec.transforms[owner], name)
+    result = start if start is not None else fit(model, datas, params, **options)
+    x_star, unravel = ravel_pytree(result.unconstrained)
+    template = result.unconstrained
+    x_star = np.asarray(x_star, dtype=np.float64)
+    fixed = np.array([transform(spec.transforms[owner], x) for x in v])
+    r, J = (np.asarray(a) for a in _at_optimum(jnp.asarray(x_star), template, model, datas, spec))
+    observed = _observed(datas)
+    m = sum(count for count, _ in observed)
+    known = all(sigma is not None for _, sigma in observed)
+    scale = 1.0 if known else float(np.sqrt(float(r @ r) / max(m - x_star.size, 1)))
+    const = sum(c * np.log((sigma or scale) * np.sqrt(2 * np.pi)) for c, sigma in observed)
+    x_free, F, ok, steps = _refit(
+        jnp.asarray(_predicted_starts(J, x_star, k, fixed)),
+        jnp.asarray(fixed),
+        k,
+        template,
+        model,
+        datas,
+        spec,
+        max_steps,
+        tol,
+    )
+    nll = np.asarray(F) / scale**2 + const
+    nll_min = min(0.5 * float(r @ r) / scale**2 + const, float(np.nanmin(nll)))
+    threshold = statistics.NormalDist().inv_cdf((1 + level) / 2) ** 2 / 2
+    estimate = float(np.concatenate([np.ravel(p) for p in result.params])[k])
+    lower, upper = _interval(v, nll - nll_min, threshold, estimate)
+    full = np.insert(np.asarray(x_free), k, fixed, axis=1)
+    ds = _dataset([unravel(jnp.asarray(x)) for x in full], model, datas, spec, name, v)
+    ds["neg_log_likelihood"] = ("value", nll, {"long_name": "negative log-likelihood"})
+    ds["delta"] = ("value", nll - nll_min, {"long_name": "neg_log_likelihood - its minimum"})
+    ds["converged"] = ("value", np.asarray(ok))
+    ds["num_steps"] = ("value", np.asarray(steps))
+    ds.attrs.update(
+        parameter=name,
+        estimate=estimate,
+        stderr=float(np.concatenate([np.ravel(s) for s in result.stderr])[k]),
+        level=level,
+        threshold=threshold,
+        lower=lower,
+        upper=upper,
+        min_neg_log_likelihood=nll_min,
+        sigma_scale=scale,
+        wall_time=time.perf_counter() - t_start,
+    )
+    return ds
+
+
+def _check(level, max_steps):
+    if not 0 < level < 1:
+        raise ValueError(f"level must be in (0, 1), got {level!r}.")
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+
+
+def _dataset(us, model, datas, spec, name, v):
+    """The re-fitted quantities of each lane as an :class:`xarray.Dataset` over ``value``."""
+    import xarray as xr
+
+    lanes = [unpack(u, model, len(datas), spec) for u in us]
+    names = scalar_names(param_names(spec), lanes[0][1])
+    flat = np.array([np.concatenate([np.ravel(np.asarray(x)) for x in n]) for _, n, _ in lanes])
+    ds = xr.Dataset(coords={"value": ("value", v, {"long_name": name})})
+    for i, other in enumerate(names):
+        if other != name:
+            ds[other] = ("value", flat[:, i])
+    if spec.fit_bias:
+        ds["Omega_bias"] = (("value", "component"), np.array([np.asarray(u["p_bias"]) for u in us]))
+    if spec.fit_initial_state:
+        for j, key in enumerate(("theta0", "Omega0")):
+            ds[key] = (
+                ("value", "experiment", "component"),
+                np.array([[np.asarray(s[j]) for s in u["x0"]] for u in us]),
+            )
+    return ds
