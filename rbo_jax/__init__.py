@@ -100,7 +100,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "precession_variational_matrix",
             "regular_precession",
         ),
-        ".fitting": ("FitResult", "TrajectoryData", "fit"),
+        ".fitting": ("FitResult", "TrajectoryData", "fit", "posterior", "profile_likelihood"),
         ".bifurcation": (
             "BautinPoint",
             "BautinStatus",

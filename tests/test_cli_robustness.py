@@ -23,7 +23,7 @@ from helpers import run_cli as _run
 from sweep_quantities import SMALL_CONFIG
 
 from rbo_jax.app import _outputs, cli
-from rbo_jax.app._io import read_trajectory_file, write_dataset
+from rbo_jax.app._io import netcdf_engine, read_trajectory_file, write_dataset
 from rbo_jax.app.cli._memory import SHARE, physical_memory
 
 
@@ -227,7 +227,10 @@ def _data_files(folder) -> dict[str, tuple[str, str | None]]:
         "a fit needs at least 2",
         arrays={"t": t[:1], "theta": good["theta"][:1], "Omega": good["Omega"][:1]},
     )
-    add("hdf5.nc", "netCDF 4", b"\x89HDF\r\n\x1a\n" + rng.bytes(100))
+    # a corrupt HDF5 file: "needs the netCDF4 or h5netcdf package" where neither is installed,
+    # else the HDF5 library's own reason (h5netcdf comes with ArviZ, the posteriors' extra)
+    hdf5 = "netCDF 4" if netcdf_engine() not in ("netcdf4", "h5netcdf") else "not a readable"
+    add("hdf5.nc", hdf5, b"\x89HDF\r\n\x1a\n" + rng.bytes(100))
     add("truncated.npz", "not a readable .npz", (folder / "valid.npz").read_bytes()[:120])
     add("npy.npz", "not a .npz archive", b"\x93NUMPY" + rng.bytes(50))
     add("missing.npz", "no such file")

@@ -48,6 +48,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     {  # loaded on first use
         "._data": ("TrajectoryData",),
         "._fit": ("FitResult", "fit"),
+        "._posterior": ("posterior",),
+        "._profile": ("profile_likelihood",),
         "._residuals": ("residuals",),
     },
 )

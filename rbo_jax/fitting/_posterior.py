@@ -1,0 +1,541 @@
+r""":func:`posterior`: the Bayesian posterior of a fit's parameters by NUTS (BlackJAX), through
+the same whitened residuals as :func:`rbo_jax.fit`.
+
+**The density.** With the whitened residuals $r(u)$ of every experiment (model minus observation
+over the data's noise level $\sigma$; a missing sample contributes 0) the likelihood is Gaussian,
+and the log posterior in the fit's unconstrained coordinates $u$ is
+
+$$\log p(u \mid \text{data}) = -\tfrac12 |r(u)|^2 + \log\pi(u) + \text{const}.$$
+
+$u$ holds the parameters in their transformed coordinates (log, softplus or identity, as
+:func:`rbo_jax.fit` chooses them), the gyroscope's bias where some data fits it
+(``Omega_bias="fit"``), and the initial state $(\theta_0, \Omega_0)$ of every experiment (always
+sampled, nuisance parameters). The prior $\pi$ is a density **in u**: by default flat (improper)
+on u, i.e. flat on log c for a log-transformed c (a scale-invariant $1/c$ prior in the natural
+coordinate); ``priors`` adds log densities per name. As the prior is stated in u, the density in u
+needs no Jacobian term. A flat prior on u gives a proper posterior where the data identify every
+coordinate (the Gauss–Newton matrix $J^TJ$ is regular).
+
+**The sampler.** :func:`rbo_jax.fit` (with ``fit_initial_state=True``) gives the optimum $u^*$;
+the Gauss–Newton covariance $\Sigma = (J^TJ)^{-1}$ at $u^*$ (J: forward-mode Jacobian of r in
+u) is factored, $\Sigma = LL^T$, and NUTS samples $z$ with $u = u^* + Lz$: the log density in z
+differs from that in u by a constant, and the identity mass matrix in z is $\Sigma$ in u. Stan's
+window adaptation (diagonal mass matrix in z, dual-averaging step size, ``num_warmup`` steps)
+starts from there. Each chain starts at a draw of the Laplace approximation, $z_0 \sim N(0, I)$.
+
+**Gradients.** ``integrator="fast_simulate"`` (DOP853 with forward-mode derivatives only): the
+log likelihood is a ``jax.custom_vjp`` whose forward pass computes r and J by forward mode
+(:func:`rbo_jax.solvers.value_and_jacfwd`, one tangent per scalar of u) and whose backward pass
+is $-J^Tr$. ``integrator="simulate"`` (diffrax): reverse mode through the solve
+(``RecursiveCheckpointAdjoint``).
+
+**Chains** run in one program: split over the local devices (``shard_map``, each device a
+``vmap`` of its chains; ``chain_method="pmap"``) when the device count divides ``chains``, else
+``vmap``. Warmup and draws are one scan of one NUTS transition (one compiled gradient): the
+transitions before ``num_warmup`` adapt, the later ones use the adapted step size and mass
+matrix.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ..solvers import value_and_jacfwd
+from ._fit import fit, setup
+from ._residuals import INTEGRATORS, param_names, residual_vector, residuals_and_jacobian
+
+__all__ = ["posterior"]
+
+CHAIN_METHODS = ("auto", "pmap", "vmap")
+_SIGMA_OF = (("theta", "sigma_theta"), ("Q", "sigma_theta"), ("omega", "sigma_omega"))
+_SIGMA_OF += (("Omega", "sigma_Omega"),)
+
+
+def _check_arguments(num_warmup, num_samples, chains, integrator, chain_method, progress_chunks):
+    def integer(name, value, low):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}.")
+
+    integer("num_warmup", num_warmup, 0)
+    integer("num_samples", num_samples, 1)
+    integer("chains", chains, 1)
+    integer("progress_chunks", progress_chunks, 1)
+    if integrator not in INTEGRATORS:
+        raise ValueError(
+            f"integrator must be one of {', '.join(map(repr, INTEGRATORS))}, got {integrator!r}."
+        )
+    if chain_method not in CHAIN_METHODS:
+        raise ValueError(
+            f"chain_method must be one of {', '.join(map(repr, CHAIN_METHODS))}, "
+            f"got {chain_method!r}."
+        )
+
+
+def _check_sigmas(datas):
+    """The likelihood is Gaussian with the data's noise levels: each observed channel needs
+    its sigma."""
+    for i, d in enumerate(datas):
+        for channel, sigma in _SIGMA_OF:
+            if getattr(d, channel) is not None and getattr(d, sigma) is None:
+                raise ValueError(
+                    f"data[{i}] observes {channel} without {sigma}: the posterior's likelihood "
+                    f"needs the noise level of every observed channel (give {sigma}=...)."
+                )
+
+
+def _check_priors(priors, names, fit_bias) -> dict:
+    """``priors`` as a dict name -> callable, its names checked."""
+    if priors is None:
+        return {}
+    if not isinstance(priors, dict):
+        raise ValueError("priors must be a dict: name -> callable returning a log density.")
+    known = list(names) + (["Omega_bias"] if fit_bias else []) + ["initial_state"]
+    for name, f in priors.items():
+        if name not in known:
+            raise ValueError(
+                f"priors names {name!r}, which is not sampled; choose from {', '.join(known)}."
+            )
+        if not callable(f):
+            raise ValueError(f"priors[{name!r}] must be callable, got {type(f).__name__}.")
+    return dict(priors)
+
+
+def _log_prior(priors, names):
+    """log π(u): the sum of the given priors, each on its coordinates in u (transformed
+    parameters, the bias, each experiment's (θ0, Ω0)); 0 (flat) for the rest."""
+
+    def log_prior(u):
+        total = jnp.zeros(())
+        for name, value in zip(names, u["p"]):
+            if name in priors:
+                total = total + jnp.sum(priors[name](value))
+        if "Omega_bias" in priors:
+            total = total + jnp.sum(priors["Omega_bias"](u["p_bias"]))
+        if "initial_state" in priors:
+            for theta0, Omega0 in u["x0"]:
+                total = total + jnp.sum(priors["initial_state"](theta0, Omega0))
+        return total
+
+    return log_prior
+
+
+def _log_likelihood(model, datas, spec, unravel):
+    """-½|r(u)|² of the flat u, differentiable in reverse mode: through diffrax's adjoint
+    (``simulate``), or a custom VJP whose forward pass is the forward-mode Jacobian
+    (``fast_simulate``): the gradient is -Jᵀr."""
+
+    def residuals(flat):
+        return residual_vector(unravel(flat), model, datas, spec)
+
+    if spec.integrator == "simulate":
+        return lambda flat: -0.5 * jnp.sum(residuals(flat) ** 2)
+
+    @jax.custom_vjp
+    def log_likelihood(flat):
+        return -0.5 * jnp.sum(residuals(flat) ** 2)
+
+    def forward(flat):
+        r, J = value_and_jacfwd(residuals, flat)
+        return -0.5 * jnp.sum(r**2), -(J.T @ r)
+
+    def backward(gradient, cotangent):
+        return (cotangent * gradient,)
+
+    log_likelihood.defvjp(forward, backward)
+    return log_likelihood
+
+
+def _log_density(model, datas, spec, priors, u_star, L):
+    """log p(z) with u = u* + L z: the log likelihood plus the log prior, -inf where a solve
+    failed (NUTS then rejects the step as divergent)."""
+    flat_star, unravel = ravel_pytree(u_star)
+    log_likelihood = _log_likelihood(model, datas, spec, unravel)
+    log_prior = _log_prior(priors, param_names(spec))
+    flat_star, L = jnp.asarray(flat_star), jnp.asarray(L)
+
+    def log_density(z):
+        flat = flat_star + L @ z
+        value = log_likelihood(flat) + log_prior(unravel(flat))
+        return jnp.where(jnp.isfinite(value), value, -jnp.inf)
+
+    return log_density
+
+
+def _laplace(model, datas, spec, u_star):
+    """The Gauss–Newton covariance (JᵀJ)⁻¹ in u at the optimum and its Cholesky factor L."""
+    r, J = residuals_and_jacobian(u_star, model, datas, dataclasses.replace(spec, forward=True))
+    n = int(np.size(r))  # the Jacobian tree as a matrix, columns in the order of ravel_pytree
+    J = np.concatenate([np.asarray(b).reshape(n, -1) for b in jax.tree_util.tree_leaves(J)], 1)
+    w, V = np.linalg.eigh(J.T @ J)
+    if not np.all(np.isfinite(w)) or w.min() <= 1e-12 * max(w.max(), 1e-300):
+        raise ValueError(
+            "the Gauss–Newton matrix JᵀJ at the fit's optimum is singular: the data do not "
+            "identify every sampled coordinate, and the flat prior gives an improper posterior "
+            "(fit fewer parameters, or give priors)."
+        )
+    cov = (V / w) @ V.T
+    cov = 0.5 * (cov + cov.T)
+    return cov, np.linalg.cholesky(cov)
+
+
+def _adaptation():
+    """Stan's window adaptation as BlackJAX's ``(init, update, final)`` (diagonal mass matrix,
+    target acceptance 0.8) and its schedule."""
+    from blackjax.adaptation import window_adaptation
+
+    with warnings.catch_warnings():  # deprecated in BlackJAX 1.7 for its own loop, kept here:
+        warnings.simplefilter("ignore", DeprecationWarning)  # that loop compiles twice
+        return window_adaptation.base(True, 0.8), window_adaptation.build_schedule
+
+
+def _chain(log_density, num_warmup, chunk):
+    """One chain's ``start(z0)`` and ``advance(key, carry, first)``: ``chunk`` NUTS transitions
+    from the transition ``first`` on. The warmup's transitions (index < ``num_warmup``) adapt
+    the step size and diagonal inverse mass matrix (Stan's windows); the later ones use the
+    adapted values. Warmup and draws share one program, so the gradient is compiled once."""
+    import blackjax
+
+    (init, update, final), build_schedule = _adaptation()
+    kernel = blackjax.nuts.build_kernel()
+    schedule = np.zeros((num_warmup + chunk + 1, 2), dtype=np.int32)
+    if num_warmup:
+        schedule[:num_warmup] = np.asarray(build_schedule(num_warmup), dtype=np.int32)
+    schedule = jnp.asarray(schedule)
+
+    def start(z0):
+        return blackjax.nuts.init(z0, log_density), init(z0, 1.0)
+
+    def transition(carry, index, key):
+        state, adaptation = carry
+        warm = index < num_warmup
+        step_size, imm = final(adaptation)
+        step_size = jnp.where(warm, adaptation.step_size, step_size)
+        imm = jnp.where(warm, adaptation.inverse_mass_matrix, imm)
+        state, info = kernel(jax.random.fold_in(key, index), state, log_density, step_size, imm)
+        stage = schedule[jnp.minimum(index, num_warmup)]
+        adapted = update(adaptation, (stage[0], stage[1] > 0), state.position, info.acceptance_rate)
+        adaptation = jax.tree.map(lambda a, b: jnp.where(warm, a, b), adapted, adaptation)
+        stats = {
+            "diverging": info.is_divergent,
+            "acceptance_rate": info.acceptance_rate,
+            "tree_depth": info.num_trajectory_expansions,
+            "n_steps": info.num_integration_steps,
+            "energy": info.energy,
+            "lp": state.logdensity,
+            "step_size": step_size,
+        }
+        return (state, adaptation), (state.position, stats)
+
+    def advance(key, carry, first):
+        def body(carry, index):
+            return transition(carry, index, key)
+
+        return jax.lax.scan(body, carry, first + jnp.arange(chunk))
+
+    return start, advance
+
+
+def _uses_devices(chains, chain_method) -> bool:
+    n_dev = jax.local_device_count()
+    if chain_method == "pmap" and chains % n_dev:
+        raise ValueError(f"chain_method='pmap' needs chains divisible by the {n_dev} devices.")
+    return n_dev > 1 and (
+        chain_method == "pmap" or (chain_method == "auto" and chains % n_dev == 0)
+    )
+
+
+def _over_chains(f, sequential):
+    """``f`` over a leading axis: ``vmap``, or ``lax.map`` (one chain after the other) where
+    batching costs more than it saves (fast_simulate's forward-mode Jacobian: measured 30x
+    slower vmapped over 2 chains than one chain)."""
+    if not sequential:
+        return jax.vmap(f)
+    return lambda *xs: jax.lax.map(lambda t: f(*t), xs)
+
+
+def _compiled(f, args, use_devices, sequential):
+    """``f`` over the leading (chain) axis of ``args``, compiled: split over the local devices
+    (``shard_map`` over a batch of one chain's traced program: tracing first keeps equinox's
+    checkpointed loops out of the manual axes) or on one device."""
+    if not use_devices:
+        return jax.jit(_over_chains(f, sequential)).lower(*args).compile()
+    from jax.extend.core import jaxpr_as_fun
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    mesh = Mesh(np.asarray(jax.local_devices()), ("chain",))
+    sharding = NamedSharding(mesh, P("chain"))
+    flat, tree = jax.tree.flatten(args)
+    one = [jax.ShapeDtypeStruct(np.shape(x)[1:], jnp.result_type(x)) for x in flat]
+    closed, shape = jax.make_jaxpr(lambda *xs: f(*jax.tree.unflatten(tree, xs)), return_shape=True)(
+        *one
+    )
+    local = _over_chains(lambda *xs: tuple(jaxpr_as_fun(closed)(*xs)), sequential)
+    program = jax.shard_map(
+        local, mesh=mesh, in_specs=P("chain"), out_specs=P("chain"), check_vma=False
+    )
+    placed = [jax.device_put(x, sharding) for x in flat]
+    program = jax.jit(program).lower(*placed).compile()
+    out_tree = jax.tree.structure(shape)
+
+    def run(*args):
+        placed = [jax.device_put(x, sharding) for x in jax.tree.leaves(args)]
+        return jax.tree.unflatten(out_tree, program(*placed))
+
+    return run
+
+
+def _run_chains(log_density, dim, opts, bar):
+    """Warmup and ``num_samples`` draws per chain in ``progress_chunks`` calls of one program
+    (a progress bar moves between them); returns the draws of z (chains, draws, dim), the
+    sampler's statistics and the seconds spent compiling and running."""
+    chains, num_warmup, num_samples = opts["chains"], opts["num_warmup"], opts["num_samples"]
+    total = num_warmup + num_samples
+    n_chunks = min(opts["progress_chunks"], total)
+    chunk = math.ceil(total / n_chunks)
+    use_devices = _uses_devices(chains, opts["chain_method"])
+    key = jax.random.PRNGKey(opts["seed"])
+    keys = jax.random.split(key, chains)
+    z0 = jax.random.normal(jax.random.fold_in(key, 1), (chains, dim))
+    tic = time.perf_counter()
+    sequential = opts["integrator"] == "fast_simulate"
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        start, advance = _chain(log_density, num_warmup, chunk)  # BlackJAX mixes bool and int
+        carry = _compiled(start, (z0,), use_devices, sequential)(z0)
+        first = jnp.zeros(chains, dtype=jnp.int32)
+        program = _compiled(advance, (keys, carry, first), use_devices, sequential)
+    times = {"compile": time.perf_counter() - tic}
+    times["chains"] = ("shard_map + " if use_devices else "") + ("map" if sequential else "vmap")
+    tic = time.perf_counter()
+    draws, stats = [], []
+    for i in range(n_chunks):
+        carry, (z, st) = program(keys, carry, first + i * chunk)
+        draws.append(np.asarray(z))
+        stats.append(jax.tree.map(np.asarray, st))
+        if bar is not None:
+            bar.update(min(chunk, total - i * chunk))
+    times["sampling"] = time.perf_counter() - tic
+    z = np.concatenate(draws, axis=1)[:, num_warmup:total]
+    stats = {k: np.concatenate([s[k] for s in stats], 1)[:, num_warmup:total] for k in stats[0]}
+    return z, stats, times
+
+
+def _natural_draws(z, u_star, L, spec):
+    """Draws of z (chains, draws, dim) as the posterior's variables: the parameters in natural
+    units under their names, ``Omega_bias``, ``theta0`` and ``Omega0`` (experiment, 3)."""
+    from ._residuals import transform
+
+    flat_star, unravel = ravel_pytree(u_star)
+    flat = np.asarray(flat_star)[None, None, :] + np.einsum("ij,cdj->cdi", np.asarray(L), z)
+    shape = z.shape[:2]
+    u = jax.vmap(jax.vmap(unravel))(jnp.asarray(flat))
+    out = {}
+    for name, how, value in zip(param_names(spec), spec.transforms, u["p"]):
+        out[name] = transform(how, np.asarray(value), inverse=True).reshape(
+            shape + np.shape(value)[2:]
+        )
+    if spec.fit_bias:
+        out["Omega_bias"] = np.asarray(u["p_bias"])
+    out["theta0"] = np.stack([np.asarray(th) for th, _ in u["x0"]], axis=2)
+    out["Omega0"] = np.stack([np.asarray(om) for _, om in u["x0"]], axis=2)
+    return out
+
+
+def _import_arviz():
+    with warnings.catch_warnings():  # ArviZ 0.x announces its refactor on import
+        warnings.simplefilter("ignore", FutureWarning)
+        import arviz
+
+    return arviz
+
+
+def _inference_data(variables, stats, n_experiments):
+    """The draws as ArviZ takes them: ``InferenceData`` (ArviZ 0.x) or ``xarray.DataTree``
+    (ArviZ >= 1.0), with the groups ``posterior``, ``sample_stats`` and ``diagnostics``
+    (R-hat, bulk and tail ESS of every variable over a dimension ``diagnostic``)."""
+    import xarray as xr
+
+    az = _import_arviz()
+    dims = {"Omega_bias": ["component"], "theta0": ["experiment", "component"]}
+    dims["Omega0"] = ["experiment", "component"]
+    coords = {"component": ["x", "y", "z"], "experiment": np.arange(n_experiments)}
+    major = int(az.__version__.split(".")[0])
+    if major >= 1:
+        data = az.from_dict(
+            {"posterior": variables, "sample_stats": stats}, dims=dims, coords=coords
+        )
+        posterior = data["posterior"].to_dataset()
+    else:
+        data = az.from_dict(posterior=variables, sample_stats=stats, dims=dims, coords=coords)
+        posterior = data.posterior
+    diagnostics = xr.concat(
+        [
+            az.rhat(posterior),
+            az.ess(posterior, method="bulk"),
+            az.ess(posterior, method="tail"),
+        ],
+        dim=xr.DataArray(["r_hat", "ess_bulk", "ess_tail"], dims="diagnostic"),
+    )
+    if major >= 1:
+        data["diagnostics"] = xr.DataTree(diagnostics)
+    else:
+        data.add_groups({"diagnostics": diagnostics})
+    return data, diagnostics
+
+
+def _summary_attrs(diagnostics, stats, times, fit_result, integrator):
+    """The posterior group's attributes: convergence summary and where the time went."""
+    r_hat = diagnostics.sel(diagnostic="r_hat")
+    ess = diagnostics.sel(diagnostic="ess_bulk")
+    n_draws = int(np.size(stats["lp"]))
+    return {
+        "max_r_hat": float(max(float(r_hat[v].max()) for v in r_hat.data_vars)),
+        "min_ess_bulk": float(min(float(ess[v].min()) for v in ess.data_vars)),
+        "divergences": int(np.sum(stats["diverging"])),
+        "mean_n_steps": float(np.mean(stats["n_steps"])),
+        "fit_time": float(fit_result.wall_time),
+        "compile_time": float(times["compile"]),
+        "sampling_time": float(times["sampling"]),
+        "draws_per_second": float(n_draws / max(times["sampling"], 1e-12)),
+        "integrator": integrator,
+        "chain_method": times["chains"],
+        "prior": "flat on the unconstrained coordinates u, unless priors says otherwise",
+    }
+
+
+def posterior(
+    model,
+    data,
+    params,
+    *,
+    priors: dict | None = None,
+    num_warmup: int = 500,
+    num_samples: int = 1000,
+    chains: int = 2,
+    seed: int = 0,
+    transforms=None,
+    integrator: str = "simulate",
+    solve_rtol: float = 1e-8,
+    solve_atol: float = 1e-8,
+    solve_max_steps: int = 100_000,
+    chain_method: str = "auto",
+    progress: bool = False,
+    progress_chunks: int = 20,
+):
+    r"""Samples of the posterior of the parameters selected by ``params``, the gyroscope's bias
+    (where the data fit it) and every experiment's initial state, by NUTS (BlackJAX).
+
+    The log density, in the fit's unconstrained coordinates u (see the module docstring), is
+    $-\tfrac12|r(u)|^2 + \log\pi(u)$: a Gaussian likelihood with the data's noise levels (every
+    observed channel needs its ``sigma_*``) and a prior $\pi$ **flat on u** unless ``priors``
+    says otherwise (flat on log c for a log-transformed c: improper, proper posterior where the
+    data identify every coordinate). The sampler runs in $z$, $u = u^* + Lz$, $LL^T = (J^TJ)^{-1}$
+    the Gauss–Newton covariance at the optimum $u^*$ of :func:`rbo_jax.fit` (run here with
+    ``fit_initial_state=True``): the window adaptation's starting mass matrix is that covariance.
+
+    **Arguments:**
+
+    - `model`, `data`, `params`, `transforms`: as for :func:`rbo_jax.fit`.
+    - `priors`: dict name -> callable giving a log density (a JAX function) of the coordinate
+      **in u**: a parameter by its name in the fit (``"foundation.c"``: its value is log c for a
+      log transform, e.g. ``lambda u: -0.5 * ((u - jnp.log(1.0)) / 0.3) ** 2``),
+      ``"Omega_bias"`` (the bias (3,)), ``"initial_state"`` (called ``f(theta0, Omega0)`` for
+      each experiment). Unnamed coordinates keep the flat prior.
+    - `num_warmup`: adaptation steps (Stan's windows; 0: none, step size 1 and the
+      Gauss–Newton mass matrix); `num_samples`: draws per chain; `chains`; `seed`.
+    - `integrator`: ``"simulate"`` (diffrax; reverse mode; the default: measured 24 ms per
+      gradient against 46 ms on two 10 s records, benchmarks/bench_posterior.py) or
+      ``"fast_simulate"`` (DOP853; gradient -Jᵀr from the forward-mode Jacobian, one tangent per
+      sampled scalar, in a ``jax.custom_vjp``; compiles in half the time).
+    - `solve_rtol`, `solve_atol`, `solve_max_steps`: the ODE solves' tolerances and step budget
+      (the fit's too). A failed solve gives the density -inf: NUTS marks the step divergent.
+    - `chain_method`: ``"auto"`` (split over the local devices where their count divides
+      ``chains``, else vmap), ``"pmap"`` (split over the devices, by ``shard_map``) or
+      ``"vmap"``.
+    - `progress`: a tqdm bar over the NUTS transitions, warmup and draws (it moves between the
+      ``progress_chunks`` calls of the one compiled program the run is cut into; the last
+      call's extra transitions are discarded).
+
+    **Returns** ArviZ's container (checked at call time): :class:`arviz.InferenceData` for
+    ArviZ 0.x, an ``xarray.DataTree`` for ArviZ >= 1.0, with groups
+
+    - ``posterior`` (dims ``chain``, ``draw``): the parameters in natural units under their fit
+      names (``"foundation.c"``, ``"loads[0].b"``), ``"Omega_bias"`` (``component``), and
+      ``"theta0"``, ``"Omega0"`` (``experiment``, ``component``); its attributes hold
+      ``max_r_hat``, ``min_ess_bulk``, ``divergences``, ``mean_n_steps``, ``wall_time``
+      (seconds, all included), ``fit_time``, ``compile_time``, ``sampling_time`` (warmup and
+      draws), ``draws_per_second`` (chains x num_samples / sampling_time), ``integrator``,
+      ``chain_method`` (as run: ``"shard_map + ..."`` where split over the devices, then
+      ``"vmap"``, or ``"map"``: fast_simulate's chains one after the other on a device, as
+      vmapping its forward-mode Jacobian is slower), ``prior``;
+    - ``sample_stats``: ``diverging``, ``acceptance_rate``, ``tree_depth`` (trajectory
+      doublings), ``n_steps`` (leapfrog steps), ``energy``, ``lp``, ``step_size``;
+    - ``diagnostics``: every posterior variable over a dimension ``diagnostic`` =
+      (``"r_hat"``, ``"ess_bulk"``, ``"ess_tail"``), from :func:`arviz.rhat` and
+      :func:`arviz.ess`.
+
+    Arguments are checked (ValueError naming the argument) before anything is compiled.
+    """
+    _check_arguments(num_warmup, num_samples, chains, integrator, chain_method, progress_chunks)
+    start = time.perf_counter()
+    datas, spec, _ = setup(
+        model,
+        data,
+        params,
+        transforms=transforms,
+        fit_initial_state=True,
+        solve_rtol=solve_rtol,
+        solve_atol=solve_atol,
+        solve_max_steps=solve_max_steps,
+        integrator="fast_simulate",
+    )
+    _check_sigmas(datas)
+    priors = _check_priors(priors, param_names(spec), spec.fit_bias)
+    result = fit(
+        model,
+        datas,
+        params,
+        transforms=spec.transforms,
+        fit_initial_state=True,
+        solve_rtol=solve_rtol,
+        solve_atol=solve_atol,
+        solve_max_steps=solve_max_steps,
+        integrator="fast_simulate",
+    )
+    u_star = result.unconstrained
+    _, L = _laplace(model, datas, spec, u_star)
+    sampled = dataclasses.replace(spec, integrator=integrator, forward=False)
+    log_density = _log_density(model, datas, sampled, priors, u_star, L)
+    opts = dict(
+        num_warmup=num_warmup,
+        num_samples=num_samples,
+        chains=chains,
+        seed=seed,
+        chain_method=chain_method,
+        integrator=integrator,
+        progress_chunks=progress_chunks if progress else 1,
+    )
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=num_warmup + num_samples, desc="posterior", unit="step")
+    try:
+        z, stats, times = _run_chains(log_density, L.shape[0], opts, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    variables = _natural_draws(z, u_star, L, spec)
+    out, diagnostics = _inference_data(variables, stats, len(datas))
+    attrs = _summary_attrs(diagnostics, stats, times, result, integrator)
+    attrs["wall_time"] = time.perf_counter() - start
+    out["posterior"].attrs.update(attrs)
+    return out
