@@ -79,6 +79,17 @@ def _check_arguments(num_warmup, num_samples, chains, integrator, chain_method, 
         )
 
 
+def _check_installed():
+    """BlackJAX and ArviZ come with the ``bayes`` extra: say so before anything runs."""
+    import importlib.util
+
+    missing = [m for m in ("blackjax", "arviz") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise ImportError(
+            f"rbo_jax.posterior needs {' and '.join(missing)}: pip install 'rbo_jax[bayes]'."
+        )
+
+
 def _check_sigmas(datas):
     """The likelihood is Gaussian with the data's noise levels: each observed channel needs
     its sigma."""
@@ -485,6 +496,7 @@ def posterior(
     Arguments are checked (ValueError naming the argument) before anything is compiled.
     """
     _check_arguments(num_warmup, num_samples, chains, integrator, chain_method, progress_chunks)
+    _check_installed()
     start = time.perf_counter()
     datas, spec, _ = setup(
         model,
