@@ -236,7 +236,7 @@ class TrajectoryData(eqx.Module):
       whichever channel is present there) is where the initial state applies. Channels sampled
       on different clocks: :meth:`merge` puts them on one time axis with NaN where a channel has
       no sample.
-    - ``Omega_bias``: the gyroscope reads $\Omega + b + $ noise with a constant bias $b$ (3,)
+    - ``Omega_bias``: the gyroscope reads $\Omega + b$ plus noise with a constant bias $b$ (3,)
       (body frame, rad/s). ``"fit"``: fitted with the parameters, one bias shared by every
       experiment that asks for it (:attr:`rbo_jax.FitResult.Omega_bias`); a (3,) array: a known
       bias; None (default): no bias.
