@@ -29,20 +29,21 @@ log likelihood is a ``jax.custom_vjp`` whose forward pass computes r and J by fo
 is $-J^Tr$. ``integrator="simulate"`` (diffrax): reverse mode through the solve
 (``RecursiveCheckpointAdjoint``).
 
-**Chains** run in one program: split over the local devices (``shard_map``, each device a
-``vmap`` of its chains; ``chain_method="pmap"``) when the device count divides ``chains``, else
-``vmap``. Warmup and draws are one scan of one NUTS transition (one compiled gradient): the
-transitions before ``num_warmup`` adapt, the later ones use the adapted step size and mass
-matrix.
+**Chains** (:mod:`rbo_jax.fitting._sampler`) run in one program: split over the local devices
+(``shard_map``, each device a ``vmap`` of its chains; ``chain_method="pmap"``) when the device
+count divides ``chains``, else ``vmap``. Warmup and draws are one scan of one NUTS transition
+(one compiled gradient): the transitions before ``num_warmup`` adapt, the later ones use the
+adapted step size and mass matrix. The model's and the data's arrays are arguments of that
+program, which is cached: a second data set of the same shapes compiles nothing.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -51,6 +52,7 @@ from jax.flatten_util import ravel_pytree
 from ..solvers import value_and_jacfwd
 from ._fit import fit, setup
 from ._residuals import INTEGRATORS, param_names, residual_vector, residuals_and_jacobian
+from ._sampler import run_chains
 
 __all__ = ["posterior"]
 
@@ -164,20 +166,51 @@ def _log_likelihood(model, datas, spec, unravel):
     return log_likelihood
 
 
-def _log_density(model, datas, spec, priors, u_star, L):
-    """log p(z) with u = u* + L z: the log likelihood plus the log prior, -inf where a solve
-    failed (NUTS then rejects the step as divergent)."""
-    flat_star, unravel = ravel_pytree(u_star)
-    log_likelihood = _log_likelihood(model, datas, spec, unravel)
+def _density(static, spec, priors, unravel):
+    """``density(operands, z)``: log p(z) with u = u* + L z, the log likelihood plus the log
+    prior, -inf where a solve failed (NUTS then rejects the step as divergent). The arrays
+    (the model's and the data's, u* and L) are the traced ``operands``, so one compiled sampler
+    serves every data set of the same shapes."""
     log_prior = _log_prior(priors, param_names(spec))
-    flat_star, L = jnp.asarray(flat_star), jnp.asarray(L)
 
-    def log_density(z):
+    def density(operands, z):
+        dynamic, flat_star, L = operands
+        model, datas = eqx.combine(dynamic, static)
         flat = flat_star + L @ z
-        value = log_likelihood(flat) + log_prior(unravel(flat))
+        value = _log_likelihood(model, datas, spec, unravel)(flat) + log_prior(unravel(flat))
         return jnp.where(jnp.isfinite(value), value, -jnp.inf)
 
-    return log_density
+    return density
+
+
+def _split(model, datas, u_star, L):
+    """The arrays of the density (the ``operands``) and what stays static."""
+    dynamic, static = eqx.partition((model, list(datas)), eqx.is_array)
+    flat_star, unravel = ravel_pytree(u_star)
+    return (dynamic, jnp.asarray(flat_star), jnp.asarray(L)), static, unravel
+
+
+def _cache_key(static, spec, priors, operands):
+    """What a compiled sampler depends on: the static part of the model and the data (tree
+    structure and non-array leaves), the spec, the priors (the functions themselves: held by
+    the key, so never confused with a later function at the same address) and the operands'
+    shapes and dtypes. None where something in it cannot be hashed (then nothing is cached)."""
+    leaves, tree = jax.tree.flatten(static)
+    shapes = tuple((np.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(operands))
+    key = (tree, tuple(leaves), spec, tuple((k, priors[k]) for k in sorted(priors)))
+    key += (jax.tree.structure(operands), shapes)
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+def _log_density(model, datas, spec, priors, u_star, L):
+    """log p(z) of one data set, as a function of z alone."""
+    operands, static, unravel = _split(model, datas, u_star, L)
+    density = _density(static, spec, priors, unravel)
+    return lambda z: density(operands, z)
 
 
 def _laplace(model, datas, spec, u_star):
@@ -195,148 +228,6 @@ def _laplace(model, datas, spec, u_star):
     cov = (V / w) @ V.T
     cov = 0.5 * (cov + cov.T)
     return cov, np.linalg.cholesky(cov)
-
-
-def _adaptation():
-    """Stan's window adaptation as BlackJAX's ``(init, update, final)`` (diagonal mass matrix,
-    target acceptance 0.8) and its schedule."""
-    from blackjax.adaptation import window_adaptation
-
-    with warnings.catch_warnings():  # deprecated in BlackJAX 1.7 for its own loop, kept here:
-        warnings.simplefilter("ignore", DeprecationWarning)  # that loop compiles twice
-        return window_adaptation.base(True, 0.8), window_adaptation.build_schedule
-
-
-def _chain(log_density, num_warmup, chunk):
-    """One chain's ``start(z0)`` and ``advance(key, carry, first)``: ``chunk`` NUTS transitions
-    from the transition ``first`` on. The warmup's transitions (index < ``num_warmup``) adapt
-    the step size and diagonal inverse mass matrix (Stan's windows); the later ones use the
-    adapted values. Warmup and draws share one program, so the gradient is compiled once."""
-    import blackjax
-
-    (init, update, final), build_schedule = _adaptation()
-    kernel = blackjax.nuts.build_kernel()
-    schedule = np.zeros((num_warmup + chunk + 1, 2), dtype=np.int32)
-    if num_warmup:
-        schedule[:num_warmup] = np.asarray(build_schedule(num_warmup), dtype=np.int32)
-    schedule = jnp.asarray(schedule)
-
-    def start(z0):
-        return blackjax.nuts.init(z0, log_density), init(z0, 1.0)
-
-    def transition(carry, index, key):
-        state, adaptation = carry
-        warm = index < num_warmup
-        step_size, imm = final(adaptation)
-        step_size = jnp.where(warm, adaptation.step_size, step_size)
-        imm = jnp.where(warm, adaptation.inverse_mass_matrix, imm)
-        state, info = kernel(jax.random.fold_in(key, index), state, log_density, step_size, imm)
-        stage = schedule[jnp.minimum(index, num_warmup)]
-        adapted = update(adaptation, (stage[0], stage[1] > 0), state.position, info.acceptance_rate)
-        adaptation = jax.tree.map(lambda a, b: jnp.where(warm, a, b), adapted, adaptation)
-        stats = {
-            "diverging": info.is_divergent,
-            "acceptance_rate": info.acceptance_rate,
-            "tree_depth": info.num_trajectory_expansions,
-            "n_steps": info.num_integration_steps,
-            "energy": info.energy,
-            "lp": state.logdensity,
-            "step_size": step_size,
-        }
-        return (state, adaptation), (state.position, stats)
-
-    def advance(key, carry, first):
-        def body(carry, index):
-            return transition(carry, index, key)
-
-        return jax.lax.scan(body, carry, first + jnp.arange(chunk))
-
-    return start, advance
-
-
-def _uses_devices(chains, chain_method) -> bool:
-    n_dev = jax.local_device_count()
-    if chain_method == "pmap" and chains % n_dev:
-        raise ValueError(f"chain_method='pmap' needs chains divisible by the {n_dev} devices.")
-    return n_dev > 1 and (
-        chain_method == "pmap" or (chain_method == "auto" and chains % n_dev == 0)
-    )
-
-
-def _over_chains(f, sequential):
-    """``f`` over a leading axis: ``vmap``, or ``lax.map`` (one chain after the other) where
-    batching costs more than it saves (fast_simulate's forward-mode Jacobian: measured 30x
-    slower vmapped over 2 chains than one chain)."""
-    if not sequential:
-        return jax.vmap(f)
-    return lambda *xs: jax.lax.map(lambda t: f(*t), xs)
-
-
-def _compiled(f, args, use_devices, sequential):
-    """``f`` over the leading (chain) axis of ``args``, compiled: split over the local devices
-    (``shard_map`` over a batch of one chain's traced program: tracing first keeps equinox's
-    checkpointed loops out of the manual axes) or on one device."""
-    if not use_devices:
-        return jax.jit(_over_chains(f, sequential)).lower(*args).compile()
-    from jax.extend.core import jaxpr_as_fun
-    from jax.sharding import Mesh, NamedSharding
-    from jax.sharding import PartitionSpec as P
-
-    mesh = Mesh(np.asarray(jax.local_devices()), ("chain",))
-    sharding = NamedSharding(mesh, P("chain"))
-    flat, tree = jax.tree.flatten(args)
-    one = [jax.ShapeDtypeStruct(np.shape(x)[1:], jnp.result_type(x)) for x in flat]
-    closed, shape = jax.make_jaxpr(lambda *xs: f(*jax.tree.unflatten(tree, xs)), return_shape=True)(
-        *one
-    )
-    local = _over_chains(lambda *xs: tuple(jaxpr_as_fun(closed)(*xs)), sequential)
-    program = jax.shard_map(
-        local, mesh=mesh, in_specs=P("chain"), out_specs=P("chain"), check_vma=False
-    )
-    placed = [jax.device_put(x, sharding) for x in flat]
-    program = jax.jit(program).lower(*placed).compile()
-    out_tree = jax.tree.structure(shape)
-
-    def run(*args):
-        placed = [jax.device_put(x, sharding) for x in jax.tree.leaves(args)]
-        return jax.tree.unflatten(out_tree, program(*placed))
-
-    return run
-
-
-def _run_chains(log_density, dim, opts, bar):
-    """Warmup and ``num_samples`` draws per chain in ``progress_chunks`` calls of one program
-    (a progress bar moves between them); returns the draws of z (chains, draws, dim), the
-    sampler's statistics and the seconds spent compiling and running."""
-    chains, num_warmup, num_samples = opts["chains"], opts["num_warmup"], opts["num_samples"]
-    total = num_warmup + num_samples
-    n_chunks = min(opts["progress_chunks"], total)
-    chunk = math.ceil(total / n_chunks)
-    use_devices = _uses_devices(chains, opts["chain_method"])
-    key = jax.random.PRNGKey(opts["seed"])
-    keys = jax.random.split(key, chains)
-    z0 = jax.random.normal(jax.random.fold_in(key, 1), (chains, dim))
-    tic = time.perf_counter()
-    sequential = opts["integrator"] == "fast_simulate"
-    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        start, advance = _chain(log_density, num_warmup, chunk)  # BlackJAX mixes bool and int
-        carry = _compiled(start, (z0,), use_devices, sequential)(z0)
-        first = jnp.zeros(chains, dtype=jnp.int32)
-        program = _compiled(advance, (keys, carry, first), use_devices, sequential)
-    times = {"compile": time.perf_counter() - tic}
-    times["chains"] = ("shard_map + " if use_devices else "") + ("map" if sequential else "vmap")
-    tic = time.perf_counter()
-    draws, stats = [], []
-    for i in range(n_chunks):
-        carry, (z, st) = program(keys, carry, first + i * chunk)
-        draws.append(np.asarray(z))
-        stats.append(jax.tree.map(np.asarray, st))
-        if bar is not None:
-            bar.update(min(chunk, total - i * chunk))
-    times["sampling"] = time.perf_counter() - tic
-    z = np.concatenate(draws, axis=1)[:, num_warmup:total]
-    stats = {k: np.concatenate([s[k] for s in stats], 1)[:, num_warmup:total] for k in stats[0]}
-    return z, stats, times
 
 
 def _natural_draws(z, u_star, L, spec):
@@ -525,7 +416,8 @@ def posterior(
     u_star = result.unconstrained
     _, L = _laplace(model, datas, spec, u_star)
     sampled = dataclasses.replace(spec, integrator=integrator, forward=False)
-    log_density = _log_density(model, datas, sampled, priors, u_star, L)
+    operands, static, unravel = _split(model, datas, u_star, L)
+    density = _density(static, sampled, priors, unravel)
     opts = dict(
         num_warmup=num_warmup,
         num_samples=num_samples,
@@ -541,7 +433,8 @@ def posterior(
 
         bar = tqdm(total=num_warmup + num_samples, desc="posterior", unit="step")
     try:
-        z, stats, times = _run_chains(log_density, L.shape[0], opts, bar)
+        key = _cache_key(static, sampled, priors, operands)
+        z, stats, times = run_chains(density, operands, key, L.shape[0], opts, bar)
     finally:
         if bar is not None:
             bar.close()
