@@ -100,7 +100,14 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "precession_variational_matrix",
             "regular_precession",
         ),
-        ".fitting": ("FitResult", "TrajectoryData", "fit", "posterior", "profile_likelihood"),
+        ".fitting": (
+            "FitResult",
+            "TrajectoryData",
+            "fit",
+            "posterior",
+            "profile_likelihood",
+            "synthetic_sensor_data",
+        ),
         ".bifurcation": (
             "BautinPoint",
             "BautinStatus",

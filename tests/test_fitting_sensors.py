@@ -8,13 +8,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rbo_jax.fitting import TrajectoryData, fit, residuals
+from rbo_jax.fitting import TrajectoryData, fit, residuals, synthetic_sensor_data
 from rbo_jax.foundations import QuadraticFoundation
 from rbo_jax.inertia import transversely_isotropic_inertia
 from rbo_jax.kinematics import turn_tensor
 from rbo_jax.loads import Friction
 from rbo_jax.model import RigidBodyOscillator
-from rbo_jax.simulate import simulate
 
 K = jnp.array([0.0, 0.0, 1.0])
 A = transversely_isotropic_inertia(1.0, 0.6, K)
@@ -98,24 +97,45 @@ def test_merge_puts_channels_on_one_time_axis():
 
 
 def _rig(th0, Om0, seed, T=3.0):
-    """A motion-capture system (quaternions at ~50 Hz, irregular, either sign, 5 % dropped) and
-    a gyroscope at 100 Hz on its own clock with a bias, white noise and a 0.3 s gap."""
-    rng = np.random.default_rng(seed)
-    tq = np.sort(rng.uniform(0, T, int(50 * T)))
-    tq[0] = 0.0
-    tg = np.arange(0.0037, T, 0.01)
-    tall = np.union1d(tq, tg)
-    tr = simulate(TRUE, jnp.asarray(th0), jnp.asarray(Om0), tall, rtol=1e-12, atol=1e-12)
-    iq, ig = np.searchsorted(tall, tq), np.searchsorted(tall, tg)
-    rot = Rotation.from_rotvec(np.asarray(tr.theta)[iq])
-    rot = rot * Rotation.from_rotvec(rng.normal(0, 0.01, (iq.size, 3)))
-    q = rot.as_quat(scalar_first=True) * rng.choice([-1.0, 1.0], size=(iq.size, 1))
-    q[rng.uniform(size=iq.size) < 0.05] = np.nan
-    g = np.asarray(tr.Omega)[ig] + BIAS + rng.normal(0, 0.02, (ig.size, 3))
-    g[(tg > 1.0) & (tg < 1.3)] = np.nan
-    return TrajectoryData.merge(
-        quaternion=(tq, q), Omega=(tg, g), sigma_theta=0.01, sigma_Omega=0.02, Omega_bias="fit"
+    """A motion-capture system (quaternions at 50 Hz with a jitter of half a period, either
+    sign, 5 % dropped) and a gyroscope at 100 Hz on its own clock with a bias, white noise and
+    a 0.3 s gap."""
+    return synthetic_sensor_data(
+        TRUE,
+        th0,
+        Om0,
+        T,
+        quaternion_rate=50.0,
+        gyro_rate=100.0,
+        bias=BIAS,
+        jitter=0.5,
+        dropped=0.05,
+        gaps=((1.0, 1.3),),
+        seed=seed,
     )
+
+
+def test_synthetic_sensor_data_follows_its_sensor_model():
+    """The synthetic rig's records: the clocks, the dropped samples and the gap as NaN, and the
+    whitened residuals at the truth (model, bias, initial state) N(0, 1) over the observed
+    components: their mean square 1 within its sampling error (χ² of ~1,600 components)."""
+    th0, Om0 = np.array([0.5, -0.2, 0.3]), np.array([0.1, 0.8, -0.5])
+    data = _rig(th0, Om0, 5)
+    q_seen = np.asarray(data.attitude_weight) > 0
+    g_seen = np.all(np.asarray(data.Omega_weight) > 0, axis=1)
+    assert q_seen.sum() == pytest.approx(0.95 * 150, abs=12) and q_seen[0]
+    ts = np.asarray(data.ts)
+    assert not g_seen[(ts > 1.0) & (ts < 1.3)].any() and g_seen.sum() == 300 - 30
+    assert data.fit_Omega_bias and float(data.t0) == 0.0
+    r = np.asarray(residuals(TRUE, data, th0, Om0, Omega_bias=BIAS, rtol=1e-12, atol=1e-12))
+    n = 3 * (q_seen.sum() + g_seen.sum())
+    assert np.sum(r**2) / n == pytest.approx(1.0, abs=4 * np.sqrt(2 / n))
+    with pytest.raises(ValueError, match="gyro_rate"):
+        synthetic_sensor_data(TRUE, th0, Om0, 1.0, gyro_rate=-1.0)
+    with pytest.raises(ValueError, match="dropped"):
+        synthetic_sensor_data(TRUE, th0, Om0, 1.0, dropped=1.0)
+    with pytest.raises(ValueError, match="bias"):
+        synthetic_sensor_data(TRUE, th0, Om0, 1.0, bias=(0.0, 1.0))
 
 
 START = RigidBodyOscillator(A, QuadraticFoundation(1.3, 1.5, K), loads=(Friction(0.08),))
@@ -147,6 +167,7 @@ def test_two_experiments_with_a_gyro_bias_recovered_within_3_standard_errors(rig
     assert np.all(np.abs(z) < 3), z
     zb = (res.Omega_bias - BIAS) / res.Omega_bias_standard_errors
     assert np.all(np.abs(zb) < 3), zb
+    assert res.residual_rms == pytest.approx(1.0, abs=0.1)  # over the observed components only
     ds = res.to_xarray()
     assert list(ds.parameter.values) == ["foundation.c", "foundation.d", "loads[0].b"]
     assert "Omega_bias[2]" in list(ds.parameter_all.values)

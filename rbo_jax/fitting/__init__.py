@@ -36,9 +36,11 @@ the simulated and observed attitudes drift apart by more than a period and the l
 becomes rugged. ``horizons=(0.25, 0.5, 1.0)`` fits the first quarter of each record, then half,
 then all, each stage starting from the previous estimate (one compilation per stage).
 
-Modules: ``_data`` (:class:`TrajectoryData`), ``_residuals`` (residuals, reparametrisation, the
-compiled programs), ``_optax`` (Adam, L-BFGS), ``_fit`` (:func:`fit`, :class:`FitResult`); the
-least-squares solvers and the covariance live in :mod:`rbo_jax.solvers`.
+Modules: ``_data`` (:class:`TrajectoryData`), ``_synthetic`` (:func:`synthetic_sensor_data`),
+``_residuals`` (residuals, reparametrisation, the compiled programs), ``_optax`` (Adam,
+L-BFGS), ``_fit`` (:func:`fit`, :class:`FitResult`), ``_profile`` (:func:`profile_likelihood`),
+``_posterior`` (:func:`posterior`) and ``_sampler`` (its NUTS chains); the least-squares solvers
+and the covariance live in :mod:`rbo_jax.solvers`.
 """
 
 from .. import _lazy
@@ -51,5 +53,6 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "._posterior": ("posterior",),
         "._profile": ("profile_likelihood",),
         "._residuals": ("residuals",),
+        "._synthetic": ("synthetic_sensor_data",),
     },
 )

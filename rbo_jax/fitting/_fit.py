@@ -18,6 +18,7 @@ from ._residuals import (
     INTEGRATORS,
     Spec,
     leaf_paths,
+    observed_count,
     param_names,
     residuals_and_jacobian,
     resolve_transforms,
@@ -41,8 +42,9 @@ class FitResult(eqx.Module):
     ``covariance``: covariance of all fitted scalars (flattened: parameters, the gyroscope's
     bias, initial states); ``initial_states``: fitted or given ``(theta0, Omega0)`` per
     trajectory; ``loss_history``: the loss ½Σr² after each iteration (every stage);
-    ``num_steps``; ``converged``; ``message``; ``residual_rms``; ``wall_time`` (seconds,
-    compilation included).
+    ``num_steps``; ``converged``; ``message``; ``residual_rms`` (the rms of the whitened
+    residuals over the observed components: near 1 where the model and the noise levels are
+    right; missing samples do not count); ``wall_time`` (seconds, compilation included).
 
     ``Omega_bias``, ``Omega_bias_standard_errors``: the gyroscope's fitted constant bias (3,)
     (body frame, rad/s) and its standard errors, where some data asked for it
@@ -193,7 +195,8 @@ def _covariance(u, model, datas, spec: Spec):
         and (d.sigma_Omega is not None or d.Omega is None)
         for d in datas
     )
-    measured = None if sigma_known else r.size  # s² = 1, or the residual variance
+    # s² = 1, or the residual variance over the observed components (missing samples give 0)
+    measured = None if sigma_known else observed_count(datas)
     cov, se_flat, note = gauss_newton_covariance(r, J, np.concatenate(scale), measured)
     offsets = np.cumsum([0] + [int(np.size(x)) for x in natural])  # parameters come first in u
     se = tuple(
@@ -374,7 +377,7 @@ def fit(
         num_steps=int(steps),
         converged=bool(converged),
         message=message + note,
-        residual_rms=float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
+        residual_rms=float(np.sqrt(np.sum(r**2) / max(observed_count(datas), 1))),
         wall_time=time.perf_counter() - start,
         names=param_names(spec),
         Omega_bias=np.asarray(u["p_bias"]) if spec.fit_bias else None,

@@ -36,6 +36,7 @@ from ..solvers import levenberg_marquardt
 from ._fit import fit, setup
 from ._residuals import (
     leaf_at,
+    observed_components,
     param_names,
     residual_vector,
     scalar_names,
@@ -44,26 +45,6 @@ from ._residuals import (
 )
 
 __all__ = ["profile_likelihood"]
-
-
-def _observed(datas) -> list:
-    """``(count, sigma)`` of each observed channel: the residual components that count (missing
-    samples do not) and the noise level (None: not given)."""
-    out = []
-    for d in datas:
-        n = d.num_samples
-        if d.Q is not None or (d.theta is not None and d.theta_weight is None):
-            seen = n if d.attitude_weight is None else np.sum(np.asarray(d.attitude_weight) > 0)
-            out.append((3 * int(seen), d.sigma_theta))
-        elif d.theta is not None:
-            out.append((int(np.sum(np.asarray(d.theta_weight) > 0)), d.sigma_theta))
-        for x, w, sigma in (
-            (d.omega, d.omega_weight, d.sigma_omega),
-            (d.Omega, d.Omega_weight, d.sigma_Omega),
-        ):
-            if x is not None:
-                out.append((3 * n if w is None else int(np.sum(np.asarray(w) > 0)), sigma))
-    return out
 
 
 def _which(name, names, values) -> int:
@@ -208,7 +189,7 @@ def profile_likelihood(
     x_star = np.asarray(x_star, dtype=np.float64)
     fixed = np.array([transform(spec.transforms[owner], x) for x in v])
     r, J = (np.asarray(a) for a in _at_optimum(jnp.asarray(x_star), template, model, datas, spec))
-    observed = _observed(datas)
+    observed = observed_components(datas)
     m = sum(count for count, _ in observed)
     known = all(sigma is not None for _, sigma in observed)
     scale = 1.0 if known else float(np.sqrt(float(r @ r) / max(m - x_star.size, 1)))

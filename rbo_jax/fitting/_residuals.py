@@ -308,3 +308,28 @@ residuals_and_jacobian = program(residuals_and_jacobian, small=True)
 def transform_derivative(name, x):
     """du/dx of the reparametrisation u = forward(x) at the natural value x."""
     return _NUMPY_TRANSFORMS[name][2](np.asarray(x, dtype=np.float64))
+
+
+def observed_components(datas) -> list:
+    """``(count, sigma)`` of each observed channel: the residual components that count (missing
+    samples do not) and the noise level (None: not given)."""
+    out = []
+    for d in datas:
+        n = d.num_samples
+        if d.Q is not None or (d.theta is not None and d.theta_weight is None):
+            seen = n if d.attitude_weight is None else np.sum(np.asarray(d.attitude_weight) > 0)
+            out.append((3 * int(seen), d.sigma_theta))
+        elif d.theta is not None:
+            out.append((int(np.sum(np.asarray(d.theta_weight) > 0)), d.sigma_theta))
+        for x, w, sigma in (
+            (d.omega, d.omega_weight, d.sigma_omega),
+            (d.Omega, d.Omega_weight, d.sigma_Omega),
+        ):
+            if x is not None:
+                out.append((3 * n if w is None else int(np.sum(np.asarray(w) > 0)), sigma))
+    return out
+
+
+def observed_count(datas) -> int:
+    """The number of residual components that are observed (a missing sample's give 0)."""
+    return sum(count for count, _ in observed_components(datas))
