@@ -195,3 +195,39 @@ def test_profile_likelihood_interval_matches_wald_where_quadratic(rig):
         profile_likelihood(START, datas, _select, "foundation.k", values, start=res)
     with pytest.raises(ValueError, match="must be positive"):
         profile_likelihood(START, datas, _select, "loads[0].b", -values, start=res)
+
+
+@pytest.mark.slow  # cost: two fits' compilations, ~10 s
+def test_residual_variance_counts_the_observed_components_only():
+    """Without ``sigma_*`` the standard errors use the residual variance |r|²/(m - p): m counts
+    the observed components, not the zeros of missing samples (two thirds of the merged rig's
+    attitude entries). With the noise levels right, s ≈ 1 and the standard errors agree with
+    those of the given sigmas."""
+    th0, Om0 = np.array([0.5, -0.2, 0.3]), np.array([0.1, 0.8, -0.5])
+    kw = dict(quaternion_rate=50.0, gyro_rate=100.0, bias=BIAS, dropped=0.1, seed=7)
+    known = synthetic_sensor_data(TRUE, th0, Om0, 3.0, sigma_theta=0.02, sigma_Omega=0.02, **kw)
+    seen = np.asarray(known.attitude_weight) > 0
+    Q = np.where(seen[:, None, None], np.asarray(known.Q), np.nan)
+    Omega = np.where(np.asarray(known.Omega_weight) > 0, np.asarray(known.Omega), np.nan)
+    unknown = TrajectoryData(np.asarray(known.ts), Q=Q, Omega=Omega, Omega_bias="fit")
+    fits = [fit(START, d, _select, fit_initial_state=True) for d in (known, unknown)]
+    for a, b in zip(fits[0].stderr, fits[1].stderr):
+        assert float(b) == pytest.approx(float(a), rel=0.1)
+
+
+def test_profile_interval_is_exact_for_a_quadratic_profile_on_a_coarse_grid():
+    """The χ² bounds interpolate the root √(2Δℓ): for Δℓ = ½((v - v̂)/se)² on values one
+    standard error apart they are v̂ ± z·se exactly (z = 1.645 at 90 %, 1.96 at 95 %), also
+    from an asymmetric grid; NaN where the values never reach the threshold."""
+    from rbo_jax.fitting._profile import _interval
+
+    est, se = 0.05, 0.004
+    for level, z in ((0.9, 1.6448536269514722), (0.95, 1.959963984540054)):
+        threshold = 0.5 * z**2
+        for grid in (np.arange(-3.0, 3.5, 1.0), np.array([-2.3, -0.7, 0.4, 1.1, 2.9])):
+            v = est + se * grid
+            lo, hi = _interval(v, 0.5 * grid**2, threshold, est)
+            assert lo == pytest.approx(est - z * se, rel=1e-12)
+            assert hi == pytest.approx(est + z * se, rel=1e-12)
+    lo, hi = _interval(est + se * np.array([-1.0, 1.0, 3.0]), np.array([0.5, 0.5, 4.5]), 1.92, est)
+    assert np.isnan(lo) and hi == pytest.approx(est + 1.96 * se, rel=1e-3)
