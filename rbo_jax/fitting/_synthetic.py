@@ -96,7 +96,8 @@ def synthetic_sensor_data(
     - `rtol`, `atol`: of the simulation.
 
     **Returns** a :class:`TrajectoryData` (the channels merged onto one time axis, NaN where a
-    channel has no sample) whose ``theta0`` and ``Omega0`` are not given: a fit finds them
+    channel has no sample; ``t0`` = 0, where the motion starts) whose ``theta0`` and ``Omega0``
+    are not given: a fit finds them
     (``fit_initial_state=True``).
     """
     _check(duration, quaternion_rate, gyro_rate, sigma_theta, sigma_Omega, jitter, dropped)
@@ -111,7 +112,13 @@ def synthetic_sensor_data(
         clocks["Omega"] = _clock(gyro_rate, duration, 0.5 / gyro_rate, 0.0, rng)
     t = np.unique(np.concatenate(list(clocks.values())))
     true = simulate(
-        model, jnp.asarray(theta0), jnp.asarray(Omega0), jnp.asarray(t), rtol=rtol, atol=atol
+        model,
+        jnp.asarray(theta0),
+        jnp.asarray(Omega0),
+        jnp.asarray(t),
+        t0=0.0,
+        rtol=rtol,
+        atol=atol,
     )
     channels = {}
     if "quaternion" in clocks:
@@ -135,5 +142,5 @@ def synthetic_sensor_data(
     else:
         Omega_bias = None
     return TrajectoryData.merge(
-        **channels, sigma_theta=sigma_theta, sigma_Omega=sigma_Omega, Omega_bias=Omega_bias
+        **channels, sigma_theta=sigma_theta, sigma_Omega=sigma_Omega, Omega_bias=Omega_bias, t0=0.0
     )
