@@ -3,10 +3,11 @@
 The notebooks are stored without outputs. Each is executed top to bottom (nbclient, the
 ``python3`` kernel of this environment, at the notebooks' default small sizes, two at a time),
 converted to Markdown with its figures (nbconvert), and added to the site as
-``notebooks/NAME.md`` with ``notebooks/NAME_files/*.png``; the Markdown then goes through the
-same extensions as every page (the equations of ``math.py`` included). A cell that raises fails
-the build. Executed notebooks are kept in ``.cache/docs-notebooks/``, keyed by the notebook and
-the package's sources, so an unchanged notebook is not run again.
+``notebooks/NAME.md`` with ``notebooks/NAME_files/*.png`` (and ``notebooks/figures/X.png`` for
+a cell whose metadata says ``"figure": "X"``: a stable path for the topic pages); the Markdown
+then goes through the same extensions as every page (the equations of ``math.py`` included). A
+cell that raises fails the build. Executed notebooks are kept in ``.cache/docs-notebooks/``,
+keyed by the notebook and the package's sources, so an unchanged notebook is not run again.
 """
 
 from __future__ import annotations
@@ -63,7 +64,25 @@ def _markdown(nb, stem: str) -> tuple[str, dict[str, bytes]]:
     body, resources = exporter.from_notebook_node(
         nb, resources={"output_files_dir": f"{stem}_files", "unique_key": stem}
     )
-    return body, resources.get("outputs", {})
+    return body, {**resources.get("outputs", {}), **_named_figures(nb)}
+
+
+def _named_figures(nb) -> dict[str, bytes]:
+    """The figure of each cell whose metadata names it (``"figure": "fitting-rig"``) under a
+    stable path, ``figures/fitting-rig.png``, for the topic pages to show."""
+    import base64
+
+    out = {}
+    for cell in nb.cells:
+        name = cell.get("metadata", {}).get("figure")
+        pngs = [
+            o["data"]["image/png"]
+            for o in cell.get("outputs", [])
+            if "image/png" in o.get("data", {})
+        ]
+        if name and pngs:
+            out[f"figures/{name}.png"] = base64.b64decode(pngs[-1])
+    return out
 
 
 def on_files(files, config):
