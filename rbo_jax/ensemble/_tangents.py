@@ -34,7 +34,7 @@ from ..integrate import tableau as T
 from ..kinematics import storing
 from ._problem import traced_once
 from ._queue import RUNNING
-from ._solve import Config, _initial, attempt
+from ._solve import SAMPLE_BLOCK, Config, _initial, attempt
 
 __all__ = ["solve_one_tangents"]
 
@@ -96,6 +96,7 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
     problem = eqx.combine(dyn, static)
     store = D.Store(D.runtime_one((problem, y0, ts)))
     t_bound, nts, nk = ts[-1], ts.shape[0], dy0.shape[0]
+    blocks = nts > 2  # samples a block at a time (D.emit), not for the two ends alone
 
     def f_jvp(t, y, dy):
         return _jvp_k(
@@ -116,6 +117,8 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
         def write(outs, idx, mask, values):
             (out, dout), (value, dvalue) = outs, values
             at = jnp.where(mask, idx, nts)
+            if blocks:  # (m, K, 6) samples of a block to the (K, n_ts, 6) layout
+                dvalue = jnp.moveaxis(dvalue, 0, 1)
             return out.at[at].set(value, mode="drop"), dout.at[:, at].set(dvalue, mode="drop")
 
         def body(c):
@@ -148,11 +151,11 @@ def solve_one_tangents(dyn, static, y0, ts, cfg: Config, d_dyn, dy0):
                 dF = D.interpolant(dK, dy, dy_new, dK0, dK12, h, _by_column)
                 dstep = (commit, t_old, dy, dy_new, None, h)
                 return lambda i: (
-                    D.sample(F, step, ts, i, st["t"]),
-                    D.sample(dF, dstep, ts, i, st["t"]),
+                    D.sample(F, step, ts, i, st["t"], block=blocks),
+                    D.sample(dF, dstep, ts, i, st["t"], block=blocks),
                 )
 
-            idx, outs = D.emit(step, ts, idx, outs, st["t"], write, sampler)
+            idx, outs = D.emit(step, ts, idx, outs, st["t"], write, sampler, block=SAMPLE_BLOCK)
             dy = tuple(jnp.where(commit, a, b) for a, b in zip(dy_new, dy))
             df = tuple(jnp.where(commit, a, b) for a, b in zip(dK12, dK0))
             return st, idx, outs, dy, df, jnp.asarray(True)
