@@ -384,7 +384,10 @@ def posterior(
       (``"r_hat"``, ``"ess_bulk"``, ``"ess_tail"``), from :func:`arviz.rhat` and
       :func:`arviz.ess`.
 
-    Arguments are checked (ValueError naming the argument) before anything is compiled.
+    Arguments are checked (ValueError naming the argument) before anything is compiled. The
+    compiled sampler takes the model's and the data's arrays as arguments and is kept: a second
+    call with data of the same shapes (and the same model structure, options and priors)
+    compiles nothing (``compile_time`` then counts only the chains' start).
     """
     _check_arguments(num_warmup, num_samples, chains, integrator, chain_method, progress_chunks)
     _check_installed()
