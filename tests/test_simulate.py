@@ -703,3 +703,31 @@ def test_darboux_bad_arguments():
         solve_darboux((t_s[::-1], jnp.zeros((5, 3))), PATH_A, TS_DARBOUX)
     with pytest.raises(TypeError, match="angular_velocity"):
         solve_darboux(jnp.zeros((5, 3)), PATH_A, TS_DARBOUX)
+
+
+@pytest.mark.slow  # two reverse-mode programs through diffrax (~30 s of compilation)
+def test_dense_samples_equal_saved_samples_and_their_gradient():
+    """``dense=True`` samples ``ts`` from the solve's dense output after the solve: the same
+    values as saving inside the loop (the same interpolant), the same reverse-mode gradient with
+    respect to a foundation constant; a step budget too small gives max_steps_reached with inf
+    after the time reached, as the saved samples do."""
+    model = make_model()
+    theta0, Omega0 = jnp.array([0.3, -0.2, 0.1]), jnp.array([0.2, 0.5, -0.4])
+    ts = jnp.linspace(0.0, 3.0, 301)
+
+    def loss(c, dense):
+        m = eqx.tree_at(lambda m: m.foundation.c, model, c)
+        traj = simulate(m, theta0, Omega0, ts, rtol=1e-9, atol=1e-9, dense=dense, throw=False)
+        return jnp.sum(traj.theta**2) + jnp.sum(jnp.sin(traj.Omega))
+
+    c = jnp.asarray(1.0)
+    saved, g_saved = jax.value_and_grad(loss)(c, False)
+    dense, g_dense = jax.value_and_grad(loss)(c, True)
+    assert np.isfinite(float(g_saved)) and abs(float(g_saved)) > 1e-3
+    np.testing.assert_allclose(float(dense), float(saved), rtol=1e-13)
+    np.testing.assert_allclose(float(g_dense), float(g_saved), rtol=1e-10)
+    short = simulate(model, theta0, Omega0, ts, max_steps=4, dense=True, throw=False)
+    assert bool(short.status == SolveStatus.max_steps_reached)
+    x = np.asarray(short.theta)
+    assert np.all(np.isinf(x[-1])) and np.all(np.isfinite(x[0]))
+    assert _all_inf_or_finite(x)

@@ -98,6 +98,7 @@ def solve(
     events=(),
     adjoint=None,
     progress: bool = False,
+    dense: bool = False,
 ):
     r"""$\dot y$ = ``field(t, y, args)`` from ``y0`` at ``t0`` (default ``ts[0]``) to ``ts[-1]``,
     sampled at ``ts``: ``(samples, status, accepted steps)``.
@@ -107,7 +108,15 @@ def solve(
     choice); ``events``: ``(name, condition)`` pairs, diffrax event conditions that stop the
     solve with the status ``name``; ``adjoint``: diffrax's (``None``:
     ``RecursiveCheckpointAdjoint``, reverse mode with memory logarithmic in the steps;
-    ``diffrax.ForwardMode()`` for ``jax.jvp``); ``progress``: a tqdm progress bar."""
+    ``diffrax.ForwardMode()`` for ``jax.jvp``); ``progress``: a tqdm progress bar.
+
+    ``dense``: sample ``ts`` after the solve, from its dense output (``SaveAt(dense=True)``,
+    the solver's interpolant on each accepted step), instead of inside its loop: the same
+    values, but in reverse mode the samples' cotangents flow back through one vectorised
+    interpolation rather than through the loop's per-sample saves (half the cost of a gradient
+    through thousands of samples, benchmarks/README.md). Memory: ``max_steps`` times the
+    solver's stages, so give a ``max_steps`` near the steps needed. Samples after the time a
+    stopped solve reached are ``inf``, as diffrax leaves them when it saves at ``ts``."""
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(field),
         diffrax.Dopri8() if solver is None else solver,
@@ -115,7 +124,7 @@ def solve(
         t1=ts[-1],
         dt0=dt0,
         y0=y0,
-        saveat=diffrax.SaveAt(ts=ts),
+        saveat=diffrax.SaveAt(t1=True, dense=True) if dense else diffrax.SaveAt(ts=ts),
         stepsize_controller=(
             diffrax.PIDController(rtol=rtol, atol=atol) if controller is None else controller
         ),
@@ -126,7 +135,14 @@ def solve(
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
     )
     status = status_from_solution(sol, [name for name, _ in events])
-    return sol.ys, status, sol.stats["num_accepted_steps"]
+    ys = sol.ys
+    if dense:
+        reached = ts <= sol.ts[-1]
+        ys = jax.tree.map(
+            lambda y: jnp.where(reached.reshape((-1,) + (1,) * (y.ndim - 1)), y, jnp.inf),
+            jax.vmap(sol.evaluate)(ts),
+        )
+    return ys, status, sol.stats["num_accepted_steps"]
 
 
 def trusted(model, *diffrax_objects) -> bool:
