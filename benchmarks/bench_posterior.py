@@ -30,7 +30,12 @@ import numpy as np  # noqa: E402
 
 from rbo_jax.fitting import fit, synthetic_sensor_data  # noqa: E402
 from rbo_jax.fitting._fit import setup  # noqa: E402
-from rbo_jax.fitting._posterior import _laplace, _log_density, posterior  # noqa: E402
+from rbo_jax.fitting._posterior import (  # noqa: E402
+    _dense_budget,
+    _laplace,
+    _log_density,
+    posterior,
+)
 from rbo_jax.foundations import QuadraticFoundation  # noqa: E402
 from rbo_jax.inertia import transversely_isotropic_inertia  # noqa: E402
 from rbo_jax.loads import Friction  # noqa: E402
@@ -59,14 +64,17 @@ def experiment(theta0, Omega0, T, seed):
     )  # fmt: skip
 
 
-def gradient_ms(start, data, integrator, batch):
+def gradient_ms(start, data, integrator, batch, dense=True):
     """Milliseconds per value-and-gradient of the log density (``batch`` chains vmapped), and
-    its compilation in seconds."""
+    its compilation in seconds. ``dense``: ``simulate`` samples from its dense output with the
+    posterior's step budget (as the sampler runs it), else saves inside the solve."""
     datas, spec, _ = setup(start, data, params, fit_initial_state=True, solve_rtol=1e-8,
                            solve_atol=1e-8)  # fmt: skip
     res = fit(start, data, params, fit_initial_state=True, solve_rtol=1e-8, solve_atol=1e-8)
     _, L = _laplace(start, datas, spec, res.unconstrained)
-    sampled = dataclasses.replace(spec, integrator=integrator, forward=False)
+    dense = dense and integrator == "simulate"
+    budget = _dense_budget(start, datas, spec, res.unconstrained) if dense else 0
+    sampled = dataclasses.replace(spec, integrator=integrator, forward=False, dense_steps=budget)
     density = _log_density(start, datas, sampled, {}, res.unconstrained, L)
     f = jax.jit(jax.vmap(jax.value_and_grad(density)))
     z = jnp.zeros((batch, L.shape[0]))
@@ -100,6 +108,10 @@ def main():
         two, _ = gradient_ms(start, data, integrator, 2)
         print(f"{integrator}: gradient {one:.1f} ms (1 chain), {two:.1f} ms (2 chains vmapped), "
               f"compiled in {compile_s:.0f} s")  # fmt: skip
+        if integrator == "simulate":
+            saved, saved_compile = gradient_ms(start, data, integrator, 1, dense=False)
+            print(f"simulate saving at ts inside the solve: gradient {saved:.1f} ms (1 chain), "
+                  f"compiled in {saved_compile:.0f} s")  # fmt: skip
         for method in args.chain_methods.split(","):
             tic = time.perf_counter()
             idata = posterior(start, data, params, num_warmup=args.warmup,

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..models.rigid_body import RigidBodyOscillator
 from ..solvers import gauss_newton_covariance, run_least_squares
+from ._constants import fit_constants, is_measurements
 from ._data import TrajectoryData
 from ._residuals import (
     INTEGRATORS,
@@ -323,21 +324,19 @@ def fit(
     - `progress`: tqdm bar over iterations; `verbose`: print the loss each iteration.
 
     Compiled programs are cached on the model's structure, the data's shapes and these options,
-    so repeated fits (bootstrap, noise studies) compile once.
+    so repeated fits (bootstrap, noise studies) compile once. **A rod**: `model` a function
+    ``rod_fn(**constants)``, `data` :class:`rbo_jax.lattice.RodSpectrumData` (or
+    ``RodTrajectoryData``), `params` starting values by name: a :class:`rbo_jax.lattice.RodFit`.
     """
     start = time.perf_counter()
+    if is_measurements(data):
+        solve = dict(rtol=solve_rtol, atol=solve_atol, max_steps=solve_max_steps, tol=tol)
+        return fit_constants(model, data, params, max_fit_steps=max_steps, **solve)
     datas, spec, u = setup(
-        model,
-        data,
-        params,
-        transforms=transforms,
-        fit_initial_state=fit_initial_state,
-        optimizer=optimizer,
-        solve_rtol=solve_rtol,
-        solve_atol=solve_atol,
-        solve_max_steps=solve_max_steps,
-        integrator=integrator,
-    )
+        model, data, params, transforms=transforms, fit_initial_state=fit_initial_state,
+        optimizer=optimizer, solve_rtol=solve_rtol, solve_atol=solve_atol,
+        solve_max_steps=solve_max_steps, integrator=integrator,
+    )  # fmt: skip
     horizons = _check_options(optimizer, horizons, max_steps, solve_max_steps)
     history: list[float] = []
     bar = None

@@ -27,7 +27,16 @@ starts from there. Each chain starts at a draw of the Laplace approximation, $z_
 log likelihood is a ``jax.custom_vjp`` whose forward pass computes r and J by forward mode
 (:func:`rbo_jax.solvers.value_and_jacfwd`, one tangent per scalar of u) and whose backward pass
 is $-J^Tr$. ``integrator="simulate"`` (diffrax): reverse mode through the solve
-(``RecursiveCheckpointAdjoint``).
+(``RecursiveCheckpointAdjoint`` with a checkpoint per step), the records sampled from the
+solve's dense output after it (:func:`rbo_jax.simulate`'s ``dense``) rather than saved inside its
+loop; the step budget of these solves is 4 times the most steps an experiment takes at the
+optimum, rounded up to a power of 2 (:func:`_dense_budget`), so a proposal that needs more is a
+failed solve.
+
+**Rods.** With a rod's measurements (:class:`rbo_jax.lattice.RodSpectrumData`,
+:class:`rbo_jax.lattice.RodTrajectoryData`) the sampled coordinates are the logarithms of the
+rod's constants; the problem is their whitened residuals
+(:class:`rbo_jax.lattice._fit.Residuals`), the gradient $-J^Tr$ from forward mode.
 
 **Chains** (:mod:`rbo_jax.fitting._sampler`) run in one program: split over the local devices
 (``shard_map``, each device a ``vmap`` of its chains; ``chain_method="pmap"``) when the device
@@ -50,8 +59,16 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..solvers import value_and_jacfwd
+from ._constants import fit_constants, is_measurements
 from ._fit import fit, setup
-from ._residuals import INTEGRATORS, param_names, residual_vector, residuals_and_jacobian
+from ._residuals import (
+    INTEGRATORS,
+    SensorResiduals,
+    fast_trajectory,
+    param_names,
+    residuals_and_jacobian,
+    unpack,
+)
 from ._sampler import run_chains
 
 __all__ = ["posterior"]
@@ -104,13 +121,14 @@ def _check_sigmas(datas):
                 )
 
 
-def _check_priors(priors, names, fit_bias) -> dict:
+def _check_priors(priors, names, fit_bias, initial_state=True) -> dict:
     """``priors`` as a dict name -> callable, its names checked."""
     if priors is None:
         return {}
     if not isinstance(priors, dict):
         raise ValueError("priors must be a dict: name -> callable returning a log density.")
-    known = list(names) + (["Omega_bias"] if fit_bias else []) + ["initial_state"]
+    known = list(names) + (["Omega_bias"] if fit_bias else [])
+    known += ["initial_state"] if initial_state else []
     for name, f in priors.items():
         if name not in known:
             raise ValueError(
@@ -122,12 +140,15 @@ def _check_priors(priors, names, fit_bias) -> dict:
 
 
 def _log_prior(priors, names):
-    """log π(u): the sum of the given priors, each on its coordinates in u (transformed
-    parameters, the bias, each experiment's (θ0, Ω0)); 0 (flat) for the rest."""
+    """log π of the flat coordinates x of a problem: the sum of the given priors, each on its
+    coordinates in u (transformed parameters, the bias, each experiment's (θ0, Ω0)); 0 (flat)
+    for the rest. ``names``: a rod's constants (x holds their logarithms in this order), or
+    None for sensor data (x is the fit's u flattened)."""
 
-    def log_prior(u):
+    def sensor_prior(problem, x):
+        u = problem.unravel(x)
         total = jnp.zeros(())
-        for name, value in zip(names, u["p"]):
+        for name, value in zip(param_names(problem.spec), u["p"]):
             if name in priors:
                 total = total + jnp.sum(priors[name](value))
         if "Omega_bias" in priors:
@@ -137,67 +158,70 @@ def _log_prior(priors, names):
                 total = total + jnp.sum(priors["initial_state"](theta0, Omega0))
         return total
 
-    return log_prior
+    def named_prior(problem, x):
+        total = jnp.zeros(())
+        for i, name in enumerate(names):
+            if name in priors:
+                total = total + jnp.sum(priors[name](x[i]))
+        return total
+
+    return sensor_prior if names is None else named_prior
 
 
-def _log_likelihood(model, datas, spec, unravel):
-    """-½|r(u)|² of the flat u, differentiable in reverse mode: through diffrax's adjoint
-    (``simulate``), or a custom VJP whose forward pass is the forward-mode Jacobian
-    (``fast_simulate``): the gradient is -Jᵀr."""
-
-    def residuals(flat):
-        return residual_vector(unravel(flat), model, datas, spec)
-
-    if spec.integrator == "simulate":
-        return lambda flat: -0.5 * jnp.sum(residuals(flat) ** 2)
+def _log_likelihood(problem, forward: bool):
+    """-½|r(x)|² of the flat coordinates x of ``problem`` (its whitened residuals), differentiable
+    in reverse mode: through the solve's adjoint (``forward=False``: diffrax), or a custom VJP
+    whose forward pass is the forward-mode Jacobian (``fast_simulate``, a rod's few constants):
+    the gradient is -Jᵀr."""
+    if not forward:
+        return lambda x: -0.5 * jnp.sum(problem(x) ** 2)
 
     @jax.custom_vjp
-    def log_likelihood(flat):
-        return -0.5 * jnp.sum(residuals(flat) ** 2)
+    def log_likelihood(x):
+        return -0.5 * jnp.sum(problem(x) ** 2)
 
-    def forward(flat):
-        r, J = value_and_jacfwd(residuals, flat)
+    def forward_pass(x):
+        r, J = value_and_jacfwd(problem, x)
         return -0.5 * jnp.sum(r**2), -(J.T @ r)
 
     def backward(gradient, cotangent):
         return (cotangent * gradient,)
 
-    log_likelihood.defvjp(forward, backward)
+    log_likelihood.defvjp(forward_pass, backward)
     return log_likelihood
 
 
-def _density(static, spec, priors, unravel):
-    """``density(operands, z)``: log p(z) with u = u* + L z, the log likelihood plus the log
+def _density(static, forward, log_prior):
+    """``density(operands, z)``: log p(z) with x = x* + L z, the log likelihood plus the log
     prior, -inf where a solve failed (NUTS then rejects the step as divergent). The arrays
-    (the model's and the data's, u* and L) are the traced ``operands``, so one compiled sampler
-    serves every data set of the same shapes."""
-    log_prior = _log_prior(priors, param_names(spec))
+    (the problem's: the model's and the data's; x* and L) are the traced ``operands``, so one
+    compiled sampler serves every data set of the same shapes."""
 
     def density(operands, z):
-        dynamic, flat_star, L = operands
-        model, datas = eqx.combine(dynamic, static)
-        flat = flat_star + L @ z
-        value = _log_likelihood(model, datas, spec, unravel)(flat) + log_prior(unravel(flat))
+        dynamic, x_star, L = operands
+        problem = eqx.combine(dynamic, static)
+        x = x_star + L @ z
+        value = _log_likelihood(problem, forward)(x) + log_prior(problem, x)
         return jnp.where(jnp.isfinite(value), value, -jnp.inf)
 
     return density
 
 
-def _split(model, datas, u_star, L):
+def _split(problem, x_star, L):
     """The arrays of the density (the ``operands``) and what stays static."""
-    dynamic, static = eqx.partition((model, list(datas)), eqx.is_array)
-    flat_star, unravel = ravel_pytree(u_star)
-    return (dynamic, jnp.asarray(flat_star), jnp.asarray(L)), static, unravel
+    dynamic, static = eqx.partition(problem, eqx.is_array)
+    return (dynamic, jnp.asarray(x_star), jnp.asarray(L)), static
 
 
-def _cache_key(static, spec, priors, operands):
-    """What a compiled sampler depends on: the static part of the model and the data (tree
-    structure and non-array leaves), the spec, the priors (the functions themselves: held by
-    the key, so never confused with a later function at the same address) and the operands'
-    shapes and dtypes. None where something in it cannot be hashed (then nothing is cached)."""
+def _cache_key(static, forward, priors, operands):
+    """What a compiled sampler depends on: the static part of the problem (tree structure and
+    non-array leaves: the model's and the data's, the spec), the gradient's kind, the priors
+    (the functions themselves: held by the key, so never confused with a later function at the
+    same address) and the operands' shapes and dtypes. None where something in it cannot be
+    hashed (then nothing is cached)."""
     leaves, tree = jax.tree.flatten(static)
     shapes = tuple((np.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(operands))
-    key = (tree, tuple(leaves), spec, tuple((k, priors[k]) for k in sorted(priors)))
+    key = (tree, tuple(leaves), forward, tuple((k, priors[k]) for k in sorted(priors)))
     key += (jax.tree.structure(operands), shapes)
     try:
         hash(key)
@@ -207,17 +231,15 @@ def _cache_key(static, spec, priors, operands):
 
 
 def _log_density(model, datas, spec, priors, u_star, L):
-    """log p(z) of one data set, as a function of z alone."""
-    operands, static, unravel = _split(model, datas, u_star, L)
-    density = _density(static, spec, priors, unravel)
+    """log p(z) of one data set of sensor records, as a function of z alone."""
+    problem = SensorResiduals(model, tuple(datas), u_star, spec)
+    operands, static = _split(problem, ravel_pytree(u_star)[0], L)
+    density = _density(static, spec.integrator == "fast_simulate", _log_prior(priors, None))
     return lambda z: density(operands, z)
 
 
-def _laplace(model, datas, spec, u_star):
-    """The Gauss–Newton covariance (JᵀJ)⁻¹ in u at the optimum and its Cholesky factor L."""
-    r, J = residuals_and_jacobian(u_star, model, datas, dataclasses.replace(spec, forward=True))
-    n = int(np.size(r))  # the Jacobian tree as a matrix, columns in the order of ravel_pytree
-    J = np.concatenate([np.asarray(b).reshape(n, -1) for b in jax.tree_util.tree_leaves(J)], 1)
+def _covariance_factor(J):
+    """The Gauss–Newton covariance (JᵀJ)⁻¹ and its Cholesky factor L, J a matrix."""
     w, V = np.linalg.eigh(J.T @ J)
     if not np.all(np.isfinite(w)) or w.min() <= 1e-12 * max(w.max(), 1e-300):
         raise ValueError(
@@ -228,6 +250,39 @@ def _laplace(model, datas, spec, u_star):
     cov = (V / w) @ V.T
     cov = 0.5 * (cov + cov.T)
     return cov, np.linalg.cholesky(cov)
+
+
+def _laplace(model, datas, spec, u_star):
+    """The Gauss–Newton covariance (JᵀJ)⁻¹ in u at the optimum and its Cholesky factor L."""
+    r, J = residuals_and_jacobian(u_star, model, datas, dataclasses.replace(spec, forward=True))
+    n = int(np.size(r))  # the Jacobian tree as a matrix, columns in the order of ravel_pytree
+    return _covariance_factor(
+        np.concatenate([np.asarray(b).reshape(n, -1) for b in jax.tree_util.tree_leaves(J)], 1)
+    )
+
+
+@eqx.filter_jit
+def _steps_at(u, model, datas, spec):
+    """The integrator's steps (accepted) over each experiment at ``u``."""
+    m, _, states = unpack(u, model, len(datas), spec)
+    return jnp.stack(
+        [
+            fast_trajectory(m, th0, Om0, d, spec.rtol, spec.atol, spec.max_solver_steps).num_steps
+            for d, (th0, Om0) in zip(datas, states)
+        ]
+    )
+
+
+def _dense_budget(model, datas, spec, u_star) -> int:
+    """The step budget of the sampler's solves (they sample from the dense output, whose memory
+    and cost grow with the budget): 4 times the most steps an experiment takes at the optimum
+    (DOP853's count, close to diffrax's Dopri8 at the same tolerances), rounded up to a power
+    of 2 (so that data sets of similar records share one compiled sampler), at least 64 and at
+    most ``solve_max_steps``. A proposal whose solve needs more is a failed solve: density
+    -inf, a divergent step."""
+    steps = int(np.max(np.asarray(_steps_at(u_star, model, datas, spec))))
+    budget = 1 << max(6, int(np.ceil(np.log2(4 * max(steps, 1)))))
+    return min(budget, spec.max_solver_steps)
 
 
 def _natural_draws(z, u_star, L, spec):
@@ -293,7 +348,7 @@ def _inference_data(variables, stats, n_experiments):
     return data, diagnostics
 
 
-def _summary_attrs(diagnostics, stats, times, fit_result, integrator):
+def _summary_attrs(diagnostics, stats, times, fit_time, integrator):
     """The posterior group's attributes: convergence summary and where the time went."""
     r_hat = diagnostics.sel(diagnostic="r_hat")
     ess = diagnostics.sel(diagnostic="ess_bulk")
@@ -303,7 +358,7 @@ def _summary_attrs(diagnostics, stats, times, fit_result, integrator):
         "min_ess_bulk": float(min(float(ess[v].min()) for v in ess.data_vars)),
         "divergences": int(np.sum(stats["diverging"])),
         "mean_n_steps": float(np.mean(stats["n_steps"])),
-        "fit_time": float(fit_result.wall_time),
+        "fit_time": float(fit_time),
         "compile_time": float(times["compile"]),
         "sampling_time": float(times["sampling"]),
         "draws_per_second": float(n_draws / max(times["sampling"], 1e-12)),
@@ -353,18 +408,26 @@ def posterior(
       each experiment). Unnamed coordinates keep the flat prior.
     - `num_warmup`: adaptation steps (Stan's windows; 0: none, step size 1 and the
       Gauss–Newton mass matrix); `num_samples`: draws per chain; `chains`; `seed`.
-    - `integrator`: ``"simulate"`` (diffrax; reverse mode; the default: measured 24 ms per
+    - `integrator`: ``"simulate"`` (diffrax; reverse mode; the default: measured 12 ms per
       gradient against 46 ms on two 10 s records, benchmarks/bench_posterior.py) or
       ``"fast_simulate"`` (DOP853; gradient -Jᵀr from the forward-mode Jacobian, one tangent per
       sampled scalar, in a ``jax.custom_vjp``; compiles in half the time).
     - `solve_rtol`, `solve_atol`, `solve_max_steps`: the ODE solves' tolerances and step budget
-      (the fit's too). A failed solve gives the density -inf: NUTS marks the step divergent.
+      (the fit's too; the sampler's solves have a smaller budget, see the module docstring).
+      A failed solve gives the density -inf: NUTS marks the step divergent.
     - `chain_method`: ``"auto"`` (split over the local devices where their count divides
       ``chains``, else vmap), ``"pmap"`` (split over the devices, by ``shard_map``) or
       ``"vmap"``.
     - `progress`: a tqdm bar over the NUTS transitions, warmup and draws (it moves between the
       ``progress_chunks`` calls of the one compiled program the run is cut into; the last
       call's extra transitions are discarded).
+
+    **A rod**: `model` a function ``rod_fn(**constants)`` building it, `data` a
+    :class:`rbo_jax.lattice.RodSpectrumData` or :class:`rbo_jax.lattice.RodTrajectoryData` with
+    its ``sigma``, `params` the constants' starting values by name; the posterior's variables
+    are the constants under their names (flat prior on their logarithms unless `priors`, by
+    name, says otherwise); `solve_*` apply to a trajectory's solve, `transforms` and
+    `integrator` do not apply.
 
     **Returns** ArviZ's container (checked at call time): :class:`arviz.InferenceData` for
     ArviZ 0.x, an ``xarray.DataTree`` for ArviZ >= 1.0, with groups
@@ -392,58 +455,95 @@ def posterior(
     _check_arguments(num_warmup, num_samples, chains, integrator, chain_method, progress_chunks)
     _check_installed()
     start = time.perf_counter()
-    datas, spec, _ = setup(
-        model,
-        data,
-        params,
-        transforms=transforms,
-        fit_initial_state=True,
-        solve_rtol=solve_rtol,
-        solve_atol=solve_atol,
-        solve_max_steps=solve_max_steps,
-        integrator="fast_simulate",
-    )
-    _check_sigmas(datas)
-    priors = _check_priors(priors, param_names(spec), spec.fit_bias)
-    result = fit(
-        model,
-        datas,
-        params,
-        transforms=spec.transforms,
-        fit_initial_state=True,
-        solve_rtol=solve_rtol,
-        solve_atol=solve_atol,
-        solve_max_steps=solve_max_steps,
-        integrator="fast_simulate",
-    )
-    u_star = result.unconstrained
-    _, L = _laplace(model, datas, spec, u_star)
-    sampled = dataclasses.replace(spec, integrator=integrator, forward=False)
-    operands, static, unravel = _split(model, datas, u_star, L)
-    density = _density(static, sampled, priors, unravel)
     opts = dict(
         num_warmup=num_warmup,
         num_samples=num_samples,
         chains=chains,
         seed=seed,
         chain_method=chain_method,
-        integrator=integrator,
+        sequential=integrator == "fast_simulate",
         progress_chunks=progress_chunks if progress else 1,
     )
+    solve = dict(solve_rtol=solve_rtol, solve_atol=solve_atol, solve_max_steps=solve_max_steps)
+    if is_measurements(data):
+        return _rod_posterior(model, data, params, priors, opts, solve, progress, start)
+    datas, spec, _ = setup(
+        model, data, params, transforms=transforms, fit_initial_state=True, **solve,
+        integrator="fast_simulate",
+    )  # fmt: skip
+    _check_sigmas(datas)
+    priors = _check_priors(priors, param_names(spec), spec.fit_bias)
+    result = fit(
+        model, datas, params, transforms=spec.transforms, fit_initial_state=True, **solve,
+        integrator="fast_simulate",
+    )  # fmt: skip
+    u_star = result.unconstrained
+    _, L = _laplace(model, datas, spec, u_star)
+    dense_steps = _dense_budget(model, datas, spec, u_star) if integrator == "simulate" else 0
+    sampled = dataclasses.replace(
+        spec, integrator=integrator, forward=False, dense_steps=dense_steps
+    )
+    problem = SensorResiduals(model, tuple(datas), u_star, sampled)
+    operands, static = _split(problem, ravel_pytree(u_star)[0], L)
+    forward = integrator == "fast_simulate"
+    density = _density(static, forward, _log_prior(priors, None))
+    key = _cache_key(static, forward, priors, operands)
+    z, stats, times = _run(density, operands, key, L.shape[0], opts, progress)
+    variables = _natural_draws(z, u_star, L, spec)
+    out, diagnostics = _inference_data(variables, stats, len(datas))
+    attrs = _summary_attrs(diagnostics, stats, times, result.wall_time, integrator)
+    attrs["wall_time"] = time.perf_counter() - start
+    out["posterior"].attrs.update(attrs)
+    return out
+
+
+def _run(density, operands, key, dim, opts, progress):
+    """The chains (:func:`rbo_jax.fitting._sampler.run_chains`), with a progress bar."""
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=num_warmup + num_samples, desc="posterior", unit="step")
+        total = opts["num_warmup"] + opts["num_samples"]
+        bar = tqdm(total=total, desc="posterior", unit="step")
     try:
-        key = _cache_key(static, sampled, priors, operands)
-        z, stats, times = run_chains(density, operands, key, L.shape[0], opts, bar)
+        return run_chains(density, operands, key, dim, opts, bar)
     finally:
         if bar is not None:
             bar.close()
-    variables = _natural_draws(z, u_star, L, spec)
-    out, diagnostics = _inference_data(variables, stats, len(datas))
-    attrs = _summary_attrs(diagnostics, stats, times, result, integrator)
+
+
+def _rod_posterior(rod_fn, data, params, priors, opts, solve, progress, start):
+    """The posterior of a rod's constants (``data`` a rod's measurements with their ``sigma``,
+    ``params`` the starting values by name): log-normal coordinates x = log constants, the
+    gradient -Jᵀr from forward mode (a rod's few constants), the chains one after the other
+    on each device. The same result as a rigid body's, its variables the constants' names."""
+    if data.sigma is None:
+        raise ValueError(
+            f"data ({type(data).__name__}) has no sigma: the posterior's likelihood needs the "
+            "noise level of the measurements (give sigma=...)."
+        )
+    names = tuple(sorted(params))
+    priors = _check_priors(priors, names, False, initial_state=False)
+    options = dict(rtol=solve["solve_rtol"], atol=solve["solve_atol"])
+    options["max_steps"] = solve["solve_max_steps"]
+    result = fit_constants(rod_fn, data, params, **options)
+    fit_time = time.perf_counter() - start
+    problem = data.problem(rod_fn, names, **options)
+    x_star = np.asarray(result.unconstrained)
+    _, J = _value_and_jacobian(problem, jnp.asarray(x_star))
+    _, L = _covariance_factor(np.asarray(J))
+    operands, static = _split(problem, x_star, L)
+    density = _density(static, True, _log_prior(priors, names))
+    key = _cache_key(static, True, priors, operands)
+    opts = dict(opts, sequential=True)
+    z, stats, times = _run(density, operands, key, L.shape[0], opts, progress)
+    x = x_star[None, None, :] + np.einsum("ij,cdj->cdi", L, z)
+    variables = {name: np.exp(x[..., i]) for i, name in enumerate(names)}
+    out, diagnostics = _inference_data(variables, stats, 0)
+    attrs = _summary_attrs(diagnostics, stats, times, fit_time, "forward mode")
     attrs["wall_time"] = time.perf_counter() - start
     out["posterior"].attrs.update(attrs)
     return out
+
+
+_value_and_jacobian = eqx.filter_jit(value_and_jacfwd)

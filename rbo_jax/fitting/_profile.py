@@ -33,12 +33,13 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..solvers import levenberg_marquardt
+from ._constants import fit_constants, is_measurements
 from ._fit import fit, setup
 from ._residuals import (
+    SensorResiduals,
     leaf_at,
     observed_components,
     param_names,
-    residual_vector,
     scalar_names,
     transform,
     unpack,
@@ -75,23 +76,18 @@ def _with_jacobian(res, x):
 
 
 @eqx.filter_jit
-def _at_optimum(x, template, model, datas, spec):
+def _at_optimum(x, problem):
     """The residuals and their Jacobian at the fit's optimum (all coordinates)."""
-    unravel = ravel_pytree(template)[1]
-    return _with_jacobian(lambda z: residual_vector(unravel(z), model, datas, spec), x)
+    return _with_jacobian(problem, x)
 
 
 @eqx.filter_jit
-def _refit(x_free0, fixed, k, template, model, datas, spec, max_steps, tol):
+def _refit(x_free0, fixed, k, problem, max_steps, tol):
     """The re-fit at each fixed value, in one program: ``(x_free, F, converged, num_steps)``; the
-    unknowns are the flat coordinates of ``template`` (the fit's ``u``) but the ``k``-th."""
-    unravel = ravel_pytree(template)[1]
+    unknowns are the flat coordinates x of ``problem`` (residuals of x) but the ``k``-th."""
 
     def evaluate(x_free, xk):
-        return _with_jacobian(
-            lambda z: residual_vector(unravel(jnp.insert(z, k, xk)), model, datas, spec),
-            x_free,
-        )
+        return _with_jacobian(lambda z: problem(jnp.insert(z, k, xk)), x_free)
 
     def one(lane):
         x_free, xk = lane
@@ -135,6 +131,46 @@ def _interval(v, delta, threshold, estimate):
     return bounds
 
 
+def _profile(problem, x_star, k, fixed, v, estimate, observed, level, max_steps, tol):
+    """The profile of the coordinate ``k`` of ``problem`` at the ``fixed`` values of it (``v``
+    in natural units): the re-fitted coordinates (one row per value, all of them), the
+    negative log-likelihood, and the attributes of the result. ``observed``: (count, sigma) of
+    each channel (sigma None: the residual scale is estimated at the optimum)."""
+    r, J = (np.asarray(a) for a in _at_optimum(jnp.asarray(x_star), problem))
+    m = sum(count for count, _ in observed)
+    known = all(sigma is not None for _, sigma in observed)
+    scale = 1.0 if known else float(np.sqrt(float(r @ r) / max(m - x_star.size, 1)))
+    const = sum(c * np.log((sigma or scale) * np.sqrt(2 * np.pi)) for c, sigma in observed)
+    starts = jnp.asarray(_predicted_starts(J, x_star, k, fixed))
+    x_free, F, ok, steps = _refit(starts, jnp.asarray(fixed), k, problem, max_steps, tol)
+    nll = np.asarray(F) / scale**2 + const
+    nll_min = min(0.5 * float(r @ r) / scale**2 + const, float(np.nanmin(nll)))
+    threshold = statistics.NormalDist().inv_cdf((1 + level) / 2) ** 2 / 2
+    lower, upper = _interval(v, nll - nll_min, threshold, estimate)
+    full = np.insert(np.asarray(x_free), k, fixed, axis=1)
+    attrs = dict(
+        estimate=estimate,
+        level=level,
+        threshold=threshold,
+        lower=lower,
+        upper=upper,
+        min_neg_log_likelihood=nll_min,
+        sigma_scale=scale,
+    )
+    return full, nll, nll_min, np.asarray(ok), np.asarray(steps), attrs
+
+
+def _finish(ds, name, stderr, nll, nll_min, ok, steps, attrs, t_start):
+    """The profile's common variables and attributes, added to ``ds``."""
+    ds["neg_log_likelihood"] = ("value", nll, {"long_name": "negative log-likelihood"})
+    ds["delta"] = ("value", nll - nll_min, {"long_name": "neg_log_likelihood - its minimum"})
+    ds["converged"] = ("value", ok)
+    ds["num_steps"] = ("value", steps)
+    ds.attrs.update(parameter=name, stderr=stderr, **attrs)
+    ds.attrs["wall_time"] = time.perf_counter() - t_start
+    return ds
+
+
 def profile_likelihood(
     model,
     data,
@@ -162,6 +198,14 @@ def profile_likelihood(
     units), at least two; `start`: a :class:`rbo_jax.FitResult` of the same problem (else
     :func:`rbo_jax.fit` runs first); `max_steps`, `tol`: of the re-fits.
 
+    **A rod** (:mod:`rbo_jax.lattice`): `model` is a function ``rod_fn(**constants)`` building
+    the rod, `data` a :class:`rbo_jax.lattice.RodSpectrumData` (measured eigenvalues) or
+    :class:`rbo_jax.lattice.RodTrajectoryData` (a body's measured positions), `params` the
+    constants' starting values by name (``{"EI": 1.0, "eta": 1e-3}``, all positive, fitted as
+    logarithms), `name` one of them, `start` a :class:`rbo_jax.lattice.RodFit`; the other
+    constants are re-fitted at each value. `solve_*` apply to a trajectory's solve;
+    `transforms` and `fit_initial_state` do not apply (the start is measured).
+
     **Returns** an :class:`xarray.Dataset` over the dimension ``value`` (coordinate: the values
     of ``name``): ``neg_log_likelihood`` ($\ell_p$), ``delta`` ($\ell_p - \min\ell$), the
     re-fitted parameters under their names, ``Omega_bias`` (``value``, ``component``) where
@@ -174,13 +218,10 @@ def profile_likelihood(
     """
     t_start = time.perf_counter()
     _check(level, max_steps)
-    options = dict(
-        transforms=transforms,
-        fit_initial_state=fit_initial_state,
-        solve_rtol=solve_rtol,
-        solve_atol=solve_atol,
-        solve_max_steps=solve_max_steps,
-    )
+    solve = dict(solve_rtol=solve_rtol, solve_atol=solve_atol, solve_max_steps=solve_max_steps)
+    if is_measurements(data):
+        return _rod_profile(model, data, params, name, values, level, start, max_steps, tol, solve)
+    options = dict(transforms=transforms, fit_initial_state=fit_initial_state, **solve)
     datas, spec, _ = setup(model, data, params, **options)
     names = param_names(spec)
     natural0 = tuple(np.asarray(leaf_at(model, p)) for p in spec.paths)
@@ -189,50 +230,43 @@ def profile_likelihood(
     v = _fixed_values(values, spec.transforms[owner], name)
     result = start if start is not None else fit(model, datas, params, **options)
     x_star, unravel = ravel_pytree(result.unconstrained)
-    template = result.unconstrained
     x_star = np.asarray(x_star, dtype=np.float64)
     fixed = np.array([transform(spec.transforms[owner], x) for x in v])
-    r, J = (np.asarray(a) for a in _at_optimum(jnp.asarray(x_star), template, model, datas, spec))
-    observed = observed_components(datas)
-    m = sum(count for count, _ in observed)
-    known = all(sigma is not None for _, sigma in observed)
-    scale = 1.0 if known else float(np.sqrt(float(r @ r) / max(m - x_star.size, 1)))
-    const = sum(c * np.log((sigma or scale) * np.sqrt(2 * np.pi)) for c, sigma in observed)
-    x_free, F, ok, steps = _refit(
-        jnp.asarray(_predicted_starts(J, x_star, k, fixed)),
-        jnp.asarray(fixed),
-        k,
-        template,
-        model,
-        datas,
-        spec,
-        max_steps,
-        tol,
-    )
-    nll = np.asarray(F) / scale**2 + const
-    nll_min = min(0.5 * float(r @ r) / scale**2 + const, float(np.nanmin(nll)))
-    threshold = statistics.NormalDist().inv_cdf((1 + level) / 2) ** 2 / 2
     estimate = float(np.concatenate([np.ravel(p) for p in result.params])[k])
-    lower, upper = _interval(v, nll - nll_min, threshold, estimate)
-    full = np.insert(np.asarray(x_free), k, fixed, axis=1)
-    ds = _dataset([unravel(jnp.asarray(x)) for x in full], model, datas, spec, name, v)
-    ds["neg_log_likelihood"] = ("value", nll, {"long_name": "negative log-likelihood"})
-    ds["delta"] = ("value", nll - nll_min, {"long_name": "neg_log_likelihood - its minimum"})
-    ds["converged"] = ("value", np.asarray(ok))
-    ds["num_steps"] = ("value", np.asarray(steps))
-    ds.attrs.update(
-        parameter=name,
-        estimate=estimate,
-        stderr=float(np.concatenate([np.ravel(s) for s in result.stderr])[k]),
-        level=level,
-        threshold=threshold,
-        lower=lower,
-        upper=upper,
-        min_neg_log_likelihood=nll_min,
-        sigma_scale=scale,
-        wall_time=time.perf_counter() - t_start,
+    problem = SensorResiduals(model, tuple(datas), result.unconstrained, spec)
+    full, nll, nll_min, ok, steps, attrs = _profile(
+        problem, x_star, k, fixed, v, estimate, observed_components(datas), level, max_steps, tol
     )
-    return ds
+    ds = _dataset([unravel(jnp.asarray(x)) for x in full], model, datas, spec, name, v)
+    stderr = float(np.concatenate([np.ravel(s) for s in result.stderr])[k])
+    return _finish(ds, name, stderr, nll, nll_min, ok, steps, attrs, t_start)
+
+
+def _rod_profile(rod_fn, data, params, name, values, level, start, max_steps, tol, solve):
+    """The profile of a rod's constant (``data`` a rod's measurements, ``params`` the starting
+    values by name): the same result as a rigid body's."""
+    import xarray as xr
+
+    t_start = time.perf_counter()
+    names = tuple(sorted(params))
+    if name not in names:
+        raise ValueError(f"name must be one of the fitted parameters {list(names)}, got {name!r}.")
+    k = names.index(name)
+    v = _fixed_values(values, "log", name)
+    options = dict(rtol=solve["solve_rtol"], atol=solve["solve_atol"])
+    options["max_steps"] = solve["solve_max_steps"]
+    result = start if start is not None else fit_constants(rod_fn, data, params, tol=tol, **options)
+    problem = data.problem(rod_fn, names, **options)
+    observed = [(int(np.sum(np.asarray(data.mask))), data.sigma)]
+    x_star = np.asarray(result.unconstrained, dtype=np.float64)
+    full, nll, nll_min, ok, steps, attrs = _profile(
+        problem, x_star, k, np.log(v), v, result.params[name], observed, level, max_steps, tol
+    )
+    ds = xr.Dataset(coords={"value": ("value", v, {"long_name": name})})
+    for i, other in enumerate(names):
+        if other != name:
+            ds[other] = ("value", np.exp(full[:, i]))
+    return _finish(ds, name, result.stderr[name], nll, nll_min, ok, steps, attrs, t_start)
 
 
 def _check(level, max_steps):

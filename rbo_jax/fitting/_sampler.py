@@ -107,16 +107,17 @@ def _over_chains(f, sequential):
     return lambda *xs, shared: jax.lax.map(lambda t: f(*t, shared), xs)
 
 
-def _compiled(f, args, shared, use_devices, sequential):
-    """``f(*args, shared)`` over the leading (chain) axis of ``args``, compiled, as
-    ``run(args, shared)``: ``shared`` is an argument too (not baked in). Split over the local
-    devices (``shard_map`` over a batch of one chain's traced program, ``shared`` replicated:
-    tracing first keeps equinox's checkpointed loops out of the manual axes) or on one
-    device."""
+def _lowered(f, args, shared, use_devices, sequential):
+    """``f(*args, shared)`` over the leading (chain) axis of ``args`` (arrays or
+    ``jax.ShapeDtypeStruct``s), lowered: ``(lowered, out_shapes, finish)``, ``finish(compiled)``
+    giving ``run(args, shared)``; ``shared`` is an argument too (not baked in). Split over the
+    local devices (``shard_map`` over a batch of one chain's traced program, ``shared``
+    replicated: tracing first keeps equinox's checkpointed loops out of the manual axes) or on
+    one device."""
     mapped = _over_chains(f, sequential)
     if not use_devices:
-        program = jax.jit(lambda args, shared: mapped(*args, shared=shared))
-        return program.lower(args, shared).compile()
+        lowered = jax.jit(lambda args, shared: mapped(*args, shared=shared)).lower(args, shared)
+        return lowered, lowered.out_info, lambda compiled: compiled
     from jax.extend.core import jaxpr_as_fun
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
@@ -146,14 +147,39 @@ def _compiled(f, args, shared, use_devices, sequential):
         check_vma=False,
     )
 
+    def put(x, sharding):
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+        return jax.device_put(x, sharding)
+
     def place(args, shared):
-        return [jax.device_put(x, split) for x in jax.tree.leaves(args)] + [
-            jax.device_put(x, whole) for x in jax.tree.leaves(shared)
+        return [put(x, split) for x in jax.tree.leaves(args)] + [
+            put(x, whole) for x in jax.tree.leaves(shared)
         ]
 
-    program = jax.jit(program).lower(*place(args, shared)).compile()
+    lowered = jax.jit(program).lower(*place(args, shared))
     out_tree = jax.tree.structure(shape)
-    return lambda args, shared: jax.tree.unflatten(out_tree, program(*place(args, shared)))
+
+    def finish(compiled):
+        return lambda args, shared: jax.tree.unflatten(out_tree, compiled(*place(args, shared)))
+
+    return lowered, jax.tree.unflatten(out_tree, list(lowered.out_info)), finish
+
+
+def _compile_both(start, advance, z0, keys, first, operands, use_devices, sequential):
+    """The chains' two programs (the start, the transitions), lowered one after the other (the
+    transitions' from the start's output shapes) and compiled at the same time on two threads:
+    each holds the log density's gradient, and XLA compiles without the GIL."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    lo_start, carry, fin_start = _lowered(start, (z0,), operands, use_devices, sequential)
+    lo_advance, _, fin_advance = _lowered(
+        advance, (keys, carry, first), operands, use_devices, sequential
+    )
+    with ThreadPoolExecutor(2) as pool:
+        jobs = [pool.submit(lo.compile) for lo in (lo_start, lo_advance)]
+        compiled = [job.result() for job in jobs]
+    return fin_start(compiled[0]), fin_advance(compiled[1])
 
 
 # compiled samplers by the density's static part, the operands' shapes and the run's options:
@@ -172,7 +198,7 @@ def run_chains(density, operands, key, dim, opts, bar):
     n_chunks = min(opts["progress_chunks"], total)
     chunk = math.ceil(total / n_chunks)
     use_devices = _uses_devices(chains, opts["chain_method"])
-    sequential = opts["integrator"] == "fast_simulate"
+    sequential = opts["sequential"]
     rng = jax.random.PRNGKey(opts["seed"])
     keys = jax.random.split(rng, chains)
     z0 = jax.random.normal(jax.random.fold_in(rng, 1), (chains, dim))
@@ -183,17 +209,17 @@ def run_chains(density, operands, key, dim, opts, bar):
     cached = _PROGRAMS.get(key) if key is not None else None
     with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
         if cached is None:  # BlackJAX mixes bool and int
-            start, advance = _chain(density, num_warmup, chunk)
-            start = _compiled(start, (z0,), operands, use_devices, sequential)
-        else:
-            start, advance = cached
-        carry = start((z0,), operands)
-        if cached is None:
-            advance = _compiled(advance, (keys, carry, first), operands, use_devices, sequential)
+            start, advance = _compile_both(
+                *_chain(density, num_warmup, chunk), z0, keys, first, operands, use_devices,
+                sequential,
+            )  # fmt: skip
             if key is not None:
                 if len(_PROGRAMS) >= _PROGRAMS_KEPT:
                     _PROGRAMS.pop(next(iter(_PROGRAMS)))
                 _PROGRAMS[key] = (start, advance)
+        else:
+            start, advance = cached
+        carry = start((z0,), operands)
     times = {"compile": time.perf_counter() - tic, "reused": cached is not None}
     times["chains"] = ("shard_map + " if use_devices else "") + ("map" if sequential else "vmap")
     tic = time.perf_counter()

@@ -47,6 +47,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "._fit": (
             "LatticeFit",
             "RodFit",
+            "RodSpectrumData",
+            "RodTrajectoryData",
             "fit_dispersion",
             "fit_field",
             "fit_spectrum",

@@ -2,22 +2,21 @@ r"""Fitting the constants of a lattice or a rod by least squares: a lattice's st
 measured dispersion curve or to a recorded space-time field of turn-vectors, a rod's to its
 measured eigenvalues (frequencies and decay rates) or to a measured trajectory of one body.
 
-Every fit runs through one implementation (:func:`least_squares`). The constants are named and
-positive (a stiffness, an inertia, a damping time) and are fitted as their logarithms. One
-compiled program returns the residuals and their forward-mode Jacobian: through the eigenvalues of
-the Bloch matrix (:func:`rbo_jax.lattice.dispersion`) or of a rod's linearisation (and through the
-Newton solve of its equilibrium, by the implicit function theorem, when it is loaded), or through
-the motion (the lattice's DOP853 loop of :func:`rbo_jax.lattice.simulate`, or diffrax; one tangent
-per constant). The Levenberg–Marquardt iteration of :func:`rbo_jax.fit`
+Every fit runs through one implementation (:func:`rbo_jax.fitting._constants.least_squares`). The
+constants are named and positive (a stiffness, an inertia, a damping time) and are fitted as their
+logarithms. One compiled program returns the residuals and their forward-mode Jacobian: through the
+eigenvalues of the Bloch matrix (:func:`rbo_jax.lattice.dispersion`) or of a rod's linearisation
+(and through the Newton solve of its equilibrium, by the implicit function theorem, when it is
+loaded), or through the motion (the lattice's DOP853 loop of :func:`rbo_jax.lattice.simulate`, or
+diffrax; one tangent per constant). The Levenberg–Marquardt iteration of :func:`rbo_jax.fit`
 (:func:`rbo_jax.solvers.run_least_squares`) runs on the host around it. The standard errors are
-Gauss–Newton's, $s^2 (J^TJ)^{-1}$ with $s^2$ the residual variance, carried to each constant by
-the delta method, $\sigma_p = p\,\sigma_{\log p}$
-(:func:`rbo_jax.solvers.gauss_newton_covariance`, as :func:`rbo_jax.fit`'s).
+Gauss–Newton's, $s^2 (J^TJ)^{-1}$ with $s^2$ the residual variance, carried to each constant by the
+delta method, $\sigma_p = p\,\sigma_{\log p}$ (:func:`rbo_jax.solvers.gauss_newton_covariance`, as
+:func:`rbo_jax.fit`'s).
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Mapping
 
 import diffrax
@@ -25,83 +24,34 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.tree_util import tree_map
 
-from .._programs import jit
+from ..fitting._constants import (
+    AbstractMeasurements,
+    LatticeFit,
+    Residuals,
+    fit_constants,
+    least_squares,
+    start_values,
+)
 from ..models.rod import RodState
-from ..solvers import gauss_newton_covariance, run_least_squares, value_and_jacfwd
 from ..stability import linearize, solve_equilibrium
 from ._dispersion import bloch_blocks, dispersion
 from ._rod_dynamics import _solve
 from ._simulate import simulate
 
-__all__ = ["LatticeFit", "RodFit", "fit_dispersion", "fit_field", "fit_spectrum", "fit_trajectory"]
-
-
-class LatticeFit(eqx.Module):
-    """The result of a fit of a lattice's or a rod's constants (:func:`fit_dispersion`,
-    :func:`fit_field`, :func:`fit_spectrum`, :func:`fit_trajectory`; :class:`RodFit` is this
-    class): ``params`` and ``stderr`` (name -> fitted value, and its Gauss–Newton standard
-    error), ``rms`` (the root mean square of the residuals at the solution, in the data's
-    units), ``num_steps``, ``converged`` and ``message`` (how the iteration ended)."""
-
-    params: dict
-    stderr: dict
-    rms: float
-    num_steps: int
-    converged: bool
-    message: str = eqx.field(static=True)
+__all__ = [
+    "LatticeFit",
+    "RodFit",
+    "RodSpectrumData",
+    "RodTrajectoryData",
+    "fit_dispersion",
+    "fit_field",
+    "fit_spectrum",
+    "fit_trajectory",
+]
 
 
 RodFit = LatticeFit
-
-
-def _start(params: Mapping[str, float]):
-    if not params:
-        raise ValueError("lattice fit: params must name at least one parameter to fit.")
-    values = {k: np.asarray(v, dtype=float) for k, v in params.items()}
-    bad = [k for k, v in values.items() if v.shape != () or not (np.isfinite(v) and v > 0)]
-    if bad:
-        raise ValueError(
-            "lattice fit: the starting values must be finite numbers > 0 (they "
-            "are fitted as logarithms), got " + ", ".join(f"{k}={params[k]!r}" for k in bad) + "."
-        )
-    return {k: jnp.log(jnp.asarray(v)) for k, v in values.items()}
-
-
-@functools.partial(jit, small=True)
-def _residuals_and_jacobian(model_fn, residuals, u, data):
-    """The one compiled program of a fit (per ``model_fn``, ``residuals`` and data shapes): the
-    residuals of the model with the constants $e^u$, and their Jacobian with respect to u."""
-    return value_and_jacfwd(lambda v: residuals(model_fn(**tree_map(jnp.exp, v)), data), u)
-
-
-def least_squares(model_fn, residuals, u0, data, tol, max_steps, measured=None) -> LatticeFit:
-    r"""Levenberg–Marquardt on ``residuals(model_fn(**constants), data)`` (``residuals`` a
-    function or a ``jax.tree_util.Partial``) from the logarithms ``u0`` of the constants, then
-    their Gauss–Newton standard errors with $s^2 = |r|^2/(m - p)$ over the ``measured``
-    residuals (a mask; default all of them), which also give ``rms``."""
-
-    def evaluate(u):
-        return _residuals_and_jacobian(model_fn, residuals, u, data)
-
-    u, steps, converged, message = run_least_squares(
-        evaluate, u0, "levenberg_marquardt", tol, max_steps, []
-    )
-    r, J = evaluate(u)
-    r = np.asarray(r, dtype=float)
-    measured = np.ones(r.size, bool) if measured is None else measured
-    values = {k: float(np.exp(u[k])) for k in sorted(u)}  # the Jacobian's columns: sorted keys
-    x = np.array(list(values.values()))
-    _, se, note = gauss_newton_covariance(r, J, 1.0 / x, int(measured.sum()))
-    return LatticeFit(
-        params=values,
-        stderr=dict(zip(values, map(float, se))),
-        rms=np.sqrt(np.mean(r[measured] ** 2)),
-        num_steps=int(steps),
-        converged=bool(converged),
-        message=message + note,
-    )
 
 
 def _dispersion_residuals(lat, data):
@@ -144,7 +94,7 @@ def fit_dispersion(
     Levenberg–Marquardt iterations). One compiled program per ``lattice_fn`` and data shapes.
     Returns a :class:`LatticeFit` (``rms`` and the standard errors count every entry of
     ``omega``, a NaN one as a zero residual)."""
-    u0 = _start(params)
+    names, x0 = start_values(params)
     q = jnp.asarray(q, dtype=jnp.result_type(float))
     omega = np.asarray(omega, dtype=float)
     omega = omega[:, None] if omega.ndim == 1 else omega
@@ -167,7 +117,9 @@ def fit_dispersion(
         jnp.asarray(branches),
         None if theta_eq is None else jnp.asarray(theta_eq),
     )
-    return least_squares(lattice_fn, _dispersion_residuals, u0, data, tol, max_steps)
+    return least_squares(
+        Residuals(lattice_fn, names, _dispersion_residuals, data), x0, tol, max_steps
+    )
 
 
 def fit_field(
@@ -190,7 +142,7 @@ def fit_field(
     solver. One compiled program per ``lattice_fn``, options and data shapes. Returns a
     :class:`LatticeFit` (``rms`` and the standard errors count every entry of ``theta``, a NaN
     one as a zero residual)."""
-    u0 = _start(params)
+    names, x0 = start_values(params)
     theta = np.asarray(theta, dtype=float)
     measured = np.isfinite(theta)
     options = tuple(sorted((dict(rtol=1e-10, atol=1e-12) | dict(simulate_options)).items()))
@@ -202,21 +154,125 @@ def fit_field(
         jnp.asarray(Omega0, dtype=jnp.result_type(float)),
     )
     residuals = jax.tree_util.Partial(_field_residuals, options)
-    return least_squares(lattice_fn, residuals, u0, data, tol, max_steps)
+    return least_squares(Residuals(lattice_fn, names, residuals, data), x0, tol, max_steps)
 
 
-def _lowest(p, count):
-    """The ``count`` eigenvalues with the smallest positive imaginary parts, ascending."""
-    key = jnp.where(p.imag > 1e-9 * jnp.max(jnp.abs(p)), p.imag, jnp.inf)
-    return p[jnp.argsort(key)[:count]]
+def _matched(p, target, mask):
+    """The model's eigenvalue (among those with Im p > 0) nearest each measured one, by the
+    measured parts (the frequency, and the decay rate where measured): not the k-th lowest by
+    frequency, which jumps where an overdamped mode of a stiff direction turns oscillatory
+    with a low frequency (a Kelvin–Voigt rod near its critical damping)."""
+    cand = jnp.where(p.imag > 1e-9 * jnp.max(jnp.abs(p)), p, jnp.inf)
+    distance = jnp.abs(cand.imag[None, :] - target[:, 1:2])
+    distance += jnp.where(mask[:, :1], jnp.abs(cand.real[None, :] - target[:, :1]), 0.0)
+    return cand[jnp.argmin(distance, axis=1)]
 
 
 def _spectrum_residuals(at_rest, rod, data):
     target, mask = data
     state = rod.straight() if at_rest else solve_equilibrium(rod).state
-    p = _lowest(jnp.linalg.eigvals(linearize(rod, state)), target.shape[0])
+    p = _matched(jnp.linalg.eigvals(linearize(rod, state)), target, mask)
     r = jnp.stack([p.real - target[:, 0], p.imag - target[:, 1]], axis=1)
     return jnp.ravel(jnp.where(mask, r, 0.0))
+
+
+def _trajectory_residuals(settings, rod, data):
+    """The simulated positions of the measured body at ``ts`` minus the measured ones (0 where
+    not measured)."""
+    ts, target, mask, state0 = data
+    solver, rtol, atol, max_steps, dt0, body = settings
+    adjoint = diffrax.ForwardMode()  # few parameters: forward mode through the solve
+    ys, _, _ = _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint)
+    return jnp.ravel(jnp.where(mask, ys.r[:, body, :] - target, 0.0))
+
+
+def _check_sigma(owner, sigma):
+    if sigma is None:
+        return None
+    if isinstance(sigma, bool) or not np.isscalar(sigma) or not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"{owner}: sigma must be a finite number > 0 (or None), got {sigma!r}.")
+    return float(sigma)
+
+
+class RodSpectrumData(AbstractMeasurements):
+    r"""Measured eigenvalues of a rod: what :func:`fit_spectrum` fits, and what
+    :func:`rbo_jax.fit`, :func:`rbo_jax.profile_likelihood` and :func:`rbo_jax.posterior` take
+    with a rod function ``rod_fn(**constants)`` in place of a model.
+
+    ``eigenvalues``: complex $p_k = -\zeta_k + i\omega_k$ of the lowest modes in order of
+    frequency (the modes with $\omega > 0$ of :func:`rbo_jax.lattice.spectrum`; a rod of
+    circular section has each bending frequency twice, one per plane: list both); a real part
+    that was not measured is NaN (only the frequency counts). ``sigma``: the noise level of each
+    measured real and imaginary part (None: unknown, estimated from the residuals by the fit;
+    the posterior needs it). ``at_rest``: linearise about the straight state at rest, else
+    about the equilibrium under the rod's loads (Newton, differentiated implicitly)."""
+
+    target: jax.Array
+    mask: jax.Array
+    sigma: float | None = eqx.field(static=True)
+    at_rest: bool = eqx.field(static=True)
+
+    def __init__(self, eigenvalues, *, sigma=None, at_rest: bool = True):
+        p = np.atleast_1d(np.asarray(eigenvalues, dtype=complex))
+        if p.ndim != 1 or p.size == 0:
+            raise ValueError(f"eigenvalues must be a non-empty 1-D array, got shape {p.shape}.")
+        if not np.all(np.isfinite(p.imag)) or np.any(p.imag <= 0):
+            raise ValueError("eigenvalues: each needs a measured frequency Im p > 0.")
+        self.target = jnp.asarray(np.stack([np.nan_to_num(p.real), p.imag], axis=1))
+        self.mask = jnp.asarray(np.stack([np.isfinite(p.real), np.ones(p.size, bool)], axis=1))
+        self.sigma = _check_sigma("RodSpectrumData", sigma)
+        self.at_rest = bool(at_rest)
+
+    def problem(self, rod_fn, names, **solve_options) -> Residuals:
+        """The fit's :class:`Residuals` (``solve_options`` do not apply: no motion)."""
+        residuals = jax.tree_util.Partial(_spectrum_residuals, self.at_rest)
+        return Residuals(rod_fn, names, residuals, (self.target, self.mask), self.sigma)
+
+
+class RodTrajectoryData(AbstractMeasurements):
+    r"""Measured positions (T, 3) of one body of a rod (``body``, the tip by default) at the
+    times ``ts`` (T,), the motion starting from ``state0`` (a :class:`RodState` at ``ts[0]``,
+    held fixed: e.g. a measured deflected shape at rest): what :func:`fit_trajectory` fits, and
+    what :func:`rbo_jax.fit`, :func:`rbo_jax.profile_likelihood` and :func:`rbo_jax.posterior`
+    take with a rod function. NaN in a position (a sample or one coordinate of it) means not
+    measured. ``sigma``: the noise level of each coordinate (None: unknown, estimated from the
+    residuals by the fit; the posterior needs it)."""
+
+    ts: jax.Array
+    positions: jax.Array
+    mask: jax.Array
+    state0: RodState
+    body: int = eqx.field(static=True)
+    sigma: float | None = eqx.field(static=True)
+
+    def __init__(self, ts, positions, state0, *, body: int = -1, sigma=None):
+        ts = np.asarray(ts, dtype=float)
+        x = np.asarray(positions, dtype=float)
+        if ts.ndim != 1 or ts.size < 2 or not np.all(np.diff(ts) > 0):
+            raise ValueError("ts must be a strictly increasing 1-D array of at least 2 times.")
+        if x.shape != (ts.size, 3) or not np.any(np.isfinite(x)) or np.any(np.isinf(x)):
+            raise ValueError(
+                f"positions must have shape {(ts.size, 3)} (one row per time), finite or NaN "
+                f"(not measured), not all NaN; got shape {x.shape}."
+            )
+        if not isinstance(state0, RodState):
+            raise TypeError(f"state0 must be a RodState, got {type(state0).__name__}.")
+        self.ts = jnp.asarray(ts)
+        self.positions = jnp.asarray(np.nan_to_num(x))
+        self.mask = jnp.asarray(np.isfinite(x))
+        self.state0 = jax.tree_util.tree_map(jnp.asarray, state0)
+        self.body = int(body)
+        self.sigma = _check_sigma("RodTrajectoryData", sigma)
+
+    def problem(self, rod_fn, names, *, solver=None, rtol=1e-8, atol=1e-10, max_steps=100_000):
+        """The fit's :class:`Residuals`: the diffrax solve of :func:`rbo_jax.lattice.simulate`
+        (``solver`` default ``Dopri8``), differentiated in forward mode."""
+        solver = diffrax.Dopri8() if solver is None else solver
+        dt0 = float(self.ts[1] - self.ts[0]) / 10.0
+        settings = (solver, float(rtol), float(atol), int(max_steps), dt0, self.body)
+        residuals = jax.tree_util.Partial(_trajectory_residuals, settings)
+        data = (self.ts, self.positions, self.mask, self.state0)
+        return Residuals(rod_fn, names, residuals, data, self.sigma)
 
 
 def fit_spectrum(
@@ -225,38 +281,20 @@ def fit_spectrum(
     eigenvalues,
     *,
     at_rest: bool = True,
+    sigma: float | None = None,
     tol: float = 1e-12,
     max_steps: int = 100,
 ) -> RodFit:
     r"""Fit ``params`` (name -> starting value > 0) so that the rod ``rod_fn(**params)`` has the
-    measured ``eigenvalues``: complex $p_k = -\zeta_k + i\omega_k$ of its lowest modes in order
-    of frequency (the modes with $\omega > 0$ of :func:`rbo_jax.lattice.spectrum`; a rod of
-    circular section has each bending frequency twice, one per plane: list both). A real part
-    that was not measured is NaN (``complex(nan, omega)``): only the frequency is fitted.
-    ``at_rest``: linearise about the straight state at rest (a rod without loads), else about
-    the equilibrium under the loads (Newton, differentiated implicitly). ``tol``,
-    ``max_steps``: as :func:`rbo_jax.fit`. Returns a :class:`RodFit` with standard errors
-    (``rms`` and $s^2$ over the measured numbers)."""
-    u0 = _start(params)
-    p = np.atleast_1d(np.asarray(eigenvalues, dtype=complex))
-    if p.ndim != 1 or p.size == 0:
-        raise ValueError(f"fit_spectrum: eigenvalues must be a 1-D array, got shape {p.shape}.")
-    if not np.all(np.isfinite(p.imag)) or np.any(p.imag <= 0):
-        raise ValueError("fit_spectrum: every eigenvalue needs a measured frequency Im p > 0.")
-    target = np.stack([np.nan_to_num(p.real), p.imag], axis=1)
-    mask = np.stack([np.isfinite(p.real), np.ones(p.size, bool)], axis=1)
-    data = (jnp.asarray(target), jnp.asarray(mask))
-    residuals = jax.tree_util.Partial(_spectrum_residuals, bool(at_rest))
-    return least_squares(rod_fn, residuals, u0, data, tol, max_steps, mask.ravel())
-
-
-def _trajectory_residuals(settings, rod, data):
-    """The simulated positions of the measured body at ``ts`` minus the measured ones."""
-    ts, target, state0 = data
-    solver, rtol, atol, max_steps, dt0, body = settings
-    adjoint = diffrax.ForwardMode()  # few parameters: forward mode through the solve
-    ys, _, _ = _solve(rod, state0, ts, solver, rtol, atol, max_steps, dt0, adjoint)
-    return jnp.ravel(ys.r[:, body, :] - target)
+    measured ``eigenvalues`` (complex, lowest modes in order of frequency, NaN real part where
+    only the frequency was measured), linearised ``at_rest`` or about its loaded equilibrium,
+    with the noise level ``sigma`` of each number where known: see :class:`RodSpectrumData`.
+    ``tol``, ``max_steps``: as :func:`rbo_jax.fit`. Returns a :class:`RodFit` with standard
+    errors: Gauss–Newton, $s^2 = 1$ with ``sigma``, else the residual variance over the
+    measured numbers (which also give ``rms``). The same as
+    ``rbo_jax.fit(rod_fn, RodSpectrumData(eigenvalues, ...), params)``."""
+    data = RodSpectrumData(eigenvalues, sigma=sigma, at_rest=at_rest)
+    return fit_constants(rod_fn, data, params, tol=tol, max_fit_steps=max_steps)
 
 
 def fit_trajectory(
@@ -267,6 +305,7 @@ def fit_trajectory(
     state0: RodState,
     *,
     body: int = -1,
+    sigma: float | None = None,
     solver: diffrax.AbstractSolver | None = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
@@ -275,33 +314,19 @@ def fit_trajectory(
     max_fit_steps: int = 100,
 ) -> RodFit:
     r"""Fit ``params`` (name -> starting value > 0, fitted as logarithms) so that the motion of
-    ``rod_fn(**params)`` from ``state0`` (a :class:`RodState`, held fixed: e.g. a measured
-    deflected shape at rest) passes through the measured ``positions`` (T, 3) of one body
-    (``body``, the tip by default) at the times ``ts`` (T,), ``ts[0]`` the time of ``state0``.
+    ``rod_fn(**params)`` from ``state0`` passes through the measured ``positions`` (T, 3; NaN:
+    not measured) of one body (``body``, the tip by default) at the times ``ts``: see
+    :class:`RodTrajectoryData`, which also takes the noise level ``sigma`` where known.
 
     The residuals are the simulated positions (:func:`rbo_jax.lattice.simulate`'s diffrax solve,
     ``solver`` default ``Dopri8`` with ``rtol``, ``atol``, ``max_steps``) minus the measured
     ones; Levenberg–Marquardt (:func:`rbo_jax.fit`'s) with forward-mode derivatives through the
     solve (``diffrax.ForwardMode``: one tangent per parameter); ``tol``, ``max_fit_steps``: its
-    tolerance and iterations. Standard errors: Gauss–Newton, $s^2 (J^TJ)^{-1}$ with the residual
-    variance $s^2 = |r|^2/(3T - p)$, by the delta method. Returns a :class:`RodFit` (``rms`` in
-    the positions' units)."""
-    u0 = _start(params)
-    ts = np.asarray(ts, dtype=float)
-    target = np.asarray(positions, dtype=float)
-    if ts.ndim != 1 or ts.size < 2 or not np.all(np.diff(ts) > 0):
-        raise ValueError("fit_trajectory: ts must be a strictly increasing 1-D array of >= 2.")
-    if target.shape != (ts.size, 3) or not np.all(np.isfinite(target)):
-        raise ValueError(
-            f"fit_trajectory: positions must be finite, shape {(ts.size, 3)} (one row per "
-            f"time), got {target.shape}."
-        )
-    if not isinstance(state0, RodState):
-        raise TypeError(f"fit_trajectory: state0 must be a RodState, got {type(state0)}.")
-    solver = diffrax.Dopri8() if solver is None else solver
-    dt0 = float(ts[1] - ts[0]) / 10.0
-    settings = (solver, float(rtol), float(atol), int(max_steps), dt0, int(body))
-    state0 = jax.tree_util.tree_map(jnp.asarray, state0)
-    data = (jnp.asarray(ts), jnp.asarray(target), state0)
-    residuals = jax.tree_util.Partial(_trajectory_residuals, settings)
-    return least_squares(rod_fn, residuals, u0, data, tol, int(max_fit_steps))
+    tolerance and iterations. Standard errors: Gauss–Newton, $s^2 (J^TJ)^{-1}$ with $s^2 = 1$
+    where ``sigma`` is given, else the residual variance $|r|^2/(m - p)$ over the $m$ measured
+    coordinates, by the delta method. Returns a :class:`RodFit` (``rms`` in the positions'
+    units). The same as ``rbo_jax.fit(rod_fn, RodTrajectoryData(ts, positions, state0, ...),
+    params)``."""
+    data = RodTrajectoryData(ts, positions, state0, body=body, sigma=sigma)
+    options = dict(solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
+    return fit_constants(rod_fn, data, params, tol=tol, max_fit_steps=max_fit_steps, **options)
