@@ -36,7 +36,7 @@ failed solve.
 **Rods.** With a rod's measurements (:class:`rbo_jax.lattice.RodSpectrumData`,
 :class:`rbo_jax.lattice.RodTrajectoryData`) the sampled coordinates are the logarithms of the
 rod's constants; the problem is their whitened residuals
-(:class:`rbo_jax.lattice._fit.Residuals`), the gradient $-J^Tr$ from forward mode.
+(:class:`rbo_jax.fitting._constants.Residuals`), the gradient $-J^Tr$ from forward mode.
 
 **Chains** (:mod:`rbo_jax.fitting._sampler`) run in one program: split over the local devices
 (``shard_map``, each device a ``vmap`` of its chains; ``chain_method="pmap"``) when the device
