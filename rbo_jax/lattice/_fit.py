@@ -218,7 +218,10 @@ class RodSpectrumData(AbstractMeasurements):
             raise ValueError(f"eigenvalues must be a non-empty 1-D array, got shape {p.shape}.")
         if not np.all(np.isfinite(p.imag)) or np.any(p.imag <= 0):
             raise ValueError("eigenvalues: each needs a measured frequency Im p > 0.")
-        self.target = jnp.asarray(np.stack([np.nan_to_num(p.real), p.imag], axis=1))
+        if np.any(np.isinf(p.real)):
+            raise ValueError("eigenvalues: a real part is finite, or NaN (not measured).")
+        measured = np.where(np.isfinite(p.real), p.real, 0.0)  # masked where not measured
+        self.target = jnp.asarray(np.stack([measured, p.imag], axis=1))
         self.mask = jnp.asarray(np.stack([np.isfinite(p.real), np.ones(p.size, bool)], axis=1))
         self.sigma = _check_sigma("RodSpectrumData", sigma)
         self.at_rest = bool(at_rest)
@@ -258,7 +261,7 @@ class RodTrajectoryData(AbstractMeasurements):
         if not isinstance(state0, RodState):
             raise TypeError(f"state0 must be a RodState, got {type(state0).__name__}.")
         self.ts = jnp.asarray(ts)
-        self.positions = jnp.asarray(np.nan_to_num(x))
+        self.positions = jnp.asarray(np.where(np.isfinite(x), x, 0.0))  # masked where NaN
         self.mask = jnp.asarray(np.isfinite(x))
         self.state0 = jax.tree_util.tree_map(jnp.asarray, state0)
         self.body = int(body)
