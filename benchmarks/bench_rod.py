@@ -56,6 +56,7 @@ import os
 import platform
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -118,8 +119,16 @@ def _parse(argv):
     p.add_argument(
         "--midpoint-n", type=ints, default=[50, 100, 200], help="implicit midpoint (same n as PE)"
     )
+    p.add_argument(
+        "--midpoint-dt",
+        type=lambda s: [float(x) for x in s.split(",") if x],
+        default=[0.02],
+        help="the midpoint rule also at these steps (longer than the samples: interpolated)",
+    )
     p.add_argument("--spectrum-n", type=ints, default=[5, 10, 50, 100])
     p.add_argument("--scaling-n", type=ints, default=[100, 1000, 10000])
+    p.add_argument("--motion-n", type=ints, default=[100, 1000, 10000], help="midpoint a step")
+    p.add_argument("--batch-sizes", type=ints, default=[1, 4, 16], help="vmap over designs")
     p.add_argument("--explicit-rtol", type=float, default=1e-6)
     p.add_argument("--implicit-rtol", type=float, default=1e-4)
     p.add_argument("--repeat", type=int, default=3, help="timed calls per side (best kept)")
@@ -142,6 +151,7 @@ def _parse(argv):
         args.pe_n, args.explicit_n, args.implicit_n = [50], [5], []
         args.splitting_n, args.midpoint_n = [5], [5]
         args.spectrum_n, args.scaling_n, args.statics_n = [10], [100], []
+        args.motion_n, args.batch_sizes = [10, 20], [1, 2]
     if args.core is None:
         args.core = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
     return args
@@ -463,6 +473,48 @@ def pe_vibration(n, T):
     return seconds, tip, dt, samples * every
 
 
+def pe_energy_drift(n, T):
+    """PyElastica's energy drift on the same run (not timed): max |E(t) - E(0)| / E(0) over the
+    samples, E its translational, rotational, bending and shear energies with the strains
+    computed at the sample's positions."""
+    Lr, r, rho, E, G = (VIB[k] for k in ("length", "radius", "density", "E", "G"))
+
+    class Sim(ea.BaseSystemCollection, ea.Constraints):
+        pass
+
+    sim = Sim()
+    rod = _pe_straight_rod(n, Lr, r, rho, E, G)
+    sim.append(rod)
+    sim.constrain(rod).using(
+        ea.OneEndFixedBC, constrained_position_idx=(0,), constrained_director_idx=(0,)
+    )
+    z = rod.position_collection[2]
+    rod.velocity_collection[0, :] = initial_velocity(z)[0]
+    rod.omega_collection[0, :] = initial_velocity(0.5 * (z[1:] + z[:-1]))[1]
+    sim.finalize()
+    dt = 0.5 * (Lr / n) / math.sqrt(E / rho)
+    every = max(1, math.ceil(SAMPLE_DT / dt))
+    dt = SAMPLE_DT / every
+    stepper, t, energies = ea.PositionVerlet(), 0.0, []
+
+    def total():
+        rod.compute_internal_forces_and_torques(t)  # the strains at the current positions
+        return float(
+            rod.compute_translational_energy()
+            + rod.compute_rotational_energy()
+            + rod.compute_bending_energy()
+            + rod.compute_shear_energy()
+        )
+
+    energies.append(total())
+    for _ in range(int(round(T / SAMPLE_DT))):
+        for _ in range(every):
+            t = stepper.step(sim, t, dt)
+        energies.append(total())
+    e = np.asarray(energies)
+    return float(np.max(np.abs(e - e[0])) / e[0])
+
+
 def rj_initial_state(rod):
     s = rod.straight()
     v, dv = initial_velocity(np.asarray(s.r)[:, 2])
@@ -472,13 +524,18 @@ def rj_initial_state(rod):
     return L.RodState(s.theta, s.r, jnp.asarray(om), jnp.asarray(vel))
 
 
-def rj_simulate(rod, state0, ts, method, rtol):
+def rj_simulate(rod, state0, ts, method, rtol, dt=None, energy=False):
+    """(tip x at ts, steps) of ``lattice.simulate``; with ``energy`` also its energy drift,
+    max |E(t) - E(0)| / E(0) over the samples (not timed)."""
     if method in ("splitting", "midpoint"):  # fixed steps: each method's default dt
-        traj = L.simulate(rod, state0, ts, method=method)
+        traj = L.simulate(rod, state0, ts, method=method, dt=dt)
     else:
         traj = L.simulate(rod, state0, ts, method=method, rtol=rtol, atol=rtol * 1e-3)
     tip = np.asarray(jax.block_until_ready(traj.states.r)[:, -1, 0])
-    return tip, int(traj.num_steps)
+    if not energy:
+        return tip, int(traj.num_steps)
+    e = np.asarray(traj.energy)
+    return tip, int(traj.num_steps), float(np.max(np.abs(e - e[0])) / e[0])
 
 
 def spectrum_frequencies(rod):
@@ -507,7 +564,7 @@ def vibration(args, alpha):
     )
     rows = []
 
-    def row(code, n, first, best, sim_t, w, steps, note=""):
+    def row(code, n, first, best, sim_t, w, steps, note="", drift=None):
         err = (np.asarray(w) / ref - 1.0).tolist()
         r = {
             "code": code,
@@ -517,21 +574,25 @@ def vibration(args, alpha):
             "per_sim_s": best / sim_t if sim_t else None,
             "omega": list(map(float, w)),
             "error": err,
+            "error_eb": float(w[0] / eb[0] - 1.0),
+            "energy_drift": drift,
             "steps": steps,
             "note": note,
         }
         rows.append(r)
         per = "-" if r["per_sim_s"] is None else f"{r['per_sim_s']:.3f}"
         first_s = "-" if first is None else f"{first:.1f}"
+        drift_s = "-" if drift is None else f"{drift:.1e}"
         print(
             f"{code:<26} {n:>5}  {first_s:>8}  {best:>9.4f}  {per:>9}  {_err_text(err):>19}"
-            f"  {steps if steps is not None else '-':>8}  {note}",
+            f"  {r['error_eb']:>+9.2e}  {drift_s:>8}  {steps if steps is not None else '-':>8}"
+            f"  {note}",
             flush=True,
         )
 
     print(
         f"{'code':<26} {'n':>5}  {'first[s]':>8}  {'best[s]':>9}  {'s/sim s':>9}  "
-        f"{'error ω1 ω2 vs Timo':>19}  {'steps':>8}"
+        f"{'error ω1 ω2 vs Timo':>19}  {'ω1 vs EB':>9}  {'drift':>8}  {'steps':>8}"
     )
     if ea is not None:
         pe_vibration(10, 0.01)  # numba's kernels compiled (or loaded from its cache) first
@@ -543,28 +604,28 @@ def vibration(args, alpha):
             tip, dt, steps = last
             bad = not np.all(np.isfinite(tip)) or np.max(np.abs(tip)) > 100 * VIB["V"]
             w = [np.nan, np.nan] if bad else two_frequencies(tip)
-            row("PyElastica PositionVerlet", n, None, best, T, w, steps, f"dt {dt:.3g}")
+            drift = None if bad else pe_energy_drift(n, T)
+            row("PyElastica PositionVerlet", n, None, best, T, w, steps, f"dt {dt:.3g}", drift)
     else:
         print("pyelastica not installed, skipped (pip install pyelastica, or the 'bench' extra)")
-    for method, ns, rtol in (
-        ("explicit", args.explicit_n, args.explicit_rtol),
-        ("implicit", args.implicit_n, args.implicit_rtol),
-        ("splitting", args.splitting_n, None),
-        ("midpoint", args.midpoint_n, None),
-    ):
+    name = {"explicit": "Dopri8", "implicit": "Kvaerno5", "splitting": "splitting"}
+    runs = [
+        ("explicit", args.explicit_n, args.explicit_rtol, None),
+        ("implicit", args.implicit_n, args.implicit_rtol, None),
+        ("splitting", args.splitting_n, None, None),
+        ("midpoint", args.midpoint_n, None, None),
+    ] + [("midpoint", args.midpoint_n, None, dt) for dt in args.midpoint_dt]
+    for method, ns, rtol, dt in runs:
         for n in ns:
             rod = vib_rod(n, alpha)
             s0 = rj_initial_state(rod)
-            first, _ = _timed(lambda: rj_simulate(rod, s0, ts, method, rtol))
-            best, (tip, steps) = _best(lambda: rj_simulate(rod, s0, ts, method, rtol), args.repeat)
-            name = {
-                "explicit": "Dopri8",
-                "implicit": "Kvaerno5",
-                "splitting": "splitting",
-                "midpoint": "midpoint",
-            }
+            run = lambda: rj_simulate(rod, s0, ts, method, rtol, dt)  # noqa: E731
+            first, _ = _timed(run)
+            best, (tip, steps) = _best(run, args.repeat)
+            drift = rj_simulate(rod, s0, ts, method, rtol, dt, energy=True)[2]
             note = f"dt {T / steps:.3g}" if rtol is None else f"rtol {rtol:g}"
-            row(f"rbo_jax {name[method]}", n, first, best, T, two_frequencies(tip), steps, note)
+            code = "rbo_jax " + name.get(method, method) + ("" if dt is None else f" dt={dt:g}")
+            row(code, n, first, best, T, two_frequencies(tip), steps, note, drift)
     for n in args.spectrum_n:
         rod = vib_rod(n, alpha)
         first, _ = _timed(lambda: spectrum_frequencies(rod))
@@ -572,6 +633,13 @@ def vibration(args, alpha):
         row("rbo_jax spectrum", n, first, best, None, w, None, "no simulation")
         rows[-1]["omega_max"] = float(np.max(np.abs(np.asarray(L.spectrum(rod)).imag)))
     out["rows"] = rows
+    out["same_n"] = same_n(rows)
+    for e in out["same_n"]:
+        print(
+            f"same n = {e['n']}: {e['code']} {e['ratio']:.2f}x PyElastica per simulated second "
+            f"(ω1 vs EB {e['error_eb']:+.2e} against {e['pe_error_eb']:+.2e}; energy drift "
+            f"{e['drift'] or float('nan'):.1e} against {e['pe_drift'] or float('nan'):.1e})"
+        )
     out["equal_accuracy"] = equal_accuracy(rows)
     for e in out["equal_accuracy"]:
         print(
@@ -650,6 +718,29 @@ def equal_accuracy(rows):
     return found
 
 
+def same_n(rows):
+    """Each rbo_jax row against PyElastica's at the same n: the ratio of seconds per simulated
+    second (PyElastica's over ours: above 1, ours is faster), with both sides' errors."""
+    pes = {r["n"]: r for r in rows if r["code"].startswith("PyElastica")}
+    out = []
+    for r in rows:
+        pe = pes.get(r["n"])
+        if pe is None or r is pe or not r["per_sim_s"] or r["code"].endswith("spectrum"):
+            continue
+        out.append(
+            {
+                "n": r["n"],
+                "code": r["code"],
+                "ratio": pe["per_sim_s"] / r["per_sim_s"],
+                "error_eb": r["error_eb"],
+                "pe_error_eb": pe["error_eb"],
+                "drift": r["energy_drift"],
+                "pe_drift": pe["energy_drift"],
+            }
+        )
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # 3. O(n) and 4. compile time.
 # --------------------------------------------------------------------------------------------
@@ -676,6 +767,63 @@ def scaling(args, alpha):
         a, b = rows[0], rows[-1]
         slope = math.log(b["warm"] / a["warm"]) / math.log(b["n"] / a["n"])
         print(f"warm time ~ n^{slope:.2f} from n = {a['n']} to {b['n']}")
+    return rows
+
+
+def motion_scaling(args, alpha):
+    """The midpoint rule's cost a step against the number of bodies: the cantilever of the
+    vibration (its initial velocity) stepped ``K`` and ``2K`` steps of 1 ms, the difference over
+    ``K`` (so the first Jacobian, factoring and the program's start are not counted)."""
+    rows, K, dt = [], 20, 1e-3
+    print(f"{'bodies':>8}  {'first[s]':>8}  {'us/step':>9}  {'ns/step/body':>12}")
+    for n in args.motion_n:
+        rod = vib_rod(n, alpha)
+        s0 = rj_initial_state(rod)
+
+        def run(k, rod=rod, s0=s0):
+            ts = np.linspace(0.0, k * dt, k + 1)
+            traj = L.simulate(rod, s0, ts, method="midpoint", dt=dt)
+            return jax.block_until_ready(traj.states.r)
+
+        first, _ = _timed(lambda: run(K))
+        run(2 * K)  # compiled for the longer ts too
+        short = _best(lambda: run(K), max(args.repeat, 3))[0]
+        long_ = _best(lambda: run(2 * K), max(args.repeat, 3))[0]
+        per_step = (long_ - short) / K
+        rows.append({"n": n, "first": first, "per_step": per_step, "per_body": per_step / n})
+        print(f"{n:>8}  {first:>8.2f}  {per_step * 1e6:>9.1f}  {per_step / n * 1e9:>12.1f}")
+    if len(rows) > 1:
+        a, b = rows[0], rows[-1]
+        slope = math.log(b["per_step"] / a["per_step"]) / math.log(b["n"] / a["n"])
+        print(f"time a step ~ n^{slope:.2f} from n = {a['n']} to {b['n']}")
+    return rows
+
+
+def batch_scaling(args, alpha):
+    """``jax.vmap`` of the midpoint rule over designs (the turn stiffnesses scaled in
+    [0.9, 1.1]): wall time per rod against the batch size, the cantilever at n = 50 over
+    0.5 s (samples every 5 ms)."""
+    rows, n = [], 50
+    ts = np.arange(101) * SAMPLE_DT
+    base = vib_rod(n, alpha)
+    s0 = rj_initial_state(base)
+    print(f"{'rods':>6}  {'first[s]':>8}  {'wall[s]':>8}  {'per rod[s]':>10}")
+    for b in args.batch_sizes:
+        scale = jnp.linspace(0.9, 1.1, b)
+
+        @jax.jit
+        def run(scale):
+            def one(c):
+                k = jnp.asarray(base.turn_stiffness) * c
+                rod = eqx.tree_at(lambda r: r.turn_stiffness, base, k)
+                return L.simulate(rod, s0, ts, method="midpoint").states.r[:, -1, 0]
+
+            return jax.vmap(one)(scale)
+
+        first, _ = _timed(lambda: jax.block_until_ready(run(scale)))
+        wall = _best(lambda: jax.block_until_ready(run(scale)), max(args.repeat, 3))[0]
+        rows.append({"rods": b, "first": first, "wall": wall, "per_rod": wall / b})
+        print(f"{b:>6}  {first:>8.2f}  {wall:>8.3f}  {wall / b:>10.4f}")
     return rows
 
 
@@ -882,6 +1030,12 @@ def main(argv=None):
         if "scaling" in parts:
             print("\n-- lattice.equilibrium against the number of bodies (the Timoshenko rod)")
             out["scaling"] = scaling(args, alpha)
+        if "motion" in parts:
+            print("\n-- the midpoint rule a step against the number of bodies (the cantilever)")
+            out["motion"] = motion_scaling(args, alpha)
+        if "batch" in parts:
+            print("\n-- jax.vmap of the midpoint rule over designs (n = 50)")
+            out["batch"] = batch_scaling(args, alpha)
         if "vibration" in parts:
             print("\n-- where a simulated second goes")
             out["profile"] = profile(args, alpha, out["vibration"])

@@ -27,10 +27,16 @@ O(N m²) an iteration. The Jacobian is kept from step to step (a small motion ba
 and computed anew, at the midpoint of the last iterate, only when the iterations do not
 converge within ``max_newton`` (up to :data:`MAX_REFRESH` times a step); after such a step the
 next :data:`EAGER_STEPS` steps start with a new one (a rod that turns: its stiff directions turn
-with it, and a kept matrix fails at every step). The iterations stop when the update is within
-``atol + rtol |y|`` in every component. A step that still does not converge is taken as 2, 4,
+with it, and a kept matrix fails at every step). The iterations stop when the iterate's error,
+estimated from the contraction of the last two updates, is within ``atol + rtol |y|`` in every
+component (:meth:`_Stepper.newton`). A step that still does not converge is taken as 2, 4,
 ..., :data:`MAX_SUBSTEPS` equal substeps (the first count whose every substep converges); where
 none does, the solve ends: ``ok`` is false and the samples from there on are ``inf``.
+
+**Steps longer than the samples.** The caller may lay the steps on a uniform grid of its own
+(:func:`step_grid`) and take the samples from the grid's states by cubic Hermite interpolation
+(:func:`hermite_samples`), whose $O(H^3)$ error is that of the rule's own step: the cost then
+follows the step chosen for the motion, not the samples wanted.
 
 **Derivatives.** Each step's (or substep's) solution $y(x_n, p)$ is differentiated by the
 project's one implicit-derivative rule (:func:`rbo_jax.solvers.implicit`):
@@ -50,6 +56,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from ..solvers import (
@@ -64,7 +71,7 @@ from ..solvers import (
     tridiagonal_jacobian,
 )
 
-__all__ = ["midpoint"]
+__all__ = ["hermite_samples", "midpoint", "step_grid"]
 
 # after a step whose kept Jacobian failed, the next steps begin with a new one (at the
 # predicted midpoint) instead of chord iterations that would fail first
@@ -126,19 +133,30 @@ class _Stepper(eqx.Module):
         return tridiagonal_factor(-0.5 * h * L, eye[None] - 0.5 * h * D, -0.5 * h * U)
 
     def newton(self, x, y0, fac, h, t):
-        """The chord iterations of one step from ``y0``: the project's one loop
-        (:func:`rbo_jax.solvers.iterate`) of Newton's update with the step's factors."""
+        r"""The chord iterations of one step from ``y0``: the project's one loop
+        (:func:`rbo_jax.solvers.iterate`) of Newton's update with the step's factors. With
+        $\|\cdot\|$ the largest component over ``atol + rtol |y|`` and the contraction
+        $\theta_k = \|\Delta_k\|/\|\Delta_{k-1}\|$, the iterate after the update $\Delta_k$
+        is within $\theta_k/(1 - \theta_k)\,\|\Delta_k\|$ of the root: the iterations stop
+        when that is at most 1 (or $\|\Delta_k\| \le 1$) (Hairer & Wanner, *Solving ODEs
+        II*, IV.8). An update that grows does not end them: the chord's transient growth
+        (measured: a stiff tip's rate) is followed by convergence."""
         residual = _Residual(self.field)
 
-        def chord(y, state):
+        def chord(y, last):
             r = residual(y, 0.0, (self.frozen, x, t, h, None, None))
-            y, _, done, finite = newton_update(
+            y_new, d, done, finite = newton_update(
                 r, fac, FactoredTridiagonal(), y, rtol=self.rtol, atol=self.atol
             )
-            code = jnp.where(finite, jnp.where(done, 0, RUNNING), 1)
-            return y, state, code
+            size = jnp.max(jnp.abs(d) / (self.atol + self.rtol * jnp.abs(y)))
+            theta = size / last  # 0 at the first update (last = inf)
+            close = (theta < 1) & (theta * size <= 1 - theta) & jnp.isfinite(last)
+            code = jnp.where(finite, jnp.where(done | close, 0, RUNNING), 1)
+            return y_new, size, code
 
-        y, _, code, _ = iterate(chord, y0, None, max_steps=self.max_newton, exhausted=1)
+        y, _, code, _ = iterate(
+            chord, y0, jnp.asarray(jnp.inf, y0.dtype), max_steps=self.max_newton, exhausted=1
+        )
         return y, code == 0
 
     def solve(self, J, fac, refreshes, x, y0, h, t, eager):
@@ -300,10 +318,53 @@ def midpoint(
         x, rate, J, fac, _, _, ok, refreshes, eager = inner
         return (x, rate, J, fac, h, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
 
-    frozen = stepper.frozen
-    J0 = tridiagonal_jacobian(lambda z: field(ts[0], z, frozen), lax.stop_gradient(x0))
+    # no matrix yet: the first step makes one (eager), at its predicted midpoint, so that the
+    # program holds one copy of the Jacobian's products (the compilation's largest part)
     h0 = lax.stop_gradient(steps[0])
-    carry = (x0, jnp.zeros_like(x0), J0, stepper.factor(J0, h0), h0, True, 1, 0)
+    N, m = x0.shape
+    J0 = tuple(jnp.zeros((N, m, m), x0.dtype) for _ in range(3))
+    shapes = jax.eval_shape(stepper.factor, J0, h0)
+    fac0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+    carry = (x0, jnp.zeros_like(x0), J0, fac0, h0, True, 0, 1)
     carry = jax.tree_util.tree_map(jnp.asarray, carry)
     (_, _, _, _, _, ok, refreshes, _), xs = lax.scan(interval, carry, (counts, steps, ts[:-1]))
     return jnp.concatenate([x0[None], xs]), ok, refreshes
+
+
+def step_grid(ts, dt: float):
+    r"""The uniform grid of steps of at most ``dt`` over ``[ts[0], ts[-1]]`` (host, NumPy):
+    $S = \max(\lceil \mathrm{span}/dt\rceil, 2)$ steps, where ``dt`` is longer than an interval
+    of ``ts`` and :func:`midpoint` steps over samples (:func:`hermite_samples` then gives them)."""
+    ts = np.asarray(ts, dtype=np.float64)
+    span = ts[-1] - ts[0]
+    steps = max(int(np.ceil(span / dt - 1e-9)), 2)
+    return np.concatenate([ts[0] + span * np.arange(steps) / steps, ts[-1:]])
+
+
+def hermite_samples(xs, grid, ts, align=None):
+    r"""The states at ``ts`` between the states ``xs`` ``(S+1, ...)`` of the uniform ``grid``
+    (:func:`step_grid`): cubic Hermite on each step, the slopes central differences of the
+    neighbours (second-order one-sided at the ends), so the error is $O(H^3)$, the order of
+    the midpoint rule's own error in a step, and each grid state is returned exactly.
+    ``align(ref, x)``, if given, puts ``x`` in the chart of ``ref`` (e.g. the representative of a
+    turn nearest to ``ref``'s) for a sample's four neighbouring states before they are
+    combined. A sample next to a state that is not finite (a failed step) is ``inf``."""
+    xs, grid, ts = jnp.asarray(xs), jnp.asarray(grid), jnp.asarray(ts)
+    S = xs.shape[0] - 1
+    u = (ts - grid[0]) * (S / (grid[-1] - grid[0]))
+    left = jnp.clip(jnp.floor(u), 0, S - 1)
+    j = left.astype(jnp.int32)
+    s = (u - left).reshape(-1, *([1] * (xs.ndim - 1)))
+    around = jnp.arange(-1, 3, dtype=jnp.int32)[None, :]
+    P = xs[jnp.clip(j[:, None] + around, 0, S)]  # (K, 4, ...): states j-1, j, j+1, j+2
+    if align is not None:
+        P = jax.vmap(lambda p: jax.vmap(lambda q: align(p[1], q))(p))(P)
+    x0, x1, x2, x3 = (P[:, i] for i in range(4))
+    first, last = (j == 0).reshape(s.shape), (j == S - 1).reshape(s.shape)
+    m0 = jnp.where(first, -1.5 * x1 + 2.0 * x2 - 0.5 * x3, 0.5 * (x2 - x0))  # H x'(t_j)
+    m1 = jnp.where(last, 1.5 * x2 - 2.0 * x1 + 0.5 * x0, 0.5 * (x3 - x1))  # H x'(t_j+1)
+    s2, s3 = s * s, s * s * s
+    out = (2 * s3 - 3 * s2 + 1) * x1 + (s3 - 2 * s2 + s) * m0
+    out = out + (3 * s2 - 2 * s3) * x2 + (s3 - s2) * m1
+    finite = jnp.all(jnp.isfinite(P.reshape(P.shape[0], -1)), axis=1)
+    return jnp.where(finite.reshape(s.shape), out, jnp.inf)

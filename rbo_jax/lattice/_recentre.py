@@ -12,7 +12,7 @@ from jax import lax
 
 from ..trajectory import is_transverse
 
-__all__ = ["recentre", "recentre_due", "transverse"]
+__all__ = ["nearest_turn", "recentre", "recentre_due", "transverse", "within_pi"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -44,3 +44,29 @@ def recentre(theta, Omega, margin):
     k, move = recentre_due(n, lax.stop_gradient(transverse(theta, Omega)), margin)
     scale = jnp.where(move, 1.0 - TWO_PI * k / jnp.where(move, n, 1.0), 1.0)
     return theta * scale[None, :], jnp.where(move, k, 0.0).astype(jnp.int32)
+
+
+def _norm(theta):
+    size2 = jnp.sum(theta * theta, axis=-1, keepdims=True)
+    positive = size2 > 0
+    return jnp.sqrt(jnp.where(positive, size2, 1.0)), positive  # double where: finite at 0
+
+
+def within_pi(theta):
+    r"""Turn-vectors ``(..., 3)`` beyond $|\theta| = \pi$ replaced by the same turn's
+    $\theta\,(1 - 2\pi/|\theta|)$, away from the singular sphere $|\theta| = 2\pi$ of $Z$."""
+    size, _ = _norm(theta)
+    far = jnp.sum(theta * theta, axis=-1, keepdims=True) > math.pi**2
+    return theta * jnp.where(far, 1.0 - TWO_PI / size, 1.0)
+
+
+def nearest_turn(theta, ref):
+    r"""The representative $\theta + 2\pi k\,\theta/|\theta|$, $k \in \{-1, 0, 1\}$, of each
+    turn ``theta`` ``(N, 3)`` nearest to ``ref``: a turn that :func:`within_pi` moved
+    across $|\theta| = \pi$ put back beside its neighbour in time (an interpolation)."""
+    size, positive = _norm(theta)
+    axis = jnp.where(positive, theta / size, 0.0)
+    candidates = theta[None] + TWO_PI * jnp.array([-1.0, 0.0, 1.0])[:, None, None] * axis[None]
+    distance = jnp.sum((candidates - ref[None]) ** 2, axis=-1)  # (3, N)
+    pick = jnp.argmin(distance, axis=0)
+    return jnp.take_along_axis(candidates, pick[None, :, None], axis=0)[0]

@@ -42,7 +42,7 @@ from .. import _enumeration as enum
 from .. import _programs
 from .._validation import is_traced
 from ..integrate import diffeq
-from ..integrate.midpoint import midpoint
+from ..integrate.midpoint import hermite_samples, midpoint, step_grid
 from ..mechanics import checked_parameters
 from ..models.rod import Rod, RodState, energy, kinetic_moment, rates
 from ..trajectory import (
@@ -53,6 +53,7 @@ from ..trajectory import (
     times_ok,
     warn_if_float32,
 )
+from ._recentre import nearest_turn, within_pi
 from ._rod_verlet import (
     failed_after_first,
     host_counts,
@@ -210,8 +211,13 @@ def simulate_rod(
       to the Newton tolerance at any step, the stiff waves neither limiting the step nor losing
       their energy; a mode of frequency $\omega$ lags by a relative $(\omega\,dt)^2/12$, so
       ``dt`` is chosen for the slowest motion wanted; each step's Newton iterations use the
-      block-tridiagonal matrix $I - \tfrac{dt}{2}J$ (O(N) a step) and stop within ``atol +
-      rtol |y|``;
+      block-tridiagonal matrix $I - \tfrac{dt}{2}J$ (O(N) a step) and stop when their error
+      is estimated within ``atol + rtol |y|`` (the energy drifts by about that much a step). A
+      ``dt`` longer than an interval of ``ts`` lays the steps on a uniform grid of their own
+      and interpolates the samples (cubic Hermite, error $O(dt^3)$ like a step's), so the
+      cost follows ``dt``, not the samples wanted; an interpolated sample's energy is not the
+      rule's (its stiff gaps' strains carry the interpolation's error); with traced ``ts``
+      the steps stay within the intervals;
     - ``"explicit"`` (diffrax ``Dopri8``), ``"implicit"`` (``Kvaerno5``, a dense Newton
       matrix), or any diffrax ``solver``: adaptive steps to ``rtol``, ``atol``;
     - ``"splitting"``: the Lie-group position Verlet of :mod:`._rod_verlet` (fixed steps of at
@@ -461,14 +467,13 @@ def _unpack(x) -> RodState:
 
 
 def _recentred(x):
-    r"""Each turn-vector beyond $|\theta| = \pi$ replaced by the same turn's
-    $\theta\,(1 - 2\pi/|\theta|)$, away from the singular sphere $|\theta| = 2\pi$ of $Z$."""
-    theta = x[:, 0:3]
-    size2 = jnp.sum(theta * theta, axis=-1, keepdims=True)
-    far = size2 > np.pi**2
-    size = jnp.sqrt(jnp.where(far, size2, 1.0))  # double where: finite derivatives at 0
-    scale = jnp.where(far, 1.0 - 2.0 * np.pi / size, 1.0)
-    return x.at[:, 0:3].set(theta * scale)
+    """The packed state with its turn-vectors within π (:func:`._recentre.within_pi`)."""
+    return x.at[:, 0:3].set(within_pi(x[:, 0:3]))
+
+
+def _aligned(ref, x):
+    """The packed state ``x`` with its turns in the chart of ``ref``'s (an interpolation)."""
+    return x.at[:, 0:3].set(nearest_turn(x[:, 0:3], ref[:, 0:3]))
 
 
 def _field(t, x, rod):
@@ -501,7 +506,14 @@ def _midpoint_fixed(rod, state0, ts, counts, steps, rtol, atol, max_count, unifo
     return _unpack(xs), ok
 
 
+def _sampled(states, grid, ts):
+    """The states at ``ts`` from those on the step grid (:func:`hermite_samples`)."""
+    xs = hermite_samples(_pack(states), grid, ts, align=_aligned)
+    return _unpack(jax.vmap(_recentred)(xs))
+
+
 _midpoint_jit = _programs.jit(_midpoint_program, small=True)
+_sampled_jit = _programs.jit(_sampled, small=True)
 _midpoint_fixed_jit = _programs.jit(_midpoint_fixed, small=True)
 
 _MIDPOINT_FAILED = (
@@ -522,18 +534,23 @@ def _midpoint(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
         h = float(_midpoint_step(ts_host)) if dt is None else float(dt)
         if not (np.isfinite(h) and h > 0):
             raise ValueError(f"lattice.simulate: dt must be finite and > 0, got {h}.")
-        span, counts, total = host_counts(ts_host, h, max_steps, "midpoint")
+        # steps longer than an interval of ts: on a uniform grid, the samples interpolated
+        grid = step_grid(ts_host, h) if h > np.min(np.diff(ts_host)) * (1 + 1e-9) else None
+        run = ts_host if grid is None else grid
+        span, counts, total = host_counts(run, h, max_steps, "midpoint")
         if staged:
             states, ok = _midpoint_fixed_jit(
-                rod, state0, jnp.asarray(ts), jnp.asarray(counts.astype(np.int32)),
+                rod, state0, jnp.asarray(run), jnp.asarray(counts.astype(np.int32)),
                 jnp.asarray(span / counts, dtype=jnp.result_type(float)), float(rtol),
                 float(atol), int(np.max(counts)), bool(np.all(counts == counts[0])),
             )  # fmt: skip
         else:
             dt = jnp.asarray(h, dtype=jnp.result_type(float))
             states, ok, _, _, _ = _midpoint_jit(
-                rod, state0, jnp.asarray(ts), dt, float(rtol), float(atol), int(max_steps)
+                rod, state0, jnp.asarray(run), dt, float(rtol), float(atol), int(max_steps)
             )
+        if grid is not None:
+            states = _sampled_jit(states, jnp.asarray(grid), jnp.asarray(ts))
         steps, too_many, bad_dt = jnp.asarray(total), False, False
     else:
         ts = jnp.where(bad_times, jnp.zeros_like(ts), ts) if is_traced(ts) else ts

@@ -217,33 +217,26 @@ def _factor(L, D, U):
     return Dp, W
 
 
-def tridiagonal_solve(L, D, U, b):
-    r"""$x$ with $\mathrm{tridiag}(L, D, U)\,x = b$, ``b`` ``(N, m)``: forward elimination and
-    back substitution (module docstring). Differentiable in ``b`` (and in the blocks)."""
-    return tridiagonal_substitute(tridiagonal_factor(L, D, U), b)
-
-
-def tridiagonal_factor(L, D, U):
-    r"""The block elimination of $\mathrm{tridiag}(L, D, U)$ done once for many right-hand
-    sides (:func:`tridiagonal_substitute`): the multipliers $W_i$, the pivots $D'_i$ as LU
-    factors with partial pivoting, and $U$. A chord iteration (one matrix, several solves)
-    factors once a step."""
-    Dp, W = _factor(L, D, U)
-    lu, piv = jax.vmap(jax.scipy.linalg.lu_factor)(Dp)
-    return W, lu, piv, U
-
-
-def tridiagonal_substitute(factors, b):
-    r"""$x$ with $\mathrm{tridiag}(L, D, U)\,x = b$ from :func:`tridiagonal_factor`'s
-    ``factors``: one ``lax.scan`` forward, one back, O(N m²)."""
-    W, lu, piv, U = factors
+def _eliminate(W, b):
+    """The forward elimination $y_i = b_i - W_i y_{i-1}$ (one ``lax.scan``)."""
 
     def forward(y_prev, inputs):
         Wi, bi = inputs
         y = bi - Wi @ y_prev
         return y, y
 
-    _, y = jax.lax.scan(forward, jnp.zeros_like(b[0]), (W, b))
+    return jax.lax.scan(forward, jnp.zeros_like(b[0]), (W, b))[1]
+
+
+def tridiagonal_solve(L, D, U, b):
+    r"""$x$ with $\mathrm{tridiag}(L, D, U)\,x = b$, ``b`` ``(N, m)``: forward elimination and
+    back substitution (module docstring), each pivot block solved by LU with partial pivoting
+    (backward stable: a stiff rod's pivots reach condition numbers of $10^{12}$).
+    Differentiable in ``b`` (and in the blocks)."""
+    Dp, W = _factor(L, D, U)
+    lu, piv = jax.vmap(jax.scipy.linalg.lu_factor)(Dp)
+
+    y = _eliminate(W, b)
 
     def back(x_next, inputs):
         lui, pivi, Ui, yi = inputs
@@ -251,6 +244,37 @@ def tridiagonal_substitute(factors, b):
         return x, x
 
     _, x = jax.lax.scan(back, jnp.zeros_like(b[0]), (lu, piv, U, y), reverse=True)
+    return x
+
+
+def tridiagonal_factor(L, D, U):
+    r"""The block elimination of $\mathrm{tridiag}(L, D, U)$ done once for many right-hand
+    sides (:func:`tridiagonal_substitute`): the multipliers $W_i$, the inverse pivots
+    $D'^{-1}_i$ and $V_i = D'^{-1}_i U_i$, so that each solve is matrix-vector products only
+    (4-8 times faster than LU solves inside the scans, from N = 50 to 1000). A chord iteration
+    (one matrix, several solves) factors once; its solves only need to contract, so the
+    explicit inverses (not backward stable for badly conditioned pivots) serve there, and
+    :func:`tridiagonal_solve` keeps LU."""
+    Dp, W = _factor(L, D, U)
+    Dinv = jnp.linalg.inv(Dp)
+    return W, Dinv, jnp.einsum("nij,njk->nik", Dinv, U)
+
+
+def tridiagonal_substitute(factors, b):
+    r"""$x$ with $\mathrm{tridiag}(L, D, U)\,x = b$ from :func:`tridiagonal_factor`'s
+    ``factors``: $y_i = b_i - W_i y_{i-1}$ (one ``lax.scan``), $z_i = D'^{-1}_i y_i$ (all at
+    once), $x_i = z_i - V_i x_{i+1}$ (one ``lax.scan`` back): O(N m²)."""
+    W, Dinv, V = factors
+
+    y = _eliminate(W, b)
+    z = jnp.einsum("nij,nj->ni", Dinv, y)
+
+    def back(x_next, inputs):
+        Vi, zi = inputs
+        x = zi - Vi @ x_next
+        return x, x
+
+    _, x = jax.lax.scan(back, jnp.zeros_like(b[0]), (V, z), reverse=True)
     return x
 
 
