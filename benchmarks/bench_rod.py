@@ -141,7 +141,7 @@ def _parse(argv):
     p.add_argument("--json", default=None, help="also write the figures to this file")
     p.add_argument(
         "--parts",
-        default="statics,vibration,pairs,scaling",
+        default="statics,vibration,pairs,scaling,motion,batch",
         help="which parts to run (the profile follows the vibration)",
     )
     p.add_argument("--smoke", action="store_true", help="a tiny run (tests)")

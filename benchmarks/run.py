@@ -246,6 +246,31 @@ def summary_rows(results: dict) -> list[tuple[str, str, str, str]]:
                     f"jax {compiles.get((e['code'], e['n']), float('nan')):.1f}",
                 )
             )
+        for e in ro["vibration"].get("same_n", []):
+            if "midpoint" not in e["code"]:
+                continue
+            rows.append(
+                (
+                    "rod",
+                    f"{e['code']} vs PyElastica PositionVerlet at the same n = {e['n']}, per "
+                    f"simulated second (ω1 vs Euler-Bernoulli {e['error_eb']:+.1e} against "
+                    f"{e['pe_error_eb']:+.1e}; energy drift {e['drift'] or float('nan'):.0e} "
+                    f"against {e['pe_drift'] or float('nan'):.0e})",
+                    _fmt(e["ratio"], ".2f") + "x",
+                    f"jax {compiles.get((e['code'], e['n']), float('nan')):.1f}",
+                )
+            )
+        mo = ro.get("motion", [])
+        if len(mo) > 1:
+            rows.append(
+                (
+                    "rod",
+                    f"lattice.simulate (midpoint): time a step per body, n = {mo[-1]['n']} / "
+                    f"n = {mo[0]['n']} (1: O(n))",
+                    _fmt(mo[-1]["per_body"] / mo[0]["per_body"], ".2f"),
+                    "",
+                )
+            )
         sc = ro["scaling"]
         if len(sc) > 1:
             rows.append(
