@@ -80,6 +80,9 @@ EAGER_STEPS = 8
 MAX_REFRESH = 2
 # the most substeps of a step whose Newton iterations do not converge (2, 4, ... of them)
 MAX_SUBSTEPS = 8
+# the relative change of the step beyond which the kept matrix I - h/2 J is factored again
+# (a matrix of a step within it still contracts the chord iterations: by about half of it)
+REFACTOR = 0.05
 
 
 def _once_if(pred, fn, x):
@@ -297,9 +300,14 @@ def midpoint(
     checkpointed = jax.checkpoint(lambda s: stepper.step(s))  # a closure: the stepper is traced
 
     def interval(c, inputs):
-        x, rate, J, fac, h_prev, ok, refreshes, eager = c
+        x, rate, J, fac, h_fac, ok, refreshes, eager = c
         n, h, t = inputs
-        fac = _once_if(h != h_prev, lambda f: stepper.factor(J, lax.stop_gradient(h)), fac)
+        # the matrix factored again only for a step that differs from its own by more than
+        # REFACTOR (the spans of ts differ by rounding: a factorisation an interval otherwise)
+        again = jnp.abs(h - h_fac) > REFACTOR * h_fac
+        fac = _once_if(again, lambda f: stepper.factor(J, lax.stop_gradient(h)), fac)
+        h_fac = jnp.where(again, h, h_fac)
+        before = refreshes
         inner = (x, rate, J, fac, h, t, ok, refreshes, eager)
         if max_count is None:  # each interval its own count
             inner = lax.while_loop(
@@ -316,7 +324,8 @@ def midpoint(
 
             inner = lax.scan(fixed, inner, jnp.arange(max_count, dtype=counts.dtype))[0]
         x, rate, J, fac, _, _, ok, refreshes, eager = inner
-        return (x, rate, J, fac, h, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
+        h_fac = jnp.where(refreshes > before, h, h_fac)  # a new matrix: factored with h
+        return (x, rate, J, fac, h_fac, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
 
     # no matrix yet: the first step makes one (eager), at its predicted midpoint, so that the
     # program holds one copy of the Jacobian's products (the compilation's largest part)
