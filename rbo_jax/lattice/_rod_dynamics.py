@@ -55,6 +55,7 @@ from ..trajectory import (
 )
 from ._recentre import nearest_turn, within_pi
 from ._rod_verlet import (
+    _static_zeros,
     failed_after_first,
     host_counts,
     stable_step,
@@ -481,27 +482,32 @@ def _field(t, x, rod):
     return _pack(rates(rod, _unpack(x), 1.0, t))
 
 
-def _midpoint_program(rod, state0, ts, dt, rtol, atol, max_steps):
+def _field_undamped(t, x, rod):
+    """:func:`_field` of a rod whose forces do not read the velocities (``_static_zeros``)."""
+    return _pack(rates(rod, _unpack(x), 1.0, t, damped=False))
+
+
+def _midpoint_program(rod, state0, ts, dt, rtol, atol, max_steps, damped=True):
     """``(states, ok, steps, too_many, bad_dt)`` of ``method="midpoint"``
     (:func:`rbo_jax.integrate.midpoint.midpoint`), the step counts in the program."""
     if dt is None:
         dt = _midpoint_step(ts, jnp)
     counts, steps, too_many, bad_dt = traced_counts(ts, dt, max_steps)
     xs, ok, _ = midpoint(
-        _field, _pack(state0), ts, counts, steps, args=rod, rtol=rtol, atol=atol,
-        project=_recentred,
+        _field if damped else _field_undamped, _pack(state0), ts, counts, steps, args=rod,
+        rtol=rtol, atol=atol, project=_recentred,
     )  # fmt: skip
     states = failed_after_first(_unpack(xs), too_many | bad_dt)
     return states, ok, jnp.sum(counts.astype(jnp.result_type(int))), too_many, bad_dt
 
 
-def _midpoint_fixed(rod, state0, ts, counts, steps, rtol, atol, max_count, uniform):
+def _midpoint_fixed(rod, state0, ts, counts, steps, rtol, atol, max_count, uniform, damped=True):
     """``(states, ok)`` of ``method="midpoint"`` with the counts known before tracing: loops
     of fixed length (``max_count``; ``uniform``: every count that long), which ``jax.grad``
     runs through."""
     xs, ok, _ = midpoint(
-        _field, _pack(state0), ts, counts, steps, args=rod, rtol=rtol, atol=atol,
-        project=_recentred, max_count=max_count, uniform=uniform,
+        _field if damped else _field_undamped, _pack(state0), ts, counts, steps, args=rod,
+        rtol=rtol, atol=atol, project=_recentred, max_count=max_count, uniform=uniform,
     )  # fmt: skip
     return _unpack(xs), ok
 
@@ -538,17 +544,19 @@ def _midpoint(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
         grid = step_grid(ts_host, h) if h > np.min(np.diff(ts_host)) * (1 + 1e-9) else None
         run = ts_host if grid is None else grid
         span, counts, total = host_counts(run, h, max_steps, "midpoint")
+        stripped, damped = _static_zeros(rod)  # zero offsets and no damping: a smaller program
         if staged:
             states, ok = _midpoint_fixed_jit(
-                rod, state0, jnp.asarray(run), jnp.asarray(counts.astype(np.int32)),
+                stripped, state0, jnp.asarray(run), jnp.asarray(counts.astype(np.int32)),
                 jnp.asarray(span / counts, dtype=jnp.result_type(float)), float(rtol),
-                float(atol), int(np.max(counts)), bool(np.all(counts == counts[0])),
+                float(atol), int(np.max(counts)), bool(np.all(counts == counts[0])), damped,
             )  # fmt: skip
         else:
             dt = jnp.asarray(h, dtype=jnp.result_type(float))
             states, ok, _, _, _ = _midpoint_jit(
-                rod, state0, jnp.asarray(run), dt, float(rtol), float(atol), int(max_steps)
-            )
+                stripped, state0, jnp.asarray(run), dt, float(rtol), float(atol),
+                int(max_steps), damped,
+            )  # fmt: skip
         if grid is not None:
             states = _sampled_jit(states, jnp.asarray(grid), jnp.asarray(ts))
         steps, too_many, bad_dt = jnp.asarray(total), False, False

@@ -284,15 +284,19 @@ def forces_tangent(rod, Q, r, Omega=None, v=None, scale=1.0, t=0.0):
     return (M_ex - G_delta) * turn[:, None], (F_ex - G_d) * pos[:, None]
 
 
-def rates(rod, state: RodState, scale=1.0, t=0.0) -> RodState:
+def rates(rod, state: RodState, scale=1.0, t=0.0, damped: bool = True) -> RodState:
     r"""The time derivative of a state: $\dot\theta = Z^T(\theta)\cdot\Omega$ (4.14),
     $\dot r = v$, $A\cdot\dot\Omega = M - \Omega\times A\cdot\Omega$ (4.55), $m\dot v = F$; the
     held coordinates of the base stay; the loads and the rest curvature at time ``t``. The
     forces by :func:`forces_tangent` (those of
     :func:`body_forces` at zero increments, to rounding): a smaller program than through
     $Q(\delta)$ and $Z(\delta)$ at $\delta = 0$, whose diffrax solves compile and run faster
-    (benchmarks/bench_rod.py; figures: benchmarks/README.md, History)."""
-    M, F = forces_tangent(rod, tensors(state.theta), state.r, state.Omega, state.v, scale, t)
+    (benchmarks/bench_rod.py; figures: benchmarks/README.md, History). ``damped=False``
+    (static: no Kelvin–Voigt damping and no load that reads the velocities, as
+    :func:`rbo_jax.lattice._rod_verlet._static_zeros` finds) leaves the velocities out of the
+    forces: a smaller program."""
+    velocities = (state.Omega, state.v) if damped else (None, None)
+    M, F = forces_tangent(rod, tensors(state.theta), state.r, *velocities, scale, t)
     A = jnp.asarray(rod.inertia)
     AOm = jnp.einsum("bij,bj->bi", A, state.Omega)
     Omega_dot = jnp.linalg.solve(A, (M - cross3(state.Omega.T, AOm.T).T)[..., None])[..., 0]
