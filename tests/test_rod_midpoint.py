@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -246,3 +247,24 @@ def test_released_cantilever_with_steps_longer_than_the_samples():
     assert np.max(np.abs(x - fine)) <= 3.0 * phase * amplitude
     at_ends = np.max(np.abs(x[::4] - fine[::4]))
     assert np.max(np.abs(x[2::4] - fine[2::4])) <= 1.05 * at_ends
+
+
+def test_undamped_field_of_a_stripped_rod_equals_the_full_field():
+    """The midpoint rule's field of a rod without damping or velocity-reading loads, traced
+    without the velocities' terms and with its zero attachment offsets left out
+    (``_static_zeros``), equals the full field (the same equations of motion, (4.14), (4.55))."""
+    from rbo_jax.lattice._rod_verlet import _static_zeros
+
+    rod = stiff_rod(4).with_loads((lattice.TipForce((0.1, 0.0, -0.2), follower=True),))
+    stripped, damped = _static_zeros(rod)
+    assert not damped and stripped.attach_a is None
+    rng = np.random.default_rng(3)
+    x = _rod_dynamics._pack(rod.straight()) + 0.05 * rng.standard_normal((rod.n_bodies, 12))
+    full = eqx.filter_jit(_rod_dynamics._field)(0.3, x, rod)
+    undamped = eqx.filter_jit(_rod_dynamics._field_undamped)(0.3, x, stripped)
+    np.testing.assert_allclose(undamped, full, atol=1e-12)
+    damped_rod = lattice.rod(
+        4, 1.0, bending=1.0, torsion=0.8, shear=1e4, stretch=1e4, mass=1.0, rotary=1e-4,
+        damping=0.01,
+    )  # fmt: skip
+    assert _static_zeros(damped_rod)[1]
