@@ -292,9 +292,8 @@ def rates(rod, state: RodState, scale=1.0, t=0.0, damped: bool = True) -> RodSta
     :func:`body_forces` at zero increments, to rounding): a smaller program than through
     $Q(\delta)$ and $Z(\delta)$ at $\delta = 0$, whose diffrax solves compile and run faster
     (benchmarks/bench_rod.py; figures: benchmarks/README.md, History). ``damped=False``
-    (static: no Kelvin–Voigt damping and no load that reads the velocities, as
-    :func:`rbo_jax.lattice._rod_verlet._static_zeros` finds) leaves the velocities out of the
-    forces: a smaller program."""
+    (static, for a rod known before tracing to have no Kelvin–Voigt damping and no load that
+    reads the velocities) leaves the velocities out of the forces: a smaller program."""
     velocities = (state.Omega, state.v) if damped else (None, None)
     M, F = forces_tangent(rod, tensors(state.theta), state.r, *velocities, scale, t)
     A = jnp.asarray(rod.inertia)
