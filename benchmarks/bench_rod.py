@@ -437,9 +437,9 @@ def vib_rod(n, alpha):
     return case_rod(VIB, n, alpha)
 
 
-def pe_vibration(n, T):
-    """PyElastica's cantilever released with the initial velocity: (seconds of the stepping
-    loop, tip x every 5 ms, dt, steps)."""
+def _pe_cantilever(n):
+    """PyElastica's cantilever released with the initial velocity: ``(sim, rod, dt, every)``,
+    ``dt`` its stable step cut to divide the 5 ms sampling into ``every`` steps."""
     Lr, r, rho, E, G = (VIB[k] for k in ("length", "radius", "density", "E", "G"))
 
     class Sim(ea.BaseSystemCollection, ea.Constraints):
@@ -458,7 +458,13 @@ def pe_vibration(n, T):
     sim.finalize()
     dt = 0.5 * (Lr / n) / math.sqrt(E / rho)
     every = max(1, math.ceil(SAMPLE_DT / dt))
-    dt = SAMPLE_DT / every
+    return sim, rod, SAMPLE_DT / every, every
+
+
+def pe_vibration(n, T):
+    """PyElastica's cantilever released with the initial velocity: (seconds of the stepping
+    loop, tip x every 5 ms, dt, steps)."""
+    sim, rod, dt, every = _pe_cantilever(n)
     samples = int(round(T / SAMPLE_DT))
     stepper = ea.PositionVerlet()
     tip = np.empty(samples + 1)
@@ -477,24 +483,7 @@ def pe_energy_drift(n, T):
     """PyElastica's energy drift on the same run (not timed): max |E(t) - E(0)| / E(0) over the
     samples, E its translational, rotational, bending and shear energies with the strains
     computed at the sample's positions."""
-    Lr, r, rho, E, G = (VIB[k] for k in ("length", "radius", "density", "E", "G"))
-
-    class Sim(ea.BaseSystemCollection, ea.Constraints):
-        pass
-
-    sim = Sim()
-    rod = _pe_straight_rod(n, Lr, r, rho, E, G)
-    sim.append(rod)
-    sim.constrain(rod).using(
-        ea.OneEndFixedBC, constrained_position_idx=(0,), constrained_director_idx=(0,)
-    )
-    z = rod.position_collection[2]
-    rod.velocity_collection[0, :] = initial_velocity(z)[0]
-    rod.omega_collection[0, :] = initial_velocity(0.5 * (z[1:] + z[:-1]))[1]
-    sim.finalize()
-    dt = 0.5 * (Lr / n) / math.sqrt(E / rho)
-    every = max(1, math.ceil(SAMPLE_DT / dt))
-    dt = SAMPLE_DT / every
+    sim, rod, dt, every = _pe_cantilever(n)
     stepper, t, energies = ea.PositionVerlet(), 0.0, []
 
     def total():
@@ -763,11 +752,16 @@ def scaling(args, alpha):
             f"{err:+.2e}",
             flush=True,
         )
+    _print_slope(rows, "warm", "warm time")
+    return rows
+
+
+def _print_slope(rows, key, what):
+    """The power of n that ``key`` grows with from the first row to the last, printed."""
     if len(rows) > 1:
         a, b = rows[0], rows[-1]
-        slope = math.log(b["warm"] / a["warm"]) / math.log(b["n"] / a["n"])
-        print(f"warm time ~ n^{slope:.2f} from n = {a['n']} to {b['n']}")
-    return rows
+        slope = math.log(b[key] / a[key]) / math.log(b["n"] / a["n"])
+        print(f"{what} ~ n^{slope:.2f} from n = {a['n']} to {b['n']}")
 
 
 def motion_scaling(args, alpha):
@@ -794,10 +788,7 @@ def motion_scaling(args, alpha):
         per_step = (long_ - short) / K
         rows.append({"n": n, "first": first, "per_step": per_step, "per_body": per_step / n})
         print(f"{n:>8}  {first:>8.2f}  {per_step * 1e6:>9.1f}  {per_step / n * 1e9:>12.1f}")
-    if len(rows) > 1:
-        a, b = rows[0], rows[-1]
-        slope = math.log(b["per_step"] / a["per_step"]) / math.log(b["n"] / a["n"])
-        print(f"time a step ~ n^{slope:.2f} from n = {a['n']} to {b['n']}")
+    _print_slope(rows, "per_step", "time a step")
     return rows
 
 
