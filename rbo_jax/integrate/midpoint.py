@@ -324,7 +324,9 @@ def midpoint(
 
             inner = lax.scan(fixed, inner, jnp.arange(max_count, dtype=counts.dtype))[0]
         x, rate, J, fac, _, _, ok, refreshes, eager = inner
-        h_fac = jnp.where(refreshes > before, h, h_fac)  # a new matrix: factored with h
+        # a new matrix was factored with h (or a substep of it: where that fails the chord,
+        # the next step makes a new one)
+        h_fac = jnp.where(refreshes > before, h, h_fac)
         return (x, rate, J, fac, h_fac, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
 
     # no matrix yet: the first step makes one (eager), at its predicted midpoint, so that the
