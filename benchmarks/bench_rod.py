@@ -151,7 +151,7 @@ def _parse(argv):
         args.pe_n, args.explicit_n, args.implicit_n = [50], [5], []
         args.splitting_n, args.midpoint_n = [5], [5]
         args.spectrum_n, args.scaling_n, args.statics_n = [10], [100], []
-        args.motion_n, args.batch_sizes = [10, 20], [1, 2]
+        args.motion_n, args.batch_sizes = [5, 10], [2]
     if args.core is None:
         args.core = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
     return args
