@@ -800,7 +800,14 @@ def batch_scaling(args, alpha):
     ts = np.arange(101) * SAMPLE_DT
     base = vib_rod(n, alpha)
     s0 = rj_initial_state(base)
-    print(f"{'rods':>6}  {'first[s]':>8}  {'wall[s]':>8}  {'per rod[s]':>10}")
+
+    def alone():
+        return jax.block_until_ready(L.simulate(base, s0, ts, method="midpoint").states.r)
+
+    alone()
+    one = _best(alone, max(args.repeat, 3))[0]
+    print(f"one rod outside jax.vmap (an eager call): {one:.4f} s")
+    print(f"{'rods':>6}  {'first[s]':>8}  {'wall[s]':>8}  {'per rod[s]':>10}  {'/ alone':>7}")
     for b in args.batch_sizes:
         scale = jnp.linspace(0.9, 1.1, b)
 
@@ -815,8 +822,8 @@ def batch_scaling(args, alpha):
 
         first, _ = _timed(lambda: jax.block_until_ready(run(scale)))
         wall = _best(lambda: jax.block_until_ready(run(scale)), max(args.repeat, 3))[0]
-        rows.append({"rods": b, "first": first, "wall": wall, "per_rod": wall / b})
-        print(f"{b:>6}  {first:>8.2f}  {wall:>8.3f}  {wall / b:>10.4f}")
+        rows.append({"rods": b, "first": first, "wall": wall, "per_rod": wall / b, "alone": one})
+        print(f"{b:>6}  {first:>8.2f}  {wall:>8.3f}  {wall / b:>10.4f}  {wall / b / one:>7.2f}")
     return rows
 
 

@@ -128,19 +128,21 @@ def _pendulums(t, x, k):
 
 
 def _pendulum_run(k):
-    """Large swings of three pendulums at a step of a sixth of their period (one step per
-    interval): the Newton iterations of a whole step do not converge."""
+    """Large swings of three pendulums at a step of about a third of their period (one step
+    per interval): the Newton iterations of a whole step do not converge (at a sixth of it,
+    the step of this test before 2026-12-03, they did: it never split a step)."""
     from rbo_jax.integrate import midpoint as mp
 
     x0 = jnp.stack([jnp.array([2.5, 2.0, 1.5]), jnp.zeros(3)], -1)
-    ts = jnp.linspace(0.0, 6.0, 7)
-    counts, steps = jnp.ones(6, jnp.int32), jnp.ones(6)
+    ts = jnp.linspace(0.0, 12.0, 7)
+    counts, steps = jnp.ones(6, jnp.int32), jnp.full(6, 2.0)
     tol = dict(rtol=1e-12, atol=1e-14)
     return mp.midpoint(_pendulums, x0, ts, counts, steps, args=k, max_count=1, **tol)
 
 
 def test_a_step_whose_newton_fails_is_split_into_substeps(monkeypatch):
-    """Without substeps the solve fails; with them (``MAX_SUBSTEPS``) it completes."""
+    """Without substeps the solve fails (the whole step's chord iterations and its new
+    matrices are tried, then given up); with them (``MAX_SUBSTEPS``) it completes."""
     from rbo_jax.integrate import midpoint as mp
 
     xs, ok, _ = _pendulum_run(1.0)

@@ -31,7 +31,16 @@ with it, and a kept matrix fails at every step). The iterations stop when the it
 estimated from the contraction of the last two updates, is within ``atol + rtol |y|`` in every
 component (:meth:`_Stepper.newton`). A step that still does not converge is taken as 2, 4,
 ..., :data:`MAX_SUBSTEPS` equal substeps (the first count whose every substep converges); where
-none does, the solve ends: ``ok`` is false and the samples from there on are ``inf``.
+none does, the solve ends: ``ok`` is false and the samples from there on are ``inf``. Only the
+factors are kept between steps: a step longer or shorter than theirs by more than
+:data:`REFACTOR` begins with a new matrix.
+
+**Batches.** Each step's attempts (the chord iterations, a new matrix where asked, substeps)
+are one loop (:meth:`_Stepper.substeps`) of one iteration for a common step, and the steps of
+an interval a loop whose length does not depend on the state. Under ``jax.vmap`` a loop whose
+condition is batched copies its carry with a select at each iteration; so a batch of rods
+copies the factors once a step, and costs per rod what one rod costs alone
+(benchmarks/README.md).
 
 **Steps longer than the samples.** The caller may lay the steps on a uniform grid of its own
 (:func:`step_grid`) and take the samples from the grid's states by cubic Hermite interpolation
@@ -80,8 +89,9 @@ EAGER_STEPS = 8
 MAX_REFRESH = 2
 # the most substeps of a step whose Newton iterations do not converge (2, 4, ... of them)
 MAX_SUBSTEPS = 8
-# the relative change of the step beyond which the kept matrix I - h/2 J is factored again
-# (a matrix of a step within it still contracts the chord iterations: by about half of it)
+# the relative change of the step beyond which the next step begins with a new matrix
+# I - h/2 J (a matrix of a step within it still contracts the chord iterations: by about half
+# of it)
 REFACTOR = 0.05
 
 
@@ -162,79 +172,62 @@ class _Stepper(eqx.Module):
         )
         return y, code == 0
 
-    def solve(self, J, fac, refreshes, x, y0, h, t, eager):
-        """``(J, fac, refreshes, y, converged, rounds)`` of one step from ``x``: the kept
-        matrix first (a new one first where ``eager``), then up to :data:`MAX_REFRESH` new
-        ones at the midpoint of the chord's last iterate."""
-
-        def jacobian(c):
-            J, fac, refreshes, y = c
-            y = jnp.where(jnp.all(jnp.isfinite(y)), y, x)
-            J = tridiagonal_jacobian(
-                lambda z: self.field(t + 0.5 * h, z, self.frozen), 0.5 * (x + y)
-            )
-            return J, self.factor(J, h), refreshes + 1, y
+    def substeps(self, fac, refreshes, x, y0, h, t, eager, ok):
+        """``(fac, refreshes, states, count, converged, rounds)`` of one step from ``x``,
+        one loop of attempts, each a chord solve (:meth:`newton`), a new matrix first where
+        asked: the whole step from ``y0`` with the kept matrix (a new one first where
+        ``eager``), then up to :data:`MAX_REFRESH` new ones at the midpoint of the chord's last
+        iterate; where that fails, 2, 4, ... :data:`MAX_SUBSTEPS` equal substeps, each count's
+        first substep with a new matrix, each substep with its own new ones, until a count's
+        every substep converges. ``states[j]``: the state after substep ``j`` (``states[0] =
+        x``); ``rounds``: the most attempts of one solve (more than one: the kept matrix
+        failed). One loop, so that the program holds one copy of the iterations and of the
+        Jacobian's products, and under ``jax.vmap`` a common step (one attempt) copies the
+        factors by one select (module docstring). Nothing is done where ``ok`` is false (a
+        step after a failure)."""
 
         def attempt(c):
-            J, fac, refreshes, y, _, rounds, need = c
-            J, fac, refreshes, y = _once_if(need, jacobian, (J, fac, refreshes, y))
-            y, conv = self.newton(x, y, fac, h, t)
-            return J, fac, refreshes, y, conv, rounds + 1, True
+            fac, refreshes, states, count, j, tries, y, rounds, _, _ = c
+            hs = h / count.astype(h.dtype)
+            xj, tj = states[j], t + j.astype(h.dtype) * hs
+            first = jnp.where(count == 1, eager, j == 0)  # a new matrix before the first try
 
-        start = (J, fac, refreshes, y0, jnp.asarray(False), 0, eager)
-        out = lax.while_loop(lambda c: ~c[4] & (c[5] <= MAX_REFRESH), attempt, start)
-        return out[:6]
-
-    def substeps(self, J, fac, refreshes, x, y0, h, t, eager):
-        """``(J, fac, refreshes, states, count, converged, rounds)`` of one step from ``x``:
-        the whole step from ``y0`` (the kept matrix, or a new one first where ``eager``), and
-        where it does not converge 2, 4, ... :data:`MAX_SUBSTEPS` equal substeps, the first
-        count whose every substep converges (each count's first substep with a new matrix).
-        ``states[j]``: the state after substep ``j`` (``states[0] = x``); ``rounds``: the
-        most attempts of one solve (more than one: the kept matrix failed)."""
-
-        def split(c):
-            J, fac, refreshes, states, count, _, rounds = c
-            count = jnp.where(rounds == 0, 1, 2 * count)
-            hs = h / jnp.asarray(count).astype(h.dtype)
-
-            def one(j, s):
-                J, fac, refreshes, states, conv, rounds = s
-                whole = count == 1
-                xj = states[j]
-                start = jnp.where(whole, y0, xj)
-                J, fac, refreshes, y, ok, r = self.solve(
-                    J,
-                    fac,
-                    refreshes,
-                    xj,
-                    start,
-                    hs,
-                    t + jnp.asarray(j).astype(hs.dtype) * hs,
-                    jnp.where(whole, eager, j == 0),
+            def jacobian(c):
+                fac, refreshes, y = c
+                y = jnp.where(jnp.all(jnp.isfinite(y)), y, xj)
+                J = tridiagonal_jacobian(
+                    lambda z: self.field(tj + 0.5 * hs, z, self.frozen), 0.5 * (xj + y)
                 )
-                states = states.at[j + 1].set(y)
-                return J, fac, refreshes, states, conv & ok, jnp.maximum(rounds, r)
+                return self.factor(J, hs), refreshes + 1, y
 
-            J, fac, refreshes, states, conv, rounds = lax.fori_loop(
-                0,
-                count,
-                one,
-                (J, fac, refreshes, states, jnp.asarray(True), jnp.maximum(rounds, 1)),
-            )
-            return J, fac, refreshes, states, count, conv, rounds
+            need = (tries > 0) | first
+            fac, refreshes, y = _once_if(need, jacobian, (fac, refreshes, y))
+            y, conv = self.newton(xj, y, fac, hs, tj)
+            tries, rounds = tries + 1, jnp.maximum(rounds, tries + 1)
+            states = states.at[j + 1].set(y)  # (a failed iterate: overwritten by a retry)
+            whole = conv & (j + 1 == count)  # the step's every substep converged
+            failed = ~conv & (tries > MAX_REFRESH)  # this solve is given up: more substeps
+            last = failed & (count >= MAX_SUBSTEPS)
+            count = jnp.where(failed, 2 * count, count)
+            j = jnp.where(conv, j + 1, jnp.where(failed, 0, j))
+            tries = jnp.where(conv | failed, 0, tries)
+            y = jnp.where(conv | failed, states[j], y)  # a substep starts from its state
+            return fac, refreshes, states, count, j, tries, y, rounds, whole, whole | last
 
         states = jnp.zeros((MAX_SUBSTEPS + 1, *x.shape), x.dtype).at[0].set(x)
-        start = (J, fac, refreshes, states, 1, jnp.asarray(False), 0)
-        return lax.while_loop(lambda c: ~c[5] & (c[4] < MAX_SUBSTEPS), split, start)
+        zero = jnp.asarray(0)
+        start = (fac, refreshes, states, zero + 1, zero, zero, y0, zero, ~ok, ~ok)
+        out = lax.while_loop(lambda c: ~c[9], attempt, start)
+        fac, refreshes, states, count, _, _, _, rounds, conv, _ = out
+        return fac, refreshes, states, jnp.minimum(count, MAX_SUBSTEPS), conv & ok, rounds
 
     def step(self, c):
-        """One step of the carry ``(x, rate, J, fac, h, t, ok, refreshes, eager_left)``."""
-        x, rate, J, fac, h, t, ok, refreshes, eager_left = c
+        """One step of the carry ``(x, rate, fac, h, t, ok, refreshes, eager_left)``."""
+        x, rate, fac, h, t, ok, refreshes, eager_left = c
         xs, hs = lax.stop_gradient(x), lax.stop_gradient(h)
         y0 = xs + hs * lax.stop_gradient(rate)  # the last step's rate, extrapolated
-        J, fac, refreshes, states, count, conv, rounds = self.substeps(
-            J, fac, refreshes, xs, y0, hs, t, eager_left > 0
+        fac, refreshes, states, count, conv, rounds = self.substeps(
+            fac, refreshes, xs, y0, hs, t, eager_left > 0, ok
         )
         # a new matrix first for the next steps where the kept one failed (or was for substeps)
         fresh = (rounds > 1) | (count > 1)
@@ -244,7 +237,7 @@ class _Stepper(eqx.Module):
         if self.project is not None:
             y = self.project(y)
         good = ok & conv & jnp.all(jnp.isfinite(y))
-        return jnp.where(good, y, x), rate, J, fac, h, t + h, good, refreshes, eager_left
+        return jnp.where(good, y, x), rate, fac, h, t + h, good, refreshes, eager_left
 
     def chain(self, x, t, h, states, count, conv):
         """The step's solution through its ``count`` substeps' roots ``states[1:]``, each
@@ -300,45 +293,45 @@ def midpoint(
     checkpointed = jax.checkpoint(lambda s: stepper.step(s))  # a closure: the stepper is traced
 
     def interval(c, inputs):
-        x, rate, J, fac, h_fac, ok, refreshes, eager = c
+        x, rate, fac, h_fac, ok, refreshes, eager = c
         n, h, t = inputs
-        # the matrix factored again only for a step that differs from its own by more than
-        # REFACTOR (the spans of ts differ by rounding: a factorisation an interval otherwise)
+        # a step that differs from the kept matrix's by more than REFACTOR begins with a new
+        # matrix (the spans of ts differ by rounding: within it, the kept one serves)
         again = jnp.abs(h - h_fac) > REFACTOR * h_fac
-        fac = _once_if(again, lambda f: stepper.factor(J, lax.stop_gradient(h)), fac)
-        h_fac = jnp.where(again, h, h_fac)
+        eager = jnp.where(again, jnp.maximum(eager, 1), eager)
         before = refreshes
-        inner = (x, rate, J, fac, h, t, ok, refreshes, eager)
+        inner = (x, rate, fac, h, t, ok, refreshes, eager)
         if max_count is None:  # each interval its own count
             inner = lax.while_loop(
-                lambda s: (s[0] < n) & s[1][6],
+                lambda s: s[0] < n,
                 lambda s: (s[0] + 1, stepper.step(s[1])),
                 (0, inner),
             )[1]
         else:  # a loop of fixed length, the steps past the count skipped
 
             def fixed(s, i):
-                if uniform:  # after a failure the steps go on from the last good state, flagged
+                if uniform:  # after a failure the steps do nothing (flagged)
                     return checkpointed(s), None
-                return lax.cond((i < n) & s[6], checkpointed, lambda s: s, s), None
+                return lax.cond(i < n, checkpointed, lambda s: s, s), None
 
             inner = lax.scan(fixed, inner, jnp.arange(max_count, dtype=counts.dtype))[0]
-        x, rate, J, fac, _, _, ok, refreshes, eager = inner
+        x, rate, fac, _, _, ok, refreshes, eager = inner
         # a new matrix was factored with h (or a substep of it: where that fails the chord,
         # the next step makes a new one)
         h_fac = jnp.where(refreshes > before, h, h_fac)
-        return (x, rate, J, fac, h_fac, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
+        return (x, rate, fac, h_fac, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
 
-    # no matrix yet: the first step makes one (eager), at its predicted midpoint, so that the
-    # program holds one copy of the Jacobian's products (the compilation's largest part)
+    # no matrix yet: the first step makes one (eager), at its predicted midpoint; every matrix
+    # is made in one place (the step's attempts), so that the program holds one copy of the
+    # Jacobian's products (the compilation's largest part), and only its factors are carried
     h0 = lax.stop_gradient(steps[0])
     N, m = x0.shape
-    J0 = tuple(jnp.zeros((N, m, m), x0.dtype) for _ in range(3))
+    J0 = tuple(jax.ShapeDtypeStruct((N, m, m), x0.dtype) for _ in range(3))
     shapes = jax.eval_shape(stepper.factor, J0, h0)
     fac0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
-    carry = (x0, jnp.zeros_like(x0), J0, fac0, h0, True, 0, 1)
+    carry = (x0, jnp.zeros_like(x0), fac0, h0, True, 0, 1)
     carry = jax.tree_util.tree_map(jnp.asarray, carry)
-    (_, _, _, _, _, ok, refreshes, _), xs = lax.scan(interval, carry, (counts, steps, ts[:-1]))
+    (_, _, _, _, ok, refreshes, _), xs = lax.scan(interval, carry, (counts, steps, ts[:-1]))
     return jnp.concatenate([x0[None], xs]), ok, refreshes
 
 

@@ -564,9 +564,11 @@ def _midpoint(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
         ts = jnp.where(bad_times, jnp.zeros_like(ts), ts) if is_traced(ts) else ts
         if dt is not None:
             dt = jnp.asarray(dt, dtype=jnp.result_type(float))
+        stripped, damped = _static_zeros(rod)  # what is concretely zero, as above
         states, ok, steps, too_many, bad_dt = _midpoint_program(
-            rod, state0, jnp.asarray(ts), dt, float(rtol), float(atol), int(max_steps)
-        )
+            stripped, state0, jnp.asarray(ts), dt, float(rtol), float(atol), int(max_steps),
+            damped,
+        )  # fmt: skip
     status = SolveStatus.where(ok, SolveStatus.successful, SolveStatus.solver_error)
     status = SolveStatus.where(too_many, SolveStatus.max_steps_reached, status)
     status = SolveStatus.where(bad_dt, SolveStatus.invalid_parameters, status)
