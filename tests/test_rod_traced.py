@@ -85,6 +85,26 @@ def test_vmap_of_the_splitting_is_the_eager_calls():
     assert 0 < dE.max() < 0.1, dE
 
 
+@pytest.mark.slow  # cost: ~16 s, the midpoint rule compiled under vmap and for the eager calls
+def test_vmap_of_the_midpoint_rule_is_the_eager_calls():
+    """vmap over EI of ``method="midpoint"`` (the implicit midpoint rule, its step 0.02): every
+    member's samples are those of its own eager call to the Newton tolerance (a batched loop
+    runs until every member is done, each member's attempts, new matrices and factors its
+    own: integrate/midpoint.py, "Batches"), and the members differ (EI from 1 to 9)."""
+    kw = dict(method="midpoint", dt=0.02, rtol=1e-10, atol=1e-12)
+    batch = jax.vmap(lambda EI: lattice.simulate(rod_of(EI), STATE0, TS, throw=False, **kw))(
+        jnp.asarray(EIS)
+    )
+    assert np.all(batch.ok)
+    tips = []
+    for i, EI in enumerate(EIS):
+        one = lattice.simulate(rod_of(EI), STATE0, TS, **kw)
+        member = jax.tree_util.tree_map(lambda x, i=i: x[i], batch.states)
+        assert_same_states(member, one.states, rtol=1e-8)
+        tips.append(np.asarray(one.states.r)[-1, -1])
+    assert np.abs(tips[0] - tips[2]).max() > 1e-2  # the stiffness changes the motion
+
+
 def test_jit_of_one_call_and_traced_times():
     """jit with EI and ts traced, and jit of a call with concrete inputs (every operation
     staged): the eager samples and step count (1e-12); the first program with times that do
