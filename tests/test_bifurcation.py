@@ -164,20 +164,29 @@ def test_hopf_point_from_a_guess_at_the_crossing_itself():
         assert float(h.value) == pytest.approx(M_cr, rel=1e-12)
 
 
+def _hopf_value(b):
+    return rbo.hopf_point(nikolai, {"b": b}, "M", 0.15).value
+
+
+def _critical_moment_slope(b, e=1e-6):
+    return (critical_moment(b + e) - critical_moment(b - e)) / (2 * e)
+
+
 def test_hopf_value_gradient_matches_finite_differences(hopf):
-    """jax.grad and jax.jacfwd of the critical moment with respect to b (implicit function
-    theorem at the converged Hopf system) against central differences of the closed form
-    M = 2b sqrt(K(M)/A1) (Brent's method, no autodiff), also under jit."""
+    """jax.grad of the critical moment with respect to b (implicit function theorem at the
+    converged Hopf system) against central differences of the closed form M = 2b sqrt(K(M)/A1)
+    (Brent's method, no autodiff)."""
+    g = float(jax.grad(_hopf_value)(0.1))
+    assert g == pytest.approx(_critical_moment_slope(0.1), rel=1e-7)
 
-    def value(b):
-        return rbo.hopf_point(nikolai, {"b": b}, "M", 0.15).value
 
-    g = float(jax.grad(value)(0.1))
-    e = 1e-6
-    fd = (critical_moment(0.1 + e) - critical_moment(0.1 - e)) / (2 * e)
-    assert g == pytest.approx(fd, rel=1e-7)
-    assert float(jax.jacfwd(value)(0.1)) == pytest.approx(g, rel=1e-12)
-    assert float(jax.jit(jax.grad(value))(0.1)) == pytest.approx(g, rel=1e-12)
+@pytest.mark.slow  # cost: ~12 s, the forward-mode and the jitted reverse-mode programs compiled
+def test_hopf_value_gradient_in_forward_mode_and_under_jit():
+    """jax.jacfwd and jax.jit(jax.grad) of the critical moment: the same derivative, which
+    matches central differences of the closed form."""
+    g = float(jax.jacfwd(_hopf_value)(0.1))
+    assert g == pytest.approx(_critical_moment_slope(0.1), rel=1e-7)
+    assert float(jax.jit(jax.grad(_hopf_value))(0.1)) == pytest.approx(g, rel=1e-12)
 
 
 class TraceCounter:

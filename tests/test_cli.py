@@ -532,7 +532,14 @@ def test_stability_map_invalid_input_exits_2(capsys, monkeypatch, tmp_path):
     assert code == 2 and "needs matplotlib" in err
 
 
-@pytest.mark.parametrize("integrator", ["fast_simulate", "simulate"])
+@pytest.mark.parametrize(
+    "integrator",
+    [
+        # cost: ~16 s, the fit compiled on fast_simulate (the other integrator's stays quick)
+        pytest.param("fast_simulate", marks=pytest.mark.slow),
+        "simulate",
+    ],
+)
 def test_fit_synthetic_recovers_c_and_d(capsys, tmp_path, integrator):
     """fit --synthetic: noise-free data of c = 1, d = 2 (4.50), the fit started 30 % off recovers
     both to 1e-6 relative with tiny standard errors, through either integrator; the result

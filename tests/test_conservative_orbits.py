@@ -91,6 +91,7 @@ def test_shooting_returns_to_a_regular_precession(model, precession):
     assert_symplectic(orbit, 1e-8)
 
 
+@pytest.mark.slow  # cost: ~13-18 s, the periodic orbit's program compiled under vmap
 def test_neighbouring_precessions_at_other_energies(model, precession):
     """Requesting other energies from a perturbed precession (vmapped over the energy) gives the
     orbits of those energies around it: the regular precessions whose nutation angles have

@@ -187,6 +187,7 @@ def _sharded_vmap(tmp_path, devices, **env):
     return report
 
 
+@pytest.mark.slow  # cost: ~40-60 s, a process compiling three batch programs
 def test_jit_vmap_on_a_named_sharding_runs_a_share_on_each_device(tmp_path):
     """Issue 49 G: ``jax.jit(jax.vmap(fast_simulate))`` of a batch sharded over 2 CPU devices
     runs each device's share on its own refilled lanes, and gives the one-device bits; so does

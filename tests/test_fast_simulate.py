@@ -190,20 +190,45 @@ def test_vmap_without_jit_takes_numpy_batches():
 
 @pytest.mark.parametrize("lanes", [pytest.param(1000, marks=pytest.mark.slow), 5])
 def test_batch_equals_single_trajectories(monkeypatch, lanes):
-    """vmap runs the batch on refilled lanes (5 lanes for 13 trajectories: refills); every
+    """vmap runs the batch on refilled lanes (5 lanes for 16 trajectories: refills); every
     trajectory gets exactly its own solve, in its own place."""
     monkeypatch.setattr(ensemble, "LANES", lanes)
     rng = np.random.default_rng(lanes)
-    n = 13
+    n = 16  # as the sharded batch below on 2 devices: the same one-device program
     ps = jnp.asarray(np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n)], 1))
     y0s = jnp.asarray(rng.uniform(-0.6, 0.6, (n, 6)))
     theta, Omega, status, steps = _batch(_model_of, ps, y0s, TS)
-    for i in (0, 6, 12):
+    for i in (0, 6, 15):
         tr = fast_simulate(_model_of(ps[i]), y0s[i, :3], y0s[i, 3:], TS)
         np.testing.assert_allclose(theta[i], tr.theta, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(Omega[i], tr.Omega, rtol=1e-13, atol=1e-13)
         assert int(steps[i]) == int(tr.num_steps)
     assert np.all(np.asarray(status == SolveStatus.successful))
+
+
+def test_jit_vmap_on_a_named_sharding_keeps_the_one_device_bits(monkeypatch):
+    """Issue 49 G, in this process (a worker has one CPU device per core of its affinity):
+    ``jax.jit(jax.vmap(fast_simulate))`` of a batch placed with a ``NamedSharding`` over the
+    local devices runs each device's share on its own lanes (5 lanes: refills), returns outputs
+    on every device, and gives every trajectory the bits of the same batch on one device. (The
+    complete tier's tests/test_devices.py checks 1, 2 and 4 devices in fresh processes, the
+    padded replicated batch and the loops' collectives.)"""
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    monkeypatch.setattr(ensemble, "LANES", 5)
+    devices = jax.devices()
+    n = 8 * len(devices)
+    rng = np.random.default_rng(5)
+    ps = np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n)], 1)
+    y0s = rng.uniform(-0.6, 0.6, (n, 6))
+    one = _batch(_model_of, jnp.asarray(ps), jnp.asarray(y0s), TS)
+    spread = NamedSharding(Mesh(np.array(devices), ("batch",)), P("batch"))
+    got = _batch(_model_of, jax.device_put(ps, spread), jax.device_put(y0s, spread), TS)
+    for i in (0, 1, 3):  # theta, Omega, steps
+        assert len(got[i].sharding.device_set) == len(devices)
+        np.testing.assert_array_equal(np.asarray(got[i]), np.asarray(one[i]))
+    assert bool(jnp.all(got[2] == one[2])) and bool(jnp.all(one[2] == SolveStatus.successful))
 
 
 def test_final_state_only_takes_the_same_steps_without_dense_output():
@@ -238,9 +263,8 @@ def test_lane_count_cuts_a_batch_into_waves():
         assert b % V == 0 and b <= LANES_SOLVER._round_up(n, V) and b <= 1008
 
 
-@pytest.mark.parametrize(
-    "lanes, divisors", [(48, None), pytest.param(256, (2, 8, 32), marks=pytest.mark.slow)]
-)
+@pytest.mark.slow  # cost: ~15-25 s, each batch compiled with and without compaction
+@pytest.mark.parametrize("lanes, divisors", [(48, None), (256, (2, 8, 32))])
 def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes, divisors):
     """Once the queue is empty, the running lanes are gathered into narrower loops (issue 31:
     the tail of a batch no longer costs every lane; the default one loop of a quarter of the
@@ -271,6 +295,7 @@ def test_tail_compaction_keeps_every_trajectory_bit_for_bit(monkeypatch, lanes, 
     assert bool((ref[2] == SolveStatus.domain_error)[13])
 
 
+@pytest.mark.slow  # cost: ~12-17 s, the batch compiled with and without its parking
 def test_longest_first_keeps_every_trajectory_bit_for_bit(monkeypatch):
     """The queue run twice (issue 31, ``_queue.PROBE``): every trajectory first makes at most a
     few step attempts, the unfinished ones are parked (their lanes' states saved) and resumed

@@ -76,6 +76,7 @@ def spinning(n, seed=3):
     return lat, theta, Omega
 
 
+@pytest.mark.slow  # cost: ~14-19 s, the whole-array and the blocked programs compiled
 def test_blocks_recentre_as_whole_arrays():
     """Re-centring (the re-centred turn-vector of a body off the plane near |θ| = 2π, the
     integrators' module docstring) decided in blocks: a uniform spin transverse to θ (every body

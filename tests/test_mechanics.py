@@ -141,6 +141,7 @@ def test_chain_equilibrium_and_spectrum_against_numpy():
     np.testing.assert_allclose(p, ref, atol=1e-7)
 
 
+@pytest.mark.slow  # cost: ~14 s, the chain's Hopf program compiled
 def test_chain_flutter_point_against_numpy():
     """The chain's Hopf point in the load (:func:`rbo_jax.hopf_point`, the solver every model
     shares) is where the reference's spectral abscissa crosses zero."""
@@ -262,10 +263,23 @@ def _nikolai(M, s, m):
 UNITS = [(1.0, 1.0), (1e3, 1.0), (1e-3, 1.0), (1.0, 1e6)]
 
 
+def _rigid_flutter_loads():
+    return [float(rbo.hopf_point(_nikolai, {"s": s, "m": m}, "M", 0.15).value) for s, m in UNITS]
+
+
+def test_flutter_load_does_not_depend_on_the_units_of_a_rigid_body():
+    """Time ×1e3 and ×1e-3, masses ×1e6: every eigenvalue scales by one factor, and the Hopf
+    point stays. (The critical load's scan in the same units: the complete tier.)"""
+    h = _rigid_flutter_loads()
+    np.testing.assert_allclose(h, h[0], rtol=1e-9)
+    assert np.isfinite(h[0]) and h[0] > 0.0
+
+
+@pytest.mark.slow  # cost: ~15 s, the critical-load scan and bisection compiled for 4 unit systems
 def test_critical_and_flutter_loads_do_not_depend_on_the_units_of_a_rigid_body():
     """Time ×1e3 and ×1e-3, masses ×1e6: every eigenvalue scales by one factor, and the
     critical follower moment (the scan of classify's test) and the Hopf point stay."""
-    h = [float(rbo.hopf_point(_nikolai, {"s": s, "m": m}, "M", 0.15).value) for s, m in UNITS]
+    h = _rigid_flutter_loads()
     np.testing.assert_allclose(h, h[0], rtol=1e-9)
     s, m = (np.array(x) for x in zip(*UNITS))
     axes = {"i": np.arange(len(UNITS), dtype=float)}

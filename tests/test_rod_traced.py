@@ -62,6 +62,7 @@ def splitting(EI, ts=TS, **kw):
     return lattice.simulate(rod_of(EI), STATE0, ts, method="splitting", **kw)
 
 
+@pytest.mark.slow  # cost: ~15-20 s, the splitting compiled under vmap and for the eager calls
 def test_vmap_of_the_splitting_is_the_eager_calls():
     r"""vmap over EI: every member's default step is its own call's (the same Gershgorin bound
     from the same rod, batched), so the same counts per interval (``num_steps`` equal and

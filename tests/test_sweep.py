@@ -488,6 +488,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow  # cost: ~11-16 s, two processes started and compiling, a gloo rendezvous
 @needs_zarr
 def test_two_processes_equal_one_process(tmp_path, hook_log):
     """Two processes on localhost (jax.distributed, gloo): each computes its share of the chunks
