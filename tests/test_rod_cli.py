@@ -290,6 +290,24 @@ BAD_CONFIGS = [
         SMALL.replace("rod_stability", "spectral_abscissa"),
         "[rod]: is only used by the quantities rod_stability, rod_critical_load",
     ),
+    (SMALL.replace("rod_stability", "rod_motion"), "config: missing required key 'solver'"),
+    (
+        SMALL.replace("rod_stability", "rod_motion") + "[solver]\nsamples = 11\n",
+        "[solver]: missing required key 't1'",
+    ),
+    (
+        SMALL.replace("rod_stability", "rod_motion") + "[solver]\nt1 = 1.0\ndt = 0.0\n",
+        "[solver] dt: must be > 0, got 0",
+    ),
+    (
+        SMALL.replace("rod_stability", "rod_motion") + "[solver]\nt1 = 1.0\nintegrator = 'x'\n",
+        "[solver]: unknown key 'integrator'",
+    ),
+    (
+        SMALL.replace("rod_stability", "rod_motion") + "[solver]\nt1 = 1\n[stability]\nrtol = 1\n",
+        "[stability]: is not used by quantity 'rod_motion' (of a [rod]); remove it",
+    ),
+    (SMALL + "[solver]\nt1 = 1.0\n", "[solver]: is not used by quantity 'rod_stability'"),
 ]
 
 
@@ -488,3 +506,59 @@ def test_rod_critical_load_sweep_is_becks_load(tmp_path):
     )
     # P_cr scales with EI (Beck's load is 20.05 EI/L^2; GJ, the mass and the stretch fixed)
     np.testing.assert_allclose(crit[1] / crit[0], 2.0, rtol=2e-2)
+
+
+MOTION = """
+[sweep]
+quantity = "rod_motion"
+output = "motion.zarr"
+
+[axes]
+f = [1e-4, 2e-4]
+
+[rod]
+n = 8
+bending = 1.0
+torsion = 0.8
+shear = 1e4
+stretch = 1e4
+mass = 1.0
+rotary = 1e-4
+loads = [{ type = "tip_force", f = [1.0, 0.0, 0.0], scale = "f" }]
+
+[solver]
+t1 = 1.8
+samples = 181
+"""
+
+
+@pytest.mark.slow  # cost: ~30 s, the midpoint rule compiled in the sweep's chunk and eagerly
+def test_rod_motion_sweep_is_a_step_load_with_its_dynamic_amplification(tmp_path):
+    r"""rod_motion: the cantilever (EI = ρA = L = 1, first period $2\pi/3.516 = 1.787$) released
+    straight under a small dead tip force applied at $t = 0$. Each mode's tip response to a
+    step load is $c_i(1 - \cos\omega_i t)$ with $c_i > 0$ (load and output at the tip), the
+    static deflection $\sum c_i$, the first mode's share about 97 %: over one first period
+    the tip's largest deflection is between 1.9 and 2 times the static deflection of
+    :func:`rbo_jax.lattice.equilibrium` (the dynamic amplification of a step load), linear in
+    the force; and the sweep's numbers are those of :func:`rbo_jax.lattice.simulate` of the
+    same rod."""
+    from rbo_jax.app.config import run_config
+
+    cfg = tmp_path / "motion.toml"
+    cfg.write_text(MOTION)
+    ds, _ = run_config(cfg, progress=False, plot=False)
+    assert (ds["status"].values == 0).all() and (ds["num_steps"].values > 0).all()
+    peak = ds["max_deflection"].values
+
+    def rod(f):
+        return L.rod(8, 1.0, bending=1.0, torsion=0.8, shear=1e4, stretch=1e4, mass=1.0,
+                     rotary=1e-4, loads=L.TipForce(jnp.array([f, 0.0, 0.0])))  # fmt: skip
+
+    static = float(L.equilibrium(rod(1e-4)).r[-1, 0])
+    assert 1.9 < peak[0] / static <= 2.0 + 1e-6, peak[0] / static
+    np.testing.assert_allclose(peak[1], 2 * peak[0], rtol=1e-3)
+    ts = jnp.linspace(0.0, 1.8, 181)
+    traj = L.simulate(rod(2e-4), rod(2e-4).straight(), ts)
+    tip = np.asarray(traj.centreline[:, -1, :])
+    np.testing.assert_allclose(ds["tip"].values[1], tip[-1], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(peak[1], np.linalg.norm(tip - tip[0], axis=1).max(), rtol=1e-9)

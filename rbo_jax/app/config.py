@@ -61,10 +61,10 @@ _TABLES = (
 # rods' reads
 _USED_BY = {
     "rod": ROD,
-    "stability": ROD,
+    "stability": ("rod_stability", "rod_critical_load"),
     "lattice": LATTICE,
     "initial": SIMULATION,
-    "solver": SIMULATION,
+    "solver": SIMULATION + ("rod_motion",),
 }
 # what a required table holds, for the message that asks for it
 _CONTENTS = {
@@ -191,6 +191,8 @@ def _only_for(r: Reader, table: Mapping, key: str, where: str, name: str, user: 
 
 
 def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
+    if name == "rod_motion":
+        return _read_rod_solver(r, cfg)
     if name in ROD:
         return _read_stability(r, cfg, name)
     eq = r.table(cfg, "equilibrium", "config", required=False)
@@ -231,6 +233,25 @@ def _read_settings(r: Reader, cfg: Mapping, name: str) -> Settings:
         integrator=r.string(
             solver, "integrator", where, default="fast_simulate", choices=INTEGRATORS
         ),
+    )
+
+
+def _read_rod_solver(r: Reader, cfg: Mapping) -> Settings:
+    """The ``[solver]`` table of ``rod_motion`` (:mod:`rbo_jax.app.quantities`): ``t1``
+    (required), ``samples`` (101), ``dt`` (the midpoint rule's step; default the shorter of
+    ``t1/1000`` and the samples' spacing), ``rtol`` (1e-8) and ``atol`` (1e-10) of its Newton
+    iterations, ``max_steps`` (100,000)."""
+    solver = r.table(cfg, "solver", "config", required=True)
+    where = "[solver]"
+    r.keys(solver, ("t1", "dt", "rtol", "atol", "max_steps", "samples"), where, required=("t1",))
+    dt = r.number(solver, "dt", where, requirement=POSITIVE, axis=False) if "dt" in solver else None
+    return Settings(
+        t1=r.number(solver, "t1", where, requirement=POSITIVE),
+        dt=dt,
+        rtol=r.number(solver, "rtol", where, default=1e-8, requirement=POSITIVE, axis=False),
+        atol=r.number(solver, "atol", where, default=1e-10, requirement=POSITIVE, axis=False),
+        max_steps=r.integer(solver, "max_steps", where, default=100_000),
+        samples=r.integer(solver, "samples", where, default=101, minimum=2),
     )
 
 
@@ -321,6 +342,7 @@ def _read_model(r: Reader, cfg: Mapping, name: str):
     if name in ROD:
         table = _required(r, cfg, name, "rod")
         _refuse_unused(r, cfg, name, ("model", "lattice", "initial", "solver", "equilibrium"))
+        _refuse_unused(r, cfg, name, ("stability",))
         return RodSpec.from_mapping(table, reader=r), None
     model = ModelSpec.from_mapping(r.table(cfg, "model", "config", required=True), reader=r)
     _refuse_unused(r, cfg, name, ("lattice",))
@@ -354,9 +376,10 @@ def load_config(path: str | os.PathLike) -> SweepConfig:
     ``integrator`` = ``"fast_simulate"`` (the default) or ``"simulate"``) and
     ``[initial]`` (``theta0``, ``Omega0``, ``about_equilibrium``); ``[equilibrium]``
     (``theta_guess``, ``classify_rtol``). The rod quantities (``rod_stability``,
-    ``rod_critical_load``) take a ``[rod]`` table (:class:`~rbo_jax.app.rodspec.RodSpec`) and
-    a ``[stability]`` table (:mod:`rbo_jax.app.quantities`) instead of ``[model]`` and the
-    others.
+    ``rod_critical_load``, ``rod_motion``) take a ``[rod]`` table
+    (:class:`~rbo_jax.app.rodspec.RodSpec`) and a ``[stability]`` table, or for
+    ``rod_motion`` a ``[solver]`` table (``t1``, ``dt``, ``rtol``, ``atol``, ``max_steps``,
+    ``samples``; :mod:`rbo_jax.app.quantities`), instead of ``[model]`` and the others.
 
     Every number of ``[model]``, ``[initial]``, ``[solver]`` and ``[equilibrium]`` may instead be
     the name of an axis (a string); every axis must be used. Relative paths are relative to the

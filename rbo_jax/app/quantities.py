@@ -31,7 +31,14 @@ table), with a :class:`~rbo_jax.app.spec.LatticeSpec` for the Bloch quantities, 
   unstable; ``inf`` where it stays stable, NaN where the stable interval ends at an equilibrium
   that cannot be computed. With a unit load (``f = [0, 0, -1]``) it is the critical load
   itself: Beck's flutter load $20.05\,EI/L^2$, the Ziegler paradox of a small damping (about
-  $10.94\,EI/L^2$), Pflüger's load falling with the tip mass.
+  $10.94\,EI/L^2$), Pflüger's load falling with the tip mass;
+- ``rod_motion``: the motion of the rod (:func:`rbo_jax.lattice.simulate`, its default method:
+  under the sweep's ``jax.vmap``, the implicit midpoint rule at the step ``[solver] dt``,
+  default the shorter of ``t1/1000`` and the samples' spacing) from the straight rod at rest
+  with its loads applied at $t = 0$ (a suddenly applied load), sampled at ``samples`` times
+  in $[0, t_1]$: ``max_deflection`` $\max_t |r_N(t) - r_N(0)|$ (for a small dead load on
+  an undamped rod about twice the static deflection: the dynamic amplification of a step
+  load), ``tip`` the tip's position at $t_1$ and ``num_steps``.
 
 Every quantity returns its values and a status: the solver's
 (:class:`rbo_jax.SolveStatus`) for the simulations, the equilibrium's
@@ -94,13 +101,18 @@ _TABLE = {
         "(rbo_jax.lattice.critical_load)",
         ("critical_load",),
     ),
+    "rod_motion": (
+        "the tip's largest deflection (and the tip at t1) of the [rod] released straight "
+        "with its loads applied at t = 0 (rbo_jax.lattice.simulate)",
+        ("max_deflection", "tip", "num_steps"),
+    ),
 }
 QUANTITIES = {name: text for name, (text, _) in _TABLE.items()}
 OUTPUTS = {name: outputs for name, (_, outputs) in _TABLE.items()}
 DEFAULT_PLOT = {name: outputs[0] for name, outputs in OUTPUTS.items()}
 SIMULATION = ("final_state", "energy_drift", "max_deviation")
 LATTICE = ("bloch_growth", "bloch_frequencies")
-ROD = ("rod_stability", "rod_critical_load")
+ROD = ("rod_stability", "rod_critical_load", "rod_motion")
 INTEGRATORS = {"fast_simulate": fast_simulate, "simulate": simulate}
 # the dimensions of the outputs with more than one value per point
 _DIMS = {
@@ -115,7 +127,8 @@ _DIMS = {
 @dataclasses.dataclass(frozen=True)
 class Settings:
     """The numbers of a quantity besides the model: initial state, solver, equilibrium, and for
-    the rods the ``[stability]`` table (``classify_rtol`` is its ``rtol``)."""
+    the rods the ``[stability]`` table (``classify_rtol`` is its ``rtol``) or, for
+    ``rod_motion``, the ``[solver]`` table (``dt`` its step; None: the method's default)."""
 
     theta0: tuple = (0.0, 0.0, 0.0)
     Omega0: tuple = (0.0, 0.0, 0.0)
@@ -133,6 +146,7 @@ class Settings:
     load_min: float = 0.0
     n_scan: int = 32
     n_bisect: int = 40
+    dt: float | None = None
 
 
 def _scalar(x, point):
@@ -188,6 +202,26 @@ def _critical_load(name: str, spec, s: Settings, point, lattice=None) -> tuple[d
     return {"critical_load": lam}, EquilibriumStatus.successful
 
 
+def _rod_motion(name: str, spec, s: Settings, point, lattice=None) -> tuple[dict, Any]:
+    """:func:`rbo_jax.lattice.simulate` of the rod from straight and at rest (module
+    docstring)."""
+    from ..lattice import simulate as simulate_lattice
+
+    rod = spec.build(point)
+    ts = jnp.linspace(0.0, 1.0, s.samples) * _scalar(s.t1, point)
+    traj = simulate_lattice(
+        rod, rod.straight(), ts, rtol=s.rtol, atol=s.atol, max_steps=s.max_steps, dt=s.dt,
+        throw=False,
+    )  # fmt: skip
+    tip = traj.centreline[:, -1, :]
+    values = {
+        "tip": tip[-1],
+        "max_deflection": jnp.max(jnp.linalg.norm(tip - tip[:1], axis=-1)),
+        "num_steps": traj.num_steps,
+    }
+    return values, traj.status
+
+
 def _simulation(name: str, spec, s: Settings, point, lattice=None) -> tuple[dict, Any]:
     model = spec.build(point)
     th0 = _vector(s.theta0, point)
@@ -226,6 +260,8 @@ def make_quantity(name: str, spec, s: Settings, lattice=None):
         compute = _bloch
     elif name == "rod_critical_load":
         compute = _critical_load
+    elif name == "rod_motion":
+        compute = _rod_motion
     elif name in SIMULATION:
         compute = _simulation
     else:
