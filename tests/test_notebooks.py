@@ -4,13 +4,15 @@ here as an error in the executed cell."""
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 import time
 from pathlib import Path
 
 import pytest
 
-NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+ROOT = Path(__file__).resolve().parent.parent
+NOTEBOOK_DIR = ROOT / "notebooks"
 NOTEBOOKS = [
     "01_kinematics.ipynb",
     "02_nikolai_paradox.ipynb",
@@ -29,6 +31,16 @@ def _read(name):
     path = NOTEBOOK_DIR / name
     assert path.is_file(), f"missing notebook {path}"
     return nbformat.read(path, as_version=4)
+
+
+def _docs_hook():
+    """docs/_hooks/notebooks.py, the site's notebook pages (its cache of executed notebooks)."""
+    spec = importlib.util.spec_from_file_location(
+        "_docs_notebooks", ROOT / "docs/_hooks/notebooks.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def _check_kernel():
@@ -63,6 +75,9 @@ def test_notebook_is_stored_without_outputs(name):
 @pytest.mark.slow  # integration: the notebooks executed, ~3 min
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_executes(name, monkeypatch):
+    """Each notebook runs without an error. The executed notebook is then kept in the docs
+    build's cache (docs/_hooks/notebooks.py, keyed by the notebook and the package's sources):
+    `make docs` after `make test-slow`, CI's order, converts it without running it again."""
     import nbclient  # test extra
 
     _check_kernel()
@@ -70,7 +85,7 @@ def test_notebook_executes(name, monkeypatch):
     monkeypatch.delenv("RBO_NOTEBOOK_FULL", raising=False)  # the default, small sizes
     client = nbclient.NotebookClient(
         nb,
-        timeout=300,
+        timeout=600,  # a cell's limit (a hang), as the docs build's
         kernel_name=KERNEL,
         resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
     )
@@ -86,3 +101,4 @@ def test_notebook_executes(name, monkeypatch):
         if o.get("output_type") == "error"
     ]
     assert not errors, f"{name}: {errors[0].get('ename')}: {errors[0].get('evalue')}"
+    _docs_hook().store(NOTEBOOK_DIR / name, nb)

@@ -7,7 +7,9 @@ converted to Markdown with its figures (nbconvert), and added to the site as
 a cell whose metadata says ``"figure": "X"``: a stable path for the topic pages); the Markdown
 then goes through the same extensions as every page (the equations of ``math.py`` included). A
 cell that raises fails the build. Executed notebooks are kept in ``.cache/docs-notebooks/``,
-keyed by the notebook and the package's sources, so an unchanged notebook is not run again.
+keyed by the notebook and the package's sources, so an unchanged notebook is not run again;
+``tests/test_notebooks.py`` stores there the notebooks it executes (:func:`store`), so that
+``make docs`` after ``make test-slow`` (CI's order) converts them without running them twice.
 """
 
 from __future__ import annotations
@@ -16,8 +18,6 @@ import hashlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-
-from mkdocs.structure.files import File
 
 ROOT = Path(__file__).resolve().parents[2]
 NOTEBOOKS = ROOT / "notebooks"
@@ -33,6 +33,19 @@ def _key(path: Path) -> str:
     return digest.hexdigest()[:20]
 
 
+def store(path: Path, nb) -> Path:
+    """Keep ``nb``, the notebook ``path`` executed top to bottom at its default sizes, as this
+    hook's executed copy of it (replacing older ones); the file written."""
+    import nbformat
+
+    cached = CACHE / f"{path.stem}-{_key(path)}.ipynb"
+    CACHE.mkdir(parents=True, exist_ok=True)
+    for old in CACHE.glob(f"{path.stem}-*.ipynb"):
+        old.unlink()
+    nbformat.write(nb, cached)
+    return cached
+
+
 def _execute(path: Path):
     import nbclient
     import nbformat
@@ -45,10 +58,7 @@ def _execute(path: Path):
         nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
     )
     client.execute()  # raises CellExecutionError with the traceback if a cell fails
-    CACHE.mkdir(parents=True, exist_ok=True)
-    for old in CACHE.glob(f"{path.stem}-*.ipynb"):
-        old.unlink()
-    nbformat.write(nb, cached)
+    store(path, nb)
     return nb
 
 
@@ -86,6 +96,8 @@ def _named_figures(nb) -> dict[str, bytes]:
 
 
 def on_files(files, config):
+    from mkdocs.structure.files import File
+
     os.environ.pop("RBO_NOTEBOOK_FULL", None)  # the default, small sizes
     paths = sorted(NOTEBOOKS.glob("*.ipynb"))
     with ThreadPoolExecutor(max_workers=2) as pool:
