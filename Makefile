@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 WORKERS ?= 2
 LINTED := rbo_jax tests benchmarks notebooks docs/_hooks
 
-.PHONY: demo lint test test-slow test-all bench clean
+.PHONY: demo lint test test-slow test-all bench docs docs-test clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 10), "rbo_jax needs Python >= 3.10"'
