@@ -72,7 +72,7 @@ def test_notebook_is_stored_without_outputs(name):
     assert code[1].source.lstrip().startswith("import rbo_jax"), f"{name}: import rbo_jax first"
 
 
-@pytest.mark.slow  # integration: the notebooks executed, ~3 min
+@pytest.mark.slow  # integration: the notebooks executed, 23-444 s each from a cold cache
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_executes(name, monkeypatch):
     """Each notebook runs without an error. The executed notebook is then kept in the docs
