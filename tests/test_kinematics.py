@@ -1080,3 +1080,23 @@ def test_private_coefficients_are_functions_of_t():
     assert float(kin._sinc3(t)) == pytest.approx((th - np.sin(th)) / th**3, rel=1e-13)
     assert float(kin.gcoef(t)) == pytest.approx((1 - th / 2 / np.tan(th / 2)) / th**2, rel=1e-13)
     assert float(kin._cos(t)) == pytest.approx(np.cos(th), rel=1e-15)
+
+
+def test_solve3_is_a_linear_solve_and_its_derivative():
+    """``kin.solve3`` (Cramer's rule, written out) against LAPACK's solve on batches of random
+    3×3 systems and of inertia tensors (a body's: symmetric positive definite), with its
+    derivative in ``A`` against the closed form $d(A^{-1}b) = -A^{-1}\\,dA\\,A^{-1}b$."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(16, 3, 3)) + 3.0 * EYE
+    R = Rotation.random(16, random_state=4).as_matrix()
+    inertia = np.einsum("bij,bj,bkj->bik", R, rng.uniform(1e-4, 2e-4, size=(16, 3)), R)
+    b = rng.normal(size=(16, 3))
+    for M in (A, inertia):
+        x = np.asarray(kin.solve3(jnp.asarray(M), jnp.asarray(b)))
+        ref = np.linalg.solve(M, b[..., None])[..., 0]
+        np.testing.assert_allclose(x, ref, rtol=1e-12, atol=0.0)
+    dA = rng.normal(size=A.shape)
+    _, dx = jax.jvp(lambda M: kin.solve3(M, jnp.asarray(b)), (jnp.asarray(A),), (jnp.asarray(dA),))
+    x = np.linalg.solve(A, b[..., None])
+    expected = -np.linalg.solve(A, dA @ x)[..., 0]
+    np.testing.assert_allclose(np.asarray(dx), expected, rtol=1e-11, atol=1e-13)

@@ -36,6 +36,7 @@ from ...kinematics import (
     Turn,
     cross3,
     integrating_tensor_inv,
+    solve3,
     turn_tensor,
     turn_vector,
 )
@@ -298,7 +299,7 @@ def rates(rod, state: RodState, scale=1.0, t=0.0, damped: bool = True) -> RodSta
     M, F = forces_tangent(rod, tensors(state.theta), state.r, *velocities, scale, t)
     A = jnp.asarray(rod.inertia)
     AOm = jnp.einsum("bij,bj->bi", A, state.Omega)
-    Omega_dot = jnp.linalg.solve(A, (M - cross3(state.Omega.T, AOm.T).T)[..., None])[..., 0]
+    Omega_dot = solve3(A, M - cross3(state.Omega.T, AOm.T).T)
     v_dot = F / jnp.asarray(rod.mass)[:, None]
     theta_dot = jax.vmap(lambda th, Om: Turn(th).ZT(Om))(state.theta, state.Omega)
     turn, pos = _free(rod)
