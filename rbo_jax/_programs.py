@@ -14,7 +14,8 @@ at import, or the command line) turns it on; then the stored entry points are
 :func:`rbo_jax.simulate` and :func:`rbo_jax.fast_simulate` (their compiled solves), the chunk
 program of :func:`rbo_jax.sweep` and its presets (``batch/_program.py``, which keys the user's
 quantity by :func:`rbo_jax._callables.stable_text`), :func:`rbo_jax.fit`,
-:func:`rbo_jax.hopf_point` and :func:`rbo_jax.periodic_orbit`. Small programs (Newton loops, the
+:func:`rbo_jax.hopf_point`, :func:`rbo_jax.periodic_orbit` and a rod's midpoint rule (eager
+:func:`rbo_jax.lattice.simulate`). Small programs (Newton loops, the
 fit) are compiled with :func:`small_program_options`. The key of a program is a SHA-256 of
 everything its tracing depends on:
 
@@ -242,14 +243,15 @@ def _program(fn, key, leaves, treedef, static, options=None) -> Callable | None:
             return None
         try:
             exported = _export(fn, leaves, treedef, static)
+            save(key, exported)
         except (NotImplementedError, ValueError):
             # what jax.export refuses: host callbacks (NotImplementedError), custom calls without
-            # a compatibility guarantee and outputs of unregistered pytree types (ValueError).
-            # The program then traces as usual, in this process and the next ones.
+            # a compatibility guarantee and, when serialised, outputs of unregistered pytree
+            # types (ValueError). The program then traces as usual, in this process and the
+            # next ones.
             unexportable(key, mark=True)
             _CALLS[store, key] = None
             return None
-        save(key, exported)
     call = _CALLS[store, key] = call_of(exported, _name(fn), options)  # it keeps fn's name
     return call
 
