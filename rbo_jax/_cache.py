@@ -90,7 +90,9 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.P
     store of traced programs (``PATH/programs``: :func:`rbo_jax.simulate`,
     :func:`rbo_jax.fast_simulate`, the chunk program of :func:`rbo_jax.sweep` and
     :func:`rbo_jax.stability_map`, :func:`rbo_jax.fit`, :func:`rbo_jax.hopf_point`,
-    :func:`rbo_jax.periodic_orbit`), so that a second process neither traces nor compiles them.
+    :func:`rbo_jax.periodic_orbit`, a rod's eager midpoint rule in
+    :func:`rbo_jax.lattice.simulate`), so that a second process neither traces nor compiles
+    them.
 
     **Arguments:** ``path``, the directory (made if missing); default
     ``$RBO_JAX_COMPILATION_CACHE``, else ``~/.cache/rbo_jax/jax-cache`` (``$XDG_CACHE_HOME``

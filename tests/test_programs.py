@@ -139,6 +139,55 @@ def test_a_program_that_cannot_be_exported_is_tried_once(store, monkeypatch):
     assert seen[-1] == 7.0 and tries == [1]
 
 
+class _Unregistered(eqx.Module):
+    y: jax.Array
+
+
+def test_an_output_that_cannot_be_serialised_is_traced_as_usual(store):
+    """An output of a pytree type ``jax.export`` cannot serialise (an equinox module) exports,
+    then fails to serialise: the call returns the plain jitted function's result and the store
+    marks the program, instead of raising."""
+
+    @_programs.stored
+    @eqx.filter_jit
+    def module_out(x):
+        return _Unregistered(2.0 * x)
+
+    out = module_out(jnp.array([1.5]))
+    assert isinstance(out, _Unregistered)
+    np.testing.assert_allclose(np.asarray(out.y), [3.0])
+    assert [p.suffix for p in store.iterdir()] == [".unexportable"]
+
+
+def test_the_rods_midpoint_program_is_stored_and_loaded_without_tracing(store, monkeypatch):
+    """``lattice.simulate(rod, ..., method="midpoint")`` with concrete inputs: its program is
+    kept by the store, and a second process runs it without tracing the rod's equations, to
+    the bits of the plain jitted program."""
+    from rbo_jax import lattice
+    from rbo_jax.lattice import _rod_midpoint
+
+    rod = lattice.rod(4, 1.0, bending=1.0, torsion=1.0, shear=1e3, stretch=1e3, mass=1.0,
+                      rotary=1e-3)  # fmt: skip
+    s = rod.straight()
+    state0 = lattice.RodState(s.theta, s.r, s.Omega, s.v.at[1:, 0].set(0.01))
+    ts = np.linspace(0.0, 0.2, 5)
+    first = lattice.simulate(rod, state0, ts, method="midpoint", dt=0.01)
+    assert any(p.suffix == ".jaxexport" for p in store.iterdir())
+    traced = []
+    field = _rod_midpoint._field_undamped
+    monkeypatch.setattr(_rod_midpoint, "_field_undamped", lambda *a: traced.append(1) or field(*a))
+    _new_process()
+    again = lattice.simulate(rod, state0, ts, method="midpoint", dt=0.01)
+    assert traced == [], "the stored program was traced again"
+    _programs.enable_program_store(None)
+    plain = lattice.simulate(rod, state0, ts, method="midpoint", dt=0.01)
+    assert traced, "the plain program was not traced"
+    _programs.enable_program_store(store)
+    for a, b, c in zip(*(jax.tree.leaves(t.states) for t in (plain, first, again))):
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(a))
+        np.testing.assert_array_equal(np.asarray(c), np.asarray(a))
+
+
 def test_a_new_environment_is_a_new_program(store, monkeypatch):
     """Entries of other sources or versions (the environment in the key) are never used."""
     p, y = Params(jnp.array([1.0]), "k"), jnp.array([0.0])

@@ -198,9 +198,9 @@ def test_gradient_through_the_default_integrator_matches_central_differences():
         return traj.centreline[-1, -1, 1]
 
     rod = driven_rod()
-    from rbo_jax.lattice import _rod_dynamics
+    from rbo_jax.lattice import _rod_midpoint
 
-    assert _rod_dynamics._auto(rod, rod.straight(), np.asarray(ts), None, False) == "midpoint"
+    assert _rod_midpoint.auto(rod, rod.straight(), np.asarray(ts), None, False) == "midpoint"
     grad = np.asarray(jax.grad(tip)(p0))
     fwd = np.asarray(jax.jacfwd(tip)(p0))
     eps = 1e-5 * np.maximum(np.abs(np.asarray(p0)), 1e-2)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rbo_jax import lattice
-from rbo_jax.lattice import _rod_dynamics
+from rbo_jax.lattice import _rod_midpoint
 
 EULER_BERNOULLI_1 = 3.51602  # the first frequency of a cantilever, in sqrt(EI/(rho A L^4))
 
@@ -48,17 +48,17 @@ def test_auto_takes_the_midpoint_rule_for_a_stiff_rod_only():
     midpoint rule's time there."""
     ts = np.linspace(0.0, 4 * 2 * np.pi / EULER_BERNOULLI_1, 201)
     stiff = stiff_rod(20)
-    assert _rod_dynamics._auto(stiff, stiff.straight(), ts, None, False) == "midpoint"
+    assert _rod_midpoint.auto(stiff, stiff.straight(), ts, None, False) == "midpoint"
     soft = lattice.rod(
         4, 1.0, bending=1.0, torsion=1.0, shear=3.0, stretch=3.0, mass=1.0, rotary=0.1
     )
-    assert _rod_dynamics._auto(soft, soft.straight(), ts, None, False) == "explicit"
-    assert _rod_dynamics._auto(soft, soft.straight(), ts, None, False, dt=0.2) == "midpoint"
+    assert _rod_midpoint.auto(soft, soft.straight(), ts, None, False) == "explicit"
+    assert _rod_midpoint.auto(soft, soft.straight(), ts, None, False, dt=0.2) == "midpoint"
     chain = lattice.rod(
         20, 1.0, bending=1.0, torsion=1.0, shear=3.0, stretch=3.0, mass=1.0, rotary=0.005
     )
-    assert _rod_dynamics._auto(chain, chain.straight(), ts, None, False) == "midpoint"
-    assert _rod_dynamics._auto(stiff, stiff.straight(), ts, object(), False) == "explicit"
+    assert _rod_midpoint.auto(chain, chain.straight(), ts, None, False) == "midpoint"
+    assert _rod_midpoint.auto(stiff, stiff.straight(), ts, object(), False) == "explicit"
 
 
 @pytest.mark.parametrize(
@@ -225,7 +225,7 @@ def test_interpolated_turns_cross_the_pi_sphere_in_one_chart():
         z = np.zeros((len(t), 1, 3))
         return lattice.RodState(jnp.asarray(turns(t)), z, z, z)
 
-    out = _rod_dynamics._sampled(states(grid), jnp.asarray(grid), jnp.asarray(ts))
+    out = _rod_midpoint._sampled(states(grid), jnp.asarray(grid), jnp.asarray(ts))
     np.testing.assert_allclose(out.theta, turns(ts), atol=1e-12)
 
 
@@ -269,9 +269,9 @@ def test_undamped_field_of_a_stripped_rod_equals_the_full_field():
     stripped, damped = _static_zeros(rod)
     assert not damped and stripped.attach_a is None
     rng = np.random.default_rng(3)
-    x = _rod_dynamics._pack(rod.straight()) + 0.05 * rng.standard_normal((rod.n_bodies, 12))
-    full = eqx.filter_jit(_rod_dynamics._field)(0.3, x, rod)
-    undamped = eqx.filter_jit(_rod_dynamics._field_undamped)(0.3, x, stripped)
+    x = _rod_midpoint._pack(rod.straight()) + 0.05 * rng.standard_normal((rod.n_bodies, 12))
+    full = eqx.filter_jit(_rod_midpoint._field)(0.3, x, rod)
+    undamped = eqx.filter_jit(_rod_midpoint._field_undamped)(0.3, x, stripped)
     np.testing.assert_allclose(undamped, full, atol=1e-12)
     damped_rod = lattice.rod(
         4, 1.0, bending=1.0, torsion=0.8, shear=1e4, stretch=1e4, mass=1.0, rotary=1e-4,
