@@ -48,6 +48,7 @@ from ..trajectory import (
     AbstractTrajectory,
     SolveStatus,
     flag,
+    per_sample,
     raise_failure,
     times_ok,
     warn_if_float32,
@@ -87,11 +88,11 @@ class RodTrajectory(AbstractTrajectory):
 
     @property
     def energy(self):
-        return jax.vmap(lambda s, t: energy(self.rod, s, t))(self.states, self.ts)
+        return per_sample(jax.tree_util.Partial(energy, self.rod), self.states, self.ts)
 
     @property
     def kinetic_moment(self):
-        return jax.vmap(lambda s: kinetic_moment(self.rod, s))(self.states)
+        return per_sample(jax.tree_util.Partial(kinetic_moment, self.rod), self.states)
 
 
 # the rod's equations as one jitted call (module docstring, Compilation)
