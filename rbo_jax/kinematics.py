@@ -45,7 +45,6 @@ __all__ = [
     "integrating_tensor_det",
     "distance_to_singularity",
     "Turn",
-    "solve3",
     "stored",
     "storing",
 ]
