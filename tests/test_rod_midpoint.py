@@ -54,6 +54,8 @@ def test_auto_takes_the_midpoint_rule_for_a_stiff_rod_only():
     )
     assert _rod_midpoint.auto(soft, soft.straight(), ts, None, False) == "explicit"
     assert _rod_midpoint.auto(soft, soft.straight(), ts, None, False, dt=0.2) == "midpoint"
+    with pytest.raises(ValueError, match="dt must be finite and > 0"):  # not ignored
+        lattice.simulate(soft, soft.straight(), ts, dt=-1.0)
     chain = lattice.rod(
         20, 1.0, bending=1.0, torsion=1.0, shear=3.0, stretch=3.0, mass=1.0, rotary=0.005
     )

@@ -76,6 +76,8 @@ def auto(rod, state0, ts, solver, traced, dt=None):
     if is_traced(h) or is_traced(ts):
         return "midpoint"
     h_mid = float(_midpoint_step(np.asarray(ts, dtype=np.float64)) if dt is None else dt)
+    if not (np.isfinite(h_mid) and h_mid > 0):  # a bad dt: the midpoint rule says so
+        return "midpoint"
     return "midpoint" if float(h) < STIFF_RATIO * h_mid else "explicit"
 
 
