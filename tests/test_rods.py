@@ -174,7 +174,11 @@ def test_forces_are_the_gradient_of_the_energy():
     np.testing.assert_allclose(F, -gr, rtol=1e-12, atol=1e-12)
 
 
-def test_tridiagonal_jacobian_and_solve_match_dense():
+def test_tridiagonal_jacobian_differences_and_solve_match_dense():
+    """The block-tridiagonal Jacobian from 3m JVPs is the dense one; from 3m forward differences
+    (the midpoint rule's chord matrix) it is within the differences' O(sqrt(eps)) error, each
+    block divided by its own step (one block of unknowns ~1e3: steps 1e3 times larger; divided
+    by a neighbour's, its columns would be 1e3 times too large)."""
     rng = np.random.default_rng(3)
     N, m = 7, 6
     W = rng.standard_normal((3, m, m))
@@ -184,17 +188,31 @@ def test_tridiagonal_jacobian_and_solve_match_dense():
         right = jnp.concatenate([x[1:], jnp.zeros((1, m))])
         return jnp.sin(x) @ W[1].T + left**2 @ W[0].T + right @ W[2].T
 
-    x = jnp.asarray(rng.standard_normal((N, m)))
-    L, D, U = jax.jit(lambda x: _banded.tridiagonal_jacobian(fn, x))(x)
+    x = jnp.asarray(rng.standard_normal((N, m)) * np.where(np.arange(N) == 3, 1e3, 1.0)[:, None])
+    exact, by_differences = jax.jit(
+        lambda x: (_banded.tridiagonal_jacobian(fn, x), _banded.tridiagonal_differences(fn, x))
+    )(x)
     J = jax.jacfwd(lambda y: fn(y.reshape(N, m)).ravel())(x.ravel())
-    dense = np.zeros((N * m, N * m))
-    for i in range(N):
-        dense[i * m : (i + 1) * m, i * m : (i + 1) * m] = D[i]
-        if i:
-            dense[i * m : (i + 1) * m, (i - 1) * m : i * m] = L[i]
-        if i < N - 1:
-            dense[i * m : (i + 1) * m, (i + 1) * m : (i + 2) * m] = U[i]
-    np.testing.assert_allclose(dense, J, atol=1e-13)
+
+    def dense(blocks):
+        L, D, U = blocks
+        out = np.zeros((N * m, N * m))
+        for i in range(N):
+            out[i * m : (i + 1) * m, i * m : (i + 1) * m] = D[i]
+            if i:
+                out[i * m : (i + 1) * m, (i - 1) * m : i * m] = L[i]
+            if i < N - 1:
+                out[i * m : (i + 1) * m, (i + 1) * m : (i + 2) * m] = U[i]
+        return out
+
+    np.testing.assert_allclose(dense(exact), J, atol=1e-13)
+    # the error of a forward difference with the step sqrt(eps) s_j, s_j = max(|x_j|, 1):
+    # rounding eps |f_i| / (sqrt(eps) s_j) and truncation sqrt(eps) s_j |f''| / 2, |f''| < 6
+    s = np.maximum(np.abs(np.asarray(x)).ravel(), 1.0)[None, :]
+    f = np.abs(np.asarray(fn(x))).ravel()[:, None]
+    bound = 1e-6 * (1.0 + f / s + s)
+    assert np.all(np.abs(dense(by_differences) - J) <= bound)
+    L, D, U = exact
     b = rng.standard_normal((N, m))
     xs = jax.jit(_banded.tridiagonal_solve)(L, D, U, jnp.asarray(b))
     np.testing.assert_allclose(np.asarray(xs).ravel(), np.linalg.solve(J, b.ravel()), rtol=1e-10)

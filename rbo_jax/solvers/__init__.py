@@ -36,6 +36,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "bordered_solve",
             "equilibrated_lstsq",
             "linear_solver",
+            "tridiagonal_differences",
             "tridiagonal_factor",
             "tridiagonal_jacobian",
             "tridiagonal_matvec",

@@ -177,28 +177,59 @@ def bordered_solve(linear: AbstractLinearSolver, operator, b, c, d, f, g):
 # --------------------------------------------------------------------------------------------
 
 
-def tridiagonal_jacobian(fn, x):
-    r"""``(L, D, U)``, each ``(N, m, m)``, of the Jacobian of ``fn: (N, m) -> (N, m)`` at ``x``:
-    $\partial R_i/\partial x_{i-1}$ (``L[0]`` zero), $\partial R_i/\partial x_i$,
-    $\partial R_i/\partial x_{i+1}$ (``U[-1]`` zero). ``fn`` must couple neighbours only."""
+def _coloured(x):
+    r"""The tangents ``(3 m, N, m)`` of the colouring: colour $c$, direction $j$ on every block
+    $i \equiv c \pmod 3$ (module docstring)."""
     N, m = x.shape
     colour = jnp.arange(N) % 3
     eye = jnp.eye(m, dtype=x.dtype)
-    # tangents (3 m, N, m): colour c, direction j on every block of colour c
     same = colour[None, None, :, None] == jnp.arange(3)[:, None, None, None]
-    tangents = jnp.where(same, eye[None, :, None, :], 0.0).reshape(3 * m, N, m)
-    _, lin = jax.linearize(fn, x)
-    out = jax.vmap(lin)(tangents).reshape(3, m, N, m)  # [colour, j, i, row]
+    return jnp.where(same, eye[None, :, None, :], 0.0).reshape(3 * m, N, m)
+
+
+def _blocks(out, scale=None):
+    """``(L, D, U)`` from the responses ``out`` ``(3 m, N, m)`` to the coloured tangents,
+    each column $j$ of block $(i, i + o)$ divided by ``scale[i + o, j]`` where given."""
+    N, m = out.shape[1:]
+    out = out.reshape(3, m, N, m)  # [colour, j, i, row]
 
     def block(offset):
         # the block (i, i + offset): colour of i + offset, columns j, rows of R_i
-        c = (jnp.arange(N) + offset) % 3
-        b = out[c, :, jnp.arange(N), :]  # (N, j, row)
+        k = jnp.arange(N) + offset
+        b = out[k % 3, :, jnp.arange(N), :]  # (N, j, row)
+        if scale is not None:
+            b = b / scale[jnp.clip(k, 0, N - 1)][:, :, None]
         return jnp.swapaxes(b, 1, 2)  # (N, row, j)
 
     lo = jnp.where((jnp.arange(N) > 0)[:, None, None], block(-1), 0.0)
     hi = jnp.where((jnp.arange(N) < N - 1)[:, None, None], block(1), 0.0)
     return lo, block(0), hi
+
+
+def tridiagonal_jacobian(fn, x):
+    r"""``(L, D, U)``, each ``(N, m, m)``, of the Jacobian of ``fn: (N, m) -> (N, m)`` at ``x``:
+    $\partial R_i/\partial x_{i-1}$ (``L[0]`` zero), $\partial R_i/\partial x_i$,
+    $\partial R_i/\partial x_{i+1}$ (``U[-1]`` zero), from $3m$ Jacobian-vector products.
+    ``fn`` must couple neighbours only."""
+    _, lin = jax.linearize(fn, x)
+    return _blocks(jax.vmap(lin)(_coloured(x)))
+
+
+def tridiagonal_differences(fn, x, fx=None):
+    r"""The blocks of :func:`tridiagonal_jacobian` by forward differences: $3m$ evaluations of
+    ``fn`` (one ``vmap``) at $x + \epsilon\circ e_{c,j}$, the steps
+    $\epsilon_{ij} = \sqrt{\varepsilon}\max(|x_{ij}|, 1)$ rounded so that $x + \epsilon$ is
+    exact; ``fx`` is ``fn(x)`` where known. An entry's error is about
+    $\sqrt{\varepsilon}\,(|R_i|/s_j + s_j|\partial^2_jR_i|/2)$, $s_j = \max(|x_j|, 1)$
+    (rounding and truncation): $10^{-8}$ relative where $|R_i| \lesssim |J_{ij}|\,s_j$. A matrix
+    to steer Newton's iterations (a chord method converges whatever its matrix's error of that
+    order), compiled as copies of ``fn`` instead of its linearisation (a smaller program:
+    benchmarks/README.md); never for a derivative."""
+    h = jnp.sqrt(jnp.finfo(x.dtype).eps) * jnp.maximum(jnp.abs(x), 1.0)
+    h = (x + h) - x
+    fx = fn(x) if fx is None else fx
+    out = jax.vmap(lambda t: fn(x + h * t) - fx)(_coloured(x))
+    return _blocks(out, h)
 
 
 def _factor(L, D, U):
