@@ -76,6 +76,15 @@ def _codes():
             for name in enum.names(EquilibriumStatus)}  # fmt: skip
 
 
+def _zero_operator(linear, fn, x0):
+    """Zeros shaped as the Jacobian of the square residual ``fn`` at ``x0`` in ``linear``'s
+    form: those of the identity's of ``fn``'s output, so that the residual's Jacobian is not
+    traced for its shape (only the residual, for its dtype)."""
+    out = jax.eval_shape(fn, x0)
+    shapes = jax.eval_shape(lambda x: linear.jacobian(lambda z: z, x), out)
+    return jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+
+
 def _newton(model, t, config, scale, tol, max_steps, linear):
     """Newton's method at the load factor ``scale`` from ``config``: ``(config, operator,
     residual, code, steps)``."""
@@ -97,10 +106,7 @@ def _newton(model, t, config, scale, tol, max_steps, linear):
 
     dtype = jnp.result_type(*jax.tree_util.tree_leaves(config))
     x0 = jnp.zeros(model.block_shape(), dtype)
-    shapes = jax.eval_shape(
-        lambda c: linear.jacobian(lambda x: model.static_residual(t, c, x, scale), x0), config
-    )
-    operator0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+    operator0 = _zero_operator(linear, lambda x: model.static_residual(t, config, x, scale), x0)
     carry = (operator0, jnp.asarray(jnp.inf, dtype))
     config, (operator, res), code, steps = iterate(
         step, config, carry, max_steps=max_steps, exhausted=codes["not_converged"]
@@ -123,8 +129,8 @@ def _solve(params, steps, tol, max_steps, singular_tol) -> Implicit:
         carry = (new, operator, total + k, jnp.where(failed, code, new_code))
         return carry, res
 
-    _, op0, _, _, _ = jax.eval_shape(lambda: _newton(model, t, guess, scales[0], tol, 1, linear))
-    op0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), op0)
+    x0 = jnp.zeros(model.block_shape(), dtype)
+    op0 = _zero_operator(linear, lambda x: model.static_residual(t, guess, x, scales[0]), x0)
     init = (guess, op0, jnp.asarray(0, jnp.int32), jnp.asarray(codes["successful"], jnp.int32))
     (config, operator, total, code), _ = jax.lax.scan(one_load, init, scales)
     S = EquilibriumStatus
