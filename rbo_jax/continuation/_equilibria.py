@@ -105,8 +105,13 @@ def _step(model_fn, parameter, others, t, config0, lam0, tau_x, tau_l, s, w, wl,
         code = jnp.where(size <= tol, _SUCCESSFUL, _RUNNING)
         return new, (b, pivot, sign), jnp.where(finite, code, _FAILED)
 
-    shape = jax.eval_shape(lambda: step(y0, None)[1])
-    carry = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
+    # the loop's carry (b, pivot, sign): b shaped as the residual; shapes from the residual's
+    # output, not by tracing a whole step (its Jacobian and solves) once more
+    R = jax.eval_shape(
+        lambda: model0.static_residual(t, config0, jnp.zeros(model0.block_shape(), lam0.dtype))
+    )
+    dtype = jnp.result_type(R.dtype, lam0.dtype)
+    carry = (jnp.zeros(R.shape, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype))
     (config, lam, _, _), (b, pivot, sign), code, k = iterate(
         step, y0, carry, max_steps=max_newton, exhausted=_FAILED
     )
