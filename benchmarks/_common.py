@@ -17,6 +17,13 @@ import time
 
 import numpy as np
 
+# This checkout's rbo_jax, not the one an environment installed from elsewhere (an editable
+# install of another checkout): ``python benchmarks/X.py`` puts only this folder on sys.path, so
+# a before/after comparison run from two checkouts would otherwise time the same code twice.
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(1, ROOT)
+
 # The README's example of `rbo-jax fit` (docs/topics/cli.md): observations of a stable
 # (conservative) motion made by `rbo-jax simulate`, and the fit starting 30 % / 25 % off.
 README_OBSERVATIONS = (
