@@ -215,11 +215,11 @@ def tridiagonal_jacobian(fn, x):
     return _blocks(jax.vmap(lin)(_coloured(x)))
 
 
-def tridiagonal_differences(fn, x, fx=None):
+def tridiagonal_differences(fn, x):
     r"""The blocks of :func:`tridiagonal_jacobian` by forward differences: $3m$ evaluations of
     ``fn`` (one ``vmap``) at $x + \epsilon\circ e_{c,j}$, the steps
     $\epsilon_{ij} = \sqrt{\varepsilon}\max(|x_{ij}|, 1)$ rounded so that $x + \epsilon$ is
-    exact; ``fx`` is ``fn(x)`` where known. An entry's error is about
+    exact. An entry's error is about
     $\sqrt{\varepsilon}\,(|R_i|/s_j + s_j|\partial^2_jR_i|/2)$, $s_j = \max(|x_j|, 1)$
     (rounding and truncation): $10^{-8}$ relative where $|R_i| \lesssim |J_{ij}|\,s_j$. A matrix
     to steer Newton's iterations (a chord method converges whatever its matrix's error of that
@@ -227,7 +227,7 @@ def tridiagonal_differences(fn, x, fx=None):
     benchmarks/README.md); never for a derivative."""
     h = jnp.sqrt(jnp.finfo(x.dtype).eps) * jnp.maximum(jnp.abs(x), 1.0)
     h = (x + h) - x
-    fx = fn(x) if fx is None else fx
+    fx = fn(x)
     out = jax.vmap(lambda t: fn(x + h * t) - fx)(_coloured(x))
     return _blocks(out, h)
 
