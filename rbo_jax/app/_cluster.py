@@ -47,9 +47,17 @@ def dask_client(scheduler: str | None = None, workers: int | None = None):
     import distributed
 
     if workers is not None:
+        import dask
+
         # the dashboard on a free port: Dask's 8787 may be another cluster's (Dask then warns);
-        # the sweep has its progress bar (a `dask scheduler` started by hand keeps 8787)
+        # the sweep has its progress bar (a `dask scheduler` started by hand keeps 8787).
+        # A worker that dies (memory, a crash) is restarted by its nanny; LocalCluster would
+        # also close that nanny for good when, lost-worker-timeout (15 s) after the loss, its
+        # view of the scheduler lacks the restarted worker (a slow restart on a loaded
+        # machine): the sweep would go on with one worker fewer. The cluster lives as long as
+        # the sweep, so it is told to wait.
         with (
+            dask.config.set({"distributed.deploy.lost-worker-timeout": "1 day"}),
             distributed.LocalCluster(
                 n_workers=workers,
                 threads_per_worker=1,
