@@ -180,6 +180,26 @@ def test_hopf_value_gradient_matches_finite_differences(hopf):
     assert g == pytest.approx(_critical_moment_slope(0.1), rel=1e-7)
 
 
+@pytest.mark.slow  # cost: ~15 s, two Hopf programs and a forward-mode tangent compiled
+def test_hopf_gradient_from_the_lyapunov_jet_equals_forward_mode():
+    """The implicit derivative of a simple Hopf point takes the flutter system's Jacobian and its
+    derivatives in the parameters from l1's third-order jet (D F[e_j], D^2 F[e_j, v], one
+    program with the value); without l1 the tangent computes them by forward mode of the
+    residual. The same gradients (in b and in A3, which moves the equilibrium and the pair),
+    and the same value and frequency."""
+
+    def value(params, lyapunov):
+        h = rbo.hopf_point(nikolai_A3, params, "M", 0.15, lyapunov=lyapunov)
+        return h.value + 0.1 * h.frequency
+
+    params = {"b": 0.1, "A3": 0.6}
+    with_jet = jax.grad(value)(params, True)
+    forward = jax.grad(value)(params, False)
+    for name in params:
+        assert float(with_jet[name]) == pytest.approx(float(forward[name]), rel=1e-10), name
+    assert float(value(params, True)) == float(value(params, False))
+
+
 @pytest.mark.slow  # cost: ~12 s, the forward-mode and the jitted reverse-mode programs compiled
 def test_hopf_value_gradient_in_forward_mode_and_under_jit():
     """jax.jacfwd and jax.jit(jax.grad) of the critical moment: the same derivative, which

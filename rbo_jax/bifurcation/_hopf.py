@@ -10,6 +10,10 @@ derivatives of the solution with respect to every other parameter $p$,
 $du = -J^{+}\,\partial_p r\,dp$ ($J^{+}$ the least-squares inverse of the system's Jacobian at
 the solution, exact for the consistent system), by the one implicit rule of
 :mod:`rbo_jax.solvers`: ``jax.grad`` and ``jax.jacfwd`` work through :func:`hopf_point`.
+Where $\ell_1$ is computed, $J$ and $\partial_p r$ are exact columns of the program's own
+third-order jet ($DF[e_j]$, $D^2F[e_j, v]$, rows taken only when the solution is
+differentiated), so the derivative compiles no program of the model's second derivatives;
+otherwise the rule takes them by forward mode of the residual.
 
 **First Lyapunov coefficient** (Kuznetsov, *Elements of Applied Bifurcation Theory*, 3rd ed.,
 eq. (3.20)): with $Jq = i\omega q$, $J^Tp = -i\omega p$, $\langle q, q\rangle = 1$,
@@ -109,12 +113,16 @@ class HopfPoint(Outcome):
 
 # One program per model structure: with the program store on (rbo_jax.enable_compilation_cache)
 # a second process loads it traced (user functions keyed by their code, _programs).
-def hopf_program(spec: Spec, tree, p, alpha0, leaves, t, warm, u0, C0):
-    """:func:`._hopf_program.flutter_program` on flat containers (the program store exports plain
-    arrays: the configurations in and out as their leaves, their structure ``tree`` static)."""
+def hopf_program(spec: Spec, tree, p, alpha0, leaves, t, warm, u0, C0, columns):
+    r""":func:`._hopf_program.flutter_program` on flat containers (the program store exports plain
+    arrays: the configurations in and out as their leaves, their structure ``tree`` static);
+    at a simple Hopf pair with $\ell_1$ the operator and the partials follow (computed where
+    the traced flag ``columns`` is true: one program for the value and its derivative)."""
     guess = None if tree is None else jax.tree_util.tree_unflatten(tree, leaves)
-    raw = flutter_program(spec, p, alpha0, guess, t, warm, u0, C0)
-    return (tuple(jax.tree_util.tree_leaves(raw.config)),) + tuple(raw[1:])
+    exact = spec.kind == "hopf" and spec.lyapunov
+    out = flutter_program(spec, p, alpha0, guess, t, warm, u0, C0, columns if exact else None)
+    raw, more = (out[0], out[1:]) if exact else (out, ())
+    return (tuple(jax.tree_util.tree_leaves(raw.config)),) + tuple(raw[1:]) + more
 
 
 _program = program(hopf_program, fast_compile=True)
@@ -130,15 +138,22 @@ def _layout(spec: Spec, p, alpha) -> Layout:
     return Layout(model_at(spec, alpha, p).free_size(), spec.kind)
 
 
-def _solve(params, spec: Spec) -> Implicit:
+def _solve(params, spec: Spec, columns=False) -> Implicit:
+    """The program's solution; with ``columns`` (differentiated) also the system's exact
+    Jacobian and its derivatives in ``p`` and ``t`` (the other inputs are starting values)."""
     p, t, (alpha0, guess, warm, u0, C0) = params
     leaves, tree = jax.tree_util.tree_flatten(guess)
     out = _program(spec, None if guess is None else tree, p, alpha0, tuple(leaves), t, warm, u0,
-                   C0)  # fmt: skip
+                   C0, np.bool_(columns))  # fmt: skip
     config = jax.tree_util.tree_unflatten(_config_tree(spec, p, alpha0), out[0])
-    raw = Raw(config, *out[1:])
+    n = len(Raw._fields)
+    raw = Raw(config, *out[1:n])
     good = raw.status == 0
-    return Implicit((raw.config, raw.u, raw.C), None, good, raw)
+    if not columns:
+        return Implicit((raw.config, raw.u, raw.C), None, good, raw)
+    operator, (dp, dt) = out[n:]
+    others = jax.tree_util.tree_map(lambda _: None, params[2])
+    return Implicit((raw.config, raw.u, raw.C), operator, good, raw, (dp, dt, others))
 
 
 class _Residual(NamedTuple):
@@ -171,9 +186,12 @@ def _increment(y, params):
 
 
 def solution(spec: Spec, p, t, alpha0, guess, warm, u0, C0):
-    """``((config, u, C), raw)``: the flutter program's solution, differentiable with respect to
+    r"""``((config, u, C), raw)``: the flutter program's solution, differentiable with respect to
     the flat parameters ``p`` (and ``t``) by the implicit function theorem (module docstring),
-    not with respect to the starting values."""
+    not with respect to the starting values. At a simple Hopf pair with $\ell_1$ the program
+    that is differentiated also returns the system's exact Jacobian and its derivatives in the
+    parameters, from $\ell_1$'s third-order jet; otherwise the tangent computes them."""
+    exact = spec.kind == "hopf" and spec.lyapunov
     out = implicit(
         lambda params: _solve(params, spec),
         _Residual(spec),
@@ -182,6 +200,7 @@ def solution(spec: Spec, p, t, alpha0, guess, warm, u0, C0):
         retract=_Retract(spec),
         increment=_increment,
         forward=True,
+        exact=(lambda params: _solve(params, spec, True)) if exact else None,
     )
     return out.y, out.extra
 

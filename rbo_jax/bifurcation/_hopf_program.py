@@ -36,9 +36,11 @@ from ._hopf_system import (
     _times_i,
     adjoint_vector,
     code_of,
+    equations,
     evaluate,
     model_at,
     oriented,
+    residual,
     unpack_parameters,
 )
 from ._lyapunov import STAGE_TWO_ROWS, from_stage_two, stage_one, stage_two_rows
@@ -151,8 +153,9 @@ class _Solve:
         return {**s, "u": layout.pack(q, alpha, omega, v, chain), "phase": OPERATOR}
 
     def operator(self, s, r, Ju, J):
-        residual = jnp.max(jnp.abs(_equilibrated(r, Ju)[0]))
-        return {**s, "jacobian": J, "residual": residual, "phase": DONE, "code": 0}
+        res = jnp.max(jnp.abs(_equilibrated(r, Ju)[0]))
+        s = {**s, "jacobian": J, "residual": res, "phase": DONE, "code": 0}
+        return {**s, "Ju": Ju} if "Ju" in s else s
 
     def __call__(self, u, s):
         r, Ju, J = self.evaluate(s)
@@ -180,45 +183,86 @@ def _typed(new, old):
     return jax.tree_util.tree_map(lambda x, y: jnp.asarray(x, dtype=y.dtype), new, old)
 
 
-def lyapunov(spec: Spec, layout: Layout, u, config, J, p, t):
-    r"""$(p, \ell_1, d\,\mathrm{Re}\lambda/d\alpha)$ at a simple Hopf pair (module docstring;
+def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None):
+    r"""$(p, \ell_1, d\,\mathrm{Re}\lambda/d\alpha, D)$ at a simple Hopf pair (module docstring;
     values, not differentiated): the two stages of :mod:`._lyapunov` and the transversality's
     two directions in one loop of two iterations around one traced third-order jet of
-    $\tilde F(z) = F(x; \alpha)$, $z = [x, \alpha]$."""
+    $\tilde F(z) = F(x; \alpha)$, $z = [x, \alpha]$.
+
+    With ``columns`` (a traced flag, or ``None``) $z = [x, \alpha, p, t]$, and where it is
+    true the first iteration also takes the rows $(e_j, v_r)$, $(e_j, v_i)$ for $z_j$ in $q$,
+    $\alpha$, $p$ and $t$: $D\tilde F[e_j]$ and $D^2\tilde F[e_j, v]$, whence ``D``, the
+    flutter system's exact derivatives in those unknowns and parameters (:func:`_columns`;
+    zero where the flag is false: no row computed); ``None`` without ``columns``."""
     u, J = jax.lax.stop_gradient((u, J))
     m, n = layout.m, layout.n
     alpha = u[m]
     omega, q = oriented(layout, u)
     adjoint = adjoint_vector(J, omega, q)
+    n_p = -1 if columns is None else p.shape[0]  # z's entries after alpha: p and t, or none
 
     def extended(z):
-        return model_at(spec, z[n], p).field(t, config)(z[:n])
+        if columns is None:
+            return model_at(spec, z[n], p).field(t, config)(z[:n])
+        return model_at(spec, z[n], z[n + 1 : n + 1 + n_p]).field(z[-1], config)(z[:n])
 
-    z0 = jnp.concatenate([jnp.zeros(n, u.dtype), alpha[None]])
-    pad = lambda x: jnp.concatenate([x, jnp.zeros(1, x.dtype)])  # noqa: E731
+    tail = [] if columns is None else [jnp.asarray(p, u.dtype), jnp.asarray(t, u.dtype)[None]]
+    z0 = jnp.concatenate([jnp.zeros(n, u.dtype), alpha[None], *tail])
+    nz = z0.shape[0]
+    pad = lambda x: jnp.concatenate([x, jnp.zeros(nz - n, x.dtype)])  # noqa: E731
+    rows = lambda r: jnp.stack([jnp.stack([pad(x) for x in row]) for row in r])  # noqa: E731
     a, b = jnp.real(q), jnp.imag(q)
     F_alpha = jax.jvp(extended, (z0,), (jnp.zeros_like(z0).at[n].set(1.0),))[1]
-    delta = jnp.concatenate([-jnp.linalg.solve(J[m:, :m], F_alpha[m:]), jnp.zeros(m + 1, u.dtype)])
-    delta = delta.at[n].set(1.0)
+    delta = jnp.concatenate([-jnp.linalg.solve(J[m:, :m], F_alpha[m:]), jnp.zeros(m, u.dtype)])
+    delta = pad(delta).at[n].set(1.0)
     z = jnp.zeros(n, u.dtype)
-    one = jnp.stack([jnp.stack(r) for r in ((a, a, z), (b, b, z), (a, b, z))])
-    rows0 = jnp.concatenate([one, jnp.zeros((STAGE_TWO_ROWS - 1, 3, n), u.dtype)])
+    one = rows(((a, a, z), (b, b, z), (a, b, z)))
+    first = 3
+    if columns is not None:  # the directions e_j: q, then alpha, p and t
+        _, _, _, v, _ = layout.unpack(u)
+        index = jnp.concatenate([jnp.arange(m), n + jnp.arange(nz - n)])
+        e = jnp.eye(nz, dtype=u.dtype)[index]
+        vr, vi = pad(jnp.real(v)), pad(jnp.imag(v))
+        zero = jnp.zeros_like(z0)
+        jac = jnp.stack([jnp.stack([d, w, zero]) for d in e for w in (vr, vi)])
+        one = jnp.concatenate([one, jac])
+        first = jnp.where(columns, one.shape[0], 3)
+    size = max(STAGE_TWO_ROWS + 2, one.shape[0])
+    fill = lambda r: jnp.concatenate([r, jnp.zeros((size - r.shape[0], 3, nz), u.dtype)])  # noqa: E731
+    transversal = jnp.stack([jnp.stack([delta, pad(x), jnp.zeros_like(z0)]) for x in (a, b)])
 
     def stage(i, carry):
-        rows, _, _ = carry
-        full = jax.vmap(lambda r: jnp.stack([pad(r[0]), pad(r[1]), pad(r[2])]))(rows)
-        full = full.at[STAGE_TWO_ROWS:, 0].set(jnp.where(i == 1, delta, full[STAGE_TWO_ROWS:, 0]))
-        D2, D3 = jets_by_row(extended, z0, full)
+        directions, first1, first2, _, _ = carry
+        count = jnp.where(i == 0, first, STAGE_TWO_ROWS + 2)
+        D1, D2, D3 = jets_by_row(extended, z0, directions, count)
         h11, h20 = stage_one(J, omega, D2[0], D2[1], D2[2])
-        transversal = jnp.stack([jnp.stack([z, a, z]), jnp.stack([z, b, z])])
-        two = jnp.concatenate([stage_two_rows(a, b, h11, h20), transversal])
-        return two, D2, D3
+        two = jnp.concatenate([rows(stage_two_rows(a, b, h11, h20)), transversal])
+        first1, first2 = jnp.where(i == 0, D1, first1), jnp.where(i == 0, D2, first2)
+        return fill(two), first1, first2, D2, D3
 
-    D = jnp.zeros((STAGE_TWO_ROWS + 2, n), u.dtype)
-    _, D2, D3 = jax.lax.fori_loop(0, 2, stage, (rows0, D, D))
+    D = jnp.zeros((size, n), u.dtype)
+    _, first1, first2, D2, D3 = jax.lax.fori_loop(0, 2, stage, (fill(one), D, D, D, D))
     l1 = from_stage_two(adjoint, omega, D2, D3)
     dJq = jax.lax.complex(D2[STAGE_TWO_ROWS], D2[STAGE_TWO_ROWS + 1])
-    return adjoint, l1, jnp.real(jnp.vdot(adjoint, dJq))
+    D = None
+    if columns is not None:
+        k = one.shape[0] - 3
+        D = _columns(layout, u, C, first1[3 : 3 + k : 2], first2[3 : 3 + k].reshape(k // 2, 2, n))
+    return adjoint, l1, jnp.real(jnp.vdot(adjoint, dJq)), D
+
+
+def _columns(layout: Layout, u, C, dF, d2F):
+    r"""The flutter system's derivatives (one column per direction $e_j$): column $j$ from
+    $D\tilde F[e_j]$ (``dF[j]``) and $D^2\tilde F[e_j, v_r]$, $D^2\tilde F[e_j, v_i]$
+    (``d2F[j]``): the system is linear in the field's value and its products with $v$."""
+    _, _, omega, v, chain = layout.unpack(u)
+
+    def column(df, d2f):
+        fn = lambda f0, products: equations(layout, f0, products, omega, v, chain, C)  # noqa: E731
+        zero = jnp.zeros_like(df), jnp.zeros_like(d2f)
+        return jax.jvp(fn, zero, (df, d2f))[1]
+
+    return jax.vmap(column)(dF, d2F).T
 
 
 def _status(spec: Spec, layout: Layout, code, u, config, J, p, alpha0, singular_tol=1e-6):
@@ -274,15 +318,26 @@ def _like(new, old):
     return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, b.dtype), new, old)
 
 
-def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0) -> Raw:
+def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None):
     r"""The flutter point (module docstring) of ``spec.model_fn`` in ``spec.parameter``, the
     other parameters flattened into ``p``: from the equilibrium guess ``guess`` at ``alpha0``
     (``spec.state_fn``: its closed form, refined by Newton), or (``warm``) from the unknowns
     ``u0`` and basis ``C0`` in the chart at the configuration ``guess`` (a continuation's last
-    point). Returns a :class:`Raw` with the status code of :class:`HopfStatus`."""
+    point). Returns a :class:`Raw` with the status code of :class:`HopfStatus`.
+
+    ``columns`` (a traced flag; a Hopf spec with ``lyapunov``): also ``(operator, partials)``,
+    where the flag is true the system's exact Jacobian in the unknowns and its derivatives in
+    ``p`` and ``t`` at the solution, from the third-order jet of $\ell_1$'s loop: what the
+    implicit derivative of :mod:`._hopf` solves with, from the same program as the value."""
     layout = Layout(model_at(spec, alpha0, p).free_size(), spec.kind)
     solve = _Solve(spec, layout, p, t)
     s0 = _initial(spec, layout, p, alpha0, guess, t, warm, u0, C0)
+    if columns is not None:
+        if not (spec.kind == "hopf" and spec.lyapunov):
+            raise ValueError("flutter_program: columns need a Hopf spec with lyapunov=True.")
+        args = (s0["u"], s0["config"], s0["C"], p, t)
+        rows = jax.eval_shape(lambda: residual(spec, layout, *args)).shape[0]
+        s0["Ju"] = jnp.zeros((rows, layout.size), p.dtype)
     _, s, code, _ = iterate(solve, None, s0, max_steps=2 * spec.max_steps + 5,
                             exhausted=code_of(HopfStatus.not_converged))  # fmt: skip
     u, config, J = s["u"], s["config"], s["jacobian"]
@@ -291,7 +346,11 @@ def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0) -> Raw:
     adjoint, l1, trans = jnp.full(layout.n, jnp.nan, s["C"].dtype), nan, nan
     if spec.kind == "hopf" and spec.lyapunov:
         simple = jnp.sum(jnp.any(s["C"] != 0, axis=0)) == 1
-        adjoint, l1, trans = jax.tree_util.tree_map(
-            lambda x: jnp.where(simple, x, jnp.nan), lyapunov(spec, layout, u, config, J, p, t)
-        )
-    return Raw(config, u, s["C"], J, s["residual"], s["k"], code, adjoint, l1, trans)
+        *values, D = lyapunov(spec, layout, u, config, s["C"], J, p, t, columns)
+        adjoint, l1, trans = (jnp.where(simple, x, jnp.nan) for x in values)
+    raw = Raw(config, u, s["C"], J, s["residual"], s["k"], code, adjoint, l1, trans)
+    if columns is None:
+        return raw
+    k, n_p = layout.m + 1, p.shape[0]
+    operator = jnp.concatenate([D[:, :k], s["Ju"][:, k:]], axis=1)
+    return raw, operator, (D[:, k : k + n_p], D[:, k + n_p :])

@@ -33,13 +33,17 @@ class Implicit(NamedTuple):
     Jacobian ``operator`` of the residual in the chart at ``y`` (in the form of the solve's
     linear solver; ``None``: computed by forward mode when the solve is first differentiated,
     in the tangent's own program, where the solve steers its iteration with a cheaper one),
-    whether the solve succeeded (``good``: the derivative is zero elsewhere)
-    and anything ``extra`` (statuses, counts, diagnostics: not differentiated)."""
+    whether the solve succeeded (``good``: the derivative is zero elsewhere),
+    anything ``extra`` (statuses, counts, diagnostics: not differentiated), and the
+    residual's derivatives in the parameters where the solve has them (``partials``: the
+    structure of ``params``, a matrix ``(residual size, leaf size)`` per leaf, ``None`` for a
+    leaf the residual does not depend on; ``None``: computed by the tangent)."""
 
     y: Any
     operator: Any
     good: jax.Array
     extra: Any
+    partials: Any = None
 
 
 def _add(y, x, params):
@@ -51,16 +55,26 @@ def _zeros(y, params):
 
 
 @eqx.filter_custom_jvp
-def _solution(params, *, solve, residual, linear, retract, increment, forward):
+def _solution(params, *, solve, residual, linear, retract, increment, forward, exact):
     return solve(params)
 
 
 @_solution.def_jvp
-def _solution_jvp(primals, tangents, *, solve, residual, linear, retract, increment, forward):
+def _solution_jvp(primals, tangents, *, solve, residual, linear, retract, increment, forward,
+                  exact):  # fmt: skip
     (params,) = primals
     (dparams,) = tangents
-    out = _solution(params, solve=solve, residual=residual, linear=linear, retract=retract,
-                    increment=increment, forward=forward)  # fmt: skip
+    if exact is None:
+        out = _solution(params, solve=solve, residual=residual, linear=linear, retract=retract,
+                        increment=increment, forward=forward, exact=exact)  # fmt: skip
+        derivatives = out
+    else:  # the solve that also returns the exact operator and partials; the primal as solve's
+        # (called as this custom_jvp function, as above: its program runs as a known value
+        # under jax.grad's linearisation, not split into known and unknown parts)
+        derivatives = _solution(params, solve=exact, residual=residual, linear=linear,
+                                retract=retract, increment=increment, forward=forward,
+                                exact=None)  # fmt: skip
+        out = derivatives._replace(operator=None, partials=None)
     none = jax.tree_util.tree_map(lambda _: None, out)  # no tangent, leaf by leaf
     if dparams is None or not jax.tree_util.tree_leaves(dparams):
         return out, none
@@ -80,15 +94,16 @@ def _solution_jvp(primals, tangents, *, solve, residual, linear, retract, increm
         is_leaf=lambda d: d is None,
     )
     dy = _tangent(
-        jax.lax.stop_gradient(out.y), jax.lax.stop_gradient(out.operator), out.good, params,
-        dparams, residual=residual, linear=linear, retract=retract, increment=increment,
-        forward=given,
+        jax.lax.stop_gradient(out.y), jax.lax.stop_gradient(derivatives.operator), out.good,
+        params, dparams, jax.lax.stop_gradient(derivatives.partials), residual=residual,
+        linear=linear, retract=retract, increment=increment, forward=given,
     )  # fmt: skip
     return out, none._replace(y=dy)
 
 
 @eqx.filter_jit
-def _tangent(y, operator, good, params, dparams, *, residual, linear, retract, increment, forward):
+def _tangent(y, operator, good, params, dparams, partials, *, residual, linear, retract, increment,
+             forward):  # fmt: skip
     """$dy$ (module docstring): one product with the residual's derivative in the parameters,
     one solve, through the retraction; zero where the solve failed. Compiled once per
     structure (the callables are static: give equal ones for equal problems)."""
@@ -98,7 +113,16 @@ def _tangent(y, operator, good, params, dparams, *, residual, linear, retract, i
     def at(dyn, x=x0):
         return residual(y, x, eqx.combine(dyn, static))
 
-    if forward is None:  # one Jacobian-vector product in the parameters
+    if partials is not None:  # the solve's own derivatives: matrix products only
+        is_none = lambda v: v is None  # noqa: E731
+        mats = jax.tree_util.tree_leaves(partials, is_leaf=is_none)
+        ds = jax.tree_util.tree_leaves(dparams, is_leaf=is_none)
+        if len(mats) != len(ds) or operator is None or not linear.matrix:
+            raise ValueError("implicit: partials need params' structure and a matrix operator.")
+        pairs = [(P, d) for P, d in zip(mats, ds) if P is not None and d is not None]
+        rows = jnp.zeros(jnp.shape(operator)[0], jnp.result_type(operator))
+        dr = sum((P @ jnp.ravel(d) for P, d in pairs), rows)
+    elif forward is None:  # one Jacobian-vector product in the parameters
         if operator is None:  # the solve left it to the first derivative
             operator = linear.jacobian(lambda x: residual(y, x, params), x0)
         _, dr = jax.jvp(at, (dyn,), (dparams,))
@@ -144,6 +168,7 @@ def implicit(
     retract: Callable | None = None,
     increment: Callable | None = None,
     forward: bool = False,
+    exact: Callable | None = None,
 ) -> Implicit:
     r"""``solve(params) -> Implicit`` (module docstring), differentiable with respect to every
     float leaf of ``params`` by the implicit function theorem.
@@ -159,7 +184,12 @@ def implicit(
       (:func:`rbo_jax.fast_simulate`), or one whose reverse mode would compile a second
       program (the flutter system, :func:`rbo_jax.hopf_point`: with a matrix ``linear`` and
       no operator from the solve, one forward pass over the unknowns and the parameters gives
-      both); by default one Jacobian-vector product.
+      both); by default one Jacobian-vector product;
+    - ``exact(params) -> Implicit``: the same solve, run instead of ``solve`` when the solution
+      is differentiated, that also returns the exact ``operator`` and ``partials`` (a program
+      that has them from derivatives it computes anyway: :func:`rbo_jax.hopf_point`'s third-order
+      jet); the tangent is then matrix products and one solve, no program of the residual's
+      derivatives. ``solve`` returns neither (``None``).
 
     ``solve``, ``residual``, ``retract`` and ``increment`` must not close over traced values:
     everything they differentiate or trace (the model, the time) belongs in ``params``. The
@@ -174,4 +204,5 @@ def implicit(
         retract=retract or _add,
         increment=increment or _zeros,
         forward=bool(forward),
+        exact=exact,
     )
