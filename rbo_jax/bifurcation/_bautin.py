@@ -19,8 +19,9 @@ $q \pm 2he_i$ around the solution $q = (p, \beta_B)$ ($p$ the other parameters,
 $h = 10^{-3}\max(1, |q_i|)$): the gradient of $\ell_1$ along the Hopf curve by Richardson's
 central differences, $O(h^4)$, ~1e-9 relative (the exact derivative would need fourth
 derivatives of the vector field). All of it is one loop (:func:`rbo_jax.solvers.iterate`)
-around one copy of the flutter program, one solve per iteration; then the second Lyapunov
-coefficient $\ell_2$ at the solution (:mod:`._normal_form`).
+around one copy of the flutter program, one solve per iteration, the last one at the solution,
+whose loop of $\ell_1$'s third-order jet then also takes the evaluations of the second Lyapunov
+coefficient $\ell_2$ (:mod:`._normal_form`): one traced jet for both.
 
 **Derivatives** of the Bautin point follow from the implicit function theorem for the pair of
 equations (flutter system, $\ell_1 = 0$), $\ell_1$ linearised by its gradient along the curve:
@@ -47,7 +48,7 @@ from ..solvers import Implicit, LeastSquares, Outcome, implicit, iterate
 from ._hopf import cold_start, prepare
 from ._hopf_program import flutter_program
 from ._hopf_system import Layout, Spec, model_at, oriented, residual
-from ._normal_form import STENCIL, WEIGHTS, second_lyapunov_coefficient
+from ._normal_form import STENCIL, WEIGHTS
 
 __all__ = ["BautinPoint", "BautinStatus", "bautin_point"]
 
@@ -104,7 +105,7 @@ class Secant(NamedTuple):
     max_steps: int
 
 
-SECANT, GRADIENT = 0, 1
+SECANT, GRADIENT, FINAL = 0, 1, 2
 _OK, _HOPF_FAILED, _NOT_CONVERGED, _DEGENERATE = range(4)
 
 
@@ -123,7 +124,7 @@ class Raw(NamedTuple):
 
 def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Raw:
     r"""The secant iteration and the stencil of the gradient in one loop around one flutter
-    program (module docstring), then $\\ell_2$."""
+    program (module docstring); the last solve, at the solution, gives $\\ell_2$."""
     model = model_at(spec, alpha0, jnp.concatenate([p, beta0[None]]))
     guess = model.configuration(guess, "theta_guess")  # None: at rest
     layout = Layout(model.free_size(), spec.kind)
@@ -138,11 +139,14 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Ra
         i, j = c["j"] % nq, c["j"] // nq
         h = 1e-3 * jnp.maximum(jnp.abs(qs[i]), 1.0)
         fd = qs.at[i].add(jnp.asarray(STENCIL, p.dtype)[jnp.minimum(j, 3)] * h)
+        fd = jnp.where(c["phase"] == FINAL, qs, fd)  # l2's solve: at the solution
         return jnp.where(c["phase"] == SECANT, jnp.concatenate([p, b[None]]), fd), slope
 
     def one(_, c):
         q, slope = point(c)
-        raw = flutter_program(spec, q, alpha0, c["config"], t, c["k"] > 0, c["u"], c["C"])
+        final = c["phase"] == FINAL
+        raw, l2 = flutter_program(spec, q, alpha0, c["config"], t, c["k"] > 0, c["u"], c["C"],
+                                  second=final)  # fmt: skip
         ok, l1, b = raw.status == 0, raw.first_lyapunov, q[-1]
         k = c["k"] + 1
         small = (k >= 3) & (jnp.abs(b - c["b"]) <= secant.atol + secant.rtol * jnp.abs(b))
@@ -152,33 +156,32 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Ra
         code = jnp.where(~small & (k >= secant.max_steps), _NOT_CONVERGED, code)
         found = {**c, "config": raw.config, "u": raw.u, "C": raw.C, "b_prev": c["b"],
                  "l_prev": c["l"], "b": b, "l": l1, "k": k, "adjoint": raw.adjoint,
-                 "transversality": raw.transversality, "J": raw.jacobian}  # fmt: skip
+                 "transversality": raw.transversality}  # fmt: skip
         found["phase"] = jnp.where(small & (code == _OK), GRADIENT, SECANT)
         stop_secant = (code != _OK) | small
         s_code = jnp.where(stop_secant & (code != _OK), code, -1)
         last = c["j"] + 1 >= 4 * nq
         fd = {**c, "values": c["values"].at[c["j"]].set(l1), "j": c["j"] + 1}
-        g_code = jnp.where(ok, jnp.where(last, _OK, -1), _HOPF_FAILED)
-        new = _select(c["phase"] == SECANT, found, fd)
-        return None, _typed(new, c), jnp.where(c["phase"] == SECANT, s_code, g_code)
+        fd["phase"] = jnp.where(last, FINAL, GRADIENT)
+        g_code = jnp.where(ok, -1, _HOPF_FAILED)
+        new = _select(c["phase"] == SECANT, found, _select(final, {**c, "l2": l2}, fd))
+        code = jnp.where(c["phase"] == SECANT, s_code, jnp.where(final, _OK, g_code))
+        return None, _typed(new, c), code
 
     n, cdtype = layout.n, C0.dtype
     zero = jnp.zeros((), p.dtype)
     c0 = dict(phase=jnp.asarray(SECANT, jnp.int32), k=jnp.asarray(0, jnp.int32),
               j=jnp.asarray(0, jnp.int32), config=guess, u=u0, C=C0, b_prev=beta0, l_prev=zero,
               b=beta0, l=zero, values=jnp.zeros(4 * nq, p.dtype), adjoint=jnp.zeros(n, cdtype),
-              transversality=zero, J=jnp.zeros((n, n), p.dtype))  # fmt: skip
+              transversality=zero, l2=zero)  # fmt: skip
     c0 = jax.tree_util.tree_map(jnp.asarray, c0)
-    budget = secant.max_steps + 4 * nq
+    budget = secant.max_steps + 4 * nq + 1
     _, c, code, _ = iterate(one, None, c0, max_steps=budget, exhausted=_NOT_CONVERGED)
     q = jnp.concatenate([p, c["b"][None]])
     h = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
     grad = jnp.tensordot(jnp.asarray(WEIGHTS, p.dtype), c["values"].reshape(4, nq), 1) / h
-    omega, qv = oriented(layout, c["u"])
-    F = model_at(spec, c["u"][layout.m], q).field(t, c["config"])
-    l2 = second_lyapunov_coefficient(F, jnp.zeros(n, p.dtype), omega, qv, c["adjoint"])
-    return Raw(c["config"], c["u"], c["C"], c["b"], grad, c["transversality"], c["l"], l2,
-               c["k"], code)  # fmt: skip
+    return Raw(c["config"], c["u"], c["C"], c["b"], grad, c["transversality"], c["l"],
+               c["l2"], c["k"], code)  # fmt: skip
 
 
 def _flat_program(spec: Spec, secant: Secant, tree, p, alpha0, beta0, leaves, t, step):

@@ -54,16 +54,18 @@ def jets(F, y, directions):
     return f0[0], d1, d2, d3
 
 
-def jets_by_row(F, y, directions, count=None):
+def jets_by_row(F, y, directions, count=None, shifts=None):
     r""":func:`jets` one row per iteration of a loop: ``(D1, D2, D3)``, each of shape ``(N, n)``;
     only the first ``count`` rows (default all; may be traced) are computed, the others stay
-    zero. The same numbers; XLA compiles the loop's single row of third derivatives faster
-    than the rows vmapped (the Hopf program's $\ell_1$; benchmarks/README.md, History)."""
+    zero; row $i$ at ``y + shifts[i]`` where ``shifts`` (``(N, m)``) is given. The same
+    numbers; XLA compiles the loop's single row of third derivatives faster than the rows
+    vmapped (the Hopf program's $\ell_1$; benchmarks/README.md, History)."""
     n = jax.eval_shape(F, y).shape[0]
     zeros = jnp.zeros((directions.shape[0], n), y.dtype)
 
     def row(i, acc):
-        _, d1, d2, d3 = jet(F, y, *directions[i])
+        at = y if shifts is None else y + shifts[i]
+        _, d1, d2, d3 = jet(F, at, *directions[i])
         return acc[0].at[i].set(d1), acc[1].at[i].set(d2), acc[2].at[i].set(d3)
 
     count = directions.shape[0] if count is None else count

@@ -44,6 +44,7 @@ from ._hopf_system import (
     unpack_parameters,
 )
 from ._lyapunov import STAGE_TWO_ROWS, from_stage_two, stage_one, stage_two_rows
+from ._normal_form import EVALUATIONS, Schedule
 
 __all__ = ["flutter_program"]
 
@@ -183,72 +184,100 @@ def _typed(new, old):
     return jax.tree_util.tree_map(lambda x, y: jnp.asarray(x, dtype=y.dtype), new, old)
 
 
-def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None):
-    r"""$(p, \ell_1, d\,\mathrm{Re}\lambda/d\alpha, D)$ at a simple Hopf pair (module docstring;
-    values, not differentiated): the two stages of :mod:`._lyapunov` and the transversality's
-    two directions in one loop of two iterations around one traced third-order jet of
-    $\tilde F(z) = F(x; \alpha)$, $z = [x, \alpha]$.
+class _Jet:
+    r"""The extended field $\tilde F(z) = F(x; \alpha)$ of :func:`lyapunov`, $z = [x, \alpha]$
+    (``parameters``: $z = [x, \alpha, p, t]$), and its rows of directions padded to $z$."""
+
+    def __init__(self, spec: Spec, layout: Layout, u, config, p, t, parameters: bool):
+        self.spec, self.config, self.p, self.t, n = spec, config, p, t, layout.n
+        self.n_p = p.shape[0] if parameters else -1  # z's entries after alpha: p and t, or none
+        tail = [jnp.asarray(p, u.dtype), jnp.asarray(t, u.dtype)[None]] if parameters else []
+        self.z0 = jnp.concatenate([jnp.zeros(n, u.dtype), u[layout.m][None], *tail])
+        self.n, self.nz, self.dtype = n, self.z0.shape[0], u.dtype
+
+    def field(self, z):
+        n, n_p = self.n, self.n_p
+        if n_p < 0:
+            return model_at(self.spec, z[n], self.p).field(self.t, self.config)(z[:n])
+        return model_at(self.spec, z[n], z[n + 1 : n + 1 + n_p]).field(z[-1], self.config)(z[:n])
+
+    def pad(self, x):
+        return jnp.concatenate([x, jnp.zeros(self.nz - self.n, x.dtype)])
+
+    def rows(self, r):
+        return jnp.stack([jnp.stack([self.pad(x) for x in row]) for row in r])
+
+    def fill(self, r, size):
+        return jnp.concatenate([r, jnp.zeros((size - r.shape[0], 3, self.nz), self.dtype)])
+
+
+def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, second=None):
+    r"""$(p, \ell_1, d\,\mathrm{Re}\lambda/d\alpha, D, \ell_2)$ at a simple Hopf pair (module
+    docstring; values, not differentiated): the two stages of :mod:`._lyapunov` and the
+    transversality's two directions in one loop of two iterations around one traced
+    third-order jet of $\tilde F(z) = F(x; \alpha)$, $z = [x, \alpha]$ (:class:`_Jet`).
 
     With ``columns`` (a traced flag, or ``None``) $z = [x, \alpha, p, t]$, and where it is
     true the first iteration also takes the rows $(e_j, v_r)$, $(e_j, v_i)$ for $z_j$ in $q$,
     $\alpha$, $p$ and $t$: $D\tilde F[e_j]$ and $D^2\tilde F[e_j, v]$, whence ``D``, the
     flutter system's exact derivatives in those unknowns and parameters (:func:`_columns`;
-    zero where the flag is false: no row computed); ``None`` without ``columns``."""
+    zero where the flag is false: no row computed); ``None`` without ``columns``. With
+    ``second`` (a traced flag, or ``None``) where it is true the loop goes on with the
+    evaluations of the second Lyapunov coefficient $\ell_2$ (:class:`._normal_form.Schedule`,
+    one row each, the jet at shifted points): the same traced jet, not a second one."""
     u, J = jax.lax.stop_gradient((u, J))
     m, n = layout.m, layout.n
-    alpha = u[m]
     omega, q = oriented(layout, u)
     adjoint = adjoint_vector(J, omega, q)
-    n_p = -1 if columns is None else p.shape[0]  # z's entries after alpha: p and t, or none
-
-    def extended(z):
-        if columns is None:
-            return model_at(spec, z[n], p).field(t, config)(z[:n])
-        return model_at(spec, z[n], z[n + 1 : n + 1 + n_p]).field(z[-1], config)(z[:n])
-
-    tail = [] if columns is None else [jnp.asarray(p, u.dtype), jnp.asarray(t, u.dtype)[None]]
-    z0 = jnp.concatenate([jnp.zeros(n, u.dtype), alpha[None], *tail])
-    nz = z0.shape[0]
-    pad = lambda x: jnp.concatenate([x, jnp.zeros(nz - n, x.dtype)])  # noqa: E731
-    rows = lambda r: jnp.stack([jnp.stack([pad(x) for x in row]) for row in r])  # noqa: E731
-    a, b = jnp.real(q), jnp.imag(q)
-    F_alpha = jax.jvp(extended, (z0,), (jnp.zeros_like(z0).at[n].set(1.0),))[1]
+    jet = _Jet(spec, layout, u, config, p, t, columns is not None)
+    a, b, z = jnp.real(q), jnp.imag(q), jnp.zeros(n, u.dtype)
+    F_alpha = jax.jvp(jet.field, (jet.z0,), (jnp.zeros_like(jet.z0).at[n].set(1.0),))[1]
     delta = jnp.concatenate([-jnp.linalg.solve(J[m:, :m], F_alpha[m:]), jnp.zeros(m, u.dtype)])
-    delta = pad(delta).at[n].set(1.0)
-    z = jnp.zeros(n, u.dtype)
-    one = rows(((a, a, z), (b, b, z), (a, b, z)))
-    first = 3
+    delta = jet.pad(delta).at[n].set(1.0)
+    transversal = jnp.stack([jnp.stack([delta, jet.pad(x), 0 * delta]) for x in (a, b)])
+    one, first = jet.rows(((a, a, z), (b, b, z), (a, b, z))), 3
     if columns is not None:  # the directions e_j: q, then alpha, p and t
-        _, _, _, v, _ = layout.unpack(u)
-        index = jnp.concatenate([jnp.arange(m), n + jnp.arange(nz - n)])
-        e = jnp.eye(nz, dtype=u.dtype)[index]
-        vr, vi = pad(jnp.real(v)), pad(jnp.imag(v))
-        zero = jnp.zeros_like(z0)
-        jac = jnp.stack([jnp.stack([d, w, zero]) for d in e for w in (vr, vi)])
-        one = jnp.concatenate([one, jac])
+        vr, vi = (jet.pad(x) for x in _split(layout.unpack(u)[3]).reshape(2, n))
+        index = jnp.concatenate([jnp.arange(m), n + jnp.arange(jet.nz - n)])
+        e = jnp.eye(jet.nz, dtype=u.dtype)[index]
+        one = jnp.concatenate(
+            [one, jnp.stack([jnp.stack([d, w, 0 * d]) for d in e for w in (vr, vi)])]
+        )
         first = jnp.where(columns, one.shape[0], 3)
     size = max(STAGE_TWO_ROWS + 2, one.shape[0])
-    fill = lambda r: jnp.concatenate([r, jnp.zeros((size - r.shape[0], 3, nz), u.dtype)])  # noqa: E731
-    transversal = jnp.stack([jnp.stack([delta, pad(x), jnp.zeros_like(z0)]) for x in (a, b)])
+    schedule = Schedule(n, u.dtype)
+    st0 = None if second is None else schedule.initial_state(J, omega, q, adjoint)
 
     def stage(i, carry):
-        directions, first1, first2, _, _ = carry
-        count = jnp.where(i == 0, first, STAGE_TWO_ROWS + 2)
-        D1, D2, D3 = jets_by_row(extended, z0, directions, count)
+        directions, shifts, scale, first1, first2, D2l, D3l, st = carry
+        count = jnp.where(i == 0, first, jnp.where(i == 1, STAGE_TWO_ROWS + 2, 1))
+        D1, D2, D3 = jets_by_row(jet.field, jet.z0, directions, count, shifts)
         h11, h20 = stage_one(J, omega, D2[0], D2[1], D2[2])
-        two = jnp.concatenate([rows(stage_two_rows(a, b, h11, h20)), transversal])
+        two = jet.fill(
+            jnp.concatenate([jet.rows(stage_two_rows(a, b, h11, h20)), transversal]), size
+        )
+        if second is not None:  # l2: advanced from i = 2 on, its next evaluation from i = 1 on
+            st = _select(i >= 2, schedule.advance(st, scale, D1[0], D2[0], D3[0]), st)
+            shift, directions, scale = schedule.evaluation(st)
+            two = jnp.where(i == 0, two, jet.fill(jet.rows((tuple(directions),)), size))
+            shifts = jnp.where(i == 0, shifts, shifts.at[0].set(jet.pad(shift)))
         first1, first2 = jnp.where(i == 0, D1, first1), jnp.where(i == 0, D2, first2)
-        return fill(two), first1, first2, D2, D3
+        D2l, D3l = jnp.where(i == 1, D2, D2l), jnp.where(i == 1, D3, D3l)
+        return two, shifts, scale, first1, first2, D2l, D3l, st
 
     D = jnp.zeros((size, n), u.dtype)
-    _, first1, first2, D2, D3 = jax.lax.fori_loop(0, 2, stage, (fill(one), D, D, D, D))
+    shifts, scale = jnp.zeros((size, jet.nz), u.dtype), jnp.ones((), u.dtype)
+    stop = 2 if second is None else jnp.where(second, 2 + EVALUATIONS, 2)
+    carry = (jet.fill(one, size), shifts, scale, D, D, D, D, st0)
+    _, _, _, first1, first2, D2, D3, st = jax.lax.fori_loop(0, stop, stage, carry)
     l1 = from_stage_two(adjoint, omega, D2, D3)
     dJq = jax.lax.complex(D2[STAGE_TWO_ROWS], D2[STAGE_TWO_ROWS + 1])
     D = None
     if columns is not None:
         k = one.shape[0] - 3
         D = _columns(layout, u, C, first1[3 : 3 + k : 2], first2[3 : 3 + k].reshape(k // 2, 2, n))
-    return adjoint, l1, jnp.real(jnp.vdot(adjoint, dJq)), D
+    l2 = None if second is None else Schedule.result(st)
+    return adjoint, l1, jnp.real(jnp.vdot(adjoint, dJq)), D, l2
 
 
 def _columns(layout: Layout, u, C, dF, d2F):
@@ -318,7 +347,7 @@ def _like(new, old):
     return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, b.dtype), new, old)
 
 
-def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None):
+def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None, second=None):
     r"""The flutter point (module docstring) of ``spec.model_fn`` in ``spec.parameter``, the
     other parameters flattened into ``p``: from the equilibrium guess ``guess`` at ``alpha0``
     (``spec.state_fn``: its closed form, refined by Newton), or (``warm``) from the unknowns
@@ -328,13 +357,15 @@ def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None)
     ``columns`` (a traced flag; a Hopf spec with ``lyapunov``): also ``(operator, partials)``,
     where the flag is true the system's exact Jacobian in the unknowns and its derivatives in
     ``p`` and ``t`` at the solution, from the third-order jet of $\ell_1$'s loop: what the
-    implicit derivative of :mod:`._hopf` solves with, from the same program as the value."""
+    implicit derivative of :mod:`._hopf` solves with, from the same program as the value.
+    ``second`` (a traced flag; a Hopf spec with ``lyapunov``): also $\ell_2$ at the solution
+    where the flag is true (:func:`lyapunov`; the Bautin point's last solve)."""
     layout = Layout(model_at(spec, alpha0, p).free_size(), spec.kind)
     solve = _Solve(spec, layout, p, t)
     s0 = _initial(spec, layout, p, alpha0, guess, t, warm, u0, C0)
+    if not (spec.kind == "hopf" and spec.lyapunov) and (columns, second) != (None, None):
+        raise ValueError("flutter_program: columns and second need a Hopf spec with lyapunov.")
     if columns is not None:
-        if not (spec.kind == "hopf" and spec.lyapunov):
-            raise ValueError("flutter_program: columns need a Hopf spec with lyapunov=True.")
         args = (s0["u"], s0["config"], s0["C"], p, t)
         rows = jax.eval_shape(lambda: residual(spec, layout, *args)).shape[0]
         s0["Ju"] = jnp.zeros((rows, layout.size), p.dtype)
@@ -346,11 +377,14 @@ def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None)
     adjoint, l1, trans = jnp.full(layout.n, jnp.nan, s["C"].dtype), nan, nan
     if spec.kind == "hopf" and spec.lyapunov:
         simple = jnp.sum(jnp.any(s["C"] != 0, axis=0)) == 1
-        *values, D = lyapunov(spec, layout, u, config, s["C"], J, p, t, columns)
+        *values, D, l2 = lyapunov(spec, layout, u, config, s["C"], J, p, t, columns, second)
         adjoint, l1, trans = (jnp.where(simple, x, jnp.nan) for x in values)
     raw = Raw(config, u, s["C"], J, s["residual"], s["k"], code, adjoint, l1, trans)
-    if columns is None:
-        return raw
-    k, n_p = layout.m + 1, p.shape[0]
-    operator = jnp.concatenate([D[:, :k], s["Ju"][:, k:]], axis=1)
-    return raw, operator, (D[:, k : k + n_p], D[:, k + n_p :])
+    extras = ()
+    if columns is not None:
+        k, n_p = layout.m + 1, p.shape[0]
+        operator = jnp.concatenate([D[:, :k], s["Ju"][:, k:]], axis=1)
+        extras += (operator, (D[:, k : k + n_p], D[:, k + n_p :]))
+    if second is not None:
+        extras += (jnp.where(simple, l2, jnp.nan),)
+    return (raw, *extras) if extras else raw
