@@ -120,11 +120,16 @@ class Raw(NamedTuple):
     l2: Array
     num_steps: Array
     status: Array
+    operator: Array  # the flutter system's exact Jacobian at the solution (where asked: below)
+    dq: Array  # its derivatives in q = (p, beta)
+    dt: Array  # and in t
 
 
-def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Raw:
+def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, columns) -> Raw:
     r"""The secant iteration and the stencil of the gradient in one loop around one flutter
-    program (module docstring); the last solve, at the solution, gives $\\ell_2$."""
+    program (module docstring); the last solve, at the solution, gives $\\ell_2$ and, where the
+    traced flag ``columns`` is set (the solve that is differentiated), the flutter system's exact
+    derivatives there (:func:`._hopf_program.flutter_program`)."""
     model = model_at(spec, alpha0, jnp.concatenate([p, beta0[None]]))
     guess = model.configuration(guess, "theta_guess")  # None: at rest
     layout = Layout(model.free_size(), spec.kind)
@@ -145,8 +150,9 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Ra
     def one(_, c):
         q, slope = point(c)
         final = c["phase"] == FINAL
-        raw, l2 = flutter_program(spec, q, alpha0, c["config"], t, c["k"] > 0, c["u"], c["C"],
-                                  second=final)  # fmt: skip
+        raw, operator, (dq, dt), l2 = flutter_program(
+            spec, q, alpha0, c["config"], t, c["k"] > 0, c["u"], c["C"], final & columns, final
+        )
         ok, l1, b = raw.status == 0, raw.first_lyapunov, q[-1]
         k = c["k"] + 1
         small = (k >= 3) & (jnp.abs(b - c["b"]) <= secant.atol + secant.rtol * jnp.abs(b))
@@ -164,7 +170,8 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Ra
         fd = {**c, "values": c["values"].at[c["j"]].set(l1), "j": c["j"] + 1}
         fd["phase"] = jnp.where(last, FINAL, GRADIENT)
         g_code = jnp.where(ok, -1, _HOPF_FAILED)
-        new = _select(c["phase"] == SECANT, found, _select(final, {**c, "l2": l2}, fd))
+        last_solve = {**c, "l2": l2, "operator": operator, "dq": dq, "dt": dt}
+        new = _select(c["phase"] == SECANT, found, _select(final, last_solve, fd))
         code = jnp.where(c["phase"] == SECANT, s_code, jnp.where(final, _OK, g_code))
         return None, _typed(new, c), code
 
@@ -174,6 +181,10 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Ra
               j=jnp.asarray(0, jnp.int32), config=guess, u=u0, C=C0, b_prev=beta0, l_prev=zero,
               b=beta0, l=zero, values=jnp.zeros(4 * nq, p.dtype), adjoint=jnp.zeros(n, cdtype),
               transversality=zero, l2=zero)  # fmt: skip
+    q0 = jnp.concatenate([p, beta0[None]])
+    rows = jax.eval_shape(lambda: residual(spec, layout, u0, guess, C0, q0, t)).shape[0]
+    c0.update(operator=jnp.zeros((rows, layout.size), p.dtype),
+              dq=jnp.zeros((rows, nq), p.dtype), dt=jnp.zeros((rows, 1), p.dtype))  # fmt: skip
     c0 = jax.tree_util.tree_map(jnp.asarray, c0)
     budget = secant.max_steps + 4 * nq + 1
     _, c, code, _ = iterate(one, None, c0, max_steps=budget, exhausted=_NOT_CONVERGED)
@@ -181,14 +192,14 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step) -> Ra
     h = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
     grad = jnp.tensordot(jnp.asarray(WEIGHTS, p.dtype), c["values"].reshape(4, nq), 1) / h
     return Raw(c["config"], c["u"], c["C"], c["b"], grad, c["transversality"], c["l"],
-               c["l2"], c["k"], code)  # fmt: skip
+               c["l2"], c["k"], code, c["operator"], c["dq"], c["dt"])  # fmt: skip
 
 
-def _flat_program(spec: Spec, secant: Secant, tree, p, alpha0, beta0, leaves, t, step):
+def _flat_program(spec: Spec, secant: Secant, tree, p, alpha0, beta0, leaves, t, step, columns):
     """:func:`_program` on flat containers (the program store exports plain arrays: the
     configurations in and out as their leaves, their structure ``tree`` static)."""
     guess = None if tree is None else jax.tree_util.tree_unflatten(tree, leaves)
-    raw = _program(spec, secant, p, alpha0, beta0, guess, t, step)
+    raw = _program(spec, secant, p, alpha0, beta0, guess, t, step, columns)
     return (tuple(jax.tree_util.tree_leaves(raw.config)),) + tuple(raw[1:])
 
 
@@ -237,17 +248,32 @@ def _increment(y, params):
     return jnp.zeros(y[1].shape[0] + 1, y[1].dtype)
 
 
-def _solve(params, spec: Spec, secant: Secant):
+def _solve(params, spec: Spec, secant: Secant, columns=False):
+    """The program's solution; with ``columns`` (differentiated) also the exact Jacobian of
+    :class:`_Residual` and its derivatives in ``p`` and ``t``: the flutter system's from the
+    program, the row $\\nabla\\ell_1\\cdot(q - q^*)$'s from the stencil's gradient."""
     p, t, (alpha0, beta0, guess, step) = params
     leaves, tree = jax.tree_util.tree_flatten(guess)
     out = _bautin_program(spec, secant, None if guess is None else tree, p, alpha0, beta0,
-                          tuple(leaves), t, step)  # fmt: skip
+                          tuple(leaves), t, step, np.bool_(columns))  # fmt: skip
     q = jnp.concatenate([p, jnp.asarray(beta0)[None]])
     shape = eqx.filter_eval_shape(lambda q, a: model_at(spec, a, q).rest(), q, alpha0)
     raw = Raw(jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shape), out[0]), *out[1:])
     q = jax.lax.stop_gradient(jnp.concatenate([p, raw.beta[None]]))
     y = (raw.config, raw.u, raw.C, raw.beta, q, jax.lax.stop_gradient(raw.grad))
-    return Implicit(y, None, raw.status == _OK, raw)
+    if not columns:
+        return Implicit(y, None, raw.status == _OK, raw)
+    g, size = raw.grad, raw.operator.shape[1]
+    operator = jnp.concatenate(
+        [
+            jnp.concatenate([raw.operator, raw.dq[:, -1:]], axis=1),
+            jnp.concatenate([jnp.zeros(size, g.dtype), g[-1:]])[None],
+        ]
+    )
+    dp = jnp.concatenate([raw.dq[:, :-1], g[None, :-1]])
+    dt = jnp.concatenate([raw.dt, jnp.zeros((1, 1), g.dtype)])
+    others = jax.tree_util.tree_map(lambda _: None, params[2])
+    return Implicit(y, operator, raw.status == _OK, raw, (dp, dt, others))
 
 
 def _finish(spec: Spec, model: AbstractMechanics, y, raw: Raw) -> BautinPoint:
@@ -338,5 +364,6 @@ def bautin_point(
         linear=LeastSquares(),
         retract=_Retract(spec),
         increment=_increment,
+        exact=lambda params: _solve(params, spec, secant, True),
     )
     return _finish(spec, model, out.y, out.extra)
