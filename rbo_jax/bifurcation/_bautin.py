@@ -27,7 +27,9 @@ coefficient $\ell_2$ (:mod:`._normal_form`): one traced jet for both.
 equations (flutter system, $\ell_1 = 0$), $\ell_1$ linearised by its gradient along the curve:
 $d\beta_B = -\nabla_p\ell_1\cdot dp/\partial_\beta\ell_1$ and $du = -J^{+}\partial_{(p,\beta)}r\,
 d(p, \beta)$ (:func:`rbo_jax.solvers.implicit`): ``jax.grad`` and ``jax.jacfwd`` work through
-:func:`bautin_point`.
+:func:`bautin_point`. $J$ and $\partial_{(p,\beta)}r$ are exact, from the last solve's jet (the
+rows $D\tilde F[e_j]$, $D^2\tilde F[e_j, v]$ of :func:`._hopf_program.lyapunov`, taken only
+when the point is differentiated): no program of the model's second derivatives.
 """
 
 from __future__ import annotations
