@@ -28,8 +28,10 @@ equations (flutter system, $\ell_1 = 0$), $\ell_1$ linearised by its gradient al
 $d\beta_B = -\nabla_p\ell_1\cdot dp/\partial_\beta\ell_1$ and $du = -J^{+}\partial_{(p,\beta)}r\,
 d(p, \beta)$ (:func:`rbo_jax.solvers.implicit`): ``jax.grad`` and ``jax.jacfwd`` work through
 :func:`bautin_point`. $J$ and $\partial_{(p,\beta)}r$ are exact, from the last solve's jet (the
-rows $D\tilde F[e_j]$, $D^2\tilde F[e_j, v]$ of :func:`._hopf_program.lyapunov`, taken only
-when the point is differentiated): no program of the model's second derivatives.
+rows $D\tilde F[e_j]$, $D^2\tilde F[e_j, v]$ of :func:`._hopf_program.lyapunov`): no program of
+the model's second derivatives. The differentiated solve is a program of its own (a static
+flag): its jet also runs through the parameters, which costs the value's first call ~2 s of
+compilation where nothing is differentiated.
 """
 
 from __future__ import annotations
@@ -129,8 +131,8 @@ class Raw(NamedTuple):
 
 def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, columns) -> Raw:
     r"""The secant iteration and the stencil of the gradient in one loop around one flutter
-    program (module docstring); the last solve, at the solution, gives $\\ell_2$ and, where the
-    traced flag ``columns`` is set (the solve that is differentiated), the flutter system's exact
+    program (module docstring); the last solve, at the solution, gives $\\ell_2$ and, with
+    ``columns`` (static: the solve that is differentiated), the flutter system's exact
     derivatives there (:func:`._hopf_program.flutter_program`)."""
     model = model_at(spec, alpha0, jnp.concatenate([p, beta0[None]]))
     guess = model.configuration(guess, "theta_guess")  # None: at rest
@@ -152,9 +154,11 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, colum
     def one(_, c):
         q, slope = point(c)
         final = c["phase"] == FINAL
-        raw, operator, (dq, dt), l2 = flutter_program(
-            spec, q, alpha0, c["config"], t, c["k"] > 0, c["u"], c["C"], final & columns, final
-        )
+        out = flutter_program(spec, q, alpha0, c["config"], t, c["k"] > 0, c["u"], c["C"],
+                              final if columns else None, final)  # fmt: skip
+        raw, l2, exact = out[0], out[-1], {}
+        if columns:
+            exact = dict(zip(("operator", "dq", "dt"), (out[1], *out[2])))
         ok, l1, b = raw.status == 0, raw.first_lyapunov, q[-1]
         k = c["k"] + 1
         small = (k >= 3) & (jnp.abs(b - c["b"]) <= secant.atol + secant.rtol * jnp.abs(b))
@@ -172,7 +176,7 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, colum
         fd = {**c, "values": c["values"].at[c["j"]].set(l1), "j": c["j"] + 1}
         fd["phase"] = jnp.where(last, FINAL, GRADIENT)
         g_code = jnp.where(ok, -1, _HOPF_FAILED)
-        last_solve = {**c, "l2": l2, "operator": operator, "dq": dq, "dt": dt}
+        last_solve = {**c, "l2": l2, **exact}
         new = _select(c["phase"] == SECANT, found, _select(final, last_solve, fd))
         code = jnp.where(c["phase"] == SECANT, s_code, jnp.where(final, _OK, g_code))
         return None, _typed(new, c), code
@@ -183,10 +187,11 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, colum
               j=jnp.asarray(0, jnp.int32), config=guess, u=u0, C=C0, b_prev=beta0, l_prev=zero,
               b=beta0, l=zero, values=jnp.zeros(4 * nq, p.dtype), adjoint=jnp.zeros(n, cdtype),
               transversality=zero, l2=zero)  # fmt: skip
-    q0 = jnp.concatenate([p, beta0[None]])
-    rows = jax.eval_shape(lambda: residual(spec, layout, u0, guess, C0, q0, t)).shape[0]
-    c0.update(operator=jnp.zeros((rows, layout.size), p.dtype),
-              dq=jnp.zeros((rows, nq), p.dtype), dt=jnp.zeros((rows, 1), p.dtype))  # fmt: skip
+    if columns:
+        q0 = jnp.concatenate([p, beta0[None]])
+        rows = jax.eval_shape(lambda: residual(spec, layout, u0, guess, C0, q0, t)).shape[0]
+        c0.update(operator=jnp.zeros((rows, layout.size), p.dtype),
+                  dq=jnp.zeros((rows, nq), p.dtype), dt=jnp.zeros((rows, 1), p.dtype))  # fmt: skip
     c0 = jax.tree_util.tree_map(jnp.asarray, c0)
     budget = secant.max_steps + 4 * nq + 1
     _, c, code, _ = iterate(one, None, c0, max_steps=budget, exhausted=_NOT_CONVERGED)
@@ -194,7 +199,7 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, colum
     h = 1e-3 * jnp.maximum(jnp.abs(q), 1.0)
     grad = jnp.tensordot(jnp.asarray(WEIGHTS, p.dtype), c["values"].reshape(4, nq), 1) / h
     return Raw(c["config"], c["u"], c["C"], c["b"], grad, c["transversality"], c["l"],
-               c["l2"], c["k"], code, c["operator"], c["dq"], c["dt"])  # fmt: skip
+               c["l2"], c["k"], code, c.get("operator"), c.get("dq"), c.get("dt"))  # fmt: skip
 
 
 def _flat_program(spec: Spec, secant: Secant, tree, p, alpha0, beta0, leaves, t, step, columns):
@@ -257,7 +262,7 @@ def _solve(params, spec: Spec, secant: Secant, columns=False):
     p, t, (alpha0, beta0, guess, step) = params
     leaves, tree = jax.tree_util.tree_flatten(guess)
     out = _bautin_program(spec, secant, None if guess is None else tree, p, alpha0, beta0,
-                          tuple(leaves), t, step, np.bool_(columns))  # fmt: skip
+                          tuple(leaves), t, step, bool(columns))  # fmt: skip
     q = jnp.concatenate([p, jnp.asarray(beta0)[None]])
     shape = eqx.filter_eval_shape(lambda q, a: model_at(spec, a, q).rest(), q, alpha0)
     raw = Raw(jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shape), out[0]), *out[1:])
