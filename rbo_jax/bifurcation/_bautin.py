@@ -124,9 +124,9 @@ class Raw(NamedTuple):
     l2: Array
     num_steps: Array
     status: Array
-    operator: Array  # the flutter system's exact Jacobian at the solution (where asked: below)
-    dq: Array  # its derivatives in q = (p, beta)
-    dt: Array  # and in t
+    operator: Array | None  # the flutter system's exact Jacobian there (None unless asked)
+    dq: Array | None  # its derivatives in q = (p, beta)
+    dt: Array | None  # and in t
 
 
 def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, columns) -> Raw:
