@@ -177,9 +177,9 @@ def check_inertia(A: MatrixLike) -> Matrix:
     """
     owner = "check_inertia"
     A = _float_matrix(A, "the inertia tensor A", owner)
-    finite, symmetric, positive, asymmetry = _inertia_properties(A)
-    if is_traced(A):
+    if is_traced(A):  # checked where it is used (inertia_checks), not traced again here
         return A
+    finite, symmetric, positive, asymmetry = _inertia_properties(A)
     if not bool(finite):
         raise ValueError(f"{owner}: the inertia tensor A must be finite, got {np.asarray(A)!r}.")
     if not bool(symmetric):
