@@ -217,7 +217,7 @@ def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, se
     transversality's two directions in one loop of two iterations around one traced
     third-order jet of $\tilde F(z) = F(x; \alpha)$, $z = [x, \alpha]$ (:class:`_Jet`).
 
-    With ``columns`` (a traced flag, or ``None``) $z = [x, \alpha, p, t]$, and where it is
+    With ``columns`` (a flag, traced or not, or ``None``) $z = [x, \alpha, p, t]$, and where it is
     true the first iteration also takes the rows $(e_j, v_r)$, $(e_j, v_i)$ for $z_j$ in $q$,
     $\alpha$, $p$ and $t$: $D\tilde F[e_j]$ and $D^2\tilde F[e_j, v]$, whence ``D``, the
     flutter system's exact derivatives in those unknowns and parameters (:func:`_columns`;
@@ -354,10 +354,12 @@ def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None,
     ``u0`` and basis ``C0`` in the chart at the configuration ``guess`` (a continuation's last
     point). Returns a :class:`Raw` with the status code of :class:`HopfStatus`.
 
-    ``columns`` (a traced flag; a Hopf spec with ``lyapunov``): also ``(operator, partials)``,
-    where the flag is true the system's exact Jacobian in the unknowns and its derivatives in
-    ``p`` and ``t`` at the solution, from the third-order jet of $\ell_1$'s loop: what the
-    implicit derivative of :mod:`._hopf` solves with, from the same program as the value.
+    ``columns`` (a flag, traced or not; a Hopf spec with ``lyapunov``): also
+    ``(operator, partials)``, where the flag is true the system's exact Jacobian in the
+    unknowns and its derivatives in ``p`` and ``t`` at the solution, from the third-order jet of
+    $\ell_1$'s loop: what the implicit derivative of :mod:`._hopf` solves with (traced there:
+    the same program as the value; :mod:`._bautin`'s differentiated solve, a program of its
+    own, sets it on its last solve).
     ``second`` (a traced flag; a Hopf spec with ``lyapunov``): also $\ell_2$ at the solution
     where the flag is true (:func:`lyapunov`; the Bautin point's last solve)."""
     layout = Layout(model_at(spec, alpha0, p).free_size(), spec.kind)
