@@ -30,8 +30,8 @@ d(p, \beta)$ (:func:`rbo_jax.solvers.implicit`): ``jax.grad`` and ``jax.jacfwd``
 :func:`bautin_point`. $J$ and $\partial_{(p,\beta)}r$ are exact, from the last solve's jet (the
 rows $D\tilde F[e_j]$, $D^2\tilde F[e_j, v]$ of :func:`._hopf_program.lyapunov`): no program of
 the model's second derivatives. The differentiated solve is a program of its own (a static
-flag): its jet also runs through the parameters, which costs the value's first call ~2 s of
-compilation where nothing is differentiated.
+flag): its jet also runs through the parameters, which would lengthen the value's
+compilation where nothing is differentiated (measured: benchmarks/README.md, History).
 """
 
 from __future__ import annotations
