@@ -216,20 +216,24 @@ def tridiagonal_jacobian(fn, x):
 
 
 def tridiagonal_differences(fn, x):
-    r"""The blocks of :func:`tridiagonal_jacobian` by forward differences: $3m$ evaluations of
-    ``fn`` (one ``vmap``) at $x + \epsilon\circ e_{c,j}$, the steps
+    r"""The blocks of :func:`tridiagonal_jacobian` by forward differences: ``fn`` at $x$ and at
+    the $3m$ points $x + \epsilon\circ e_{c,j}$ (one loop, ``lax.map``: one copy of ``fn`` in
+    the program, which compiles in about half the time of a ``vmap`` of copies and runs no
+    slower), the steps
     $\epsilon_{ij} = \sqrt{\varepsilon}\max(|x_{ij}|, 1)$ rounded so that $x + \epsilon$ is
     exact. An entry's error is about
     $\sqrt{\varepsilon}\,(|R_i|/s_j + s_j|\partial^2_jR_i|/2)$, $s_j = \max(|x_j|, 1)$
     (rounding and truncation): $10^{-8}$ relative where $|R_i| \lesssim |J_{ij}|\,s_j$. A matrix
     to steer Newton's iterations (a chord method converges whatever its matrix's error of that
-    order), compiled as copies of ``fn`` instead of its linearisation (a smaller program:
+    order), compiled as ``fn`` itself instead of its linearisation (a smaller program:
     benchmarks/README.md); never for a derivative."""
     h = jnp.sqrt(jnp.finfo(x.dtype).eps) * jnp.maximum(jnp.abs(x), 1.0)
     h = (x + h) - x
-    fx = fn(x)
-    out = jax.vmap(lambda t: fn(x + h * t) - fx)(_coloured(x))
-    return _blocks(out, h)
+    tangents = _coloured(x)
+    out = jax.lax.map(
+        lambda t: fn(x + h * t), jnp.concatenate([jnp.zeros_like(tangents[:1]), tangents])
+    )
+    return _blocks(out[1:] - out[:1], h)
 
 
 def _factor(L, D, U):
