@@ -21,6 +21,7 @@ from ..models.rod import RodState, rates
 from ..trajectory import SolveStatus
 from ._recentre import nearest_turn, within_pi
 from ._rod_verlet import (
+    SAFETY,
     _static_zeros,
     failed_after_first,
     host_counts,
@@ -28,7 +29,7 @@ from ._rod_verlet import (
     traced_counts,
 )
 
-__all__ = ["auto", "midpoint_rod"]
+__all__ = ["auto", "midpoint_rod", "step_bound"]
 
 
 # method="auto" takes the midpoint rule where the splitting's stable step (which holds every
@@ -57,6 +58,28 @@ def _primal(x):
     return x
 
 
+def step_bound(rod):
+    r"""An upper bound of :func:`._rod_verlet.stable_step` from the rod's stiffnesses and
+    masses alone (host, NumPy; ``None`` where they are traced or give none): the largest
+    eigenvalue of the mass-scaled stiffness is at least its Rayleigh quotient at a unit
+    translation of a free body $i$, at least $\sum_s \min_j k^g_{s,j}/m_i$ over its couplings
+    $s$ (the gap's derivative in a body's position is a rotation), and the stable step
+    decreases with it: where the bound is below the midpoint rule's step, so is the stable
+    step, and :func:`auto` needs no program to choose."""
+    leaves = (rod.gap_stiffness, rod.mass, rod.turn_damping, rod.gap_damping)
+    if any(is_traced(x) for x in leaves):
+        return None
+    k = np.min(np.asarray(rod.gap_stiffness, np.float64), axis=1)
+    per_body = np.concatenate([k, [0.0]]) + np.concatenate([[0.0], k])
+    free = rod.free_masks()[1]
+    lam = np.max(per_body[free] / np.asarray(rod.mass, np.float64)[free], initial=0.0)
+    if not (np.isfinite(lam) and lam > 0):
+        return None
+    w = np.sqrt(lam)
+    eta = max(np.max(np.asarray(rod.turn_damping)), np.max(np.asarray(rod.gap_damping)))
+    return SAFETY * 2.0 * (np.sqrt(1.0 + (eta * w) ** 2) - eta * w) / w
+
+
 def auto(rod, state0, ts, solver, traced, dt=None):
     """The default method: ``"midpoint"`` for a stiff rod (its explicit stable step below
     the midpoint rule's step, :data:`STIFF_RATIO`), else ``"explicit"``; ``"explicit"``
@@ -72,11 +95,16 @@ def auto(rod, state0, ts, solver, traced, dt=None):
         if any(k is None for k in known):
             return "midpoint"
         rod, state0, ts, dt = jax.tree_util.tree_unflatten(tree, known)
-    h = stable_step(rod, state0)
-    if is_traced(h) or is_traced(ts):
+    if is_traced(ts) or is_traced(dt):
         return "midpoint"
     h_mid = float(_midpoint_step(np.asarray(ts, dtype=np.float64)) if dt is None else dt)
     if not (np.isfinite(h_mid) and h_mid > 0):  # a bad dt: the midpoint rule says so
+        return "midpoint"
+    bound = step_bound(rod)
+    if bound is not None and bound < STIFF_RATIO * h_mid:  # no program compiled to know it
+        return "midpoint"
+    h = stable_step(rod, state0)
+    if is_traced(h):
         return "midpoint"
     return "midpoint" if float(h) < STIFF_RATIO * h_mid else "explicit"
 
