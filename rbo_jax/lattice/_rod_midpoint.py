@@ -21,11 +21,11 @@ from ..models.rod import RodState, rates
 from ..trajectory import SolveStatus
 from ._recentre import nearest_turn, within_pi
 from ._rod_verlet import (
-    SAFETY,
     _static_zeros,
     failed_after_first,
     host_counts,
     stable_step,
+    step_of,
     traced_counts,
 )
 
@@ -75,9 +75,8 @@ def step_bound(rod):
     lam = np.max(per_body[free] / np.asarray(rod.mass, np.float64)[free], initial=0.0)
     if not (np.isfinite(lam) and lam > 0):
         return None
-    w = np.sqrt(lam)
     eta = max(np.max(np.asarray(rod.turn_damping)), np.max(np.asarray(rod.gap_damping)))
-    return SAFETY * 2.0 * (np.sqrt(1.0 + (eta * w) ** 2) - eta * w) / w
+    return step_of(np.sqrt(lam), eta, xp=np)
 
 
 def auto(rod, state0, ts, solver, traced, dt=None):

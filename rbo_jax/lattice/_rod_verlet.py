@@ -88,6 +88,7 @@ __all__ = [
     "SAFETY",
     "failed_after_first",
     "stable_step",
+    "step_of",
     "step_counts",
     "traced_counts",
     "verlet",
@@ -196,12 +197,19 @@ def _omega_bound(rod: Rod, state: RodState):
     return jnp.sqrt(jnp.max(per_body))
 
 
+def step_of(w, eta, safety: float = SAFETY, xp=jnp):
+    r"""$s\cdot 2(\sqrt{1 + \eta^2\omega^2} - \eta\omega)/\omega$: the stable step of
+    :func:`verlet` (module docstring) for the frequency bound $\omega$ and the Kelvin–Voigt time
+    $\eta$, decreasing in $\omega$ (``xp``: ``jnp`` in a program, ``np`` on the host)."""
+    return safety * 2.0 * (xp.sqrt(1.0 + (eta * w) ** 2) - eta * w) / w
+
+
 def stable_step(rod: Rod, state: RodState, safety: float = SAFETY):
-    r"""The default step of :func:`verlet` (module docstring): $s\cdot 2(\sqrt{1 +
-    \eta^2\bar\omega^2} - \eta\bar\omega)/\bar\omega$ (one compiled program)."""
+    r"""The default step of :func:`verlet` (:func:`step_of` at $\bar\omega$, one compiled
+    program)."""
     w = _omega_bound(rod, state)
     eta = jnp.maximum(jnp.max(jnp.asarray(rod.turn_damping)), jnp.max(jnp.asarray(rod.gap_damping)))
-    return safety * 2.0 * (jnp.sqrt(1.0 + (eta * w) ** 2) - eta * w) / w
+    return step_of(w, eta, safety)
 
 
 # a program that runs once per call, in microseconds: compiled without LLVM's optimisation
