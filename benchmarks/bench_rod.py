@@ -19,8 +19,9 @@ PyElastica's own cases, side by side in one process, float64, every thread pinne
    PyElastica's default), at rest and straight, set moving by a small velocity
    v_x(z) = V (φ₁(z) + φ₂(z)/2) (φₖ the Euler-Bernoulli cantilever modes, V = 10⁻³ m/s) with the
    angular velocity Ω_y = ∂v_x/∂z (no shear rate); the tip's x(t) over ``--vib-t`` simulated
-   seconds, sampled every 5 ms, gives the first two bending frequencies by the matrix pencil
-   method (the two largest of 8 damped exponentials). Reference: the Timoshenko beam of the
+   seconds (default: four periods of the first bending mode, 14.3 s, issue 50's case), sampled
+   every 5 ms, gives the first two bending frequencies by the matrix pencil method (the two
+   largest of 8 damped exponentials). Reference: the Timoshenko beam of the
    same model (shear α G A, rotary inertia ρI), the roots of its frequency equation by the
    transfer matrix (scipy's ``expm``); the Euler-Bernoulli values 3.51602 and 22.0345
    √(EI/(ρAL⁴)) are printed too. PyElastica: ``PositionVerlet`` at dt = 0.5 (L/n)/√(E/ρ)
@@ -39,7 +40,7 @@ see the same load on a shared machine.
 
 Without PyElastica (``pip install pyelastica``, the ``bench`` extra) its rows are skipped.
 
-Usage: ``python benchmarks/bench_rod.py [--final-time 5000] [--vib-t 2] [--pe-n 50,100]
+Usage: ``python benchmarks/bench_rod.py [--final-time 5000] [--vib-t 14.3] [--pe-n 50,100]
 [--explicit-n 5,10,50] [--implicit-n 5,10] [--splitting-n 5,10,20,50] [--spectrum-n 5,10,50,100]
 [--scaling-n 100,1000,10000] [--repeat 3] [--core C] [--parts statics,vibration,pairs,scaling]
 [--json PATH] [--smoke]``
@@ -81,6 +82,8 @@ VIB = dict(length=1.0, radius=0.01, density=1000.0, E=1e7, G=1e7 / 3.0, V=1e-3)
 BETA = (1.8751040687119611, 4.6940911329741745)  # Euler-Bernoulli cantilever, β L
 EB = (3.516015, 22.034492)  # β² (ω √(ρA L⁴/(EI)))
 SAMPLE_DT = 0.005
+# the vibration simulated over this many periods of its first bending mode (issue 50)
+VIB_PERIODS = 4
 
 
 def openblas_threads(n: int | None = None) -> list[tuple[str, int]]:
@@ -112,7 +115,13 @@ def _parse(argv):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ints = lambda s: [int(x) for x in s.split(",") if x]  # noqa: E731
     p.add_argument("--final-time", type=float, default=5000.0, help="PyElastica's Timoshenko run")
-    p.add_argument("--vib-t", type=float, default=2.0, help="simulated seconds of the vibration")
+    p.add_argument(
+        "--vib-t",
+        type=float,
+        default=None,
+        help="simulated seconds of the vibration (default: four periods of the first bending "
+        "mode, Euler-Bernoulli's, 14.3 s: issue 50's case)",
+    )
     p.add_argument("--pe-n", type=ints, default=[50, 100, 200], help="PyElastica's sizes")
     p.add_argument("--explicit-n", type=ints, default=[5, 10, 50])
     p.add_argument("--implicit-n", type=ints, default=[5, 10])
@@ -154,6 +163,8 @@ def _parse(argv):
         args.splitting_n, args.midpoint_n = [5], [5]
         args.spectrum_n, args.scaling_n, args.statics_n = [10], [100], []
         args.motion_n, args.batch_sizes, args.motion_work = [5, 10], [2], 2_000
+    if args.vib_t is None:
+        args.vib_t = VIB_PERIODS * 2.0 * math.pi / (EB[0] * vib_units()[2])
     if args.core is None:
         args.core = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
     return args

@@ -90,6 +90,34 @@ def test_step_bound_is_above_the_stable_step():
     assert _rod_midpoint.step_bound(rods[0]) < _rod_midpoint._midpoint_step(ts)
 
 
+def test_the_chords_start_extrapolates_the_last_rates_by_their_lagrange_polynomial():
+    """The chord's start (:mod:`rbo_jax.integrate.midpoint`): the last three steps' rates, each
+    at its step's midpoint, extrapolated to the next step's midpoint. Exact for rates on a
+    quadratic in time whatever the steps (error O(h^3) in the rate: O(h^4) in the start);
+    3 s1 - 3 s2 + s3 on equal steps; the last rate alone after one step; zero before any."""
+    from rbo_jax.integrate import midpoint as mp
+
+    coef = np.random.default_rng(5).standard_normal((3, 2, 4))
+    rate_at = lambda tau: coef[0] + coef[1] * tau + coef[2] * tau**2  # noqa: E731
+    x0 = jnp.zeros((2, 4))
+    rates = mp._no_rates(x0, jnp.asarray(0.07))
+    np.testing.assert_array_equal(mp._extrapolated(rates, 0.1), np.zeros((2, 4)))
+    ends = [-0.30, -0.23, -0.10, 0.0]  # three steps (0.07, 0.13, 0.10), t_n = 0
+    for k, (a, b) in enumerate(zip(ends[:-1], ends[1:])):
+        rates = mp._remember(rates, jnp.asarray(rate_at(0.5 * (a + b))), jnp.asarray(b - a))
+        if k == 0:  # one rate: the start goes on at it
+            np.testing.assert_allclose(mp._extrapolated(rates, 0.2), rate_at(-0.265))
+    h = 0.11
+    np.testing.assert_allclose(mp._extrapolated(rates, h), rate_at(0.5 * h), rtol=1e-12)
+    s = [jnp.asarray(coef[i, 0]) for i in range(3)]
+    equal = mp._no_rates(s[0], jnp.asarray(0.2))
+    for r in s[::-1]:
+        equal = mp._remember(equal, r, jnp.asarray(0.2))
+    np.testing.assert_allclose(
+        mp._extrapolated(equal, 0.2), 3 * s[0] - 3 * s[1] + s[2], rtol=1e-13, atol=1e-13
+    )
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"), [({"dt": 0.0}, "dt"), ({"max_steps": 10}, "max_steps")]
 )

@@ -17,8 +17,14 @@ their energy (an L-stable method damps them, a loss the size of their share of t
 the step is chosen for the slow motion that is wanted.
 
 **Newton.** Each step solves $G(y) = y - x_n - h f((x_n + y)/2) = 0$ by the chord method from
-$y = x_n + h\,(x_n - x_{n-1})/h_{n-1}$ (the last step extrapolated; $x_0$ at the first), with
-the matrix $I - \tfrac h2 J$: its blocks from $3m$ forward differences of $f$, one ``vmap``
+$y = x_n + h\,s$, $s$ the rates $(x_{k+1} - x_k)/h_k$ of the last :data:`PREDICTOR_RATES`
+steps, each at its step's midpoint, extrapolated to $t_n + h/2$ by their Lagrange polynomial
+(:func:`_extrapolated`; fewer at the first steps, $x_0$ at the first): the start's error is
+$O(h^4)$, so fewer iterations reach the tolerance than from the last rate alone ($O(h^2)$).
+(From the last two rates, $O(h^3)$, the iterations left an error that raised a vibrating
+cantilever's energy at every step, 13 times the drift of the others:
+benchmarks/README.md, History.) The chord iterations use the matrix $I - \tfrac h2 J$: its
+blocks from $3m$ forward differences of $f$, in one loop with $f$ itself
 (:func:`rbo_jax.solvers.tridiagonal_differences`: copies of $f$ compile faster than its
 linearisation, and the chord iterations converge whatever the matrix's $10^{-8}$ relative
 error; the derivatives below use the exact Jacobian), factored by block elimination
@@ -95,6 +101,8 @@ MAX_SUBSTEPS = 8
 # I - h/2 J (a matrix of a step within it still contracts the chord iterations: by about half
 # of it)
 REFACTOR = 0.05
+# the steps whose rates give the chord's start (module docstring): a quadratic in time
+PREDICTOR_RATES = 3
 
 
 def _once_if(pred, fn, x):
@@ -111,6 +119,46 @@ def _frozen(tree):
     """``tree`` with its float leaves cut from differentiation (the chord iterations)."""
     dynamic, static = eqx.partition(tree, eqx.is_inexact_array)
     return eqx.combine(lax.stop_gradient(dynamic), static)
+
+
+def _no_rates(x0, h0):
+    """The carry of :func:`_remember` before the first step: no rate yet."""
+    return (
+        jnp.zeros((PREDICTOR_RATES, *x0.shape), x0.dtype),
+        jnp.full((PREDICTOR_RATES,), h0),
+        jnp.asarray(0, jnp.int32),
+    )
+
+
+def _remember(rates, rate, h):
+    """``rates`` with the last step's ``rate`` over its step ``h`` first (the oldest dropped)."""
+    r, hs, k = rates
+    return (
+        jnp.concatenate([rate[None], r[:-1]]),
+        jnp.concatenate([jnp.reshape(h, (1,)).astype(hs.dtype), hs[:-1]]),
+        jnp.minimum(k + 1, PREDICTOR_RATES),
+    )
+
+
+def _extrapolated(rates, h):
+    r"""The rate over the next step $h$ from the last ``k`` steps' rates $s_i$ (newest first),
+    each at its step's midpoint $\tau_i$ (relative to $t_n$): their Lagrange polynomial at
+    $h/2$, $\sum_i s_i \prod_{j \ne i} (h/2 - \tau_j)/(\tau_i - \tau_j)$ (equal steps: $3s_1
+    - 3s_2 + s_3$); zero before the first step."""
+    r, hs, k = rates
+    tau = 0.5 * hs - jnp.cumsum(hs)
+    at = 0.5 * h
+    out = jnp.zeros_like(r[0])
+    for m in range(1, PREDICTOR_RATES + 1):  # through the last m rates
+        value = 0.0
+        for i in range(m):
+            w = 1.0
+            for j in range(m):
+                if j != i:
+                    w = w * (at - tau[j]) / (tau[i] - tau[j])
+            value = value + w * r[i]
+        out = jnp.where(k == m, value, out)
+    return out
 
 
 class _Residual(eqx.Module):
@@ -224,10 +272,11 @@ class _Stepper(eqx.Module):
         return fac, refreshes, states, jnp.minimum(count, MAX_SUBSTEPS), conv & ok, rounds
 
     def step(self, c):
-        """One step of the carry ``(x, rate, fac, h, t, ok, refreshes, eager_left)``."""
-        x, rate, fac, h, t, ok, refreshes, eager_left = c
+        """One step of the carry ``(x, rates, fac, h, t, ok, refreshes, eager_left)``
+        (``rates``: :func:`_remember`'s)."""
+        x, rates, fac, h, t, ok, refreshes, eager_left = c
         xs, hs = lax.stop_gradient(x), lax.stop_gradient(h)
-        y0 = xs + hs * lax.stop_gradient(rate)  # the last step's rate, extrapolated
+        y0 = xs + hs * _extrapolated(lax.stop_gradient(rates), hs)  # the chord's start
         fac, refreshes, states, count, conv, rounds = self.substeps(
             fac, refreshes, xs, y0, hs, t, eager_left > 0, ok
         )
@@ -235,11 +284,11 @@ class _Stepper(eqx.Module):
         fresh = (rounds > 1) | (count > 1)
         eager_left = jnp.where(fresh, EAGER_STEPS, jnp.maximum(eager_left - 1, 0))
         y = self.chain(x, t, h, states, count, conv)
-        rate = (y - x) / h  # the next step's start
+        rates = _remember(rates, (y - x) / h, h)  # the next step's start
         if self.project is not None:
             y = self.project(y)
         good = ok & conv & jnp.all(jnp.isfinite(y))
-        return jnp.where(good, y, x), rate, fac, h, t + h, good, refreshes, eager_left
+        return jnp.where(good, y, x), rates, fac, h, t + h, good, refreshes, eager_left
 
     def chain(self, x, t, h, states, count, conv):
         """The step's solution through its ``count`` substeps' roots ``states[1:]``, each
@@ -295,14 +344,14 @@ def midpoint(
     checkpointed = jax.checkpoint(lambda s: stepper.step(s))  # a closure: the stepper is traced
 
     def interval(c, inputs):
-        x, rate, fac, h_fac, ok, refreshes, eager = c
+        x, rates, fac, h_fac, ok, refreshes, eager = c
         n, h, t = inputs
         # a step that differs from the kept matrix's by more than REFACTOR begins with a new
         # matrix (the spans of ts differ by rounding: within it, the kept one serves)
         again = jnp.abs(h - h_fac) > REFACTOR * h_fac
         eager = jnp.where(again, jnp.maximum(eager, 1), eager)
         before = refreshes
-        inner = (x, rate, fac, h, t, ok, refreshes, eager)
+        inner = (x, rates, fac, h, t, ok, refreshes, eager)
         if max_count is None:  # each interval its own count
             inner = lax.while_loop(
                 lambda s: s[0] < n,
@@ -317,11 +366,11 @@ def midpoint(
                 return lax.cond(i < n, checkpointed, lambda s: s, s), None
 
             inner = lax.scan(fixed, inner, jnp.arange(max_count, dtype=counts.dtype))[0]
-        x, rate, fac, _, _, ok, refreshes, eager = inner
+        x, rates, fac, _, _, ok, refreshes, eager = inner
         # a new matrix was factored with h (or a substep of it: where that fails the chord,
         # the next step makes a new one)
         h_fac = jnp.where(refreshes > before, h, h_fac)
-        return (x, rate, fac, h_fac, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
+        return (x, rates, fac, h_fac, ok, refreshes, eager), jnp.where(ok, x, jnp.inf)
 
     # no matrix yet: the first step makes one (eager), at its predicted midpoint; every matrix
     # is made in one place (the step's attempts), so that the program holds one copy of the
@@ -331,7 +380,7 @@ def midpoint(
     J0 = tuple(jax.ShapeDtypeStruct((N, m, m), x0.dtype) for _ in range(3))
     shapes = jax.eval_shape(stepper.factor, J0, h0)
     fac0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
-    carry = (x0, jnp.zeros_like(x0), fac0, h0, True, 0, 1)
+    carry = (x0, _no_rates(x0, h0), fac0, h0, True, 0, 1)
     carry = jax.tree_util.tree_map(jnp.asarray, carry)
     (_, _, _, _, ok, refreshes, _), xs = lax.scan(interval, carry, (counts, steps, ts[:-1]))
     return jnp.concatenate([x0[None], xs]), ok, refreshes
