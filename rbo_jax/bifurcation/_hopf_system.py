@@ -63,6 +63,9 @@ __all__ = [
 KINDS = ("auto", "hopf", "collision")
 ROUNDING = 64  # machine epsilons: an equilibrated residual at the rounding level has converged
 ZERO_FREQUENCY = 1e-9  # |omega| at most this times max |p| at the solution: not a Hopf point
+# free coordinates of the models whose Newton differences come from their linearisation
+# (evaluate): one body's 3, a chain of two's 6
+SHARED_UP_TO = 6
 
 
 class HopfStatus(eqx.Enumeration):
@@ -242,29 +245,47 @@ def evaluate(spec: Spec, layout: Layout, u, config, C, p, t, central=True):
     ``central`` (zero columns otherwise: the phases that do not need them). Second derivatives
     of the model there would cost a larger program; they only steer Newton's iteration: the
     residual, hence the solution, is exact, and the implicit derivative takes the exact
-    Jacobian (:mod:`._hopf`)."""
+    Jacobian (:mod:`._hopf`). A model of at most :data:`SHARED_UP_TO` free coordinates takes
+    its differences from the linearisation at the shifted points too (one vmapped copy of
+    $F$'s Jacobian in the program: it compiles faster than a second copy for the residual, and
+    runs as fast at that size); a larger one from the residual's own products."""
     k = layout.m + 1
-    q, alpha, _, _, _ = layout.unpack(u)
-    F = model_at(spec, alpha, p).field(t, config)
-    J, f0 = jax.jacfwd(lambda x: (F(x),) * 2, has_aux=True)(jnp.concatenate([q, jnp.zeros_like(q)]))
+    _, alpha, _, _, _ = layout.unpack(u)
+    scale = jnp.ones(k, u.dtype).at[-1].set(jnp.maximum(jnp.abs(alpha), 1.0))
+    h = jnp.finfo(u.dtype).eps ** (1 / 3) * jnp.maximum(jnp.abs(u[:k]), scale)
+    shifts = jnp.concatenate([jnp.diag(h), -jnp.diag(h)])  # (2k, k): q and alpha moved
 
-    def of_tail(w):
+    def linearised(head):  # (F([q, 0]), J) at (q, alpha) = head
+        F = model_at(spec, head[-1], p).field(t, config)
+        x0 = jnp.concatenate([head[:-1], jnp.zeros_like(head[:-1])])
+        J, f0 = jax.jacfwd(lambda x: (F(x),) * 2, has_aux=True)(x0)
+        return f0, J
+
+    def of_tail(w, f0, J):
         _, _, omega, v, chain = layout.unpack(jnp.concatenate([u[:k], w]))
         r = equations(layout, f0, _vectors(v, chain) @ J.T, omega, v, chain, C)
         return r, r
 
-    linear, r = jax.jacfwd(of_tail, has_aux=True)(u[k:])
+    shared = layout.m <= SHARED_UP_TO
+    if shared:  # at u and at the 2k shifted points
+        heads = u[None, :k] + jnp.concatenate([jnp.zeros((1, k), u.dtype), shifts])
+        f0s, Js = jax.vmap(linearised)(heads)
+        f0, J = f0s[0], Js[0]
+    else:
+        f0, J = linearised(u[:k])
+    linear, r = jax.jacfwd(of_tail, has_aux=True)(u[k:], f0, J)
+    if shared:
+        sides = jax.vmap(lambda f, M: of_tail(u[k:], f, M)[0])(f0s[1:], Js[1:])
+        columns = jnp.where(central, ((sides[:k] - sides[k:]) / (2 * h[:, None])).T, 0.0)
+    else:
 
-    def differences():
-        fn = lambda u: residual(spec, layout, u, config, C, p, t)  # noqa: E731
-        scale = jnp.ones(k, u.dtype).at[-1].set(jnp.maximum(jnp.abs(alpha), 1.0))
-        h = jnp.finfo(u.dtype).eps ** (1 / 3) * jnp.maximum(jnp.abs(u[:k]), scale)
-        steps = jnp.zeros((k, u.shape[0]), u.dtype).at[:, :k].set(jnp.diag(h))
-        sides = jax.vmap(fn)(jnp.concatenate([u[None] + steps, u[None] - steps]))
-        return ((sides[:k] - sides[k:]) / (2 * h[:, None])).T
+        def differences():
+            fn = lambda d: residual(spec, layout, u.at[:k].add(d), config, C, p, t)  # noqa: E731
+            sides = jax.vmap(fn)(shifts)
+            return ((sides[:k] - sides[k:]) / (2 * h[:, None])).T
 
-    zeros = lambda: jnp.zeros((r.shape[0], k), u.dtype)  # noqa: E731
-    columns = jax.lax.cond(central, differences, zeros)
+        zeros = lambda: jnp.zeros((r.shape[0], k), u.dtype)  # noqa: E731
+        columns = jax.lax.cond(central, differences, zeros)
     return r, jnp.concatenate([columns, linear], axis=1), J
 
 
