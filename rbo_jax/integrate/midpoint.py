@@ -22,8 +22,8 @@ steps, each at its step's midpoint, extrapolated to $t_n + h/2$ by their Lagrang
 (:func:`_extrapolated`; fewer at the first steps, $x_0$ at the first): the start's error is
 $O(h^4)$, so fewer iterations reach the tolerance than from the last rate alone ($O(h^2)$).
 (From the last two rates, $O(h^3)$, the iterations left an error that raised a vibrating
-cantilever's energy at every step, 13 times the drift of the others:
-benchmarks/README.md, History.) The chord iterations use the matrix $I - \tfrac h2 J$: its
+cantilever's energy at every step: a drift 13 times that from one rate, 200 times that from
+three; benchmarks/README.md, History.) The chord iterations use the matrix $I - \tfrac h2 J$: its
 blocks from $3m$ forward differences of $f$, in one loop with $f$ itself
 (:func:`rbo_jax.solvers.tridiagonal_differences`: copies of $f$ compile faster than its
 linearisation, and the chord iterations converge whatever the matrix's $10^{-8}$ relative
