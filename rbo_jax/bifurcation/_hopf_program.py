@@ -231,11 +231,9 @@ def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, se
     adjoint = adjoint_vector(J, omega, q)
     jet = _Jet(spec, layout, u, config, p, t, columns is not None)
     a, b, z = jnp.real(q), jnp.imag(q), jnp.zeros(n, u.dtype)
-    F_alpha = jax.jvp(jet.field, (jet.z0,), (jnp.zeros_like(jet.z0).at[n].set(1.0),))[1]
-    delta = jnp.concatenate([-jnp.linalg.solve(J[m:, :m], F_alpha[m:]), jnp.zeros(m, u.dtype)])
-    delta = jet.pad(delta).at[n].set(1.0)
-    transversal = jnp.stack([jnp.stack([delta, jet.pad(x), 0 * delta]) for x in (a, b)])
-    one, first = jet.rows(((a, a, z), (b, b, z), (a, b, z))), 3
+    e_alpha = jnp.zeros_like(jet.z0).at[n].set(1.0)  # its row gives F_alpha (D1 at row 3)
+    alpha_row = jnp.stack([e_alpha, 0 * e_alpha, 0 * e_alpha])[None]
+    one, first = jnp.concatenate([jet.rows(((a, a, z), (b, b, z), (a, b, z))), alpha_row]), 4
     if columns is not None:  # the directions e_j: q, then alpha, p and t
         vr, vi = (jet.pad(x) for x in _split(layout.unpack(u)[3]).reshape(2, n))
         index = jnp.concatenate([jnp.arange(m), n + jnp.arange(jet.nz - n)])
@@ -243,10 +241,15 @@ def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, se
         one = jnp.concatenate(
             [one, jnp.stack([jnp.stack([d, w, 0 * d]) for d in e for w in (vr, vi)])]
         )
-        first = jnp.where(columns, one.shape[0], 3)
+        first = jnp.where(columns, one.shape[0], 4)
     size = max(STAGE_TWO_ROWS + 2, one.shape[0])
     schedule = Schedule(n, u.dtype)
     st0 = None if second is None else schedule.initial_state(J, omega, q, adjoint)
+
+    def transversal(F_alpha):  # the rows (delta, a), (delta, b), delta = (dq/dalpha, 0, 1)
+        dq = -jnp.linalg.solve(J[m:, :m], F_alpha[m:])
+        delta = jet.pad(jnp.concatenate([dq, jnp.zeros(m, u.dtype)])).at[n].set(1.0)
+        return jnp.stack([jnp.stack([delta, jet.pad(x), 0 * delta]) for x in (a, b)])
 
     def stage(i, carry):
         directions, shifts, scale, first1, first2, D2l, D3l, st = carry
@@ -254,7 +257,7 @@ def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, se
         D1, D2, D3 = jets_by_row(jet.field, jet.z0, directions, count, shifts)
         h11, h20 = stage_one(J, omega, D2[0], D2[1], D2[2])
         two = jet.fill(
-            jnp.concatenate([jet.rows(stage_two_rows(a, b, h11, h20)), transversal]), size
+            jnp.concatenate([jet.rows(stage_two_rows(a, b, h11, h20)), transversal(D1[3])]), size
         )
         if second is not None:  # l2: advanced from i = 2 on, its next evaluation from i = 1 on
             st = _select(i >= 2, schedule.advance(st, scale, D1[0], D2[0], D3[0]), st)
@@ -274,8 +277,8 @@ def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, se
     dJq = jax.lax.complex(D2[STAGE_TWO_ROWS], D2[STAGE_TWO_ROWS + 1])
     D = None
     if columns is not None:
-        k = one.shape[0] - 3
-        D = _columns(layout, u, C, first1[3 : 3 + k : 2], first2[3 : 3 + k].reshape(k // 2, 2, n))
+        k = one.shape[0] - 4
+        D = _columns(layout, u, C, first1[4 : 4 + k : 2], first2[4 : 4 + k].reshape(k // 2, 2, n))
     l2 = None if second is None else Schedule.result(st)
     return adjoint, l1, jnp.real(jnp.vdot(adjoint, dJq)), D, l2
 
