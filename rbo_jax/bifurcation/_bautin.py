@@ -188,8 +188,7 @@ def _program(spec: Spec, secant: Secant, p, alpha0, beta0, guess, t, step, colum
               b=beta0, l=zero, values=jnp.zeros(4 * nq, p.dtype), adjoint=jnp.zeros(n, cdtype),
               transversality=zero, l2=zero)  # fmt: skip
     if columns:
-        q0 = jnp.concatenate([p, beta0[None]])
-        rows = jax.eval_shape(lambda: residual(spec, layout, u0, guess, C0, q0, t)).shape[0]
+        rows = layout.rows(C0.shape[1])
         c0.update(operator=jnp.zeros((rows, layout.size), p.dtype),
                   dq=jnp.zeros((rows, nq), p.dtype), dt=jnp.zeros((rows, 1), p.dtype))  # fmt: skip
     c0 = jax.tree_util.tree_map(jnp.asarray, c0)

@@ -54,13 +54,14 @@ def jets(F, y, directions):
     return f0[0], d1, d2, d3
 
 
-def jets_by_row(F, y, directions, count=None, shifts=None):
+def jets_by_row(F, y, directions, count=None, shifts=None, size=None):
     r""":func:`jets` one row per iteration of a loop: ``(D1, D2, D3)``, each of shape ``(N, n)``;
     only the first ``count`` rows (default all; may be traced) are computed, the others stay
     zero; row $i$ at ``y + shifts[i]`` where ``shifts`` (``(N, m)``) is given. The same
     numbers; XLA compiles the loop's single row of third derivatives faster than the rows
-    vmapped (the Hopf program's $\ell_1$; benchmarks/README.md, History)."""
-    n = jax.eval_shape(F, y).shape[0]
+    vmapped (the Hopf program's $\ell_1$; benchmarks/README.md, History). ``size``: $n$, where
+    the caller knows it (otherwise ``F`` is traced once more for it)."""
+    n = jax.eval_shape(F, y).shape[0] if size is None else size
     zeros = jnp.zeros((directions.shape[0], n), y.dtype)
 
     def row(i, acc):

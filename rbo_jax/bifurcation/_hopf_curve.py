@@ -99,10 +99,8 @@ def _corrector(spec: Spec, layout: Layout, config, C, p, t, X, tau, s):
         new = jnp.where(finite, V + delta, V)
         return new, B, jnp.where(finite, jnp.where(done, 0, -1), 1)
 
-    # the bordered Jacobian's shape from the residual's rows (not by tracing the Jacobian)
-    q = jnp.concatenate([p, X_pred[-1:]])
-    rows = jax.eval_shape(lambda: residual(spec, layout, X_pred[:-1], config, C, q, t)).shape[0]
-    B0 = jnp.zeros((rows + 1, X.shape[0]), X.dtype)
+    # the bordered Jacobian's shape from the system's rows (nothing traced for it)
+    B0 = jnp.zeros((layout.rows(C.shape[1]) + 1, X.shape[0]), X.dtype)
     V, B, code, k = iterate(step, X_pred, B0, max_steps=spec.max_steps, exhausted=1)
     tangent = equilibrated_lstsq(B, jnp.zeros(B.shape[0], B.dtype).at[-1].set(1.0))
     return V, code == 0, k, tangent / jnp.linalg.norm(tangent)

@@ -40,7 +40,6 @@ from ._hopf_system import (
     evaluate,
     model_at,
     oriented,
-    residual,
     unpack_parameters,
 )
 from ._lyapunov import STAGE_TWO_ROWS, from_stage_two, stage_one, stage_two_rows
@@ -254,7 +253,7 @@ def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, se
     def stage(i, carry):
         directions, shifts, scale, first1, first2, D2l, D3l, st = carry
         count = jnp.where(i == 0, first, jnp.where(i == 1, STAGE_TWO_ROWS + 2, 1))
-        D1, D2, D3 = jets_by_row(jet.field, jet.z0, directions, count, shifts)
+        D1, D2, D3 = jets_by_row(jet.field, jet.z0, directions, count, shifts, size=n)
         h11, h20 = stage_one(J, omega, D2[0], D2[1], D2[2])
         two = jet.fill(
             jnp.concatenate([jet.rows(stage_two_rows(a, b, h11, h20)), transversal(D1[3])]), size
@@ -371,9 +370,7 @@ def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None,
     if not (spec.kind == "hopf" and spec.lyapunov) and (columns, second) != (None, None):
         raise ValueError("flutter_program: columns and second need a Hopf spec with lyapunov.")
     if columns is not None:
-        args = (s0["u"], s0["config"], s0["C"], p, t)
-        rows = jax.eval_shape(lambda: residual(spec, layout, *args)).shape[0]
-        s0["Ju"] = jnp.zeros((rows, layout.size), p.dtype)
+        s0["Ju"] = jnp.zeros((layout.rows(s0["C"].shape[1]), layout.size), p.dtype)
     _, s, code, _ = iterate(solve, None, s0, max_steps=2 * spec.max_steps + 5,
                             exhausted=code_of(HopfStatus.not_converged))  # fmt: skip
     u, config, J = s["u"], s["config"], s["jacobian"]

@@ -189,6 +189,11 @@ class Layout(NamedTuple):
     def size(self) -> int:
         return self.m + 2 + (4 if self.kind == "collision" else 2) * self.n
 
+    def rows(self, k: int) -> int:
+        r"""The real equations of :func:`equations` with a basis $C$ of ``k`` columns: $G$ ($m$),
+        $(J - i\omega)v$ ($2n$), $C^Hv$ ($2k$), and for a collision the chain's $2n + 2k$."""
+        return self.m + (2 if self.kind == "collision" else 1) * (2 * self.n + 2 * k)
+
     def unpack(self, u):
         m, n = self.m, self.n
         u, tail = u[: m + 1], u[m + 1 :]
