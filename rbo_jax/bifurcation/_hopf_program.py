@@ -214,7 +214,9 @@ def lyapunov(spec: Spec, layout: Layout, u, config, C, J, p, t, columns=None, se
     r"""$(p, \ell_1, d\,\mathrm{Re}\lambda/d\alpha, D, \ell_2)$ at a simple Hopf pair (module
     docstring; values, not differentiated): the two stages of :mod:`._lyapunov` and the
     transversality's two directions in one loop of two iterations around one traced
-    third-order jet of $\tilde F(z) = F(x; \alpha)$, $z = [x, \alpha]$ (:class:`_Jet`).
+    third-order jet of $\tilde F(z) = F(x; \alpha)$, $z = [x, \alpha]$ (:class:`_Jet`); the
+    first iteration's fourth row $(e_\alpha, 0, 0)$ gives $F_\alpha$, whence the
+    transversality's $\delta$.
 
     With ``columns`` (a flag, traced or not, or ``None``) $z = [x, \alpha, p, t]$, and where it is
     true the first iteration also takes the rows $(e_j, v_r)$, $(e_j, v_i)$ for $z_j$ in $q$,
