@@ -116,6 +116,27 @@ def test_bad_arguments_are_named():
                               method="arclength")  # fmt: skip
 
 
+def test_the_flutter_systems_row_count_is_its_equations_length():
+    """``Layout.rows`` (the programs' carries shaped without tracing the residual) is the
+    length of the real system :func:`_hopf_system.equations` builds, for a Hopf point and a
+    collision (with its Jordan chain), a basis of one and of two columns."""
+    rng = np.random.default_rng(4)
+    m = 5
+    n = 2 * m
+
+    def cplx(*shape):
+        return jnp.asarray(rng.standard_normal(shape) + 1j * rng.standard_normal(shape))
+
+    for kind in ("hopf", "collision"):
+        layout = _hopf_system.Layout(m, kind)
+        for k in (1, 2):
+            chain = cplx(n) if kind == "collision" else None
+            products = jnp.asarray(rng.standard_normal((4 if chain is not None else 2, n)))
+            r = _hopf_system.equations(layout, jnp.asarray(rng.standard_normal(n)), products,
+                                       jnp.asarray(1.3), cplx(n), chain, cplx(n, k))  # fmt: skip
+            assert r.shape == (layout.rows(k),), (kind, k)
+
+
 def test_auto_kind_follows_the_damping():
     assert _hopf.resolve_kind("auto", ziegler(1.0)) == "collision"
     assert _hopf.resolve_kind("auto", ziegler(1.0, 0.1)) == "hopf"
