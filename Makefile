@@ -10,6 +10,11 @@ PYTEST_ARGS ?=
 # whole per process so that each compiles its JAX programs once
 WORKERS ?= 2
 LINTED := rbo_jax tests benchmarks notebooks docs/_hooks
+# pip installs without compiling every module of every dependency to bytecode (about 17 s of a
+# 42 s install, most of it for modules never imported); the first import of a module compiles
+# and writes its bytecode instead, so the recipes' processes may write it (a user's
+# PYTHONDONTWRITEBYTECODE would otherwise have every process compile jax's modules again, ~4 s)
+unexport PYTHONDONTWRITEBYTECODE
 
 .PHONY: demo lint test test-slow test-all bench docs docs-test clean
 
@@ -17,7 +22,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 10), "rbo_jax needs Python >= 3.10"'
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,plot,bench]"
+	$(BIN)/python -m pip install --quiet --no-compile -e ".[test,plot,bench]"
 	touch $(STAMP)
 
 demo: $(STAMP)
