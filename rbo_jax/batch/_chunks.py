@@ -6,11 +6,16 @@ program raises (an :func:`equinox.error_if` inside the user's quantity, a failed
 ...) is not fatal: it is re-run in halves, down to single points, with the same compiled program
 (each part padded with its own points, so no new compilation and no other point is involved);
 the points that raise on their own get the status ``error``, fill values (NaN) and their message
-in the chunk's ``errors`` (with their coordinates); every other point of the chunk is kept.
+in the chunk's ``errors`` (with their coordinates); every other point of the chunk is kept. While
+chunks run, JAX's log of each failed call of an :func:`equinox.error_if` (a traceback per call,
+one per re-run half) is left out (:class:`_KnownErrors`): the sweep reports each such point's
+message itself.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import re
 from concurrent.futures import ThreadPoolExecutor
 
@@ -32,6 +37,29 @@ def error_text(e: Exception) -> str:
     if found:
         return found[-1].strip()
     return text if len(text) <= 600 else text[:600] + " ..."
+
+
+class _KnownErrors(logging.Filter):
+    """Drops JAX's log record of a host callback that raised an :func:`equinox.error_if` error
+    (``logger.exception("jax.pure_callback failed")``, with its traceback): the chunk loop
+    catches that error and reports the point's message. Other callback failures are kept."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        return not (error is not None and "EquinoxRuntimeError" in type(error).__name__)
+
+
+_CALLBACK_LOGGER = "jax._src.callback"  # where jax logs a failed pure_callback
+
+
+@contextlib.contextmanager
+def _known_errors_unlogged():
+    logger, known = logging.getLogger(_CALLBACK_LOGGER), _KnownErrors()
+    logger.addFilter(known)
+    try:
+        yield
+    finally:
+        logger.removeFilter(known)
 
 
 class Chunks:
@@ -190,16 +218,17 @@ class Chunks:
         work overlaps the next chunk's computation."""
         pending = None
         pool = ThreadPoolExecutor(1, thread_name_prefix="rbo_jax-dispatch")
-        try:
-            for cid in chunk_ids:
-                launched = pool.submit(self.launch, cid)
+        with _known_errors_unlogged():
+            try:
+                for cid in chunk_ids:
+                    launched = pool.submit(self.launch, cid)
+                    if pending is not None:
+                        self._consume(pending, consume, bar)
+                    pending = launched.result()
                 if pending is not None:
                     self._consume(pending, consume, bar)
-                pending = launched.result()
-            if pending is not None:
-                self._consume(pending, consume, bar)
-        finally:
-            pool.shutdown(wait=False, cancel_futures=True)
+            finally:
+                pool.shutdown(wait=False, cancel_futures=True)
 
     def _consume(self, pending, consume, bar):
         cid, slices = pending[0], pending[1]
@@ -210,7 +239,9 @@ class Chunks:
 
     def recompute(self, points: np.ndarray):
         """(status, values, errors) of arbitrary finite points (``retry_errors``), in batches."""
-        outs = [self.isolate(points[i : i + self.batch]) for i in range(0, len(points), self.batch)]
+        with _known_errors_unlogged():
+            batches = range(0, len(points), self.batch)
+            outs = [self.isolate(points[i : i + self.batch]) for i in batches]
         status = np.concatenate([o[0] for o in outs]).astype(np.int8)
         values = {k: np.concatenate([o[1][k] for o in outs]) for k in outs[0][1]}
         errors, offset = {}, 0
