@@ -48,7 +48,7 @@ from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
 from .._callables import canonical
-from .._programs import program
+from .._programs import jit, program
 from ..mechanics import AbstractMechanics
 from ..solvers import Implicit, LeastSquares, Outcome, implicit
 from ._hopf_program import flutter_program
@@ -148,7 +148,8 @@ def _solve(params, spec: Spec, columns=False) -> Implicit:
     config = jax.tree_util.tree_unflatten(_config_tree(spec, p, alpha0), out[0])
     n = len(Raw._fields)
     raw = Raw(config, *out[1:n])
-    good = raw.status == 0
+    # (NumPy where concrete: no eager program of its own)
+    good = raw.status == 0 if _is_traced(raw.status) else np.asarray(raw.status) == 0
     if not columns:
         return Implicit((raw.config, raw.u, raw.C), None, good, raw)
     operator, (dp, dt) = out[n:]
@@ -209,8 +210,7 @@ def _nan_unless(good, x):
     return jnp.where(good, x, jnp.full_like(x, jnp.nan))
 
 
-@eqx.filter_jit  # one small program, not a dozen eager ones (each compiled on first use)
-def finish(spec: Spec, model: AbstractMechanics, y, raw: Raw) -> HopfPoint:
+def _finish(spec: Spec, model: AbstractMechanics, y, raw: Raw) -> HopfPoint:
     """The :class:`HopfPoint` of a solution: NaN values where the status is not successful."""
     config, u, _ = y
     layout = Layout(model.free_size(), spec.kind)
@@ -230,6 +230,10 @@ def finish(spec: Spec, model: AbstractMechanics, y, raw: Raw) -> HopfPoint:
         status=enum.from_code(HopfStatus, raw.status),
         kind=spec.kind,
     )
+
+
+# one small program, not a dozen eager ones (each compiled on first use), compiled fast
+finish = jit(_finish, fast_compile=True)
 
 
 def _is_traced(tree) -> bool:
