@@ -22,13 +22,21 @@ The K array (13×6) and the work vectors are allocated once per trajectory, not 
 from __future__ import annotations
 
 import math
+import os
 import time
 
-import _numba_dop853 as dop
-import numba
-import numpy as np
-from numba import njit, prange
-from scipy.integrate._ivp import dop853_coefficients as _dc
+# numba's prange threads (GNU OpenMP here) wait for the next parallel region by spinning on
+# every core after a region ends, which took ~2 us a trajectory (20 %) from the JAX call timed
+# next to it in the same process; passive waiting left prange's own time unchanged (14.0-14.5 us
+# a trajectory, 2 cores) and stops the interference (benchmarks/README.md, History). A user's
+# own OMP_WAIT_POLICY is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import _numba_dop853 as dop  # noqa: E402
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+from numba import njit, prange  # noqa: E402
+from scipy.integrate._ivp import dop853_coefficients as _dc  # noqa: E402
 
 __all__ = ["NUMBA_VERSION", "solve_points_serial", "solve_points_parallel", "timed_solve"]
 
