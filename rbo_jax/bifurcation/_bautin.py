@@ -46,7 +46,8 @@ import numpy as np
 from jaxtyping import Array, Complex, Float, Int
 
 from .. import _enumeration as enum
-from .._programs import program
+from .._programs import jit, program
+from .._validation import array_namespace
 from ..mechanics import AbstractMechanics
 from ..solvers import Implicit, LeastSquares, Outcome, implicit, iterate
 from ._hopf import cold_start, prepare
@@ -262,13 +263,16 @@ def _solve(params, spec: Spec, secant: Secant, columns=False):
     leaves, tree = jax.tree_util.tree_flatten(guess)
     out = _bautin_program(spec, secant, None if guess is None else tree, p, alpha0, beta0,
                           tuple(leaves), t, step, bool(columns))  # fmt: skip
-    q = jnp.concatenate([p, jnp.asarray(beta0)[None]])
+    xp = array_namespace(p, beta0)  # NumPy where concrete: no eager programs
+    q = xp.concatenate([p, xp.asarray(beta0)[None]])
     shape = eqx.filter_eval_shape(lambda q, a: model_at(spec, a, q).rest(), q, alpha0)
     raw = Raw(jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shape), out[0]), *out[1:])
-    q = jax.lax.stop_gradient(jnp.concatenate([p, raw.beta[None]]))
+    xp = array_namespace(p, raw.beta)
+    q = jax.lax.stop_gradient(xp.concatenate([p, xp.asarray(raw.beta)[None]]))
     y = (raw.config, raw.u, raw.C, raw.beta, q, jax.lax.stop_gradient(raw.grad))
+    good = array_namespace(raw.status).asarray(raw.status) == _OK
     if not columns:
-        return Implicit(y, None, raw.status == _OK, raw)
+        return Implicit(y, None, good, raw)
     g, size = raw.grad, raw.operator.shape[1]
     operator = jnp.concatenate(
         [
@@ -279,7 +283,7 @@ def _solve(params, spec: Spec, secant: Secant, columns=False):
     dp = jnp.concatenate([raw.dq[:, :-1], g[None, :-1]])
     dt = jnp.concatenate([raw.dt, jnp.zeros((1, 1), g.dtype)])
     others = jax.tree_util.tree_map(lambda _: None, params[2])
-    return Implicit(y, operator, raw.status == _OK, raw, (dp, dt, others))
+    return Implicit(y, operator, good, raw, (dp, dt, others))
 
 
 def _finish(spec: Spec, model: AbstractMechanics, y, raw: Raw) -> BautinPoint:
@@ -300,6 +304,10 @@ def _finish(spec: Spec, model: AbstractMechanics, y, raw: Raw) -> BautinPoint:
         num_steps=raw.num_steps,
         status=enum.from_code(BautinStatus, raw.status),
     )
+
+
+# one small program, not two dozen eager ones (each compiled on first use), compiled fast
+_finished = jit(_finish, fast_compile=True)
 
 
 def bautin_point(
@@ -372,4 +380,4 @@ def bautin_point(
         increment=_increment,
         exact=lambda params: _solve(params, spec, secant, True),
     )
-    return _finish(spec, model, out.y, out.extra)
+    return _finished(spec, model, out.y, out.extra)

@@ -49,6 +49,7 @@ from jaxtyping import Array, Complex, Float, Int
 from .. import _enumeration as enum
 from .._callables import canonical
 from .._programs import jit, program
+from .._validation import array_namespace
 from ..mechanics import AbstractMechanics
 from ..solvers import Implicit, LeastSquares, Outcome, implicit
 from ._hopf_program import flutter_program
@@ -148,8 +149,7 @@ def _solve(params, spec: Spec, columns=False) -> Implicit:
     config = jax.tree_util.tree_unflatten(_config_tree(spec, p, alpha0), out[0])
     n = len(Raw._fields)
     raw = Raw(config, *out[1:n])
-    # (NumPy where concrete: no eager program of its own)
-    good = raw.status == 0 if _is_traced(raw.status) else np.asarray(raw.status) == 0
+    good = array_namespace(raw.status).asarray(raw.status) == 0  # NumPy where concrete
     if not columns:
         return Implicit((raw.config, raw.u, raw.C), None, good, raw)
     operator, (dp, dt) = out[n:]
