@@ -39,6 +39,7 @@ import jax.numpy as jnp
 
 from .. import _enumeration as enum
 from .._custom_types import Scalar
+from .._validation import array_namespace
 
 ROUNDING = 1000  # machine epsilons of max |p|: the floor of the test (module docstring)
 
@@ -61,28 +62,31 @@ def spectral_abscissa(eigenvalues) -> Scalar:
     return jnp.max(jnp.real(eigenvalues))
 
 
-def _tolerances(p, rtol, reversible=False):
-    """The tolerance of every root (module docstring)."""
-    dtype = jnp.real(p).dtype
+def _tolerances(p, rtol, reversible=False, xp=jnp):
+    """The tolerance of every root (module docstring), in the namespace ``xp``."""
+    dtype = xp.real(p).dtype
     # a tighter rtol than the floor lowers the floor too: the caller vouches for the rounding
-    floor = rtol if reversible else jnp.minimum(ROUNDING * jnp.finfo(dtype).eps, rtol)
-    return rtol * jnp.abs(p) + floor * jnp.max(jnp.abs(p))
+    floor = rtol if reversible else xp.minimum(ROUNDING * xp.finfo(dtype).eps, rtol)
+    return rtol * xp.abs(p) + floor * xp.max(xp.abs(p))
 
 
 def unstable_roots(eigenvalues, *, rtol: float = 1e-9, reversible: bool = False):
     r"""Which roots have
     $\mathrm{Re}\,p > \mathrm{rtol}\,|p| + \min(c\epsilon, \mathrm{rtol})\max|p|$ (module
-    docstring; the floor $\mathrm{rtol}\max|p|$ for a ``reversible`` spectrum)."""
-    p = jnp.asarray(eigenvalues)
-    return jnp.real(p) > _tolerances(p, rtol, reversible)
+    docstring; the floor $\mathrm{rtol}\max|p|$ for a ``reversible`` spectrum). NumPy for
+    concrete eigenvalues (a host loop compiles nothing), JAX for traced ones."""
+    xp = array_namespace(eigenvalues, rtol)
+    p = xp.asarray(eigenvalues)
+    return xp.real(p) > _tolerances(p, rtol, reversible, xp)
 
 
 def unstable_oscillatory(eigenvalues, *, rtol: float = 1e-9, reversible: bool = False):
     """Which roots are unstable (:func:`unstable_roots`) with an imaginary part beyond the same
     tolerance: the roots of a flutter instability."""
-    p = jnp.asarray(eigenvalues)
-    tol = _tolerances(p, rtol, reversible)
-    return (jnp.real(p) > tol) & (jnp.abs(jnp.imag(p)) > tol)
+    xp = array_namespace(eigenvalues, rtol)
+    p = xp.asarray(eigenvalues)
+    tol = _tolerances(p, rtol, reversible, xp)
+    return (xp.real(p) > tol) & (xp.abs(xp.imag(p)) > tol)
 
 
 def classify(eigenvalues, *, rtol: float = 1e-9, reversible: bool = False):
