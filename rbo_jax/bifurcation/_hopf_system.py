@@ -163,10 +163,6 @@ def model_at(spec: Spec, alpha, p) -> AbstractMechanics:
     return model
 
 
-def _cdtype(dtype):
-    return jnp.complex64 if dtype == jnp.float32 else jnp.complex128
-
-
 def _split(z):
     return jnp.concatenate([jnp.real(z), jnp.imag(z)])
 
