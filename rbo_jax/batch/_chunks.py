@@ -152,6 +152,12 @@ class Chunks:
                 error = e
         return cid, slices, pts, valid, future, error
 
+    def compute_points(self, cid: int, slices, pts: np.ndarray):
+        """Chunk ``cid`` from its points, dispatched and finished (a Dask worker's task), with
+        JAX's log of its failed ``equinox.error_if`` calls left out, as in :meth:`run`."""
+        with _known_errors_unlogged():
+            return self.finish(*self.launch_points(cid, slices, pts))
+
     def finish(self, cid, slices, pts, valid, future, error):
         """The chunk's result ``{name: block array, "status": ..., "errors": [...]}``."""
         m = int(valid.sum())

@@ -135,7 +135,7 @@ def compute_chunk(token: str, blob: bytes, cid: int, slices, points: np.ndarray)
     """One task: chunk ``cid`` (its ``points``, in the order of the client's space) through the
     job's program; the result of :meth:`Chunks.finish` (raising points isolated)."""
     chunks = _chunks_of(token, blob)
-    return chunks.finish(*chunks.launch_points(cid, slices, points))
+    return chunks.compute_points(cid, slices, points)
 
 
 # -- the client's side ----------------------------------------------------------------------
