@@ -55,6 +55,7 @@ from ..trajectory import (
 )
 from ._rod_midpoint import auto, midpoint_rod
 from ._rod_verlet import (
+    fixed_step_status,
     verlet,
     verlet_traced,
 )
@@ -388,16 +389,8 @@ def _splitting_traced(rod, state0, ts, bad_times, dt, max_steps):
     steps and their checks in the program."""
     run_ts = jnp.where(bad_times, jnp.zeros_like(ts), ts) if is_traced(ts) else ts
     states, ok, steps, _, too_many, bad_dt = verlet_traced(rod, state0, run_ts, dt, max_steps)
-    status = SolveStatus.where(ok, SolveStatus.successful, SolveStatus.solver_error)
-    status = SolveStatus.where(too_many, SolveStatus.max_steps_reached, status)
-    status = SolveStatus.where(bad_dt, SolveStatus.invalid_parameters, status)
     what = "dt" if dt is not None else "the default step (from the stiffnesses and masses)"
-    messages = {
-        "max_steps_reached": (
-            f"method='splitting' needs more steps of dt for ts than max_steps = "
-            f"{max_steps}: raise max_steps or dt."
-        ),
-        "solver_error": _NONFINITE.format(""),
-        "invalid_parameters": f"{what} must be finite and > 0 (method='splitting').",
-    }
+    status, messages = fixed_step_status(
+        ok, too_many, bad_dt, "splitting", max_steps, _NONFINITE.format(""), what
+    )
     return states, status, steps, messages

@@ -18,11 +18,11 @@ from .. import _programs
 from .._validation import is_traced
 from ..integrate.midpoint import hermite_samples, midpoint, step_grid
 from ..models.rod import RodState, rates
-from ..trajectory import SolveStatus
 from ._recentre import nearest_turn, within_pi
 from ._rod_verlet import (
     _static_zeros,
     failed_after_first,
+    fixed_step_status,
     host_counts,
     stable_step,
     step_of,
@@ -242,15 +242,7 @@ def midpoint_rod(rod, state0, ts, bad_times, dt, rtol, atol, max_steps, staged):
             stripped, state0, jnp.asarray(ts), dt, float(rtol), float(atol), int(max_steps),
             damped,
         )  # fmt: skip
-    status = SolveStatus.where(ok, SolveStatus.successful, SolveStatus.solver_error)
-    status = SolveStatus.where(too_many, SolveStatus.max_steps_reached, status)
-    status = SolveStatus.where(bad_dt, SolveStatus.invalid_parameters, status)
-    messages = {
-        "max_steps_reached": (
-            f"method='midpoint' needs more steps of dt for ts than max_steps = {max_steps}: "
-            "raise max_steps or dt."
-        ),
-        "solver_error": _MIDPOINT_FAILED.format(""),
-        "invalid_parameters": "dt must be finite and > 0 (method='midpoint').",
-    }
+    status, messages = fixed_step_status(
+        ok, too_many, bad_dt, "midpoint", max_steps, _MIDPOINT_FAILED.format("")
+    )
     return states, status, steps, messages

@@ -83,10 +83,12 @@ from ..models.rod import (
     strains,
     tensors,
 )
+from ..trajectory import SolveStatus
 
 __all__ = [
     "SAFETY",
     "failed_after_first",
+    "fixed_step_status",
     "stable_step",
     "step_of",
     "step_counts",
@@ -478,3 +480,21 @@ def failed_after_first(states, fail):
     return jax.tree_util.tree_map(
         lambda x: jnp.concatenate([x[:1], jnp.where(fail, jnp.inf, x[1:])]), states
     )
+
+
+def fixed_step_status(ok, too_many, bad_dt, method: str, max_steps: int, failed: str, what="dt"):
+    """``(status, messages)`` of a fixed-step ``method`` whose steps were counted in the program
+    (:func:`traced_counts`' flags): ``solver_error`` where not ``ok`` (its message ``failed``),
+    ``max_steps_reached``, and ``invalid_parameters`` for the step ``what``."""
+    status = SolveStatus.where(ok, SolveStatus.successful, SolveStatus.solver_error)
+    status = SolveStatus.where(too_many, SolveStatus.max_steps_reached, status)
+    status = SolveStatus.where(bad_dt, SolveStatus.invalid_parameters, status)
+    messages = {
+        "max_steps_reached": (
+            f"method='{method}' needs more steps of dt for ts than max_steps = {max_steps}: "
+            "raise max_steps or dt."
+        ),
+        "solver_error": failed,
+        "invalid_parameters": f"{what} must be finite and > 0 (method='{method}').",
+    }
+    return status, messages
