@@ -463,14 +463,19 @@ def trace_point(point, n: int):
     return closed, jax.tree_util.tree_structure(shape)
 
 
+def point_layout(point, n: int, devices, points: int):
+    """``(local, layout)``: ``point`` traced once (:func:`trace_point`), as the per-device function
+    (:func:`local_function`) of a chunk of at least ``points`` points laid out on ``devices``."""
+    closed, out_tree = trace_point(point, n)
+    return local_function(closed, out_tree), Layout(devices, block_size(closed.jaxpr), points)
+
+
 def point_program(point, n: int, devices, points: int):
     """``(traced program, layout)``: ``point`` over a ``(layout.batch, n)`` array of at least
     ``points`` points, sharded over ``devices``."""
-    closed, out_tree = trace_point(point, n)
-    layout = Layout(devices, block_size(closed.jaxpr), points)
+    local, layout = point_layout(point, n, devices, points)
     with lapack_in_blocks(layout.block):
-        traced = sharded(local_function(closed, out_tree), layout.mesh).trace(layout.x(n))
-    return traced, layout
+        return sharded(local, layout.mesh).trace(layout.x(n)), layout
 
 
 def map_points(fn, points: dict, devices=None):

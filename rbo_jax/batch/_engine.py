@@ -111,20 +111,22 @@ def _progress_bar(progress, space: Space, mine, hosts: Hosts, desc: str):
     return tqdm(total=n_mine, desc=label, unit="pt", unit_scale=True, dynamic_ncols=True)
 
 
-def _run_chunks(chunks: Chunks | DaskChunks, mine, consume, bar, hosts: Hosts, path):
-    """Run this process's chunks (here, or as tasks of a Dask cluster); every process meets
-    afterwards, errors are re-raised."""
-    error = None
+def _run_closing(chunks: Chunks | DaskChunks, mine, consume, bar) -> Exception | None:
+    """Run the chunks ``mine`` into ``consume`` and close the progress bar; returns the error
+    raised, if any, for the caller to report to the other processes before re-raising it."""
     try:
         chunks.run(mine, consume, bar)
-    except Exception as e:  # let every process reach the meeting point below
-        error = e
-        if hosts.count == 1:
-            raise
+    except Exception as e:  # let every process reach the meeting point first
+        return e
     finally:
         if bar is not None:
             bar.close()
-    failed = hosts.any_failed(error is not None)
+    return None
+
+
+def _raise_failed(error: Exception | None, failed: list[int], path):
+    """Re-raise this process's ``error``, else a :class:`SweepError` naming the ``failed``
+    processes."""
     if error is not None:
         raise error
     if failed:
@@ -134,29 +136,23 @@ def _run_chunks(chunks: Chunks | DaskChunks, mine, consume, bar, hosts: Hosts, p
         )
 
 
+def _run_chunks(chunks: Chunks | DaskChunks, mine, consume, bar, hosts: Hosts, path):
+    """Run this process's chunks (here, or as tasks of a Dask cluster); every process meets
+    afterwards, errors are re-raised."""
+    error = _run_closing(chunks, mine, consume, bar)
+    _raise_failed(error, hosts.any_failed(error is not None), path)
+
+
 def _run_shares(chunks: Chunks, mine, writer, bar, hosts: Hosts, path: Path, space: Space):
     """Run this process's share of a multi-process sweep to a store, then meet the others in a
     way that a lost process cannot block (:meth:`Hosts.live`); process 0 computes what the lost
     processes left missing. Errors of any process are re-raised (on process 0 as a
     :class:`SweepError` naming them)."""
     hosts.introduce()  # who each process is, to name a lost one
-    error = None
-    try:
-        chunks.run(mine, writer, bar)
-    except Exception as e:  # report it to the others, then re-raise it
-        error = e
-    finally:
-        if bar is not None:
-            bar.close()
+    error = _run_closing(chunks, mine, writer, bar)
     hosts.report(error is not None)
     alive = hosts.live("shares computed")
-    failed = hosts.failed(alive)
-    if error is not None:
-        raise error
-    if failed:
-        raise SweepError(
-            f"process(es) {failed} failed (see their errors); resume the sweep to finish it."
-        )
+    _raise_failed(error, hosts.failed(alive), path)
     lost = [i for i in range(hosts.count) if i not in alive]
     if lost and hosts.index == 0:
         left = _store.missing_chunks(_store.open_group(path, "r"), space)

@@ -26,6 +26,7 @@ from ..stability import (
 )
 from ._engine import sweep
 from ._output import sort_eigenvalues
+from ._space import _as_1d, _check_name
 
 __all__ = ["stability_map", "critical_load"]
 
@@ -46,12 +47,10 @@ def _check_axes(axes: Mapping[str, object]) -> dict[str, np.ndarray]:
         raise ValueError("axes must be a non-empty mapping {name: 1-D array of values}.")
     out = {}
     for name, values in axes.items():
-        v = np.asarray(values, dtype=np.float64)
-        if v.ndim != 1 or v.size == 0:
-            raise ValueError(f"axis {name!r} must be a non-empty 1-D array, got shape {v.shape}.")
+        v = _as_1d(values, f"axis {name!r}")
         if not np.all(np.isfinite(v)):
             raise ValueError(f"axis {name!r} contains non-finite values.")
-        out[str(name)] = v
+        out[_check_name(name, "axes")] = v
     return out
 
 

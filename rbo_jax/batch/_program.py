@@ -73,12 +73,10 @@ from .._sharding import (
     BATCH_AXIS,
     VECTOR,
     Layout,
-    block_size,
     compile_program,
     lapack_in_blocks,
-    local_function,
+    point_layout,
     sharded,
-    trace_point,
 )
 from ._output import describe_output, encode_output, split_output
 
@@ -151,9 +149,7 @@ def _stored_program(key, quantity, names, devices, chunk_points) -> Program | No
     be exported, e.g. a host callback in the quantity)."""
     found = _programs.load(key)
     if found is None and not _programs.unexportable(key):
-        closed, out_tree, record = _trace_point(quantity, names)
-        layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
-        local = local_function(closed, out_tree)
+        local, layout, record = _point_layout(quantity, names, devices, chunk_points)
         try:
             with lapack_in_blocks(layout.block):
                 exported = jax.export.export(jax.jit(local))(layout.local_x(len(names)))
@@ -176,11 +172,11 @@ def _stored_program(key, quantity, names, devices, chunk_points) -> Program | No
     return Program(call, layout, structure, "shard_map", layout.x(len(names)))
 
 
-def _trace_point(quantity, names):
-    """One point's closed jaxpr, its output tree and the recorded output structure."""
+def _point_layout(quantity, names, devices, chunk_points):
+    """:func:`point_layout` of the quantity, and the output structure recorded in tracing it."""
     record: dict = {}
-    closed, out_tree = trace_point(point_function(quantity, names, record), len(names))
-    return closed, out_tree, record
+    point = point_function(quantity, names, record)
+    return (*point_layout(point, len(names), devices, chunk_points), record)
 
 
 def _compile_program(quantity, names, devices, chunk_points) -> Program:
@@ -189,9 +185,7 @@ def _compile_program(quantity, names, devices, chunk_points) -> Program:
         found = _stored_program(key, quantity, names, devices, chunk_points)
         if found is not None:
             return found
-    closed, out_tree, record = _trace_point(quantity, names)
-    layout = Layout(devices, block_size(closed.jaxpr), chunk_points)
-    local = local_function(closed, out_tree)
+    local, layout, record = _point_layout(quantity, names, devices, chunk_points)
     try:
         with lapack_in_blocks(layout.block):
             traced = sharded(local, layout.mesh).trace(layout.x(len(names)))

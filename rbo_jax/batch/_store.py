@@ -98,27 +98,17 @@ def space_from_store(group, d) -> Space:
 def _create(path: Path, space: Space, spec: OutputSpec, attrs: dict):
     group = open_group(path, "w")
     config = {"write_empty_chunks": True}
-    for n in space.names:
-        if space.grid:
-            a = group.create_array(
-                n,
-                shape=space.values[n].shape,
-                dtype="float64",
-                chunks=space.values[n].shape,
-                dimension_names=[n],
-                fill_value=np.nan,
-                config=config,
-            )
-        else:
-            a = group.create_array(
-                n,
-                shape=space.shape,
-                dtype="float64",
-                chunks=space.chunk_shape,
-                dimension_names=[POINT_DIM],
-                fill_value=np.nan,
-                config=config,
-            )
+    for n in space.names:  # a grid's axis in one chunk; a list's values in the points' chunks
+        shape = space.values[n].shape
+        a = group.create_array(
+            n,
+            shape=shape,
+            dtype="float64",
+            chunks=shape if space.grid else space.chunk_shape,
+            dimension_names=[n if space.grid else POINT_DIM],
+            fill_value=np.nan,
+            config=config,
+        )
         a[...] = space.values[n]
     point_coords = {} if space.grid else {"coordinates": " ".join(space.names)}
     for v in spec.variables:
