@@ -29,6 +29,7 @@ from jaxtyping import Array, Float, Int
 
 from . import _enumeration
 from ._validation import array_namespace, common_float_dtype, is_traced
+from ._validation import tree_finite as all_finite  # simulate's name for it
 from .kinematics import as_vector, safe_norm, turn_tensor
 from .models.rigid_body import RigidBodyOscillator
 
@@ -222,11 +223,6 @@ class Trajectory(AbstractTrajectory):
 # |θ×Ω| / (|θ||Ω|) below this counts as plane motion, which crosses the singular spheres
 # |θ| = 2πk of Z harmlessly.
 TRANSVERSE_TOL = 1e-6
-
-
-def all_finite(tree):
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
 def transverse_fraction(theta, Omega):

@@ -50,8 +50,8 @@ from .._programs import jit, program
 from .._validation import array_namespace
 from ..mechanics import AbstractMechanics
 from ..solvers import Implicit, LeastSquares, Outcome, implicit, iterate
-from ._hopf import cold_start, prepare
-from ._hopf_program import flutter_program
+from ._hopf import _config_tree, cold_start, prepare
+from ._hopf_program import _select, _typed, flutter_program
 from ._hopf_system import Layout, Spec, model_at, oriented, residual
 from ._normal_form import STENCIL, WEIGHTS
 
@@ -213,14 +213,6 @@ def _flat_program(spec: Spec, secant: Secant, tree, p, alpha0, beta0, leaves, t,
 _bautin_program = program(_flat_program, fast_compile=True)
 
 
-def _select(pred, a, b):
-    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
-
-
-def _typed(new, old):
-    return jax.tree_util.tree_map(lambda x, y: jnp.asarray(x, dtype=y.dtype), new, old)
-
-
 # --------------------------------------------------------------------------------------------
 # The implicit derivative: the flutter system and l1 = 0, l1 linearised by its gradient
 # --------------------------------------------------------------------------------------------
@@ -265,8 +257,7 @@ def _solve(params, spec: Spec, secant: Secant, columns=False):
                           tuple(leaves), t, step, bool(columns))  # fmt: skip
     xp = array_namespace(p, beta0)  # NumPy where concrete: no eager programs
     q = xp.concatenate([p, xp.asarray(beta0)[None]])
-    shape = eqx.filter_eval_shape(lambda q, a: model_at(spec, a, q).rest(), q, alpha0)
-    raw = Raw(jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shape), out[0]), *out[1:])
+    raw = Raw(jax.tree_util.tree_unflatten(_config_tree(spec, q, alpha0), out[0]), *out[1:])
     xp = array_namespace(p, raw.beta)
     q = jax.lax.stop_gradient(xp.concatenate([p, xp.asarray(raw.beta)[None]]))
     y = (raw.config, raw.u, raw.C, raw.beta, q, jax.lax.stop_gradient(raw.grad))

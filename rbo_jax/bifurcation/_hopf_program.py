@@ -175,6 +175,7 @@ def _equilibrated(r, J):
 
 
 def _select(pred, a, b):
+    """``a`` where ``pred``, else ``b``, leaf by leaf."""
     return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
 
 
@@ -327,10 +328,10 @@ def _initial(spec: Spec, layout: Layout, p, alpha0, guess, t, warm, u0, C0):
     if spec.state_fn is not None:
         point = {**unpack_parameters(spec.names, spec.shapes, p), spec.parameter: alpha0}
         closed = model.configuration(spec.state_fn(**point), "theta_eq_fn(...)")
-        guess = jax.lax.cond(warm, lambda: guess, lambda: _like(closed, guess))
+        guess = jax.lax.cond(warm, lambda: guess, lambda: _typed(closed, guess))
     if spec.steps > 1:  # load steps: the equilibrium by the statics' solver, then the start
         solved, _, _, _ = newton_equilibrium(model, guess, t, steps=spec.steps)
-        guess = jax.lax.cond(warm, lambda: guess, lambda: _like(solved, guess))
+        guess = jax.lax.cond(warm, lambda: guess, lambda: _typed(solved, guess))
         cold_phase = SHIFT_PHASE
     cold = jnp.zeros(layout.size, p.dtype).at[layout.m].set(alpha0)
     return {
@@ -345,10 +346,6 @@ def _initial(spec: Spec, layout: Layout, p, alpha0, guess, t, warm, u0, C0):
         "alpha": jnp.asarray(alpha0, p.dtype),
         "residual": jnp.asarray(jnp.inf, p.dtype),
     }
-
-
-def _like(new, old):
-    return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, b.dtype), new, old)
 
 
 def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None, second=None):
