@@ -13,7 +13,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "rbo_jax"
 
 # Bottom to top. A module may import from its own layer's package folder and from lower layers.
 LAYERS = [
-    ("_custom_types", "_elementary", "_version"),
+    ("_custom_types", "_elementary", "_progress", "_version"),
     ("_cache", "_callables"),
     ("_precision", "_devices", "_enumeration", "_programs", "_lazy"),
     ("_sharding",),

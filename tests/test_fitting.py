@@ -140,9 +140,10 @@ class _HalfC(eqx.Module):
         return 0.5 * self.c * s
 
 
-def test_attitude_data_wrapping_through_pi():
+def test_attitude_data_wrapping_through_pi(capsys):
     """A large plane oscillation (|θ| up to ~3.9 rad): the observed principal turn-vectors jump at
-    |θ| = π, but the rotation distance turn_vector(Q_obsᵀ·Q) fits c exactly."""
+    |θ| = π, but the rotation distance turn_vector(Q_obsᵀ·Q) fits c exactly (``progress=True``:
+    the iterations and their loss on a bar)."""
     from rbo_jax.kinematics import turn_vector
 
     c_true = 1.5
@@ -156,9 +157,11 @@ def test_attitude_data_wrapping_through_pi():
     assert float(jnp.max(jnp.abs(principal - tr.theta))) > 1.0  # the data does wrap
     data = TrajectoryData(ts, theta=principal, theta0=th0, Omega0=Om0)
     start = RigidBodyOscillator(jnp.eye(3), IsotropicFoundation(_HalfC(0.7 * c_true)))
-    res = fit(start, data, lambda m: m.foundation.F.c)
+    res = fit(start, data, lambda m: m.foundation.F.c, progress=True)
     assert res.converged, res.message
     assert float(res.params[0]) == pytest.approx(c_true, rel=1e-6)
+    err = capsys.readouterr().err
+    assert "fit:" in err and "loss=" in err
 
 
 def test_partial_observations_omega_only_and_masked_theta():

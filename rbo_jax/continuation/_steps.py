@@ -15,6 +15,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import NamedTuple
 
+from .._progress import progress_bar
+
 __all__ = ["Steps", "follow", "progress_bar"]
 
 
@@ -35,23 +37,6 @@ class Steps(NamedTuple):
                 f"ds_min={self.ds_min}, ds_max={self.ds_max}."
             )
         return self
-
-
-class _NoBar:
-    def update(self, n):
-        pass
-
-    def close(self):
-        pass
-
-
-def progress_bar(progress: bool, total: int, desc: str):
-    """A tqdm bar of ``total`` points, or one that does nothing."""
-    if not progress:
-        return _NoBar()
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit="point")
 
 
 def follow(

@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 import equinox as eqx
 import numpy as np
 
+from .._progress import progress_bar
 from ..models.rigid_body import RigidBodyOscillator
 from ..solvers import gauss_newton_covariance, run_least_squares
 from ._constants import fit_constants, is_measurements
@@ -339,12 +340,7 @@ def fit(
     )  # fmt: skip
     horizons = _check_options(optimizer, horizons, max_steps, solve_max_steps)
     history: list[float] = []
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=max_steps * len(horizons), desc="fit", unit="it")
-    try:
+    with progress_bar(progress, max_steps * len(horizons), "fit", "it") as bar:
         u, steps, converged, message = _stages(
             u,
             model,
@@ -357,9 +353,6 @@ def fit(
             bar,
             verbose,
         )
-    finally:
-        if bar is not None:
-            bar.close()
     r, cov, se, bias_se, note = _covariance(u, model, datas, spec)
     fitted_model, natural, states = unpack(u, model, len(datas), spec)
     init_states = tuple(

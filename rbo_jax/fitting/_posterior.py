@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from .._progress import progress_bar
 from ..solvers import value_and_jacfwd
 from ._constants import fit_constants, is_measurements
 from ._fit import fit, setup
@@ -348,12 +349,15 @@ def _inference_data(variables, stats, n_experiments):
     return data, diagnostics
 
 
-def _summary_attrs(diagnostics, stats, times, fit_time, integrator):
-    """The posterior group's attributes: convergence summary and where the time went."""
+def _posterior_data(variables, stats, times, n_experiments, fit_time, integrator, start):
+    """ArviZ's container of the draws (:func:`_inference_data`), its posterior group's
+    attributes the convergence summary and where the time went (``wall_time``: since
+    ``start``)."""
+    out, diagnostics = _inference_data(variables, stats, n_experiments)
     r_hat = diagnostics.sel(diagnostic="r_hat")
     ess = diagnostics.sel(diagnostic="ess_bulk")
     n_draws = int(np.size(stats["lp"]))
-    return {
+    attrs = {
         "max_r_hat": float(max(float(r_hat[v].max()) for v in r_hat.data_vars)),
         "min_ess_bulk": float(min(float(ess[v].min()) for v in ess.data_vars)),
         "divergences": int(np.sum(stats["diverging"])),
@@ -366,6 +370,9 @@ def _summary_attrs(diagnostics, stats, times, fit_time, integrator):
         "chain_method": times["chains"],
         "prior": "flat on the unconstrained coordinates u, unless priors says otherwise",
     }
+    attrs["wall_time"] = time.perf_counter() - start
+    out["posterior"].attrs.update(attrs)
+    return out
 
 
 def posterior(
@@ -490,26 +497,14 @@ def posterior(
     key = _cache_key(static, forward, priors, operands)
     z, stats, times = _run(density, operands, key, L.shape[0], opts, progress)
     variables = _natural_draws(z, u_star, L, spec)
-    out, diagnostics = _inference_data(variables, stats, len(datas))
-    attrs = _summary_attrs(diagnostics, stats, times, result.wall_time, integrator)
-    attrs["wall_time"] = time.perf_counter() - start
-    out["posterior"].attrs.update(attrs)
-    return out
+    return _posterior_data(variables, stats, times, len(datas), result.wall_time, integrator, start)
 
 
 def _run(density, operands, key, dim, opts, progress):
     """The chains (:func:`rbo_jax.fitting._sampler.run_chains`), with a progress bar."""
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        total = opts["num_warmup"] + opts["num_samples"]
-        bar = tqdm(total=total, desc="posterior", unit="step")
-    try:
+    total = opts["num_warmup"] + opts["num_samples"]
+    with progress_bar(progress, total, "posterior", "step") as bar:
         return run_chains(density, operands, key, dim, opts, bar)
-    finally:
-        if bar is not None:
-            bar.close()
 
 
 def _rod_posterior(rod_fn, data, params, priors, opts, solve, progress, start):
@@ -539,11 +534,7 @@ def _rod_posterior(rod_fn, data, params, priors, opts, solve, progress, start):
     z, stats, times = _run(density, operands, key, L.shape[0], opts, progress)
     x = x_star[None, None, :] + np.einsum("ij,cdj->cdi", L, z)
     variables = {name: np.exp(x[..., i]) for i, name in enumerate(names)}
-    out, diagnostics = _inference_data(variables, stats, 0)
-    attrs = _summary_attrs(diagnostics, stats, times, fit_time, "forward mode")
-    attrs["wall_time"] = time.perf_counter() - start
-    out["posterior"].attrs.update(attrs)
-    return out
+    return _posterior_data(variables, stats, times, 0, fit_time, "forward mode", start)
 
 
 _value_and_jacobian = eqx.filter_jit(value_and_jacfwd)

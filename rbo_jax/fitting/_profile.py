@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ..solvers import levenberg_marquardt
+from ..solvers import levenberg_marquardt, value_and_jacfwd
 from ._constants import fit_constants, is_measurements
 from ._fit import fit, setup
 from ._residuals import (
@@ -64,21 +64,10 @@ def _fixed_values(values, transform_name, name) -> np.ndarray:
     return v
 
 
-def _with_jacobian(res, x):
-    """``(res(x), ∂res/∂x)`` by forward mode."""
-
-    def both(z):
-        r = res(z)
-        return r, r
-
-    J, r = jax.jacfwd(both, has_aux=True)(x)
-    return r, J
-
-
 @eqx.filter_jit
 def _at_optimum(x, problem):
     """The residuals and their Jacobian at the fit's optimum (all coordinates)."""
-    return _with_jacobian(problem, x)
+    return value_and_jacfwd(problem, x)
 
 
 @eqx.filter_jit
@@ -87,7 +76,7 @@ def _refit(x_free0, fixed, k, problem, max_steps, tol):
     unknowns are the flat coordinates x of ``problem`` (residuals of x) but the ``k``-th."""
 
     def evaluate(x_free, xk):
-        return _with_jacobian(lambda z: problem(jnp.insert(z, k, xk)), x_free)
+        return value_and_jacfwd(lambda z: problem(jnp.insert(z, k, xk)), x_free)
 
     def one(lane):
         x_free, xk = lane
