@@ -9,7 +9,9 @@ the points that raise on their own get the status ``error``, fill values (NaN) a
 in the chunk's ``errors`` (with their coordinates); every other point of the chunk is kept. While
 chunks run, JAX's log of each failed call of an :func:`equinox.error_if` (a traceback per call,
 one per re-run half) is left out (:class:`_KnownErrors`): the sweep reports each such point's
-message itself.
+message itself; and after them a host callback that succeeds runs on every device, so that JAX
+does not raise the last failed one again when it synchronises (:func:`_settle_callbacks`; at the
+interpreter's exit it printed a traceback).
 """
 
 from __future__ import annotations
@@ -42,24 +44,55 @@ def error_text(e: Exception) -> str:
 class _KnownErrors(logging.Filter):
     """Drops JAX's log record of a host callback that raised an :func:`equinox.error_if` error
     (``logger.exception("jax.pure_callback failed")``, with its traceback): the chunk loop
-    catches that error and reports the point's message. Other callback failures are kept."""
+    catches that error and reports the point's message. Other callback failures are kept.
+    ``failed``: the failed callbacks seen."""
+
+    def __init__(self):
+        super().__init__()
+        self.failed = 0
 
     def filter(self, record: logging.LogRecord) -> bool:
         error = record.exc_info[1] if record.exc_info else None
+        self.failed += error is not None
         return not (error is not None and "EquinoxRuntimeError" in type(error).__name__)
 
 
 _CALLBACK_LOGGER = "jax._src.callback"  # where jax logs a failed pure_callback
 
 
+def _echo(x):
+    return jax.pure_callback(lambda v: v, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+
+_SETTLE: dict = {}  # device -> the compiled _echo
+
+
+def _settle_callbacks():
+    """Run a host callback that succeeds on every local device. JAX keeps, for each device, the
+    runtime token of the last program there with a host callback, and waits on it when it next
+    synchronises (:func:`jax.effects_barrier`, and at the interpreter's exit): after a failed
+    callback it raises the error again, at exit as a traceback. The program run here becomes
+    the last one: compiled ahead of time, as the chunks' programs are (a ``jax.jit`` function's
+    later calls take a path that leaves JAX's record as it was)."""
+    for device in jax.local_devices():
+        x = jax.device_put(np.zeros((), np.float32), device)
+        if device not in _SETTLE:
+            _SETTLE[device] = jax.jit(_echo).lower(x).compile()
+        _SETTLE[device](x).block_until_ready()
+
+
 @contextlib.contextmanager
 def _known_errors_unlogged():
+    """The chunks run here: JAX's log of their failed ``equinox.error_if`` calls left out, and
+    after a failed callback a successful one on every device (:func:`_settle_callbacks`)."""
     logger, known = logging.getLogger(_CALLBACK_LOGGER), _KnownErrors()
     logger.addFilter(known)
     try:
         yield
     finally:
         logger.removeFilter(known)
+        if known.failed:
+            _settle_callbacks()
 
 
 class Chunks:
