@@ -357,10 +357,18 @@ def test_equilibrium_stability_is_the_map_point_4_61_4_69():
 
 def test_critical_value_scans_then_bisects():
     """rbo_jax.maps.critical_value: the first change of a monotone flag to 1e-12, inf when the
-    flag never turns, the lower end when it is already on."""
+    flag never turns, the lower end when it is already on; the flag is traced once (the scan
+    and the bisection one loop: one copy of it compiled)."""
     from rbo_jax.maps import critical_value
 
-    x = float(critical_value(lambda v: v > 0.3141592653, 0.0, 1.0, n_scan=8, n_bisect=48))
+    traced = []
+
+    def flag(v):
+        traced.append(v)
+        return v > 0.3141592653
+
+    x = float(critical_value(flag, 0.0, 1.0, n_scan=8, n_bisect=48))
     assert abs(x - 0.3141592653) < 1e-12
+    assert len(traced) == 1
     assert float(critical_value(lambda v: v > 2.0, 0.0, 1.0)) == np.inf
     assert abs(float(critical_value(lambda v: v > -1.0, 0.0, 1.0, n_scan=4)) - 0.0) < 1e-12

@@ -242,9 +242,10 @@ def critical_load(
     equilibrium loses stability (:func:`rbo_jax.classify`: an unstable root, each against its
     own modulus), for every point of the grid ``axes`` of the other parameters; any model.
 
-    The interval is scanned at ``n_scan`` points, then the end of the stable interval is
-    refined by ``n_bisect`` bisection steps (everything vmapped; if the first scan point is
-    already unstable, the interval from ``load_min`` to it is bisected). Returns an
+    The interval is scanned at ``n_scan`` points up to the first that is not stable, then the
+    end of the stable interval is refined by ``n_bisect`` bisection steps (one loop, the grid's
+    points vmapped: :func:`rbo_jax.maps.critical_value`; if the first scan point is already
+    unstable, the interval from ``load_min`` to it is bisected). Returns an
     :class:`xarray.DataArray` over ``axes`` (0-d for ``axes={}``: one model): ``inf`` where the
     equilibrium is stable on the whole interval; NaN where the stable interval ends at a load
     whose equilibrium cannot be computed (undefined, not unstable: a limit point of the

@@ -93,27 +93,33 @@ def equilibrium_stability(
 
 def first_change(code_at: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48, base=0):
     r"""``(x, code)``: the smallest value $x \in (lo, hi]$ at which ``code_at(x)`` (a traced
-    integer code) is no longer ``base``, and the code there: a scan at ``n_scan`` points, then
-    ``n_bisect`` bisection steps on the first change (if the first scan point has already
-    changed, the interval from ``lo`` to it is bisected). ``x`` is ``inf`` if the code is
-    ``base`` on the whole scan. ``code_at`` is traced twice (the scan, the bisection), and the
-    code at ``x`` is the one computed there. jit- and vmap-compatible."""
+    integer code) is no longer ``base``, and the code there: a scan of the ``n_scan`` points
+    ``linspace(lo, hi, n_scan + 1)[1:]`` up to the first that has changed, then ``n_bisect``
+    bisection steps between it and the point before (``lo`` before the first). ``x`` is ``inf``
+    if the code is ``base`` on the whole scan. One loop evaluates ``code_at`` at one point an
+    iteration (the scan's next point, then the bisection's midpoint): it is traced and compiled
+    once, and the scan stops at the first change. jit- and vmap-compatible."""
     scan = jnp.linspace(lo, hi, n_scan + 1)[1:]
-    codes = jax.vmap(code_at)(scan)
-    flags = codes != base
-    i = jnp.argmax(flags)
-    upper = scan[i]
-    lower = jnp.where(i > 0, scan[jnp.maximum(i - 1, 0)], lo)
 
-    def body(_, bounds):
-        lower, upper, code = bounds
-        mid = 0.5 * (lower + upper)
-        c = code_at(mid)
-        u = c != base
-        return jnp.where(u, lower, mid), jnp.where(u, mid, upper), jnp.where(u, c, code)
+    def more(s):
+        k, b, _, _, found, _ = s
+        return jnp.where(found, b < n_bisect, k < n_scan)
 
-    _, upper, code = jax.lax.fori_loop(0, n_bisect, body, (lower, upper, codes[i]))
-    return jnp.where(jnp.any(flags), upper, jnp.inf), code
+    def evaluate(s):
+        k, b, lower, upper, found, code = s
+        x = jnp.where(found, 0.5 * (lower + upper), scan[jnp.minimum(k, n_scan - 1)])
+        c = jnp.asarray(code_at(x)).astype(jnp.int32)
+        changed = c != base
+        lower, upper = jnp.where(changed, lower, x), jnp.where(changed, x, upper)
+        code = jnp.where(changed, c, code)
+        k, b = jnp.where(found, k, k + 1), jnp.where(found, b + 1, b)
+        return k, b, lower, upper, found | changed, code
+
+    zero = jnp.zeros((), jnp.int32)
+    lower = jnp.asarray(lo, scan.dtype)
+    s = (zero, zero, lower, scan[-1], jnp.zeros((), bool), jnp.asarray(base, jnp.int32))
+    _, _, _, upper, found, code = jax.lax.while_loop(more, evaluate, s)
+    return jnp.where(found, upper, jnp.inf), code
 
 
 def critical_value(unstable: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48):
