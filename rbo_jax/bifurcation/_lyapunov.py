@@ -19,8 +19,8 @@ the second needing the first's solves):
   $C(q, q, \bar q) = C(a, a, a) + C(a, b, b) + i[C(a, a, b) + C(b, b, b)]$
   (the symmetric product $(a + ib)^2(a - ib) = (a + ib)(a^2 + b^2)$).
 
-The rows of the stages are directions for :func:`._field.jets`; the Hopf program
-(:mod:`._system`) evaluates them with the same traced derivative as its Newton steps.
+The rows of the stages are directions for :func:`._field.jets_by_row`; the Hopf program
+evaluates them in one loop around one traced jet (:func:`._hopf_program.lyapunov`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._field import jets
+from ._field import jets_by_row
 
 __all__ = [
     "STAGE_TWO_ROWS",
@@ -83,12 +83,14 @@ def first_lyapunov_coefficient(F, x0, omega, q, p):
     r"""Kuznetsov's first Lyapunov coefficient $\ell_1$ (eq. (3.20) of his book; module
     docstring) of the vector field ``F`` at the Hopf point ``x0``, with $Jq = i\omega q$,
     $\langle q, q\rangle = 1$ and $J^Tp = -i\omega p$, $\langle p, q\rangle = 1$. Second and
-    third derivatives of ``F`` along directions only (:func:`._field.jets`)."""
+    third derivatives of ``F`` along directions only (:func:`._field.jets_by_row`)."""
     x0 = jnp.asarray(x0)
     J = jax.jacfwd(F)(x0)
     a, b = jnp.real(q).astype(x0.dtype), jnp.imag(q).astype(x0.dtype)
     z = jnp.zeros_like(a)
-    _, _, D2, _ = jets(F, x0, jnp.stack([jnp.stack(r) for r in ((a, a, z), (b, b, z), (a, b, z))]))
+    _, D2, _ = jets_by_row(
+        F, x0, jnp.stack([jnp.stack(r) for r in ((a, a, z), (b, b, z), (a, b, z))])
+    )
     h11, h20 = stage_one(J, omega, D2[0], D2[1], D2[2])
-    _, _, D2, D3 = jets(F, x0, stage_two_rows(a, b, h11, h20))
+    _, D2, D3 = jets_by_row(F, x0, stage_two_rows(a, b, h11, h20))
     return from_stage_two(p, omega, D2, D3)

@@ -42,14 +42,16 @@ G_{32} &= \big\langle p,\ E(q, q, q, \bar q, \bar q) + D(q, q, q, \bar H_{20})
 
 A $k$-linear form of complex arguments is the sum, over the choices of real or imaginary part of
 each argument, of real directional derivatives $D^kF[t_1, \dots, t_k]$ times $i^m$ ($m$ the
-number of imaginary parts chosen). The first three orders are exact (nested forward mode,
-:func:`._field.jet`); the fourth and fifth are central differences of the exact third derivative
-along $t_4$ and $t_5$ (Richardson's fourth-order stencil in each, steps of $h$ = ``STEP`` along
-the unit vectors: $O(h^4)$ truncation, $O(\epsilon/h^2)$ rounding, ~1e-11 relative; a traced
-fifth derivative made the program's compilation minutes long). So every term is one evaluation
-of the third-order jet at a shifted point, and :class:`Schedule` lists them all, stage by stage
-(each stage needs the previous one's solves): 943 evaluations, one per iteration of a loop
-around ONE traced jet, the same copy that solves the Hopf system in :func:`rbo_jax.bautin_point`.
+number of imaginary parts chosen). The first three orders are exact (nested forward mode along
+one direction and the polarization identities, :func:`._field.jets_by_row`); the fourth and fifth
+are central differences of the exact third derivative along $t_4$ and $t_5$ (Richardson's
+fourth-order stencil in each, steps of $h$ = ``STEP`` along the unit vectors: $O(h^4)$
+truncation, $O(\epsilon/h^2)$ rounding; on the normal form of ``tests/test_bautin.py`` 8e-10
+relative; a traced fifth derivative made the program's compilation minutes long). So every
+term is one evaluation of the third-order jet at a shifted point, and :class:`Schedule` lists
+them all, stage by stage (each stage needs the previous one's solves): 943 evaluations (four
+jets along one direction each), one per iteration of a loop around ONE traced jet, the same copy
+that gives $\ell_1$ in :func:`rbo_jax.bautin_point`.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._field import jet
+from ._field import jets_by_row
 
 __all__ = ["Schedule", "second_lyapunov_coefficient"]
 
@@ -269,14 +271,15 @@ def second_lyapunov_coefficient(F, x0, omega, q, p):
     $|q| = 1$, $J^Tp = -i\omega p$, $\bar p^Tq = 1$. Meaningful where $\ell_1 = 0$ (a Bautin
     point): there $\ell_2 < 0$ means the cycles born on the hard side ($\ell_1 > 0$) turn back
     at a fold of cycles and a large stable cycle exists. Derivatives of ``F`` along directions
-    only: one traced third-order jet (:func:`._field.jet`) in a loop over :class:`Schedule`."""
+    only: one traced third-order jet (:func:`._field.jets_by_row`) in a loop over
+    :class:`Schedule`."""
     x0 = jnp.asarray(x0)
     schedule = Schedule(x0.shape[0], x0.dtype)
     st = schedule.initial_state(jax.jacfwd(F)(x0), omega, q, p)
 
     def body(_, st):
         shift, t, scale = schedule.evaluation(st)
-        _, d1, d2, d3 = jet(F, x0 + shift, t[0], t[1], t[2])
-        return schedule.advance(st, scale, d1, d2, d3)
+        d1, d2, d3 = jets_by_row(F, x0 + shift, t[None], size=x0.shape[0])
+        return schedule.advance(st, scale, d1[0], d2[0], d3[0])
 
     return Schedule.result(jax.lax.fori_loop(0, EVALUATIONS, body, st))
