@@ -4,6 +4,8 @@ function theorem against finite differences, the first Lyapunov coefficient agai
 forms, Floquet multipliers of regular precessions (4.110)-(4.118) against the rotating-frame
 spectrum, and continuation (equilibria, limit cycles, the flutter boundary)."""
 
+import itertools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -87,6 +89,41 @@ def test_first_lyapunov_against_guckenheimer_holmes():
         fxy * (fxx + fyy) - gxy * (gxx + gyy) - fxx * gxx + fyy * gyy
     ) / (16 * w)
     assert _planar_l1(f, g, w) == pytest.approx(2 * a / w, rel=1e-12)
+
+
+def test_mixed_derivatives_by_polarization_of_jets_along_one_direction():
+    """jets_by_row's D F[t1], D^2 F[t1, t2], D^3 F[t1, t2, t3] (four jets along t1 ± t2 ± t3)
+    against the closed forms of a cubic F(x) = A x + T2(x, x) + T3(x, x, x) (symmetric
+    T2, T3): A t1 + 2 T2(x, t1) + 3 T3(x, x, t1), 2 T2(t1, t2) + 6 T3(x, t1, t2),
+    6 T3(t1, t2, t3); with directions of lengths 1e-3 to 1e3, zero ones, and shifted points."""
+    from rbo_jax.bifurcation._field import jets_by_row
+
+    rng = np.random.default_rng(7)
+    n = 4
+    A = rng.normal(size=(n, n))
+    T2 = rng.normal(size=(n, n, n))
+    T2 = (T2 + T2.transpose(0, 2, 1)) / 2
+    T3 = rng.normal(size=(n, n, n, n))
+    T3 = sum(T3.transpose((0, *p)) for p in itertools.permutations((1, 2, 3))) / 6
+
+    def F(x):
+        return A @ x + jnp.einsum("ijk,j,k", T2, x, x) + jnp.einsum("ijkl,j,k,l", T3, x, x, x)
+
+    y = rng.normal(size=n)
+    rows = rng.normal(size=(5, 3, n)) * np.array([1.0, 1e-3, 1e3])[None, :, None]
+    rows[3, 2] = 0.0  # a second-order row
+    rows[4, 1:] = 0.0  # a first-order row
+    shifts = rng.normal(size=(5, n)) * 0.1
+    D1, D2, D3 = jets_by_row(F, jnp.asarray(y), jnp.asarray(rows), shifts=jnp.asarray(shifts))
+    for i, (t1, t2, t3) in enumerate(rows):
+        x = y + shifts[i]
+        d1 = (
+            A @ t1 + 2 * np.einsum("ijk,j,k", T2, x, t1) + 3 * np.einsum("ijkl,j,k,l", T3, x, x, t1)
+        )
+        d2 = 2 * np.einsum("ijk,j,k", T2, t1, t2) + 6 * np.einsum("ijkl,j,k,l", T3, x, t1, t2)
+        d3 = 6 * np.einsum("ijkl,j,k,l", T3, t1, t2, t3)
+        for got, want in ((D1[i], d1), (D2[i], d2), (D3[i], d3)):
+            np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * (1 + np.abs(want).max()))
 
 
 # --------------------------------------------------------------------------------------------
