@@ -357,7 +357,8 @@ LYAPUNOV_UP_TO = 6  # free coordinates of the models whose l1 hopf_point compute
 def _lyapunov(lyapunov, model: AbstractMechanics) -> bool:
     r"""Whether to compute $\ell_1$: ``lyapunov``, or by default for models of at most
     :data:`LYAPUNOV_UP_TO` free coordinates (a rigid body, a pair of bodies): its program holds
-    the model's third derivatives, which for a rod's forces take minutes to compile."""
+    the model's third derivatives, which for a rod's forces or a chain of bodies take two to
+    three times as long to compile as the rest of the program (benchmarks/README.md)."""
     return model.free_size() <= LYAPUNOV_UP_TO if lyapunov is None else bool(lyapunov)
 
 
@@ -417,7 +418,8 @@ def hopf_point(
     - `lyapunov`: compute the first Lyapunov coefficient, the adjoint and the transversality
       at a simple Hopf pair; default (``None``): for models of at most six free coordinates (a
       rigid body, two bodies of a lattice): a larger model's third derivatives take long to
-      compile (minutes for a rod's forces); pass ``True`` to have them.
+      compile (a rod's forces or a chain of bodies: two to three times the rest of the
+      program); pass ``True`` to have them.
 
     **Returns** a :class:`HopfPoint` (:mod:`._hopf_system` for the system). Never raises for a
     failed solve: ``status`` says why, and the values are NaN. ``jax.grad``/``jax.jacfwd`` of
