@@ -278,13 +278,33 @@ def stable_text(obj) -> str | None:
 _SEEN: dict = {}
 
 
+def _by_value(key) -> bool:
+    """Whether ``key`` describes everything by value: no part known only by identity (a tracer
+    or another unhashable object in a closure), which would never match again and would keep
+    the object alive."""
+    stack = [key]
+    while stack:
+        k = stack.pop()
+        if type(k) is tuple:
+            if len(k) == 2 and k[0] == "id" and isinstance(k[1], _Identity):
+                return False
+            stack.extend(k)
+    return True
+
+
 def canonical(fn):
     """The first function seen that computes what ``fn`` computes (:func:`callable_key`): a
     new but identical lambda (a notebook cell run again) is then the same static argument of a
-    compiled solver, and its program is not traced again."""
+    compiled solver, and its program is not traced again. ``fn`` itself where part of it is
+    known only by identity (:func:`_by_value`), and where the function seen first no longer
+    computes the same (a list or dict in its closure changed since)."""
     if fn is None:
         return None
+    key = callable_key(fn)
     try:
-        return _SEEN.setdefault(callable_key(fn), fn)
+        seen = _SEEN.setdefault(key, fn) if _by_value(key) else fn
     except TypeError:  # an unhashable key: the function itself
         return fn
+    if seen is not fn and callable_key(seen) != key:
+        _SEEN[key] = seen = fn
+    return seen

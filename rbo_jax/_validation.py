@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._callables import canonical
 from ._custom_types import Scalar, ScalarLike, Vector, VectorLike
 
 
@@ -259,13 +260,16 @@ def callable_leaf(fn: Callable, owner: str, name: str) -> Callable:
     so their float leaves stay differentiable parameters. A plain function is wrapped in
     ``jax.tree_util.Partial``, which makes it part of the tree *structure* rather than a leaf:
     the object then passes through plain ``jax.jit``/``jax.vmap`` as well as the ``eqx.filter_*``
-    transformations (calling it is unchanged).
+    transformations (calling it is unchanged). A new but identical function (the same code,
+    closure and globals, :func:`rbo_jax._callables.canonical`: a notebook cell that builds its
+    model again) is replaced by the first one seen, so that the model has the same structure
+    and its compiled programs are reused.
     """
     if not callable(fn):
         raise TypeError(f"{owner}: {name} must be callable, got {type(fn).__name__}.")
     if isinstance(fn, (eqx.Module, jax.tree_util.Partial)):
         return fn
-    return jax.tree_util.Partial(fn)
+    return jax.tree_util.Partial(canonical(fn))
 
 
 def unit_axis(k: VectorLike, owner: str, name: str = "k") -> Vector:

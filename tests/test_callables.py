@@ -162,3 +162,42 @@ def test_sweep_and_critical_load_of_a_cell_run_twice_compile_once(compilations):
     first = critical(run_cell())
     np.testing.assert_array_equal(critical(run_cell()), first)
     assert len(compilations) == 3
+
+
+FOUNDATION_CELL = """
+foundation = rbo_jax.IsotropicFoundation(lambda s: 0.5 * kappa * s * (1 + s))
+"""
+
+
+def test_a_model_built_again_from_a_new_lambda_has_the_same_structure():
+    """A foundation made again from a new but identical lambda (a cell run twice) is the same
+    tree structure, so jitted solvers reuse their programs (solve_equilibrium's cache hit); a
+    different closure value is another structure, with its own energy, and so is a closure whose
+    dict changed since the first was seen; a lambda that closes over a traced value is kept as
+    it is (never matched, never kept alive)."""
+    import jax
+
+    first, again = (run_cell(FOUNDATION_CELL, kappa=0.7)["foundation"] for _ in range(2))
+    assert jax.tree_util.tree_structure(again) == jax.tree_util.tree_structure(first)
+    other = run_cell(FOUNDATION_CELL, kappa=0.9)["foundation"]
+    assert jax.tree_util.tree_structure(other) != jax.tree_util.tree_structure(first)
+    theta = jnp.array([0.1, 0.2, 0.3])
+    s = float(theta @ theta)
+    assert float(other.energy(theta)) == pytest.approx(0.45 * s * (1 + s), rel=1e-14)
+    assert float(again.energy(theta)) == pytest.approx(0.35 * s * (1 + s), rel=1e-14)
+
+    cell = "foundation = rbo_jax.IsotropicFoundation(lambda s: params['k'] * s)\n"
+    params = {"k": 1.0}
+    changed = run_cell(cell, params=params)["foundation"]
+    params["k"] = 2.0  # the first function seen now computes 2 s
+    fresh = run_cell(cell, params={"k": 1.0})["foundation"]
+    assert float(changed.energy(theta)) == pytest.approx(2.0 * s, rel=1e-14)
+    assert float(fresh.energy(theta)) == pytest.approx(s, rel=1e-14)
+
+    def traced(kappa):
+        fn = lambda s: kappa * s  # noqa: E731
+        foundation = rbo_jax.IsotropicFoundation(fn)
+        assert foundation.F.func is fn
+        return foundation.energy(theta)
+
+    assert float(jax.jit(traced)(2.0)) == pytest.approx(2.0 * s, rel=1e-14)
