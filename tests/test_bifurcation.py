@@ -268,8 +268,9 @@ class TraceCounter:
 
 
 def test_hopf_programs_are_traced_once_per_model_structure(hopf):
-    """A new but identical model function (a notebook cell run again), other parameter values
-    and the gradient reuse the compiled Hopf program: no trace. A model function that computes
+    """A new but identical model function (a notebook cell run again), other parameter values,
+    other frequencies of the pair to follow and the gradient reuse the compiled Hopf program: no
+    trace. A model function that computes
     something else is a new program."""
 
     def cell():  # the same source run again: a new function object with the same code
@@ -283,6 +284,14 @@ def test_hopf_programs_are_traced_once_per_model_structure(hopf):
         jax.grad(lambda b: rbo.hopf_point(cell(), {"b": b}, "M", 0.15).value)(0.08)
     assert (first.count, again.count, gradient.count) == (1, 0, 0)
     assert float(h.value) == pytest.approx(critical_moment(0.12), rel=1e-11)
+    # the pair to follow given by its frequency (continue_equilibria's Hopf points): one program
+    # for every frequency (the two bending pairs share theirs at M = 0.15: either crossing, at
+    # -M_cr or M_cr, is the answer)
+    with TraceCounter("hopf_program") as by_frequency:
+        near = [rbo.hopf_point(cell(), {"b": 0.1}, "M", 0.15, frequency=w) for w in (0.9, 1.1)]
+    assert by_frequency.count == 1
+    for point in near:
+        assert abs(float(point.value)) == pytest.approx(critical_moment(0.1), rel=1e-11)
     with TraceCounter("hopf_program") as other:
         rbo.hopf_point(lambda M, b: nikolai(M, 2 * b), {"b": 0.05}, "M", 0.15)
     assert other.count == 1

@@ -147,7 +147,7 @@ def test_auto_kind_follows_the_damping():
 
 
 def _spec(multiplicity):
-    return _hopf_system.Spec(None, None, "P", (), (), "collision", 1e-10, 1e-10, 64, 1e-6, None,
+    return _hopf_system.Spec(None, None, "P", (), (), "collision", 1e-10, 1e-10, 64, 1e-6, False,
                              multiplicity, 1)  # fmt: skip
 
 

@@ -37,7 +37,7 @@ __all__ = ["continue_hopf"]
 FIELDS = ("value", "frequency", "first_lyapunov", "transversality", "theta", "num_steps", "status")
 
 
-def _curve(spec: Spec, model: AbstractMechanics, t, p, alpha0, guess, values):
+def _curve(spec: Spec, model: AbstractMechanics, t, p, alpha0, guess, values, frequency):
     """The boundary over ``values`` of ``along`` (the last entry of the flat parameters): one
     scan around the flutter program, each step started from the last successful solution."""
     u0, C0 = (jnp.asarray(x) for x in cold_start(spec, model, p.dtype))
@@ -46,7 +46,7 @@ def _curve(spec: Spec, model: AbstractMechanics, t, p, alpha0, guess, values):
     def step(carry, value):
         config, u, C, alive, first = carry
         q = jnp.concatenate([p, value[None]])
-        y, raw = solution(spec, q, t, alpha0, config, ~first, u, C)
+        y, raw = solution(spec, q, t, alpha0, config, ~first, u, C, frequency)
         good = alive & (raw.status == 0)
         status = jnp.where(alive, raw.status, failed).astype(raw.status.dtype)
         point = finish(spec, model, y, raw._replace(status=status))
@@ -161,12 +161,13 @@ def continue_hopf(
         model_fn, first, parameter, guess, options, along=(along, values[0])
     )
     names = spec.names[:-1]  # the others (sorted), then along
+    frequency = options["frequency"]
     grid = jnp.asarray(values, p0.dtype)
 
     def curve(**point):
         flat = [jnp.ravel(jnp.asarray({**first, **point}[n], p0.dtype)) for n in names]
         p = jnp.concatenate(flat) if flat else jnp.zeros(0, p0.dtype)
-        return _curve_program(spec, model, t, p, alpha0, config, grid)
+        return _curve_program(spec, model, t, p, alpha0, config, grid, frequency)
 
     if batch:  # a grid over the batch axes, spread over every local device
         axes = np.meshgrid(*(np.asarray(params[k], float) for k in batch), indexing="ij")

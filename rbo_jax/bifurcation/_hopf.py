@@ -114,14 +114,17 @@ class HopfPoint(Outcome):
 
 # One program per model structure: with the program store on (rbo_jax.enable_compilation_cache)
 # a second process loads it traced (user functions keyed by their code, _programs).
-def hopf_program(spec: Spec, tree, p, alpha0, leaves, t, warm, u0, C0, columns):
+def hopf_program(spec: Spec, tree, p, alpha0, leaves, t, warm, u0, C0, columns, frequency):
     r""":func:`._hopf_program.flutter_program` on flat containers (the program store exports plain
     arrays: the configurations in and out as their leaves, their structure ``tree`` static);
     at a simple Hopf pair with $\ell_1$ the operator and the partials follow (computed where
-    the traced flag ``columns`` is true: one program for the value and its derivative)."""
+    the traced flag ``columns`` is true: one program for the value and its derivative); the
+    start's ``frequency`` is traced (``spec.by_frequency``: one program for every value)."""
     guess = None if tree is None else jax.tree_util.tree_unflatten(tree, leaves)
     exact = spec.kind == "hopf" and spec.lyapunov
-    out = flutter_program(spec, p, alpha0, guess, t, warm, u0, C0, columns if exact else None)
+    out = flutter_program(
+        spec, p, alpha0, guess, t, warm, u0, C0, columns if exact else None, frequency=frequency
+    )
     raw, more = (out[0], out[1:]) if exact else (out, ())
     return (tuple(jax.tree_util.tree_leaves(raw.config)),) + tuple(raw[1:]) + more
 
@@ -142,10 +145,10 @@ def _layout(spec: Spec, p, alpha) -> Layout:
 def _solve(params, spec: Spec, columns=False) -> Implicit:
     """The program's solution; with ``columns`` (differentiated) also the system's exact
     Jacobian and its derivatives in ``p`` and ``t`` (the other inputs are starting values)."""
-    p, t, (alpha0, guess, warm, u0, C0) = params
+    p, t, (alpha0, guess, warm, u0, C0, frequency) = params
     leaves, tree = jax.tree_util.tree_flatten(guess)
     out = _program(spec, None if guess is None else tree, p, alpha0, tuple(leaves), t, warm, u0,
-                   C0, np.bool_(columns))  # fmt: skip
+                   C0, np.bool_(columns), frequency)  # fmt: skip
     config = jax.tree_util.tree_unflatten(_config_tree(spec, p, alpha0), out[0])
     n = len(Raw._fields)
     raw = Raw(config, *out[1:n])
@@ -164,7 +167,7 @@ class _Residual(NamedTuple):
 
     def __call__(self, y, x, params):
         config, u, C = y
-        p, t, (alpha0, _, _, _, _) = params
+        p, t, (alpha0, *_) = params
         return residual(self.spec, _layout(self.spec, p, alpha0), u + x, config, C, p, t)
 
 
@@ -175,7 +178,7 @@ class _Retract(NamedTuple):
 
     def __call__(self, y, x, params):
         config, u, C = y
-        p, _, (alpha0, _, _, _, _) = params
+        p, _, (alpha0, *_) = params
         layout = _layout(self.spec, p, alpha0)
         model = model_at(self.spec, u[layout.m], p)
         config = model.retract(config, model.free_increments(x[: layout.m]))
@@ -186,17 +189,21 @@ def _increment(y, params):
     return jnp.zeros_like(y[1])
 
 
-def solution(spec: Spec, p, t, alpha0, guess, warm, u0, C0):
+def solution(spec: Spec, p, t, alpha0, guess, warm, u0, C0, frequency=None):
     r"""``((config, u, C), raw)``: the flutter program's solution, differentiable with respect to
     the flat parameters ``p`` (and ``t``) by the implicit function theorem (module docstring),
-    not with respect to the starting values. At a simple Hopf pair with $\ell_1$ the program
+    not with respect to the starting values (``frequency``: the pair to start from, for a spec
+    ``by_frequency``). At a simple Hopf pair with $\ell_1$ the program
     that is differentiated also returns the system's exact Jacobian and its derivatives in the
     parameters, from $\ell_1$'s third-order jet; otherwise the tangent computes them."""
     exact = spec.kind == "hopf" and spec.lyapunov
+    if spec.by_frequency and frequency is None:
+        raise ValueError("solution: a spec by_frequency needs the frequency.")
+    frequency = jnp.asarray(jnp.nan if frequency is None else frequency, p.dtype)
     out = implicit(
         lambda params: _solve(params, spec),
         _Residual(spec),
-        (p, t, (alpha0, guess, warm, u0, C0)),
+        (p, t, (alpha0, guess, warm, u0, C0, frequency)),
         linear=LeastSquares(),
         retract=_Retract(spec),
         increment=_increment,
@@ -323,7 +330,7 @@ def prepare(model_fn, params, parameter, guess, options: dict, along=None):
         canonical(model_fn), canonical(state_fn), parameter, names, shapes,
         resolve_kind(o["kind"], model), float(o["rtol"]), float(o["atol"]),
         int(o["max_steps"]), float(o["cluster"]),
-        None if o["frequency"] is None else float(o["frequency"]), int(o["multiplicity"]),
+        o["frequency"] is not None, int(o["multiplicity"]),
         int(o["steps"]), _lyapunov(o["lyapunov"], model),
     )  # fmt: skip
     guess = o["theta_guess"]
@@ -440,5 +447,5 @@ def hopf_point(
                    frequency=frequency, multiplicity=multiplicity, lyapunov=lyapunov)  # fmt: skip
     spec, model, p, alpha0, config, t = prepare(model_fn, params, parameter, guess, options)
     u0, C0 = cold_start(spec, model, p.dtype)
-    y, raw = solution(spec, p, t, alpha0, config, np.asarray(False), u0, C0)
+    y, raw = solution(spec, p, t, alpha0, config, np.asarray(False), u0, C0, frequency)
     return finish(spec, model, y, raw)

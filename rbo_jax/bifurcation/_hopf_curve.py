@@ -130,13 +130,15 @@ class _Run(NamedTuple):
     t: object
     direction: float
     bounds: tuple[float, float]
+    frequency: float | None  # the pair to start from (hopf_point's frequency)
 
 
 def _at(run: _Run, X, config, C, alpha0):
     """The flutter program warm-started at ``X`` (fixed beta): the point in its own chart,
     with its status, l1 and transversality."""
     q = jnp.concatenate([run.p, jnp.asarray(X[-1:])])
-    y, raw = solution(run.spec, q, run.t, alpha0, config, jnp.asarray(True), jnp.asarray(X[:-1]), C)
+    y, raw = solution(run.spec, q, run.t, alpha0, config, jnp.asarray(True), jnp.asarray(X[:-1]), C,
+                      run.frequency)  # fmt: skip
     return y, raw
 
 
@@ -144,7 +146,8 @@ def _first_point(run: _Run, alpha0, config, beta0):
     spec, layout = run.spec, run.layout
     u0, C0 = cold_start(spec, run.model, run.p.dtype)
     q = jnp.concatenate([run.p, jnp.asarray([beta0], run.p.dtype)])
-    (config, u, C), raw = solution(spec, q, run.t, alpha0, config, jnp.asarray(False), u0, C0)
+    (config, u, C), raw = solution(spec, q, run.t, alpha0, config, jnp.asarray(False), u0, C0,
+                                   run.frequency)  # fmt: skip
     if int(raw.status) != 0:
         raise ValueError(
             f"no flutter point found from the guess at {spec.names[-1]} = {beta0}: "
@@ -315,7 +318,8 @@ def continue_hopf_arclength(model_fn, params, parameter, guess, along, values, o
                                                 along=(along, values[0]))  # fmt: skip
     layout = Layout(model.free_size(), spec.kind)
     direction = 1.0 if values[1] >= values[0] else -1.0
-    run = _Run(spec, layout, model, jnp.asarray(p[:-1]), t, direction, (lo, hi))
+    run = _Run(spec, layout, model, jnp.asarray(p[:-1]), t, direction, (lo, hi),
+               options["frequency"])  # fmt: skip
     first = _first_point(run, alpha0, config, float(values[0]))
     end_points: list = []
     accept = _accept(run, end_points)

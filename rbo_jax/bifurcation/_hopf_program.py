@@ -118,7 +118,8 @@ class _Solve:
             first = {**s, "u": s["u"].at[:m].set(step), "k": s["k"] + 1}
             shifted = jnp.linalg.eigvals(J)
         u, C, found, fits = start(self.spec, self.layout, s["J0"], alpha,
-                                  shifted if self.spec.kind == "hopf" else None)  # fmt: skip
+                                  shifted if self.spec.kind == "hopf" else None,
+                                  s["frequency"])  # fmt: skip
         S = HopfStatus
         new = {**s, "u": u.astype(s["u"].dtype), "C": C.astype(s["C"].dtype), "phase": NEWTON,
                "k": jnp.zeros_like(s["k"])}  # fmt: skip
@@ -348,7 +349,9 @@ def _initial(spec: Spec, layout: Layout, p, alpha0, guess, t, warm, u0, C0):
     }
 
 
-def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None, second=None):
+def flutter_program(
+    spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None, second=None, frequency=None
+):
     r"""The flutter point (module docstring) of ``spec.model_fn`` in ``spec.parameter``, the
     other parameters flattened into ``p``: from the equilibrium guess ``guess`` at ``alpha0``
     (``spec.state_fn``: its closed form, refined by Newton), or (``warm``) from the unknowns
@@ -362,10 +365,12 @@ def flutter_program(spec: Spec, p, alpha0, guess, t, warm, u0, C0, columns=None,
     the same program as the value; :mod:`._bautin`'s differentiated solve, a program of its
     own, sets it on its last solve).
     ``second`` (a traced flag; a Hopf spec with ``lyapunov``): also $\ell_2$ at the solution
-    where the flag is true (:func:`lyapunov`; the Bautin point's last solve)."""
+    where the flag is true (:func:`lyapunov`; the Bautin point's last solve).
+    ``frequency`` (traced; a spec ``by_frequency``): the start follows the pair nearest it."""
     layout = Layout(model_at(spec, alpha0, p).free_size(), spec.kind)
     solve = _Solve(spec, layout, p, t)
     s0 = _initial(spec, layout, p, alpha0, guess, t, warm, u0, C0)
+    s0["frequency"] = jnp.asarray(jnp.nan if frequency is None else frequency, p.dtype)
     if not (spec.kind == "hopf" and spec.lyapunov) and (columns, second) != (None, None):
         raise ValueError("flutter_program: columns and second need a Hopf spec with lyapunov.")
     if columns is not None:

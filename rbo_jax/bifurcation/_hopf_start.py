@@ -58,12 +58,12 @@ def _off_axis(p):
     return unstable_roots(p) | unstable_roots(-p)
 
 
-def _start_hopf(spec: Spec, p, V, shifted=None):
+def _start_hopf(spec: Spec, p, V, shifted=None, frequency=None):
     """``(omega, v, C, found, count)`` of the followed pair (module docstring); ``shifted``:
-    the eigenvalues at the moved parameter."""
+    the eigenvalues at the moved parameter; ``frequency``: the given one (``by_frequency``)."""
     osc = _oscillatory(p)
-    if spec.frequency is not None:
-        index = jnp.argmin(jnp.where(osc, jnp.abs(jnp.imag(p) - spec.frequency), jnp.inf))
+    if spec.by_frequency:
+        index = jnp.argmin(jnp.where(osc, jnp.abs(jnp.imag(p) - frequency), jnp.inf))
     else:
         moves = osc
         if shifted is not None:  # the nearest of the moved eigenvalues to each
@@ -101,14 +101,15 @@ def _start_collision(spec: Spec, p, V):
     return 0.5 * jnp.imag(lam1 + lam2), v, chain, C, two, k
 
 
-def start(spec: Spec, layout: Layout, J, alpha, shifted=None):
+def start(spec: Spec, layout: Layout, J, alpha, shifted=None, frequency=None):
     """``(u0, C, found, fits)`` from the eigenvalues of ``J`` at the equilibrium of the
-    guess (``shifted``: those at the moved parameter, for a Hopf pair)."""
+    guess (``shifted``: those at the moved parameter, for a Hopf pair; ``frequency``: the one
+    to follow, for a spec ``by_frequency``)."""
     p, V = jnp.linalg.eig(J)
     finite = jnp.all(jnp.isfinite(p))
     p, V = jnp.where(finite, p, 0), jnp.where(finite, V, 0)
     if spec.kind == "hopf":
-        omega, v, chain, C, found, count = _start_hopf(spec, p, V, shifted)
+        omega, v, chain, C, found, count = _start_hopf(spec, p, V, shifted, frequency)
     else:
         omega, v, chain, C, found, count = _start_collision(spec, p, V)
     q = jnp.zeros(layout.m, J.dtype)

@@ -115,7 +115,7 @@ class Spec(NamedTuple):
     atol: float
     max_steps: int
     cluster: float
-    frequency: float | None
+    by_frequency: bool  # the start follows the pair nearest a given frequency (a traced value)
     multiplicity: int
     steps: int
     lyapunov: bool = True  # the first Lyapunov coefficient at a simple Hopf pair
