@@ -372,3 +372,22 @@ def test_critical_value_scans_then_bisects():
     assert len(traced) == 1
     assert float(critical_value(lambda v: v > 2.0, 0.0, 1.0)) == np.inf
     assert abs(float(critical_value(lambda v: v > -1.0, 0.0, 1.0, n_scan=4)) - 0.0) < 1e-12
+
+
+def test_first_change_under_vmap_with_a_batched_start():
+    """first_change's ``like`` (a sweep's point: the loop's state starts batched, so that
+    jax.vmap batches its body once) changes no value, for any values of the point (inf, NaN)."""
+    from rbo_jax.stability._point import first_change
+
+    a = jnp.array([0.05, 0.5, 0.9, 2.0])  # 0.05: below the scan's first point
+    point = {"a": a, "other": jnp.array([np.nan, -3.0, np.inf, 1.0])}
+
+    def search(a, point=None):
+        return first_change(lambda v: (v > a).astype(jnp.int32), 0.0, 1.0, n_scan=8, like=point)
+
+    plain = jax.vmap(search)(a)
+    seeded = jax.vmap(search)(a, point)
+    for x, y in zip(plain, seeded):
+        np.testing.assert_array_equal(np.asarray(y), np.asarray(x))
+    np.testing.assert_allclose(np.asarray(seeded[0][:3]), [0.05, 0.5, 0.9], atol=1e-12)
+    assert np.isinf(float(seeded[0][3]))

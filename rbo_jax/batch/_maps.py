@@ -217,7 +217,7 @@ def _critical_quantity(
 
         lo, hi = jnp.asarray(load_min), jnp.asarray(load_max)
         return {"critical": critical_between(model_at, code_at, lo, hi, n_scan=n_scan,
-                                             n_bisect=n_bisect)}  # fmt: skip
+                                             n_bisect=n_bisect, like=point)}  # fmt: skip
 
     return critical
 

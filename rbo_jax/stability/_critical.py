@@ -41,17 +41,21 @@ def stability_code(result) -> jax.Array:
     return jnp.where(result.ok, code, UNDEFINED)
 
 
-def critical_search(code_at: Callable, lo, hi, *, n_scan: int, n_bisect: int):
+def critical_search(code_at: Callable, lo, hi, *, n_scan: int, n_bisect: int, like=None):
     """The critical value (module docstring) of ``code_at(P)`` (a traced code) on
-    ``(lo, hi]``; jit- and vmap-compatible."""
-    value, end = first_change(code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect, base=STABLE)
+    ``(lo, hi]``; jit- and vmap-compatible (``like``: :func:`._point.first_change`'s)."""
+    value, end = first_change(
+        code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect, base=STABLE, like=like
+    )
     return jnp.where(jnp.isfinite(value) & (end == UNDEFINED), jnp.nan, value)
 
 
-def critical_between(model_at: Callable, code_at: Callable, lo, hi, *, n_scan: int, n_bisect: int):
+def critical_between(
+    model_at: Callable, code_at: Callable, lo, hi, *, n_scan: int, n_bisect: int, like=None
+):
     """:func:`critical_search` of ``code_at`` on ``(lo, hi]``, NaN where the parameters of the
     model ``model_at(P)`` are invalid at either end (values traced at construction)."""
-    value = critical_search(code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect)
+    value = critical_search(code_at, lo, hi, n_scan=n_scan, n_bisect=n_bisect, like=like)
     valid = model_at(lo).parameter_status()[0] & model_at(hi).parameter_status()[0]
     return jnp.where(valid, value, jnp.nan)
 

@@ -91,14 +91,19 @@ def equilibrium_stability(
     return EquilibriumStability(state=config, eigenvalues=p, abscissa=a, kind=kind, status=status)
 
 
-def first_change(code_at: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48, base=0):
+def first_change(
+    code_at: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int = 48, base=0, like=None
+):
     r"""``(x, code)``: the smallest value $x \in (lo, hi]$ at which ``code_at(x)`` (a traced
     integer code) is no longer ``base``, and the code there: a scan of the ``n_scan`` points
     ``linspace(lo, hi, n_scan + 1)[1:]`` up to the first that has changed, then ``n_bisect``
     bisection steps between it and the point before (``lo`` before the first). ``x`` is ``inf``
     if the code is ``base`` on the whole scan. One loop evaluates ``code_at`` at one point an
     iteration (the scan's next point, then the bisection's midpoint): it is traced and compiled
-    once, and the scan stops at the first change. jit- and vmap-compatible."""
+    once, and the scan stops at the first change. jit- and vmap-compatible. ``like``: values
+    that ``jax.vmap`` batches wherever it batches the search (a sweep's point): the loop's state
+    starts batched like them, so that vmap's rule for the loop batches its body once instead of
+    again after the first pass (the equilibria and spectra inside it, and their own loops)."""
     scan = jnp.linspace(lo, hi, n_scan + 1)[1:]
 
     def more(s):
@@ -115,9 +120,15 @@ def first_change(code_at: Callable, lo, hi, *, n_scan: int = 64, n_bisect: int =
         k, b = jnp.where(found, k, k + 1), jnp.where(found, b + 1, b)
         return k, b, lower, upper, found | changed, code
 
-    zero = jnp.zeros((), jnp.int32)
-    lower = jnp.asarray(lo, scan.dtype)
-    s = (zero, zero, lower, scan[-1], jnp.zeros((), bool), jnp.asarray(base, jnp.int32))
+    # zeros batched like `like` (x != x is false but for NaN: times 0, zero for any value)
+    leaves = jax.tree_util.tree_leaves(like)
+    zf = sum(
+        (jnp.sum(jnp.asarray(x) != x).astype(scan.dtype) * 0 for x in leaves),
+        jnp.zeros((), scan.dtype),
+    )
+    zi = zf.astype(jnp.int32)
+    lower = jnp.asarray(lo, scan.dtype) + zf
+    s = (zi, zi, lower, scan[-1] + zf, zi != 0, jnp.asarray(base, jnp.int32) + zi)
     _, _, _, upper, found, code = jax.lax.while_loop(more, evaluate, s)
     return jnp.where(found, upper, jnp.inf), code
 
