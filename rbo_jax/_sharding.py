@@ -387,9 +387,9 @@ def compile_options(devices) -> dict | None:
     return {"xla_disable_hlo_passes": PARTITION_PASS}
 
 
-def compile_program(traced, layout: Layout):
+def compile_program(traced, layout: Layout, options: dict | None = None):
     """Lower and compile a traced chunk program of ``layout``: lowered with LAPACK in blocks
-    too, compiled with :func:`compile_options`.
+    too, compiled with :func:`compile_options` and ``options``.
 
     Some primitives trace their batched implementation only when they are lowered: lineax's
     linear solve keeps the solver's ``lu_solve`` inside its primitive until then, so that the
@@ -404,7 +404,7 @@ def compile_program(traced, layout: Layout):
     block = layout.block if len(layout.devices) > 1 else 0
     with lapack_in_blocks(block):
         lowered = traced.lower()
-    return lowered.compile(compile_options(layout.devices))
+    return lowered.compile({**(compile_options(layout.devices) or {}), **(options or {})} or None)
 
 
 def deal(block: np.ndarray, n_devices: int) -> np.ndarray:

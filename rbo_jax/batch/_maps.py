@@ -111,6 +111,7 @@ def _map_quantity(model_fn, theta_eq_fn, guess, rtol, fast, eq_items):
             values["tip"] = r.state.tip
         return values, r.status
 
+    stability.small_program = True  # Newton and eigenproblems: XLA's small-program options
     return stability
 
 
@@ -219,6 +220,7 @@ def _critical_quantity(
         return {"critical": critical_between(model_at, code_at, lo, hi, n_scan=n_scan,
                                              n_bisect=n_bisect, like=point)}  # fmt: skip
 
+    critical.small_program = True  # Newton and eigenproblems: XLA's small-program options
     return critical
 
 

@@ -103,19 +103,22 @@ class Program:
     compiled on the first call. ``strategy``: ``"shard_map"``, or ``"one device"`` for a quantity
     that ``shard_map`` refused."""
 
-    def __init__(self, traced, layout: Layout, structure: dict, strategy: str, x=None):
+    def __init__(
+        self, traced, layout: Layout, structure: dict, strategy: str, x=None, options=None
+    ):
         self.traced, self.layout = traced, layout
         self.sharding, self.batch, self.block = layout.sharding, layout.batch, layout.block
         self.devices = layout.devices
         self.structure = structure  # the output structure recorded while tracing
         self.strategy = strategy
         self._x = x  # the argument's shape, dtype and sharding, for a stored program
+        self.options = options  # XLA's options (_compile_options)
         self._compiled = None
 
     def call(self, x):
         if self._compiled is None:
             traced = self.traced if self._x is None else self.traced.trace(self._x)
-            self._compiled = compile_program(traced, self.layout)
+            self._compiled = compile_program(traced, self.layout, self.options)
         return self._compiled(x)
 
 
@@ -169,7 +172,8 @@ def _stored_program(key, quantity, names, devices, chunk_points) -> Program | No
         return exported.call(xs)
 
     call = sharded(chunk_program, layout.mesh)
-    return Program(call, layout, structure, "shard_map", layout.x(len(names)))
+    options = _compile_options(quantity)
+    return Program(call, layout, structure, "shard_map", layout.x(len(names)), options)
 
 
 def _point_layout(quantity, names, devices, chunk_points):
@@ -177,6 +181,14 @@ def _point_layout(quantity, names, devices, chunk_points):
     record: dict = {}
     point = point_function(quantity, names, record)
     return (*point_layout(point, len(names), devices, chunk_points), record)
+
+
+def _compile_options(quantity) -> dict | None:
+    """XLA's options for the chunk program of ``quantity``: :func:`rbo_jax._programs.
+    small_program_options` for a quantity marked ``small_program`` (a Newton loop and an
+    eigenproblem per point, :mod:`._maps`: they compile faster and run as fast), XLA's defaults
+    otherwise (a vmapped DOP853 runs slower with the former)."""
+    return _programs.small_program_options() if getattr(quantity, "small_program", False) else None
 
 
 def _compile_program(quantity, names, devices, chunk_points) -> Program:
@@ -189,7 +201,7 @@ def _compile_program(quantity, names, devices, chunk_points) -> Program:
     try:
         with lapack_in_blocks(layout.block):
             traced = sharded(local, layout.mesh).trace(layout.x(len(names)))
-        return Program(traced, layout, dict(record), "shard_map")
+        return Program(traced, layout, dict(record), "shard_map", None, _compile_options(quantity))
     except Exception as e:  # shard_map refused the quantity: one device, said so
         if len(devices) == 1:
             raise
@@ -204,7 +216,7 @@ def _compile_program(quantity, names, devices, chunk_points) -> Program:
         traced = jax.jit(local, in_shardings=layout.sharding, out_shardings=layout.sharding)
         with lapack_in_blocks(layout.block):
             traced = traced.trace(layout.x(len(names)))
-        return Program(traced, layout, dict(record), "one device")
+        return Program(traced, layout, dict(record), "one device", None, _compile_options(quantity))
 
 
 class _Quantity:
