@@ -304,13 +304,15 @@ _FAST_COMPILE = {
 def small_program_options() -> dict | None:
     """XLA's options for programs whose compilation outweighs their run time: a Newton loop
     (:func:`rbo_jax.hopf_point`, :func:`rbo_jax.periodic_orbit`, continuations), a fit's
-    residuals and Jacobian (milliseconds per call, seconds to compile).
+    residuals and Jacobian (milliseconds per call, seconds to compile), and the chunk programs of
+    stability maps and critical loads (Newton and eigenproblems per point: they run as fast).
 
     On CPU, XLA's element-wise emitters instead of its newer MLIR fusion emitters
     (``xla_cpu_use_fusion_emitters=False``), which build an MLIR context and pipeline per
     fusion: these programs compile faster, while the same emitters make the vmapped DOP853 of
-    :func:`rbo_jax.fast_simulate` slower per trajectory, which is why the sweep and simulation
-    programs keep XLA's defaults (figures: benchmarks/README.md, History). ``None`` (the
+    :func:`rbo_jax.fast_simulate` slower per trajectory, which is why a sweep of any other
+    quantity and the simulation programs keep XLA's defaults (figures: benchmarks/README.md,
+    History). ``None`` (the
     defaults) on other backends and where this XLA does not know the option (checked once, by
     compiling a tiny program)."""
     if jax.default_backend() != "cpu":
