@@ -312,9 +312,8 @@ def small_program_options() -> dict | None:
     fusion: these programs compile faster, while the same emitters make the vmapped DOP853 of
     :func:`rbo_jax.fast_simulate` slower per trajectory, which is why a sweep of any other
     quantity and the simulation programs keep XLA's defaults (figures: benchmarks/README.md,
-    History). ``None`` (the
-    defaults) on other backends and where this XLA does not know the option (checked once, by
-    compiling a tiny program)."""
+    History). ``None`` (the defaults) on other backends and where this XLA does not know the
+    option (checked once, by compiling a tiny program)."""
     if jax.default_backend() != "cpu":
         return None
     return _known(dict(_SMALL))
