@@ -304,8 +304,8 @@ _FAST_COMPILE = {
 def small_program_options() -> dict | None:
     """XLA's options for programs whose compilation outweighs their run time: a Newton loop
     (:func:`rbo_jax.hopf_point`, :func:`rbo_jax.periodic_orbit`, continuations), a fit's
-    residuals and Jacobian (milliseconds per call, seconds to compile), and the chunk programs of
-    stability maps and critical loads (Newton and eigenproblems per point: they run as fast).
+    residuals and Jacobian (milliseconds per call, seconds to compile), and the chunk program
+    of a critical load (Newton and eigenproblems per point: it runs as fast).
 
     On CPU, XLA's element-wise emitters instead of its newer MLIR fusion emitters
     (``xla_cpu_use_fusion_emitters=False``), which build an MLIR context and pipeline per

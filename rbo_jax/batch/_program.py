@@ -185,9 +185,10 @@ def _point_layout(quantity, names, devices, chunk_points):
 
 def _compile_options(quantity) -> dict | None:
     """XLA's options for the chunk program of ``quantity``: :func:`rbo_jax._programs.
-    small_program_options` for a quantity marked ``small_program`` (a Newton loop and an
-    eigenproblem per point, :mod:`._maps`: they compile faster and run as fast), XLA's defaults
-    otherwise (a vmapped DOP853 runs slower with the former)."""
+    small_program_options` for a quantity marked ``small_program`` (a critical load's Newton
+    loops and eigenproblems, :mod:`._maps`: they compile faster and run as fast), XLA's
+    defaults otherwise (a vmapped DOP853 runs slower with the former; a stability map's
+    eigenvalues on several devices differed from one device's by rounding)."""
     return _programs.small_program_options() if getattr(quantity, "small_program", False) else None
 
 
