@@ -72,8 +72,8 @@ def _linear_parts(model_fn, parameter, others, t, config, lam):
     ``(config, lam)``."""
     model = _model(model_fn, parameter, others, lam)
     x0 = jnp.zeros(model.block_shape(), lam.dtype)
-    R = model.static_residual(t, config, x0)
-    J = linear_solver(model.structure()).jacobian(lambda x: model.static_residual(t, config, x), x0)
+    fn = lambda x: model.static_residual(t, config, x)  # noqa: E731
+    R, J = linear_solver(model.structure()).value_and_jacobian(fn, x0)
 
     def at(lam):
         return _model(model_fn, parameter, others, lam).static_residual(t, config, x0)

@@ -33,16 +33,21 @@ import jax.numpy as jnp
 
 
 class AbstractLinearSolver(eqx.Module):
-    """How the Jacobian of a residual is built (:meth:`jacobian`), solved with (:meth:`solve`)
-    and made harmless where a solve failed (:meth:`identity_where`). ``matrix``: the Jacobian
-    is the dense matrix of the flattened unknowns (forward mode)."""
+    """How the Jacobian of a residual is built (:meth:`value_and_jacobian`), solved with
+    (:meth:`solve`) and made harmless where a solve failed (:meth:`identity_where`).
+    ``matrix``: the Jacobian is the dense matrix of the flattened unknowns (forward mode)."""
 
     matrix: ClassVar[bool] = False
 
     @abc.abstractmethod
+    def value_and_jacobian(self, fn, x):
+        """``(fn(x), J)``: the value and the Jacobian of ``fn`` at ``x`` (``fn(x)`` of the shape
+        of ``x`` for a square structure) in this solver's form, from one trace of ``fn`` (a
+        Newton step needs both: a model's residual is costly to trace)."""
+
     def jacobian(self, fn, x):
-        """The Jacobian of ``fn`` at ``x`` (``fn(x)`` of the shape of ``x`` for a square
-        structure) in this solver's form."""
+        """The Jacobian of :meth:`value_and_jacobian` (the value unused, left out by XLA)."""
+        return self.value_and_jacobian(fn, x)[1]
 
     @abc.abstractmethod
     def solve(self, operator, b):
@@ -64,10 +69,8 @@ class Dense(AbstractLinearSolver):
 
     matrix: ClassVar[bool] = True
 
-    def jacobian(self, fn, x):
-        shape = jnp.shape(x)
-        flat = lambda z: jnp.ravel(fn(jnp.reshape(z, shape)))  # noqa: E731
-        return jax.jacfwd(flat)(jnp.ravel(x))
+    def value_and_jacobian(self, fn, x):
+        return _value_and_jacfwd(fn, x)
 
     def solve(self, operator, b):
         return jnp.reshape(jnp.linalg.solve(operator, jnp.ravel(b)), jnp.shape(b))
@@ -85,8 +88,8 @@ class LeastSquares(AbstractLinearSolver):
 
     matrix: ClassVar[bool] = True
 
-    def jacobian(self, fn, x):
-        return jax.jacfwd(lambda z: jnp.ravel(fn(z)))(x)
+    def value_and_jacobian(self, fn, x):
+        return _value_and_jacfwd(fn, x)
 
     def solve(self, operator, b):
         return equilibrated_lstsq(operator, jnp.ravel(b))
@@ -104,8 +107,8 @@ class TruncatedLeastSquares(AbstractLinearSolver):
     matrix: ClassVar[bool] = True
     rcond: float = eqx.field(static=True, default=1e-9)
 
-    def jacobian(self, fn, x):
-        return jax.jacfwd(lambda z: jnp.ravel(fn(z)))(x)
+    def value_and_jacobian(self, fn, x):
+        return _value_and_jacfwd(fn, x)
 
     def solve(self, operator, b):
         return jnp.linalg.lstsq(operator, jnp.ravel(b), rcond=self.rcond)[0]
@@ -119,8 +122,8 @@ class Tridiagonal(AbstractLinearSolver):
     """$N$ blocks of $m$ unknowns coupled to their neighbours: ``(L, D, U)`` blocks
     (:func:`tridiagonal_jacobian`), block elimination (:func:`tridiagonal_solve`)."""
 
-    def jacobian(self, fn, x):
-        return tridiagonal_jacobian(fn, x)
+    def value_and_jacobian(self, fn, x):
+        return _tridiagonal(fn, x)
 
     def solve(self, operator, b):
         return tridiagonal_solve(*operator, b)
@@ -140,8 +143,9 @@ class FactoredTridiagonal(AbstractLinearSolver):
     """:class:`Tridiagonal` whose operator is kept factored (:func:`tridiagonal_factor`): a
     chord iteration solves many times with one matrix, each solve two scans."""
 
-    def jacobian(self, fn, x):
-        return tridiagonal_factor(*tridiagonal_jacobian(fn, x))
+    def value_and_jacobian(self, fn, x):
+        value, blocks = _tridiagonal(fn, x)
+        return value, tridiagonal_factor(*blocks)
 
     def solve(self, operator, b):
         return tridiagonal_substitute(operator, b)
@@ -211,8 +215,26 @@ def tridiagonal_jacobian(fn, x):
     $\partial R_i/\partial x_{i-1}$ (``L[0]`` zero), $\partial R_i/\partial x_i$,
     $\partial R_i/\partial x_{i+1}$ (``U[-1]`` zero), from $3m$ Jacobian-vector products.
     ``fn`` must couple neighbours only."""
-    _, lin = jax.linearize(fn, x)
-    return _blocks(jax.vmap(lin)(_coloured(x)))
+    return _tridiagonal(fn, x)[1]
+
+
+def _tridiagonal(fn, x):
+    """``(fn(x), (L, D, U))`` (:func:`tridiagonal_jacobian`), ``fn`` traced once."""
+    value, lin = jax.linearize(fn, x)
+    return value, _blocks(jax.vmap(lin)(_coloured(x)))
+
+
+def _value_and_jacfwd(fn, x):
+    """``(fn(x), J)``, $J$ the forward-mode Jacobian of the flattened ``fn`` in the flattened
+    ``x``, ``fn`` traced once."""
+    shape = jnp.shape(x)
+
+    def flat(z):
+        out = fn(jnp.reshape(z, shape))
+        return jnp.ravel(out), out
+
+    J, value = jax.jacfwd(flat, has_aux=True)(jnp.ravel(x))
+    return value, J
 
 
 def tridiagonal_differences(fn, x):

@@ -85,15 +85,15 @@ def _zero_operator(linear, fn, x0):
     return jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
 
 
-def _newton(model, t, config, scale, tol, max_steps, linear):
-    """Newton's method at the load factor ``scale`` from ``config``: ``(config, operator,
-    residual, code, steps)``."""
+def _newton(model, t, config, scale, tol, max_steps, linear, operator0):
+    """Newton's method at the load factor ``scale`` from ``config`` (``operator0``: zeros shaped
+    as the Jacobian): ``(config, operator, residual, code, steps)``."""
     codes = _codes()
 
     def residual(config):
         x0 = jnp.zeros(model.block_shape(), jnp.result_type(*jax.tree_util.tree_leaves(config)))
         fn = lambda x: model.static_residual(t, config, x, scale)  # noqa: E731
-        return fn(x0), linear.jacobian(fn, x0), None
+        return *linear.value_and_jacobian(fn, x0), None
 
     def step(config, carry):
         atol = tol * model.increment_scale(config)
@@ -104,10 +104,7 @@ def _newton(model, t, config, scale, tol, max_steps, linear):
         code = jnp.where(finite, code, codes["nonfinite"])
         return new, (operator, jnp.max(jnp.abs(r))), code
 
-    dtype = jnp.result_type(*jax.tree_util.tree_leaves(config))
-    x0 = jnp.zeros(model.block_shape(), dtype)
-    operator0 = _zero_operator(linear, lambda x: model.static_residual(t, config, x, scale), x0)
-    carry = (operator0, jnp.asarray(jnp.inf, dtype))
+    carry = (operator0, jnp.asarray(jnp.inf, jnp.result_type(*jax.tree_util.tree_leaves(config))))
     config, (operator, res), code, steps = iterate(
         step, config, carry, max_steps=max_steps, exhausted=codes["not_converged"]
     )
@@ -121,16 +118,17 @@ def _solve(params, steps, tol, max_steps, singular_tol) -> Implicit:
     codes = _codes()
     dtype = jnp.result_type(*jax.tree_util.tree_leaves(guess))
     scales = jnp.arange(1, steps + 1, dtype=dtype) / steps
+    x0 = jnp.zeros(model.block_shape(), dtype)
+    op0 = _zero_operator(linear, lambda x: model.static_residual(t, guess, x, scales[0]), x0)
 
     def one_load(carry, scale):
         config, _, total, code = carry
-        new, operator, res, new_code, k = _newton(model, t, config, scale, tol, max_steps, linear)
+        new, operator, res, new_code, k = _newton(model, t, config, scale, tol, max_steps, linear,
+                                                  op0)  # fmt: skip
         failed = code != codes["successful"]
         carry = (new, operator, total + k, jnp.where(failed, code, new_code))
         return carry, res
 
-    x0 = jnp.zeros(model.block_shape(), dtype)
-    op0 = _zero_operator(linear, lambda x: model.static_residual(t, guess, x, scales[0]), x0)
     init = (guess, op0, jnp.asarray(0, jnp.int32), jnp.asarray(codes["successful"], jnp.int32))
     (config, operator, total, code), _ = jax.lax.scan(one_load, init, scales)
     S = EquilibriumStatus
