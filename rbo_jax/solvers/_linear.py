@@ -31,6 +31,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._least_squares import value_and_jacfwd
+
 
 class AbstractLinearSolver(eqx.Module):
     """How the Jacobian of a residual is built (:meth:`value_and_jacobian`), solved with
@@ -226,15 +228,10 @@ def _tridiagonal(fn, x):
 
 def _value_and_jacfwd(fn, x):
     """``(fn(x), J)``, $J$ the forward-mode Jacobian of the flattened ``fn`` in the flattened
-    ``x``, ``fn`` traced once."""
+    ``x`` (:func:`value_and_jacfwd`: ``fn`` traced once)."""
     shape = jnp.shape(x)
-
-    def flat(z):
-        out = fn(jnp.reshape(z, shape))
-        return jnp.ravel(out), out
-
-    J, value = jax.jacfwd(flat, has_aux=True)(jnp.ravel(x))
-    return value, J
+    value, J = value_and_jacfwd(lambda z: fn(jnp.reshape(z, shape)), jnp.ravel(x))
+    return value, jnp.reshape(J, (jnp.size(value), -1))
 
 
 def tridiagonal_differences(fn, x):
