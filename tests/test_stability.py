@@ -317,6 +317,64 @@ def test_equilibrium_follower_quadratic_is_M_over_d_k_4_62(nikolai_grid):
     np.testing.assert_allclose(theta, _GRID[:, 4:5] / _GRID[:, 3:4] * KN, rtol=0, atol=1e-12)
 
 
+def test_newton_traces_the_equilibrium_residual_once_per_evaluation_4_61():
+    """The balance (4.61) of an isotropic foundation U = ½c|θ|² (its moment -cθ) and a follower
+    moment M k (Q(θ)·k = k for θ ∥ k) is θ = (M/c) k. ``solve_equilibrium`` traces the residual at
+    most three times (the shape of its Jacobian, one Newton evaluation giving the value and the
+    Jacobian together, the final residual): a user's energy function is called that often."""
+    calls = []
+    c, M = 1.3, 0.4
+
+    def energy(s):  # s = |θ|²; a fresh closure: a program of its own
+        calls.append(s)
+        return 0.5 * c * s
+
+    k = jnp.array([0.0, 0.0, 1.0])
+    model = rbo.RigidBodyOscillator(
+        rbo.transversely_isotropic_inertia(1.0, 0.6, k),
+        rbo.IsotropicFoundation(energy),
+        [rbo.FollowerMoment(M, k)],
+    )
+    sol = rbo.solve_equilibrium(model, jnp.array([0.05, -0.02, 0.1]))
+    assert bool(sol.ok)
+    np.testing.assert_allclose(sol.state, M / c * np.asarray(k), rtol=0, atol=1e-12)
+    assert 1 <= len(calls) <= 3, len(calls)
+
+
+@pytest.mark.parametrize("solver", ["dense", "tridiagonal"])
+def test_value_and_jacobian_trace_the_function_once(solver):
+    """A linear solver's value and Jacobian come from one trace of the function, and equal its
+    value and the Jacobian of its separate forms (dense: forward mode over the flattened
+    unknowns; block-tridiagonal: the blocks of the full Jacobian)."""
+    from rbo_jax import solvers
+
+    traces = []
+
+    def fn(x):  # (N, m) -> (N, m), neighbours coupled
+        traces.append(1)
+        left = jnp.concatenate([jnp.zeros_like(x[:1]), x[:-1]])
+        right = jnp.concatenate([x[1:], jnp.zeros_like(x[:1])])
+        return jnp.sin(x) * x[:, ::-1] + 0.3 * left**2 - 0.7 * right * x
+
+    x = jnp.asarray(np.random.default_rng(3).normal(size=(4, 3)))
+    linear = solvers.Dense() if solver == "dense" else solvers.Tridiagonal()
+    value, J = jax.jit(lambda x: linear.value_and_jacobian(fn, x))(x)
+    assert len(traces) == 1
+    np.testing.assert_allclose(value, fn(x), rtol=1e-15, atol=1e-15)
+    full = np.asarray(jax.jacfwd(fn)(x)).reshape(12, 12)
+    if solver == "tridiagonal":
+        L, D, U = (np.asarray(b) for b in J)
+        blocks = np.zeros((12, 12))
+        for i in range(4):
+            blocks[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = D[i]
+            if i > 0:
+                blocks[3 * i : 3 * i + 3, 3 * i - 3 : 3 * i] = L[i]
+            if i < 3:
+                blocks[3 * i : 3 * i + 3, 3 * i + 3 : 3 * i + 6] = U[i]
+        J = blocks
+    np.testing.assert_allclose(J, full, rtol=1e-14, atol=1e-14)
+
+
 def test_linearize_is_printed_system_4_66_4_67(nikolai_grid):
     """The autodiff Jacobian at θ = (M/d)k is the printed variational system (4.66)-(4.67),
     over the whole grid."""
