@@ -124,6 +124,37 @@ def test_modules_and_functions_are_small(path):
             )
 
 
+def _absolute_imports(path: pathlib.Path):
+    """``(module, name)`` of every ``from module import name`` in ``path``, ``module``
+    absolute."""
+    package = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)[:-1]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else []
+            module = ".".join(base + ([node.module] if node.module else []))
+            for alias in node.names:
+                yield module, alias.name
+
+
+def test_no_private_name_is_imported_from_another_package():
+    """A package uses another package's public names only (issue 49 D): no ``_name`` and no
+    ``_module`` of ``rbo_jax.other`` is imported. A helper that two packages need has a home of
+    its own (a module of the lowest layers, ``rbo_jax._validation``, ``rbo_jax._programs``), or
+    is an interface of its package (``rbo_jax.fitting.constants``)."""
+    found = []
+    for path in _modules():
+        me = _top(path)
+        for module, name in _absolute_imports(path):
+            parts = f"{module}.{name}".split(".")
+            if parts[0] != "rbo_jax" or len(parts) < 3 or parts[1] == me:
+                continue
+            if not (PACKAGE / parts[1] / "__init__.py").exists():
+                continue  # a module of the package root: a helper's own home
+            if any(p.startswith("_") and not p.startswith("__") for p in parts[2:]):
+                found.append(f"{path.relative_to(PACKAGE)}: {module}.{name}")
+    assert not found, found
+
+
 def test_the_package_root_only_re_exports():
     tree = ast.parse((PACKAGE / "__init__.py").read_text())
     for node in tree.body:

@@ -39,8 +39,10 @@ then all, each stage starting from the previous estimate (one compilation per st
 Modules: ``_data`` (:class:`TrajectoryData`), ``_synthetic`` (:func:`synthetic_sensor_data`),
 ``_residuals`` (residuals, reparametrisation, the compiled programs), ``_optax`` (Adam,
 L-BFGS), ``_fit`` (:func:`fit`, :class:`FitResult`), ``_profile`` (:func:`profile_likelihood`),
-``_posterior`` (:func:`posterior`) and ``_sampler`` (its NUTS chains); the least-squares solvers
-and the covariance live in :mod:`rbo_jax.solvers`.
+``_posterior`` (:func:`posterior`) and ``_sampler`` (its NUTS chains); ``constants``, the fits of
+a model function's named constants that the lattices' and rods' fits build on
+(:mod:`rbo_jax.fitting.constants`); the least-squares solvers and the covariance live in
+:mod:`rbo_jax.solvers`.
 """
 
 from .. import _lazy

@@ -14,7 +14,6 @@ import numpy as np
 from .._progress import progress_bar
 from ..models.rigid_body import RigidBodyOscillator
 from ..solvers import gauss_newton_covariance, run_least_squares
-from ._constants import fit_constants, is_measurements
 from ._data import TrajectoryData
 from ._residuals import (
     INTEGRATORS,
@@ -29,6 +28,7 @@ from ._residuals import (
     transform_derivative,
     unpack,
 )
+from .constants import fit_constants, is_measurements
 
 __all__ = ["FitResult", "fit"]
 

@@ -36,7 +36,7 @@ failed solve.
 **Rods.** With a rod's measurements (:class:`rbo_jax.lattice.RodSpectrumData`,
 :class:`rbo_jax.lattice.RodTrajectoryData`) the sampled coordinates are the logarithms of the
 rod's constants; the problem is their whitened residuals
-(:class:`rbo_jax.fitting._constants.Residuals`), the gradient $-J^Tr$ from forward mode.
+(:class:`rbo_jax.fitting.constants.Residuals`), the gradient $-J^Tr$ from forward mode.
 
 **Chains** (:mod:`rbo_jax.fitting._sampler`) run in one program: split over the local devices
 (``shard_map``, each device a ``vmap`` of its chains; ``chain_method="pmap"``) when the device
@@ -60,7 +60,6 @@ from jax.flatten_util import ravel_pytree
 
 from .._progress import progress_bar
 from ..solvers import value_and_jacfwd
-from ._constants import fit_constants, is_measurements
 from ._fit import fit, setup
 from ._residuals import (
     INTEGRATORS,
@@ -71,6 +70,7 @@ from ._residuals import (
     unpack,
 )
 from ._sampler import run_chains
+from .constants import fit_constants, is_measurements
 
 __all__ = ["posterior"]
 

@@ -33,7 +33,6 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..solvers import levenberg_marquardt, value_and_jacfwd
-from ._constants import fit_constants, is_measurements
 from ._fit import fit, setup
 from ._residuals import (
     SensorResiduals,
@@ -44,6 +43,7 @@ from ._residuals import (
     transform,
     unpack,
 )
+from .constants import fit_constants, is_measurements
 
 __all__ = ["profile_likelihood"]
 

@@ -305,7 +305,7 @@ class SensorResiduals(eqx.Module):
     """The whitened residuals of a fit of sensor data as a function of the flat vector x of its
     unconstrained coordinates (``template``'s, the fit's u, flattened): the problem that
     :func:`rbo_jax.profile_likelihood` and :func:`rbo_jax.posterior` share with a rod's
-    (:class:`rbo_jax.fitting._constants.Residuals`). The model's and the data's arrays are traced,
+    (:class:`rbo_jax.fitting.constants.Residuals`). The model's and the data's arrays are traced,
     ``spec`` static."""
 
     model: RigidBodyOscillator

@@ -2,7 +2,7 @@ r"""Fitting the constants of a lattice or a rod by least squares: a lattice's st
 measured dispersion curve or to a recorded space-time field of turn-vectors, a rod's to its
 measured eigenvalues (frequencies and decay rates) or to a measured trajectory of one body.
 
-Every fit runs through one implementation (:func:`rbo_jax.fitting._constants.least_squares`). The
+Every fit runs through one implementation (:func:`rbo_jax.fitting.constants.least_squares`). The
 constants are named and positive (a stiffness, an inertia, a damping time) and are fitted as their
 logarithms. One compiled program returns the residuals and their forward-mode Jacobian: through the
 eigenvalues of the Bloch matrix (:func:`rbo_jax.lattice.dispersion`) or of a rod's linearisation
@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..fitting._constants import (
+from ..fitting.constants import (
     AbstractMeasurements,
     LatticeFit,
     Residuals,
