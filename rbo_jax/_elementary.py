@@ -19,17 +19,29 @@ third is within 4e-15 of mpmath (``tests/test_kinematics_accuracy.py``).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
 __all__ = ["atan2_nonnegative", "cot", "horner", "sin_cos"]
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def horner(coeffs: tuple[float, ...], t):
+    r"""$\sum_n c_n t^n$ by Horner's rule; its derivative $\sum_n n c_n t^{n-1}$ by the same rule
+    (a polynomial of its own, not the derivative of the recurrence)."""
     out = jnp.full_like(t, coeffs[-1])
     for c in reversed(coeffs[:-1]):
         out = out * t + c
     return out
+
+
+@horner.defjvp
+def _horner_jvp(coeffs, primals, tangents):
+    (t,), (dt,) = primals, tangents
+    slope = tuple(n * c for n, c in enumerate(coeffs))[1:] or (0.0,)
+    return horner(coeffs, t), horner(slope, t) * dt
 
 
 # fdlibm's kernels on |r| <= pi/4. cot(h): over h in [0.5, 3.12] within 61 ulp of mpmath, like
